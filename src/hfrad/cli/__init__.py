@@ -1,0 +1,40 @@
+"""The ``hfrad`` command line: one module per command, each with ``register(app)``."""
+
+from __future__ import annotations
+
+import typer
+
+app = typer.Typer(
+    name="hfrad",
+    help="Radiosity with infinite bounces: precompute a scene once, re-light it in milliseconds.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+
+
+@app.callback()
+def _root(
+    version: bool = typer.Option(False, "--version", help="Print the version and exit.", is_eager=True),
+) -> None:
+    """Radiosity with infinite bounces: precompute a scene once, re-light it in milliseconds."""
+    if version:
+        from .. import __version__
+
+        typer.echo(f"hfrad {__version__}")
+        raise typer.Exit()
+
+
+def _register_commands() -> None:
+    from . import info
+
+    for module in (info,):
+        module.register(app)
+
+
+_register_commands()
+
+
+def main() -> None:
+    """Entry point of the ``hfrad`` console script."""
+    app()

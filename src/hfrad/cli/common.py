@@ -1,0 +1,54 @@
+"""What the CLI commands share: scene options, error reporting, progress bars."""
+
+from __future__ import annotations
+
+import contextlib
+from typing import Iterator, Optional
+
+import typer
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+console = Console(stderr=True, soft_wrap=True)
+
+# Shared option declarations so every command spells them the same way.
+MaxEdgeOption = typer.Option(None, "--max-edge", help="Split faces into patches no longer than this (metres).")
+PatchesOption = typer.Option(None, "--patches", help="Split faces to roughly this many patches.")
+UnitScaleOption = typer.Option(1.0, "--unit-scale", help="Multiply coordinates by this to get metres.")
+EmitOption = typer.Option(None, "--emit", help="Make a material or group emit: NAME=R,G,B (W/m^2). Repeatable.")
+AreaLightOption = typer.Option(None, "--area-light", help="Add a rectangular light under the ceiling: R,G,B (W/m^2).")
+DefaultReflectanceOption = typer.Option(0.7, "--default-reflectance", help="Grey reflectance for faces with no material.")
+QuietOption = typer.Option(False, "--quiet", "-q", help="No progress bars.")
+
+
+def fail(message: str, code: int = 2) -> "typer.Exit":
+    """Print an error message (no traceback) and exit with ``code``."""
+    console.print(f"[bold red]error:[/] {message}", highlight=False)
+    raise typer.Exit(code)
+
+
+@contextlib.contextmanager
+def user_errors() -> Iterator[None]:
+    """Turn the library's input errors into a one-line message and exit code 2."""
+    from ..errors import FileFormatError, MemoryLimitError, SceneError
+
+    try:
+        yield
+    except (SceneError, FileFormatError, MemoryLimitError, ValueError, FileNotFoundError, ImportError) as exc:
+        fail(str(exc))
+
+
+@contextlib.contextmanager
+def progress_bar(description: str, quiet: bool = False) -> Iterator:
+    """A rich progress bar; yields a ``progress(done, total)`` callback (None when quiet)."""
+    if quiet:
+        yield None
+        return
+    with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
+                  TimeElapsedColumn(), TimeRemainingColumn(), console=console, transient=False) as bar:
+        task = bar.add_task(description, total=None)
+
+        def update(done: int, total: int) -> None:
+            bar.update(task, completed=done, total=total)
+
+        yield update

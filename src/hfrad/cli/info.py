@@ -1,0 +1,99 @@
+"""``hfrad info SCENE``: what a scene holds, before any computation."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import List, Optional
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from . import common
+
+
+def parse_emit(values: Optional[List[str]]) -> dict[str, tuple[float, float, float]]:
+    """``['light=17,12,4', 'lamp=5']`` -> ``{'light': (17, 12, 4), 'lamp': (5, 5, 5)}``."""
+    out = {}
+    for item in values or []:
+        name, sep, rgb = item.rpartition("=")
+        try:
+            numbers = tuple(float(x) for x in rgb.split(","))
+        except ValueError:
+            numbers = ()
+        if not sep or not name or len(numbers) not in (1, 3):
+            raise typer.BadParameter(f"expected NAME=R,G,B or NAME=V, got {item!r}")
+        out[name] = numbers * 3 if len(numbers) == 1 else numbers
+    return out
+
+
+def parse_rgb(value: Optional[str]) -> Optional[tuple[float, ...]]:
+    if value is None:
+        return None
+    try:
+        numbers = tuple(float(x) for x in value.split(","))
+    except ValueError:
+        numbers = ()
+    if len(numbers) not in (1, 3):
+        raise typer.BadParameter(f"expected R,G,B or V, got {value!r}")
+    return numbers * 3 if len(numbers) == 1 else numbers
+
+
+def load_scene_from_options(scene: str, *, unit_scale: float = 1.0, emit=None, area_light=None,
+                            default_reflectance: float = 0.7, allow_missing_materials: bool = False,
+                            max_edge=None, patches=None):
+    """Load a scene the way every command does, from its CLI options."""
+    from ..scene.load import load_scene
+
+    return load_scene(scene, unit_scale=unit_scale, emit=parse_emit(emit), area_light=parse_rgb(area_light),
+                      default_reflectance=default_reflectance,
+                      allow_missing_materials=allow_missing_materials, max_edge=max_edge, patches=patches)
+
+
+def register(app: typer.Typer) -> None:
+    @app.command()
+    def info(
+        scene: str = typer.Argument(..., help="Scene file (.obj, .ply, .gltf, .glb) or built-in name (cornell, furnace, ...)."),
+        max_edge: Optional[float] = common.MaxEdgeOption,
+        patches: Optional[int] = common.PatchesOption,
+        unit_scale: float = common.UnitScaleOption,
+        emit: Optional[List[str]] = common.EmitOption,
+        area_light: Optional[str] = common.AreaLightOption,
+        default_reflectance: float = common.DefaultReflectanceOption,
+        allow_missing_materials: bool = typer.Option(False, "--allow-missing-materials", help="Faces whose material is missing get the default reflectance."),
+        as_json: bool = typer.Option(False, "--json", help="Print JSON instead of tables."),
+    ) -> None:
+        """Patch count, area, bounds, materials, emitters and warnings of a scene.
+
+        Memory: about 1 KB per patch (no form factors are computed).
+        """
+        from ..scene.summary import scene_summary
+
+        with common.user_errors():
+            s = load_scene_from_options(scene, unit_scale=unit_scale, emit=emit, area_light=area_light,
+                                        default_reflectance=default_reflectance,
+                                        allow_missing_materials=allow_missing_materials,
+                                        max_edge=max_edge, patches=patches)
+        summary = scene_summary(s)
+        if as_json:
+            typer.echo(json.dumps(summary, indent=2))
+            return
+        _print_summary(summary)
+
+
+def _print_summary(summary: dict) -> None:
+    out = Console()
+    out.print(f"[bold]{summary['scene']}[/]: {summary['patches']:,} patches from {summary['input_faces']:,} faces, "
+              f"{summary['vertices']:,} vertices, area {summary['total_area_m2']:.4g} m^2")
+    lo, hi = summary["bounds_min"], summary["bounds_max"]
+    out.print("bounds: min (" + ", ".join(f"{x:.4g}" for x in lo) + ")  max (" + ", ".join(f"{x:.4g}" for x in hi) + ")")
+    table = Table("material", "reflectance (R,G,B)", "emission W/m^2", "patches", "area m^2")
+    for m in summary["materials"]:
+        table.add_row(m["name"], ", ".join(f"{x:.3g}" for x in m["reflectance"]),
+                      ", ".join(f"{x:.3g}" for x in m["emission"]), f"{m['patches']:,}", f"{m['area']:.4g}")
+    out.print(table)
+    out.print(f"emitters: {summary['emitter_patches']:,} patches ({', '.join(summary['emitter_materials']) or 'none'}), "
+              f"power (W) " + ", ".join(f"{x:.4g}" for x in summary["emitted_power_w"]))
+    for w in summary["warnings"]:
+        out.print(f"[yellow]warning:[/] {w}", highlight=False)

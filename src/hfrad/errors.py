@@ -1,0 +1,28 @@
+"""Exceptions and warnings raised by hfrad.
+
+All derive from builtin bases so that ``except ValueError`` keeps working.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+class SceneError(ValueError):
+    """Bad scene input: names the file, face or material and what is wrong."""
+
+
+class FactorizationError(np.linalg.LinAlgError):
+    """A factorization failed; the message names the block."""
+
+
+class FileFormatError(ValueError):
+    """A file written by hfrad is truncated, corrupted or of a newer version."""
+
+
+class MemoryLimitError(MemoryError):
+    """A requested array would not fit in the memory allowed for it."""
+
+
+class AccuracyWarning(RuntimeWarning):
+    """The result is usable but may be inaccurate (e.g. 1 - sigma_max is tiny)."""

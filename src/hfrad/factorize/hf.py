@@ -1,0 +1,284 @@
+"""HF: the one-pass hierarchical factorization of a matrix given by column blocks.
+
+Aguerre & Fernández 2016, METHOD.md section 5. Column blocks ``A_j`` (n x b_j)
+arrive left to right; each is compressed by a truncated SVD (a leaf) and
+siblings are merged by a thin QR plus a small SVD, driven by a binary counter
+over a stack. Nothing n x n is ever formed: memory is one block plus
+O(log m) factor pairs.
+
+Error accounting
+----------------
+Every truncation discards a matrix ``D`` whose squared Frobenius norm is the sum
+of its dropped squared singular values. These discards are mutually orthogonal
+in the Frobenius inner product ``<X, Y> = trace(X^T Y)``:
+
+* a node's discard has its row space inside the span of the *kept* right
+  factors of its children, ``blockdiag(V_1, V_2)``;
+* a child's own discard has rows orthogonal to its kept ``V_i`` (the dropped
+  right singular vectors are orthogonal to the kept ones), and, by induction,
+  so do the discards of all its descendants restricted to their columns;
+* discards of disjoint column sets are orthogonal trivially.
+
+Hence ``||A - Q V^T||_F^2 = sum of all squared discards`` exactly (up to
+rounding), which is what ``achieved_error`` reports.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from typing import Iterable
+
+import numpy as np
+import scipy.linalg as sla
+
+from ..errors import FactorizationError
+from ..progress import ProgressCallback, report
+from .lowrank import LowRank, sign_fix, truncation_rank
+
+
+@dataclass
+class _Node:
+    """One factored column range: ``A_node ~= U diag(s) V^T``, U and V orthonormal."""
+
+    level: int
+    U: np.ndarray        # (n, k) orthonormal columns
+    s: np.ndarray        # (k,) singular values, descending
+    V: np.ndarray        # (b_node, k) orthonormal columns
+    norm2: float         # exact ||A_node||_F^2 of the original columns (float64)
+    discarded2: float    # sum of squared discards in this subtree
+    slack2: float        # budget given to this subtree and not used yet
+
+
+def _svd(A: np.ndarray, where: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Thin SVD via LAPACK gesdd, falling back to gesvd; FactorizationError names ``where``."""
+    try:
+        return sla.svd(A, full_matrices=False, lapack_driver="gesdd", check_finite=False)
+    except np.linalg.LinAlgError:
+        try:
+            return sla.svd(A, full_matrices=False, lapack_driver="gesvd", check_finite=False)
+        except np.linalg.LinAlgError as exc:
+            raise FactorizationError(f"SVD did not converge in {where}") from exc
+
+
+def _truncate(U, s, Wt, budget2: float):
+    """Keep the smallest rank fitting ``budget2``; returns (U_k, s_k, Wt_k, discarded2)."""
+    k, discarded2 = truncation_rank(s, budget2)
+    U, s, Wt = U[:, :k], s[:k], Wt[:k]
+    sign_fix(U, Wt)
+    return U, s, Wt, discarded2
+
+
+def _leaf(A: np.ndarray, norm2: float, budget2: float, j: int) -> _Node:
+    """Compress one column block ``A_j`` (n x b) by a truncated thin SVD."""
+    n, b = A.shape
+    if norm2 == 0.0 or n == 0:
+        return _Node(0, np.zeros((n, 0), A.dtype), np.zeros(0, A.dtype),
+                     np.zeros((b, 0), A.dtype), norm2, 0.0, budget2)
+    U, s, Wt = _svd(A, f"leaf block {j}")
+    U, s, Wt, d2 = _truncate(U, s, Wt, budget2)
+    return _Node(0, np.ascontiguousarray(U), s, np.ascontiguousarray(Wt.T), norm2, d2, budget2 - d2)
+
+
+def _orthogonalize(U1: np.ndarray, U2: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Write ``U2 = U1 C + Q2 R2`` with ``[U1 Q2]`` orthonormal (block CGS2 + Householder QR)."""
+    C = U1.T @ U2
+    W = U2 - U1 @ C
+    C2 = U1.T @ W          # second Gram-Schmidt pass: keeps float32 orthogonality
+    W -= U1 @ C2
+    C += C2
+    Q2, R2 = sla.qr(W, mode="economic", overwrite_a=True, check_finite=False)
+    return C, Q2, R2
+
+
+def _merge(a: _Node, b: _Node, share2: float, where: str) -> _Node:
+    """Merge two adjacent nodes (a left of b) into one, truncating within budget.
+
+    ``[Q1 Q2] = [U1 Q2~] M`` with ``M = [[S1, C S2], [0, R2 S2]]``, ``M = U_r S W^T``;
+    then ``Q = [U1 Q2~] U_r S`` and ``V = blockdiag(V1, V2) W``.
+    """
+    norm2 = a.norm2 + b.norm2
+    budget2 = share2 + a.slack2 + b.slack2
+    ka, kb = a.s.size, b.s.size
+    n, dtype = a.U.shape[0], a.U.dtype
+    ba, bb = a.V.shape[0], b.V.shape[0]
+    level = max(a.level, b.level) + 1
+    if ka + kb == 0:
+        return _Node(level, a.U, a.s, np.zeros((ba + bb, 0), dtype), norm2,
+                     a.discarded2 + b.discarded2, budget2)
+    if kb == 0 or ka == 0:
+        # nothing to merge: the non-empty child already is an SVD of the node
+        Ur, s = (a.U, a.s) if kb == 0 else (b.U, b.s)
+        V = np.zeros((ba + bb, Ur.shape[1]), dtype)
+        if kb == 0:
+            V[:ba] = a.V
+        else:
+            V[ba:] = b.V
+        M_U, s_, M_Wt = np.eye(s.size, dtype=dtype), s, np.eye(s.size, dtype=dtype)
+        M_U, s_, M_Wt, d2 = _truncate(M_U, s_, M_Wt, budget2)
+        return _Node(level, Ur @ M_U, s_, V @ M_Wt.T, norm2, a.discarded2 + b.discarded2 + d2, budget2 - d2)
+    C, Q2, R2 = _orthogonalize(a.U, b.U)
+    p = Q2.shape[1]
+    M = np.zeros((ka + p, ka + kb), dtype)
+    M[np.arange(ka), np.arange(ka)] = a.s
+    M[:ka, ka:] = C * b.s
+    M[ka:, ka:] = R2 * b.s
+    Ur, s, Wt = _svd(M, where)
+    Ur, s, Wt, d2 = _truncate(Ur, s, Wt, budget2)
+    U = a.U @ Ur[:ka] + Q2 @ Ur[ka:]
+    V = np.empty((ba + bb, s.size), dtype)
+    V[:ba] = a.V @ Wt[:, :ka].T
+    V[ba:] = b.V @ Wt[:, ka:].T
+    return _Node(level, U, s, V, norm2, a.discarded2 + b.discarded2 + d2, budget2 - d2)
+
+
+class _Budget:
+    """Squared-Frobenius budget of each truncation (see module docstring).
+
+    Relative mode: a leaf may discard ``leaf_share eps^2 ||A_j||^2`` and a merge
+    node ``(1 - leaf_share) / L eps^2 ||A_node||^2`` with ``L = ceil(log2 m)``;
+    every column lies under at most L merge nodes of the binary-counter tree,
+    so the total is <= ``eps^2 ||A||^2``. Absolute mode: ``eps^2 / (2m - 1)`` for
+    each of the 2m - 1 truncations. Budget a node leaves unused is passed up to
+    its parent (``slack2``), which keeps the total within target and brings
+    the rank closer to optimal.
+    """
+
+    def __init__(self, eps: float, relative: bool, m: int, leaf_share: float):
+        self.eps2, self.relative, self.m = eps * eps, relative, m
+        self.levels = max(math.ceil(math.log2(m)), 0) if m > 0 else 0
+        self.leaf_share = 1.0 if self.levels == 0 else leaf_share
+
+    def leaf(self, norm2: float) -> float:
+        if self.relative:
+            return self.leaf_share * self.eps2 * norm2
+        return self.eps2 / (2 * self.m - 1)
+
+    def merge(self, norm2: float) -> float:
+        if self.relative:
+            return (1.0 - self.leaf_share) / self.levels * self.eps2 * norm2
+        return self.eps2 / (2 * self.m - 1)
+
+
+def _count_blocks(blocks, n_blocks: int | None) -> int:
+    if n_blocks is not None:
+        return int(n_blocks)
+    try:
+        return len(blocks)
+    except TypeError:
+        raise ValueError("the number of column blocks must be known up front to split the error "
+                         "budget: pass n_blocks=m, or give blocks as a sized sequence") from None
+
+
+def hierarchical_factorization(blocks: Iterable[np.ndarray], n: int, *, eps: float = 0.02,
+                               relative: bool = True, dtype=np.float32, leaf_share: float = 0.5,
+                               n_blocks: int | None = None,
+                               progress: ProgressCallback = None) -> LowRank:
+    """Factor ``A = (A_1 ... A_m) ~= Q V^T`` in one pass over its column blocks.
+
+    ``||A - Q V^T||_F <= eps ||A||_F`` (relative) or ``<= eps`` (absolute),
+    guaranteed by the error budget and reported as achieved.
+
+    Parameters
+    ----------
+    blocks : iterable of (n, b_j) array_like
+        Consecutive column blocks of A, left to right. Each is read once and
+        may be dropped by the caller afterwards (a generator is fine).
+    n : int
+        Number of rows of A.
+    eps : float, keyword-only
+        Frobenius tolerance, relative to ``||A||_F`` unless ``relative=False``.
+    relative : bool
+    dtype : numpy float dtype
+        Working precision (float32 or float64); norms accumulate in float64.
+    leaf_share : float in (0, 1]
+        Fraction of the squared budget given to the leaves.
+    n_blocks : int, optional
+        m, the number of blocks; needed when ``blocks`` has no ``len``.
+    progress : callable (done, total), optional
+
+    Returns
+    -------
+    LowRank
+        ``Q`` (n, k) = U S, ``V`` (N, k) orthonormal, N = sum b_j, with
+        ``achieved_error`` = sqrt(sum of squared discards) = ``||A - Q V^T||_F``.
+
+    Raises
+    ------
+    ValueError
+        Bad eps/leaf_share, unknown block count, or a block with the wrong
+        number of rows.
+    FactorizationError
+        An SVD did not converge (names the block).
+
+    Notes
+    -----
+    Cost O(n b^2) per leaf and O(n (k1 + k2)^2) per merge; memory one block plus
+    O(log m) factor pairs. Aguerre & Fernández 2016, section 3; METHOD.md
+    section 5.
+
+    Examples
+    --------
+    >>> rng = np.random.default_rng(0)
+    >>> A = rng.standard_normal((60, 8)) @ rng.standard_normal((8, 60))
+    >>> lr = hierarchical_factorization([A[:, i:i + 16] for i in range(0, 60, 16)], 60,
+    ...                                 eps=1e-3, dtype=np.float64)
+    >>> bool(np.linalg.norm(A - lr.Q @ lr.V.T) <= 1e-3 * np.linalg.norm(A))
+    True
+    """
+    if not (eps >= 0 and np.isfinite(eps)):
+        raise ValueError(f"eps must be a finite number >= 0; got {eps!r}")
+    if not (0.0 < leaf_share <= 1.0):
+        raise ValueError(f"leaf_share must be in (0, 1]; got {leaf_share!r}")
+    dtype = np.dtype(dtype)
+    m = _count_blocks(blocks, n_blocks)
+    budget = _Budget(float(eps), relative, max(m, 1), leaf_share)
+    t0 = time.perf_counter()
+    t_leaf = t_merge = 0.0
+    stack: list[_Node] = []
+    leaf_ranks: list[int] = []
+    n_cols = 0
+    j = -1
+    for j, block in enumerate(blocks):
+        A = np.asarray(block, dtype=dtype)
+        if A.ndim != 2 or A.shape[0] != n:
+            raise ValueError(f"column block {j} must have shape ({n}, b); got {A.shape}")
+        n_cols += A.shape[1]
+        t = time.perf_counter()
+        norm2 = float(np.sum(np.square(A, dtype=np.float64)))
+        node = _leaf(A, norm2, budget.leaf(norm2), j)
+        del A
+        leaf_ranks.append(node.s.size)
+        t_leaf += time.perf_counter() - t
+        t = time.perf_counter()
+        while stack and stack[-1].level == node.level:   # binary counter
+            left = stack.pop()
+            node = _merge(left, node, budget.merge(left.norm2 + node.norm2), f"merge ending at block {j}")
+        stack.append(node)
+        t_merge += time.perf_counter() - t
+        report(progress, j + 1, m)
+    if j + 1 != m and n_blocks is not None:
+        raise ValueError(f"n_blocks={m} but {j + 1} column blocks were given")
+    t = time.perf_counter()
+    if not stack:
+        stack.append(_Node(0, np.zeros((n, 0), dtype), np.zeros(0, dtype), np.zeros((0, 0), dtype),
+                           0.0, 0.0, 0.0))
+    while len(stack) > 1:        # remaining nodes, top (smallest) down
+        right = stack.pop()
+        left = stack.pop()
+        stack.append(_merge(left, right, budget.merge(left.norm2 + right.norm2), "final merge"))
+    root = stack[0]
+    # Spend what the tree left unused on the root: its discard is orthogonal to all others.
+    Ur, s, Wt, d2 = _truncate(np.eye(root.s.size, dtype=dtype), root.s,
+                              np.eye(root.s.size, dtype=dtype), root.slack2)
+    U, V = root.U @ Ur, root.V @ Wt.T
+    discarded2 = root.discarded2 + d2
+    t_merge += time.perf_counter() - t
+    Q = U * s
+    info = {"time_total": time.perf_counter() - t0, "time_leaf": t_leaf, "time_merge": t_merge,
+            "n_blocks": j + 1, "leaf_ranks": leaf_ranks, "dtype": dtype.name,
+            "leaf_share": leaf_share}
+    return LowRank(Q=Q, V=V, achieved_error=math.sqrt(max(discarded2, 0.0)),
+                   norm=math.sqrt(sum(x.norm2 for x in [root])), eps=float(eps),
+                   relative=relative, method="hf", info=info)

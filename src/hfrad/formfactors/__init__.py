@@ -1,0 +1,1 @@
+"""Form factors with visibility: kernels, ray casting, column blocks."""

@@ -1,0 +1,154 @@
+"""A pinhole camera and its primary rays.
+
+Conventions: right-handed world, ``up`` is usually +y, the image's first row is
+its top. A pixel (i, j) looks through the centre of its square,
+
+    d = normalize(forward + x * tan(fov/2) * aspect * right + y * tan(fov/2) * up'),
+    x = 2 (j + 1/2) / W - 1,   y = 1 - 2 (i + 1/2) / H,
+
+with ``fov`` the *vertical* field of view and ``aspect = W / H``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+#: Field of view of the named views, degrees (the classic Cornell box camera is ~39.3).
+DEFAULT_FOV = 40.0
+_MARGIN = 1.05  # framing slack so the scene does not touch the image border
+
+
+@dataclass(frozen=True)
+class Camera:
+    """A pinhole camera.
+
+    Parameters
+    ----------
+    position, target : (3,) float, metres
+        Eye point and the point it looks at (the image centre).
+    up : (3,) float
+        Approximate up direction; made orthogonal to the view direction.
+    fov : float, degrees
+        Vertical field of view, in (0, 180).
+    """
+
+    position: tuple[float, float, float]
+    target: tuple[float, float, float]
+    up: tuple[float, float, float] = (0.0, 1.0, 0.0)
+    fov: float = DEFAULT_FOV
+
+    def __post_init__(self) -> None:
+        p, t, u = (np.asarray(v, dtype=np.float64).reshape(3) for v in (self.position, self.target, self.up))
+        if not (np.isfinite(p).all() and np.isfinite(t).all() and np.isfinite(u).all()):
+            raise ValueError(f"camera position, target and up must be finite, got {p}, {t}, {u}")
+        if np.linalg.norm(t - p) == 0:
+            raise ValueError(f"camera target must differ from its position, both are {tuple(p)}")
+        if not 0 < self.fov < 180:
+            raise ValueError(f"camera fov must be in (0, 180) degrees, got {self.fov}")
+        f = (t - p) / np.linalg.norm(t - p)
+        if np.linalg.norm(np.cross(f, u)) < 1e-9 * max(np.linalg.norm(u), 1e-300):
+            raise ValueError(f"camera up {tuple(u)} is parallel to the view direction {tuple(f)}; "
+                             "give another up vector")
+        object.__setattr__(self, "position", tuple(map(float, p)))
+        object.__setattr__(self, "target", tuple(map(float, t)))
+        object.__setattr__(self, "up", tuple(map(float, u)))
+
+    # -- frame ------------------------------------------------------------------
+    def basis(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Orthonormal (forward, right, up) of the image plane."""
+        p, t, u = np.array(self.position), np.array(self.target), np.array(self.up)
+        forward = (t - p) / np.linalg.norm(t - p)
+        right = np.cross(forward, u)
+        right /= np.linalg.norm(right)
+        return forward, right, np.cross(right, forward)
+
+    def rays(self, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+        """Primary rays through pixel centres.
+
+        Returns
+        -------
+        origins : (height * width, 3) float
+            All equal to ``position``.
+        directions : (height * width, 3) float, unit
+            Row-major, first row at the top of the image.
+        """
+        forward, right, up = self.basis()
+        half_h = math.tan(math.radians(self.fov) / 2)
+        half_w = half_h * width / height
+        x = ((np.arange(width) + 0.5) * (2.0 / width) - 1.0) * half_w
+        y = (1.0 - (np.arange(height) + 0.5) * (2.0 / height)) * half_h
+        d = forward[None, None] + x[None, :, None] * right + y[:, None, None] * up
+        d = d.reshape(-1, 3)
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        origins = np.broadcast_to(np.array(self.position), d.shape)
+        return np.ascontiguousarray(origins), d
+
+    # -- named views --------------------------------------------------------------
+    @classmethod
+    def front(cls, bounds: np.ndarray, *, aspect: float = 1.0, fov: float = DEFAULT_FOV) -> "Camera":
+        """Straight view along -z onto the scene's bounding box, from the +z side.
+
+        For the Cornell box (x, z in [-1, 1], y in [0, 2]) this is the classic
+        camera: position ~(0, 1, 3.9), target (0, 1, 0), looking in through the
+        open (here: back-facing, hence transparent) front wall.
+        """
+        lo, hi = np.asarray(bounds, dtype=np.float64)
+        centre, half = (lo + hi) / 2, np.maximum((hi - lo) / 2, 1e-9)
+        tan_v = math.tan(math.radians(fov) / 2)
+        # the front face of the box must fit both vertically and horizontally
+        dist = _MARGIN * max(half[1] / tan_v, half[0] / (tan_v * aspect)) + half[2]
+        return cls(tuple(centre + [0.0, 0.0, dist]), tuple(centre), (0.0, 1.0, 0.0), fov)
+
+    @classmethod
+    def auto(cls, bounds: np.ndarray, *, aspect: float = 1.0, fov: float = DEFAULT_FOV,
+             azimuth: float = 30.0, elevation: float = 20.0) -> "Camera":
+        """Three-quarter view of the bounding sphere of ``bounds``.
+
+        The camera sits ``azimuth`` degrees to the right of +z (around +y) and
+        ``elevation`` degrees above the horizontal plane through the bounding
+        box centre, far enough for the whole bounding sphere to fit the image.
+        Walls seen from behind are transparent in :func:`~hfrad.render.render_image`,
+        so closed rooms show their inside like a cut-away drawing.
+        """
+        lo, hi = np.asarray(bounds, dtype=np.float64)
+        centre = (lo + hi) / 2
+        radius = max(float(np.linalg.norm(hi - lo)) / 2, 1e-9)
+        half_v = math.radians(fov) / 2
+        half_fov = min(half_v, math.atan(math.tan(half_v) * aspect))  # the narrower of the two
+        dist = _MARGIN * radius / math.sin(half_fov)
+        az, el = math.radians(azimuth), math.radians(elevation)
+        offset = dist * np.array([math.sin(az) * math.cos(el), math.sin(el), math.cos(az) * math.cos(el)])
+        return cls(tuple(centre + offset), tuple(centre), (0.0, 1.0, 0.0), fov)
+
+    @classmethod
+    def parse(cls, spec: "str | Camera", bounds: np.ndarray, *, aspect: float = 1.0) -> "Camera":
+        """A camera from ``'auto'``, ``'front'`` or ``'x,y,z:tx,ty,tz[:fov]'``.
+
+        Raises
+        ------
+        ValueError
+            For any other string, quoting it and the accepted forms.
+        """
+        if isinstance(spec, Camera):
+            return spec
+        text = str(spec).strip()
+        if text == "auto":
+            return cls.auto(bounds, aspect=aspect)
+        if text == "front":
+            return cls.front(bounds, aspect=aspect)
+        parts = text.split(":")
+        try:
+            if len(parts) not in (2, 3):
+                raise ValueError
+            pos = [float(v) for v in parts[0].split(",")]
+            tgt = [float(v) for v in parts[1].split(",")]
+            fov = float(parts[2]) if len(parts) == 3 else DEFAULT_FOV
+            if len(pos) != 3 or len(tgt) != 3:
+                raise ValueError
+        except ValueError:
+            raise ValueError(f"camera must be 'auto', 'front' or 'x,y,z:tx,ty,tz[:fov_degrees]', "
+                             f"got '{text}'") from None
+        return cls(tuple(pos), tuple(tgt), (0.0, 1.0, 0.0), fov)

@@ -1,0 +1,96 @@
+"""Primary rays against the patch mesh, seeing only the front of each patch.
+
+The rays are cast on the patches themselves (``scene.vertices``/``faces``,
+not the occluder mesh) so that the face id of a hit is the patch id. Embree
+does not cull back faces, so a hit on a patch whose normal points away from the
+ray is treated as transparent: the ray is re-cast from just past it, until it
+hits a front face or escapes. This is what lets a camera outside the closed
+Cornell box look in through the back of its front wall, the usual convention
+for one-sided radiosity patches (their back side has no radiosity).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..formfactors.raycast import RayCaster
+
+#: Most back faces a ray may pass through before it is given up as escaped.
+MAX_LAYERS = 64
+
+
+def patch_caster(scene, threads: int | None = None) -> RayCaster:
+    """A :class:`RayCaster` over the scene's patches (face id = patch id)."""
+    return RayCaster(scene.vertices, scene.faces, threads=threads)
+
+
+def trace_front(scene, origins: np.ndarray, directions: np.ndarray, *,
+                caster: RayCaster | None = None, max_layers: int = MAX_LAYERS
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """First front-facing patch along each ray.
+
+    Parameters
+    ----------
+    scene : Scene
+    origins, directions : (r, 3) float
+        Directions need not be unit; distances are in units of their length.
+    caster : RayCaster, optional
+        Built with :func:`patch_caster`; reuse it across frames.
+    max_layers : int
+        Back faces a ray may pass through.
+
+    Returns
+    -------
+    face : (r,) int, patch id or -1 where the ray escapes
+    distance : (r,) float, ray parameter of the hit (inf where none)
+    uv : (r, 2) float, barycentric weights of corners 1 and 2 of the patch
+    """
+    caster = caster or patch_caster(scene)
+    origins = np.asarray(origins, dtype=np.float64)
+    directions = np.asarray(directions, dtype=np.float64)
+    r = len(origins)
+    face = np.full(r, -1, np.int64)
+    dist = np.full(r, np.inf)
+    uv = np.zeros((r, 2))
+    if r == 0 or scene.n_patches == 0:
+        return face, dist, uv
+    # Step past a back face by a length that float32 (Embree's precision)
+    # resolves at these coordinates, yet far below any patch size.
+    lo, hi = scene.bounds
+    size = max(float(np.abs(np.r_[lo, hi]).max()), float(np.abs(origins).max()), float(np.linalg.norm(hi - lo)))
+    step = 1e-5 * (size or 1.0)
+    normals = scene.normals
+    travelled = np.zeros(r)
+    active = np.arange(r)
+    for _ in range(max_layers):
+        if not len(active):
+            break
+        d = directions[active]
+        o = origins[active] + travelled[active, None] * d
+        f, t, bary = caster.intersect(o, d)
+        hit = f >= 0
+        front = np.zeros(len(active), bool)
+        front[hit] = np.einsum("ij,ij->i", normals[f[hit]], d[hit]) < 0
+        done = active[front]
+        face[done] = f[front]
+        dist[done] = travelled[done] + t[front]
+        uv[done] = bary[front]
+        back = hit & ~front
+        travelled[active[back]] += t[back] + step
+        active = active[back]
+    return face, dist, uv
+
+
+def trace_camera(scene, camera, width: int, height: int, *, caster: RayCaster | None = None
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Primary hits of a camera's pixels.
+
+    Returns
+    -------
+    face : (height, width) int, -1 for background
+    distance : (height, width) float
+    uv : (height, width, 2) float
+    """
+    origins, directions = camera.rays(width, height)
+    face, dist, uv = trace_front(scene, origins, directions, caster=caster)
+    return face.reshape(height, width), dist.reshape(height, width), uv.reshape(height, width, 2)

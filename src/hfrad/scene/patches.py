@@ -1,0 +1,154 @@
+"""Cutting input faces into patches.
+
+Each triangle is split uniformly into m x m congruent sub-triangles, with m
+chosen from its longest edge. New vertices are shared between neighbouring
+patches (merged by position), so rendering can interpolate radiosity smoothly.
+Subdivision conserves each face's area exactly (up to rounding).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..errors import SceneError
+from .scene import Scene
+
+
+def _edge_lengths(tri: np.ndarray) -> np.ndarray:
+    """(n, 3, 3) triangles -> (n,) longest edge length."""
+    e = np.stack([tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 1], tri[:, 0] - tri[:, 2]], axis=1)
+    return np.linalg.norm(e, axis=2).max(axis=1)
+
+
+def splits_for_edge(scene: Scene, max_edge: float) -> np.ndarray:
+    """(n,) int: splits per edge so that no sub-triangle edge exceeds ``max_edge``."""
+    return np.maximum(1, np.ceil(_edge_lengths(scene.triangles) / max_edge - 1e-9)).astype(np.int64)
+
+
+def max_edge_for_count(scene: Scene, patches: int) -> float:
+    """Longest-edge limit giving approximately ``patches`` patches (bisection)."""
+    longest = _edge_lengths(scene.triangles)
+    if patches <= len(longest):
+        return float(longest.max())
+    lo, hi = float(longest.max()) / math.sqrt(patches) / 100, float(longest.max())
+    for _ in range(60):
+        mid = math.sqrt(lo * hi)
+        count = int((np.maximum(1, np.ceil(longest / mid - 1e-9)) ** 2).sum())
+        if count > patches:
+            lo = mid
+        else:
+            hi = mid
+    # choose whichever bracket is closer to the requested count
+    def count(L: float) -> int:
+        return int((np.maximum(1, np.ceil(longest / L - 1e-9)) ** 2).sum())
+    return lo if abs(count(lo) - patches) < abs(count(hi) - patches) else hi
+
+
+def _grid_pattern(m: int) -> tuple[np.ndarray, np.ndarray]:
+    """Barycentric grid of a triangle split m x m.
+
+    Returns the (p, 2) integer (i, j) lattice coordinates (weights i/m on corner 1,
+    j/m on corner 2) and the (m*m, 3) sub-triangles as indices into them.
+    """
+    ij = np.array([(i, j) for j in range(m + 1) for i in range(m + 1 - j)], dtype=np.int64)
+    index = {tuple(p): k for k, p in enumerate(ij)}
+    tris = []
+    for j in range(m):
+        for i in range(m - j):
+            tris.append((index[i, j], index[i + 1, j], index[i, j + 1]))
+            if i + j + 2 <= m:
+                tris.append((index[i + 1, j], index[i + 1, j + 1], index[i, j + 1]))
+    return ij, np.array(tris, dtype=np.int64)
+
+
+def subdivide(scene: Scene, *, max_edge: float | None = None, patches: int | None = None) -> Scene:
+    """Split the scene's faces into patches no longer than ``max_edge``.
+
+    Parameters
+    ----------
+    scene : Scene
+    max_edge : float, metres, optional
+        Longest allowed patch edge.
+    patches : int, optional
+        Target patch count instead of ``max_edge`` (met approximately).
+
+    Returns
+    -------
+    Scene
+        Same materials and groups; ``parent`` maps each patch to its input face;
+        the input faces are kept as the occluder mesh for ray casting.
+    """
+    if max_edge is not None and patches is not None:
+        raise ValueError("give either max_edge or patches, not both")
+    if patches is not None:
+        if patches < 1:
+            raise ValueError(f"patches must be >= 1, got {patches}")
+        max_edge = max_edge_for_count(scene, patches)
+    if max_edge is None:
+        return scene
+    if not (max_edge > 0 and math.isfinite(max_edge)):
+        raise ValueError(f"max_edge must be a positive length, got {max_edge}")
+    splits = splits_for_edge(scene, max_edge)
+    if (splits == 1).all():
+        return scene
+    tri = scene.triangles
+    points, faces, owner = [], [], []
+    offset = 0
+    for m in np.unique(splits):
+        sel = np.flatnonzero(splits == m)
+        ij, sub = _grid_pattern(int(m))
+        w1, w2 = ij[:, 0] / m, ij[:, 1] / m
+        w0 = 1.0 - w1 - w2
+        t = tri[sel]  # (s, 3, 3)
+        pts = (w0[None, :, None] * t[:, None, 0] + w1[None, :, None] * t[:, None, 1]
+               + w2[None, :, None] * t[:, None, 2])  # (s, p, 3)
+        base = offset + np.arange(len(sel))[:, None, None] * len(ij)
+        faces.append((base + sub[None]).reshape(-1, 3))
+        owner.append(np.repeat(sel, len(sub)))
+        points.append(pts.reshape(-1, 3))
+        offset += len(sel) * len(ij)
+    points_all = np.concatenate(points)
+    faces_all = np.concatenate(faces)
+    owner_all = np.concatenate(owner)
+    vertices, faces_all = _merge_vertices(points_all, faces_all, scene)
+    order = np.argsort(owner_all, kind="stable")  # keep patches of one face together
+    faces_all, owner_all = faces_all[order], owner_all[order]
+    return Scene(
+        vertices=vertices, faces=faces_all, material=scene.material[owner_all],
+        materials=scene.materials, group=scene.group[owner_all], groups=scene.groups,
+        reflectance=scene.reflectance[owner_all], emission=scene.emission[owner_all],
+        parent=scene.parent[owner_all],
+        occluder_vertices=scene.occluder_vertices, occluder_faces=scene.occluder_faces,
+        name=scene.name, warnings=scene.warnings,
+    )
+
+
+def _merge_vertices(points: np.ndarray, faces: np.ndarray, scene: Scene) -> tuple[np.ndarray, np.ndarray]:
+    """Merge coincident points so neighbouring patches share vertices."""
+    scale = float(np.abs(scene.bounds).max()) or 1.0
+    key = np.rint(points / (scale * 1e-9)).astype(np.int64)
+    _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    return points[first], inverse.reshape(-1)[faces]
+
+
+def drop_degenerate(scene: Scene, *, rel_area: float = 1e-12) -> Scene:
+    """Remove zero-area (or NaN-area) patches, with a warning that counts them."""
+    tol = rel_area * max(float(np.nanmax(scene.areas, initial=0.0)), 1e-300)
+    keep = scene.areas > tol
+    dropped = int((~keep).sum())
+    if dropped == 0:
+        return scene
+    if not keep.any():
+        raise SceneError(f"{scene.name}: every face is degenerate (zero area)")
+    first = np.flatnonzero(~keep)[:5].tolist()
+    note = f"dropped {dropped} degenerate (zero-area) faces, e.g. faces {first}"
+    return Scene(
+        vertices=scene.vertices, faces=scene.faces[keep], material=scene.material[keep],
+        materials=scene.materials, group=scene.group[keep], groups=scene.groups,
+        reflectance=scene.reflectance[keep], emission=scene.emission[keep],
+        parent=scene.parent[keep], occluder_vertices=scene.occluder_vertices,
+        occluder_faces=scene.occluder_faces, name=scene.name,
+        warnings=scene.warnings + (note,),
+    )

@@ -1,0 +1,202 @@
+"""The patch scene: triangles with reflectance and emission, the input of the pipeline.
+
+A :class:`Scene` is an immutable set of triangular patches. Each patch carries a
+material (reflectance and emitted exitance per RGB channel) and a group name.
+Geometry-derived arrays (areas, normals, centroids) are computed once and
+returned read-only, like trimesh's cached properties.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import numpy as np
+
+from ..errors import SceneError
+
+
+@dataclass(frozen=True)
+class Material:
+    """A Lambertian material.
+
+    Attributes
+    ----------
+    name : str
+    reflectance : (3,) float in [0, 1)
+        Diffuse reflectance (albedo) per RGB channel.
+    emission : (3,) float >= 0, W/m^2
+        Emitted exitance per RGB channel.
+    """
+
+    name: str
+    reflectance: tuple[float, float, float]
+    emission: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    @property
+    def is_emitter(self) -> bool:
+        return max(self.emission) > 0.0
+
+
+def _readonly(a: np.ndarray) -> np.ndarray:
+    a = np.ascontiguousarray(a)
+    a.flags.writeable = False
+    return a
+
+
+@dataclass(frozen=True, eq=False)
+class Scene:
+    """Triangular patches with materials, in the user's patch order.
+
+    Parameters
+    ----------
+    vertices : (v, 3) float, metres
+    faces : (n, 3) int
+        Vertex indices of each patch, counter-clockwise seen from the front
+        (the side the normal points to, the side that emits and reflects).
+    material : (n,) int
+        Index into ``materials`` for each patch.
+    materials : tuple of Material
+    group : (n,) int, optional
+        Index into ``groups`` (OBJ ``g``/``o`` names); all zero if absent.
+    groups : tuple of str, optional
+    reflectance, emission : (n, 3) float, optional
+        Per-patch overrides; default to the patch's material values.
+    parent : (n,) int, optional
+        Index of the input face each patch was cut from (identity if absent).
+    occluder_vertices, occluder_faces : optional
+        The un-subdivided mesh used for ray casting. Patches lie on its faces,
+        so visibility is exact with it and much cheaper than with the patches.
+    name : str
+        Where the scene came from (file path or built-in name).
+    warnings : tuple of str
+        What the loader fixed or assumed (dropped faces, default reflectance).
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    material: np.ndarray
+    materials: tuple[Material, ...]
+    group: np.ndarray | None = None
+    groups: tuple[str, ...] = ("default",)
+    reflectance: np.ndarray | None = None
+    emission: np.ndarray | None = None
+    parent: np.ndarray | None = None
+    occluder_vertices: np.ndarray | None = None
+    occluder_faces: np.ndarray | None = None
+    name: str = "scene"
+    warnings: tuple[str, ...] = field(default_factory=tuple)
+
+    def __post_init__(self) -> None:
+        n = len(self.faces)
+        set_ = object.__setattr__
+        set_(self, "vertices", _readonly(np.asarray(self.vertices, dtype=np.float64).reshape(-1, 3)))
+        set_(self, "faces", _readonly(np.asarray(self.faces, dtype=np.int64).reshape(-1, 3)))
+        set_(self, "material", _readonly(np.asarray(self.material, dtype=np.int64).reshape(n)))
+        group = np.zeros(n, np.int64) if self.group is None else self.group
+        set_(self, "group", _readonly(np.asarray(group, dtype=np.int64).reshape(n)))
+        mats = self.materials
+        if self.reflectance is None:
+            rho = np.array([m.reflectance for m in mats], dtype=np.float64).reshape(-1, 3)
+            set_(self, "reflectance", rho[self.material] if n else np.zeros((0, 3)))
+        if self.emission is None:
+            em = np.array([m.emission for m in mats], dtype=np.float64).reshape(-1, 3)
+            set_(self, "emission", em[self.material] if n else np.zeros((0, 3)))
+        set_(self, "reflectance", _readonly(np.asarray(self.reflectance, np.float64).reshape(n, 3)))
+        set_(self, "emission", _readonly(np.asarray(self.emission, np.float64).reshape(n, 3)))
+        parent = np.arange(n) if self.parent is None else self.parent
+        set_(self, "parent", _readonly(np.asarray(parent, dtype=np.int64).reshape(n)))
+        if self.occluder_faces is None:
+            set_(self, "occluder_vertices", self.vertices)
+            set_(self, "occluder_faces", self.faces)
+        else:
+            set_(self, "occluder_vertices", _readonly(np.asarray(self.occluder_vertices, np.float64)))
+            set_(self, "occluder_faces", _readonly(np.asarray(self.occluder_faces, np.int64)))
+        set_(self, "warnings", tuple(self.warnings))
+        self._check()
+
+    def _check(self) -> None:
+        if not np.isfinite(self.vertices).all():
+            bad = int(np.flatnonzero(~np.isfinite(self.vertices).all(axis=1))[0])
+            raise SceneError(f"{self.name}: vertex {bad} has a non-finite coordinate")
+        if len(self.faces) and (self.faces.min() < 0 or self.faces.max() >= len(self.vertices)):
+            raise SceneError(f"{self.name}: face vertex index out of range 0..{len(self.vertices) - 1}")
+        if len(self.material) and (self.material.min() < 0 or self.material.max() >= len(self.materials)):
+            raise SceneError(f"{self.name}: material index out of range")
+        for m in self.materials:
+            rho, em = np.asarray(m.reflectance), np.asarray(m.emission)
+            if not (np.isfinite(rho).all() and (rho >= 0).all() and (rho < 1).all()):
+                raise SceneError(f"{self.name}: material '{m.name}' reflectance {tuple(rho)} "
+                                 "must be in [0, 1) (a reflectance of 1 or more creates energy)")
+            if not (np.isfinite(em).all() and (em >= 0).all()):
+                raise SceneError(f"{self.name}: material '{m.name}' emission {tuple(em)} must be finite and >= 0")
+
+    # -- sizes -------------------------------------------------------------
+    @property
+    def n_patches(self) -> int:
+        return len(self.faces)
+
+    def __len__(self) -> int:
+        return self.n_patches
+
+    # -- cached geometry ---------------------------------------------------
+    @cached_property
+    def triangles(self) -> np.ndarray:
+        """(n, 3, 3) float: corner coordinates of each patch."""
+        return _readonly(self.vertices[self.faces])
+
+    @cached_property
+    def _cross(self) -> np.ndarray:
+        t = self.triangles
+        return np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+
+    @cached_property
+    def areas(self) -> np.ndarray:
+        """(n,) float, m^2: patch areas."""
+        return _readonly(0.5 * np.linalg.norm(self._cross, axis=1))
+
+    @cached_property
+    def normals(self) -> np.ndarray:
+        """(n, 3) float: unit normals (zero for a degenerate patch)."""
+        length = np.linalg.norm(self._cross, axis=1, keepdims=True)
+        return _readonly(np.divide(self._cross, length, out=np.zeros_like(self._cross), where=length > 0))
+
+    @cached_property
+    def centroids(self) -> np.ndarray:
+        """(n, 3) float, metres."""
+        return _readonly(self.triangles.mean(axis=1))
+
+    @cached_property
+    def bounds(self) -> np.ndarray:
+        """(2, 3) float: min and max corner of the bounding box of the patches."""
+        if not len(self.faces):
+            return np.zeros((2, 3))
+        used = self.vertices[np.unique(self.faces)]
+        return _readonly(np.array([used.min(axis=0), used.max(axis=0)]))
+
+    @property
+    def total_area(self) -> float:
+        return float(self.areas.sum())
+
+    @property
+    def material_names(self) -> tuple[str, ...]:
+        return tuple(m.name for m in self.materials)
+
+    @property
+    def emitters(self) -> np.ndarray:
+        """(n,) bool: patches with non-zero emission."""
+        return self.emission.max(axis=1) > 0
+
+    def material_index(self, name: str) -> int:
+        """Index of the material called ``name``; SceneError listing the names if absent."""
+        for i, m in enumerate(self.materials):
+            if m.name == name:
+                return i
+        raise SceneError(f"{self.name}: no material named '{name}'; materials are: "
+                         + ", ".join(self.material_names))
+
+    def replace(self, **changes) -> "Scene":
+        """A copy with some fields changed (cached geometry is recomputed lazily)."""
+        fields = {k: getattr(self, k) for k in self.__dataclass_fields__}
+        fields.update(changes)
+        return Scene(**fields)

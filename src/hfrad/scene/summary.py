@@ -1,0 +1,42 @@
+"""A scene summary: what ``hfrad info`` prints (and writes as JSON)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .scene import Scene
+
+
+def scene_summary(scene: Scene) -> dict:
+    """Patch count, area, bounds, materials, emitters and loader warnings of a scene."""
+    materials = []
+    for k, m in enumerate(scene.materials):
+        mask = scene.material == k
+        materials.append({
+            "name": m.name,
+            "reflectance": [round(float(x), 6) for x in m.reflectance],
+            "emission": [round(float(x), 6) for x in m.emission],
+            "patches": int(mask.sum()),
+            "area": float(scene.areas[mask].sum()),
+        })
+    emitting = scene.emitters
+    emitter_names = sorted({scene.material_names[i] for i in np.unique(scene.material[emitting])})
+    power = (scene.emission * scene.areas[:, None]).sum(axis=0)
+    warnings = list(scene.warnings)
+    if not emitting.any():
+        warnings.append("no emitter: add light with --emit NAME=R,G,B or --area-light R,G,B before solving")
+    return {
+        "scene": scene.name,
+        "patches": scene.n_patches,
+        "vertices": int(len(scene.vertices)),
+        "input_faces": int(len(scene.occluder_faces)),
+        "total_area_m2": scene.total_area,
+        "bounds_min": scene.bounds[0].tolist(),
+        "bounds_max": scene.bounds[1].tolist(),
+        "materials": materials,
+        "groups": len(scene.groups),
+        "emitter_patches": int(emitting.sum()),
+        "emitter_materials": emitter_names,
+        "emitted_power_w": power.tolist(),
+        "warnings": warnings,
+    }

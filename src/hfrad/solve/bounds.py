@@ -1,0 +1,62 @@
+"""Accuracy figures: sigma_max, the eq. 5 bound and the a-posteriori residual."""
+
+from __future__ import annotations
+
+from typing import Iterable
+
+import numpy as np
+
+from .woodbury import power_sigma_max
+
+__all__ = ["power_sigma_max", "eq5_bound", "residual_norm"]
+
+
+def eq5_bound(error: float, sigma_max) -> np.ndarray:
+    """``error / (1 - sigma_max)`` (eq. 5), inf where ``sigma_max >= 1``.
+
+    Parameters
+    ----------
+    error : float
+        Absolute 2-norm (or Frobenius, which bounds it) error ``||RF - Q V^T||``.
+    sigma_max : float or (c,) float
+        Largest singular value of RF (an upper estimate keeps the bound valid).
+    """
+    s = np.atleast_1d(np.asarray(sigma_max, dtype=np.float64))
+    out = np.full(s.shape, np.inf)
+    ok = s < 1.0
+    out[ok] = error / (1.0 - s[ok])
+    return out
+
+
+def residual_norm(blocks: Iterable[tuple[int, int, np.ndarray]], reflectance, exitance, radiosity,
+                  *, perm=None) -> np.ndarray:
+    """A-posteriori ``||(I - R_c F) B~_c - E_c||_2 / ||E_c||_2`` per channel, streaming F.
+
+    Parameters
+    ----------
+    blocks : iterable of (start, stop, Fblock)
+        Column blocks of F: ``F[:, start:stop]`` in user order, or, when
+        ``perm`` is given, ``F[perm][:, perm[start:stop]]`` (internal order).
+    reflectance : (n, 3) float, user order
+    exitance, radiosity : (n, 3) float, W/m^2, user order
+    perm : (n,) int, optional
+
+    Returns
+    -------
+    (3,) float: relative residual per channel (0 where E_c = 0 and the residual is 0).
+
+    Notes
+    -----
+    One pass over F, O(n^2) time, O(n b) memory.
+    """
+    rho = np.asarray(reflectance, np.float64)
+    E = np.asarray(exitance, np.float64)
+    B = np.asarray(radiosity, np.float64)
+    if perm is not None:
+        rho, E, B = rho[perm], E[perm], B[perm]
+    FB = np.zeros_like(B)
+    for start, stop, Fb in blocks:
+        FB += np.asarray(Fb, np.float64) @ B[start:stop]
+    r = B - rho * FB - E
+    nr, ne = np.linalg.norm(r, axis=0), np.linalg.norm(E, axis=0)
+    return np.divide(nr, ne, out=np.where(nr > 0, np.inf, 0.0), where=ne > 0)
