@@ -225,3 +225,15 @@ def test_ply_and_gltf_materials(tmp_path):
     assert p.total_area == pytest.approx(24.0)
     assert np.allclose(p.reflectance[0], [0.99, 128 / 255, 0.0])  # white-ish colour clamped below 1
     assert any("clamped" in w for w in p.warnings)
+
+
+def test_hilbert_order_steps_to_face_neighbours():
+    from hfrad.scene.zorder import patch_order
+
+    g = np.arange(8)
+    pts = np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1).reshape(-1, 3).astype(float)
+    perm = patch_order(pts, "hilbert")
+    assert sorted(perm.tolist()) == list(range(len(pts)))
+    assert np.allclose(np.linalg.norm(np.diff(pts[perm], axis=0), axis=1), 1.0)
+    with pytest.raises(ValueError, match="order must be one of"):
+        patch_order(pts, "spiral")

@@ -26,9 +26,9 @@ def _root(
 
 
 def _register_commands() -> None:
-    from . import info
+    from . import demo, info, precompute, render, solve
 
-    for module in (info,):
+    for module in (demo, info, precompute, solve, render):
         module.register(app)
 
 

@@ -52,3 +52,11 @@ def progress_bar(description: str, quiet: bool = False) -> Iterator:
             bar.update(task, completed=done, total=total)
 
         yield update
+
+
+def check_memory_for_precompute(n: int, block: int) -> None:
+    """Refuse a precompute that would not fit in memory (see ``hfrad precompute --help``)."""
+    from ..memory import precompute_bytes, require
+
+    require(precompute_bytes(n, block), f"precomputing {n:,} patches",
+            "use fewer patches (--patches/--max-edge) or a larger --eps")

@@ -3,14 +3,16 @@
 from __future__ import annotations
 
 import time
-from typing import Iterable
+from typing import TYPE_CHECKING, Iterable
 
 import numpy as np
 
 from ..progress import ProgressCallback
-from ..solve.woodbury import HFactorization
 from .baselines import randomized_factorization, sketch_factorization, svd_factorization
 from .hf import hierarchical_factorization
+
+if TYPE_CHECKING:
+    from ..solve.woodbury import HFactorization
 
 METHODS = ("hf", "svd", "rsvd", "sketch")
 
@@ -40,7 +42,7 @@ def _check_method(method: str) -> None:
 
 def factorize_matrix(F, reflectance, *, eps: float = 0.02, relative: bool = True,
                      block_size: int = 256, dtype=np.float32, order=None, method: str = "hf",
-                     rng=None, progress: ProgressCallback = None) -> HFactorization:
+                     rng=None, progress: ProgressCallback = None) -> "HFactorization":
     """Factor an in-core form-factor matrix: ``diag(rho_max) F ~= Q V^T`` in internal order.
 
     Parameters
@@ -94,6 +96,7 @@ def factorize_matrix(F, reflectance, *, eps: float = 0.02, relative: bool = True
         lr = sketch_factorization(G, eps=eps, relative=relative, dtype=dtype, block_size=block_size, rng=rng)
     params = {"method": method, "block_size": block_size, "dtype": np.dtype(dtype).name,
               "time_factor": time.perf_counter() - t0}
+    from ..solve.woodbury import HFactorization   # lazy: solve imports factorize.lowrank
     return HFactorization(perm, lr.Q, lr.V, rho_max, rho, lr, params=params)
 
 
@@ -101,7 +104,7 @@ def factorize_blocks(blocks: Iterable[tuple[int, int, np.ndarray]], n: int, refl
                      eps: float = 0.02, relative: bool = True, dtype=np.float32,
                      n_blocks: int | None = None, leaf_share: float = 0.5,
                      block_size: int | None = None,
-                     progress: ProgressCallback = None) -> HFactorization:
+                     progress: ProgressCallback = None) -> "HFactorization":
     """Out-of-core HF: one pass over column blocks of F in internal order.
 
     Parameters
@@ -152,4 +155,5 @@ def factorize_blocks(blocks: Iterable[tuple[int, int, np.ndarray]], n: int, refl
         raise ValueError(f"column blocks cover columns 0..{expected[0]}, expected 0..{n}")
     params = {"method": "hf", "block_size": block_size, "dtype": np.dtype(dtype).name,
               "leaf_share": leaf_share, "time_factor": lr.info["time_total"]}
+    from ..solve.woodbury import HFactorization   # lazy: solve imports factorize.lowrank
     return HFactorization(perm, lr.Q, lr.V, rho_max, rho, lr, params=params)

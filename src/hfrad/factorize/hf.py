@@ -161,6 +161,88 @@ class _Budget:
         return self.eps2 / (2 * self.m - 1)
 
 
+class HFStream:
+    """One-pass hierarchical factorization fed block by block.
+
+    Parameters
+    ----------
+    n : int
+        Rows of the matrix (patches).
+    n_blocks : int
+        Number of column blocks m that will be pushed (splits the error budget).
+    eps, relative, dtype, leaf_share
+        As in :func:`hfrad.factorize.hf.hierarchical_factorization`.
+    """
+
+    def __init__(self, n: int, n_blocks: int, *, eps: float = 0.02, relative: bool = True,
+                 dtype=np.float32, leaf_share: float = 0.5) -> None:
+        if not (eps >= 0 and np.isfinite(eps)):
+            raise ValueError(f"eps must be a finite number >= 0; got {eps!r}")
+        if not (0.0 < leaf_share <= 1.0):
+            raise ValueError(f"leaf_share must be in (0, 1]; got {leaf_share!r}")
+        self.n, self.n_blocks = int(n), int(n_blocks)
+        self.eps, self.relative, self.leaf_share = float(eps), bool(relative), float(leaf_share)
+        self.dtype = np.dtype(dtype)
+        self._budget = _Budget(self.eps, self.relative, max(self.n_blocks, 1), self.leaf_share)
+        self.stack: list[_Node] = []
+        self.blocks_done = 0
+        self.columns_done = 0
+        self.leaf_ranks: list[int] = []
+        self.time_leaf = self.time_merge = 0.0
+
+    @property
+    def current_rank(self) -> int:
+        """Sum of the ranks on the stack: the width of what is held now."""
+        return int(sum(node.s.size for node in self.stack))
+
+    def push(self, block: np.ndarray) -> None:
+        """Compress the next column block (n x b) and merge along the binary counter."""
+        A = np.asarray(block, dtype=self.dtype)
+        j = self.blocks_done
+        if A.ndim != 2 or A.shape[0] != self.n:
+            raise ValueError(f"column block {j} must have shape ({self.n}, b); got {A.shape}")
+        if j >= self.n_blocks:
+            raise ValueError(f"more than the announced n_blocks={self.n_blocks} column blocks were pushed")
+        t = time.perf_counter()
+        norm2 = float(np.sum(np.square(A, dtype=np.float64)))
+        node = _leaf(A, norm2, self._budget.leaf(norm2), j)
+        self.leaf_ranks.append(node.s.size)
+        self.time_leaf += time.perf_counter() - t
+        t = time.perf_counter()
+        while self.stack and self.stack[-1].level == node.level:  # binary counter
+            left = self.stack.pop()
+            node = _merge(left, node, self._budget.merge(left.norm2 + node.norm2), f"merge ending at block {j}")
+        self.stack.append(node)
+        self.time_merge += time.perf_counter() - t
+        self.blocks_done += 1
+        self.columns_done += A.shape[1]
+
+    def finish(self) -> LowRank:
+        """Merge what is left on the stack and return ``Q V^T`` with its achieved error."""
+        if self.blocks_done != self.n_blocks:
+            raise ValueError(f"n_blocks={self.n_blocks} but {self.blocks_done} column blocks were given")
+        t = time.perf_counter()
+        stack = list(self.stack)
+        if not stack:
+            stack.append(_Node(0, np.zeros((self.n, 0), self.dtype), np.zeros(0, self.dtype),
+                               np.zeros((0, 0), self.dtype), 0.0, 0.0, 0.0))
+        while len(stack) > 1:  # remaining nodes, top (smallest) down
+            right, left = stack.pop(), stack.pop()
+            stack.append(_merge(left, right, self._budget.merge(left.norm2 + right.norm2), "final merge"))
+        root = stack[0]
+        # Spend what the tree left unused on the root: its discard is orthogonal to all others.
+        eye = np.eye(root.s.size, dtype=self.dtype)
+        Ur, s, Wt, d2 = _truncate(eye, root.s, eye, root.slack2)
+        U, V = root.U @ Ur, root.V @ Wt.T
+        self.time_merge += time.perf_counter() - t
+        info = {"time_total": self.time_leaf + self.time_merge, "time_leaf": self.time_leaf,
+                "time_merge": self.time_merge, "n_blocks": self.blocks_done, "leaf_ranks": self.leaf_ranks,
+                "dtype": self.dtype.name, "leaf_share": self.leaf_share}
+        return LowRank(Q=U * s, V=V, achieved_error=math.sqrt(max(root.discarded2 + d2, 0.0)),
+                       norm=math.sqrt(root.norm2), eps=self.eps, relative=self.relative,
+                       method="hf", info=info)
+
+
 def _count_blocks(blocks, n_blocks: int | None) -> int:
     if n_blocks is not None:
         return int(n_blocks)
@@ -227,58 +309,12 @@ def hierarchical_factorization(blocks: Iterable[np.ndarray], n: int, *, eps: flo
     >>> bool(np.linalg.norm(A - lr.Q @ lr.V.T) <= 1e-3 * np.linalg.norm(A))
     True
     """
-    if not (eps >= 0 and np.isfinite(eps)):
-        raise ValueError(f"eps must be a finite number >= 0; got {eps!r}")
-    if not (0.0 < leaf_share <= 1.0):
-        raise ValueError(f"leaf_share must be in (0, 1]; got {leaf_share!r}")
-    dtype = np.dtype(dtype)
     m = _count_blocks(blocks, n_blocks)
-    budget = _Budget(float(eps), relative, max(m, 1), leaf_share)
+    stream = HFStream(n, m, eps=eps, relative=relative, dtype=dtype, leaf_share=leaf_share)
     t0 = time.perf_counter()
-    t_leaf = t_merge = 0.0
-    stack: list[_Node] = []
-    leaf_ranks: list[int] = []
-    n_cols = 0
-    j = -1
-    for j, block in enumerate(blocks):
-        A = np.asarray(block, dtype=dtype)
-        if A.ndim != 2 or A.shape[0] != n:
-            raise ValueError(f"column block {j} must have shape ({n}, b); got {A.shape}")
-        n_cols += A.shape[1]
-        t = time.perf_counter()
-        norm2 = float(np.sum(np.square(A, dtype=np.float64)))
-        node = _leaf(A, norm2, budget.leaf(norm2), j)
-        del A
-        leaf_ranks.append(node.s.size)
-        t_leaf += time.perf_counter() - t
-        t = time.perf_counter()
-        while stack and stack[-1].level == node.level:   # binary counter
-            left = stack.pop()
-            node = _merge(left, node, budget.merge(left.norm2 + node.norm2), f"merge ending at block {j}")
-        stack.append(node)
-        t_merge += time.perf_counter() - t
-        report(progress, j + 1, m)
-    if j + 1 != m and n_blocks is not None:
-        raise ValueError(f"n_blocks={m} but {j + 1} column blocks were given")
-    t = time.perf_counter()
-    if not stack:
-        stack.append(_Node(0, np.zeros((n, 0), dtype), np.zeros(0, dtype), np.zeros((0, 0), dtype),
-                           0.0, 0.0, 0.0))
-    while len(stack) > 1:        # remaining nodes, top (smallest) down
-        right = stack.pop()
-        left = stack.pop()
-        stack.append(_merge(left, right, budget.merge(left.norm2 + right.norm2), "final merge"))
-    root = stack[0]
-    # Spend what the tree left unused on the root: its discard is orthogonal to all others.
-    Ur, s, Wt, d2 = _truncate(np.eye(root.s.size, dtype=dtype), root.s,
-                              np.eye(root.s.size, dtype=dtype), root.slack2)
-    U, V = root.U @ Ur, root.V @ Wt.T
-    discarded2 = root.discarded2 + d2
-    t_merge += time.perf_counter() - t
-    Q = U * s
-    info = {"time_total": time.perf_counter() - t0, "time_leaf": t_leaf, "time_merge": t_merge,
-            "n_blocks": j + 1, "leaf_ranks": leaf_ranks, "dtype": dtype.name,
-            "leaf_share": leaf_share}
-    return LowRank(Q=Q, V=V, achieved_error=math.sqrt(max(discarded2, 0.0)),
-                   norm=math.sqrt(sum(x.norm2 for x in [root])), eps=float(eps),
-                   relative=relative, method="hf", info=info)
+    for block in blocks:
+        stream.push(block)
+        report(progress, stream.blocks_done, m)
+    lowrank = stream.finish()
+    lowrank.info["time_total"] = time.perf_counter() - t0
+    return lowrank

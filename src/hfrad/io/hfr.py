@@ -56,7 +56,7 @@ def _json_default(o):
 
 def _write_scene(g: h5py.Group, scene) -> None:
     for name in ("vertices", "faces", "material", "reflectance", "emission", "areas", "normals",
-                 "centroids", "group"):
+                 "centroids", "group", "parent", "occluder_vertices", "occluder_faces"):
         g.create_dataset(name, data=np.asarray(getattr(scene, name)))
     g.attrs["material_names"] = json.dumps(list(scene.material_names))
     g.attrs["group_names"] = json.dumps(list(scene.groups))
@@ -181,7 +181,8 @@ def _read_scene(g: h5py.Group):
                  for m in json.loads(g.attrs["materials"]))
     return Scene(vertices=g["vertices"][()], faces=g["faces"][()], material=g["material"][()],
                  materials=mats, group=g["group"][()], groups=tuple(json.loads(g.attrs["group_names"])),
-                 reflectance=g["reflectance"][()], emission=g["emission"][()], name=str(g.attrs["name"]))
+                 reflectance=g["reflectance"][()], emission=g["emission"][()], name=str(g.attrs["name"]),
+                 **{k: g[k][()] for k in ("parent", "occluder_vertices", "occluder_faces") if k in g})
 
 
 def load_hfr(path) -> HFactorization:

@@ -75,13 +75,22 @@ class Camera:
         directions : (height * width, 3) float, unit
             Row-major, first row at the top of the image.
         """
+        col, row = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
+        return self.rays_at(col.ravel(), row.ravel(), width, height)
+
+    def rays_at(self, col: np.ndarray, row: np.ndarray, width: int, height: int
+                ) -> tuple[np.ndarray, np.ndarray]:
+        """Rays through continuous pixel positions (``col``, ``row``) in pixel units.
+
+        Pixel (i, j) covers ``col`` in [j, j + 1) and ``row`` in [i, i + 1);
+        its centre is (j + 0.5, i + 0.5). Returns (r, 3) origins and unit directions.
+        """
         forward, right, up = self.basis()
         half_h = math.tan(math.radians(self.fov) / 2)
         half_w = half_h * width / height
-        x = ((np.arange(width) + 0.5) * (2.0 / width) - 1.0) * half_w
-        y = (1.0 - (np.arange(height) + 0.5) * (2.0 / height)) * half_h
-        d = forward[None, None] + x[None, :, None] * right + y[:, None, None] * up
-        d = d.reshape(-1, 3)
+        x = (np.asarray(col, dtype=np.float64) * (2.0 / width) - 1.0) * half_w
+        y = (1.0 - np.asarray(row, dtype=np.float64) * (2.0 / height)) * half_h
+        d = forward[None] + x[:, None] * right[None] + y[:, None] * up[None]
         d /= np.linalg.norm(d, axis=1, keepdims=True)
         origins = np.broadcast_to(np.array(self.position), d.shape)
         return np.ascontiguousarray(origins), d

@@ -17,6 +17,7 @@ from ..errors import AccuracyWarning, FactorizationError
 from ..factorize.lowrank import LowRank
 
 N_CHANNELS = 3
+_RCOND_MIN = 1e-12   # below this the k x k system has no meaningful solution
 
 
 def _channel_scale(reflectance: np.ndarray, rho_max: np.ndarray) -> np.ndarray:
@@ -50,15 +51,17 @@ def woodbury_factors(Q: np.ndarray, V: np.ndarray, D: np.ndarray) -> np.ndarray:
     for c in range(D.shape[1]):
         Qc = Q.astype(np.float64) * D[:, c:c + 1]
         M = np.eye(k) - V64.T @ Qc                                    # I_k - V^T Q_c
-        try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("error", sla.LinAlgWarning)
-                # Y_c^T = -M^{-T} Q_c^T                               # eq. (4)
-                Y[c] = -sla.solve(M.T, Qc.T, check_finite=False).T
-        except (np.linalg.LinAlgError, sla.LinAlgWarning) as exc:
+        lu, piv, info = sla.lapack.dgetrf(M.T)
+        anorm = float(np.abs(M).sum(axis=0).max()) if k else 1.0
+        rcond = sla.lapack.dgecon(lu, anorm, norm="I")[0] if k and info == 0 else float(info == 0)
+        # 1 / (||M^-1|| max(||M||, 1)): a tiny M (an eigenvalue of Q_c V^T at 1) is singular too
+        rcond *= anorm / max(anorm, 1.0)
+        if info != 0 or not rcond > _RCOND_MIN:
             raise FactorizationError(
-                f"channel {c}: I - V^T Q_c ({k} x {k}) is singular or ill-conditioned; "
-                "R F has an eigenvalue near 1 (reflectance too close to 1?)") from exc
+                f"channel {c}: I - V^T Q_c ({k} x {k}) is singular (reciprocal condition "
+                f"{rcond:.2e}); R F has an eigenvalue near 1 (reflectance too close to 1?)")
+        # Y_c^T = -M^{-T} Q_c^T                                       # eq. (4)
+        Y[c] = -sla.lu_solve((lu, piv), Qc.T, check_finite=False).T
     return Y
 
 
@@ -130,6 +133,7 @@ class HFactorization:
         self.lowrank = lowrank
         self.params = dict(params or {})
         self.scene = scene
+        self.timings: dict = {}
         D = _channel_scale(self.reflectance, self.rho_max)[self.perm]
         self.Y = woodbury_factors(self.Q, self.V, D) if Y is None else np.asarray(Y, self.Q.dtype)
         self._D = D

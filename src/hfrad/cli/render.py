@@ -1,0 +1,79 @@
+"""``hfrad render FILE.hfr -o image.png``: a picture of the radiosity for the scene's (or new) emission."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import List, Optional
+
+import typer
+
+from . import common
+from .solve import EmissionOption, EmissionScaleOption
+
+
+def _load(path: Path):
+    """(scene, factorization) from an .hfr file."""
+    from ..io.hfr import load_hfr
+
+    fac = load_hfr(path)
+    if fac.scene is None:
+        raise ValueError(f"{path}: has no patches stored, so there is nothing to draw; "
+                         "re-run `hfrad precompute` (it stores the patches)")
+    return fac.scene, fac
+
+
+def register(app: typer.Typer) -> None:
+    @app.command()
+    def render(
+        factorization: Path = typer.Argument(..., help="Factorization file from `hfrad precompute` (.hfr)."),
+        output: Path = typer.Option(..., "-o", "--output", help="Picture to write (.png)."),
+        emission: Optional[List[str]] = EmissionOption,
+        emission_scale: float = EmissionScaleOption,
+        camera: str = typer.Option("auto", "--camera",
+                                   help="auto (three-quarter view), front (along -z, the Cornell box view) "
+                                        "or x,y,z:tx,ty,tz[:fov_degrees]."),
+        width: int = typer.Option(512, "--width", min=1, help="Picture width, pixels."),
+        height: int = typer.Option(512, "--height", min=1, help="Picture height, pixels."),
+        exposure: Optional[float] = typer.Option(
+            None, "--exposure", help="Exposure in EV: pixel = clip(B/pi * 2^EV, 0, 1), then sRGB. "
+                                     "Default: --auto-exposure."),
+        auto_exposure: bool = typer.Option(
+            True, "--auto-exposure/--no-auto-exposure",
+            help="Map the 99th percentile of non-emitting surfaces' luminance to 0.8 (ignored with --exposure)."),
+        flat: bool = typer.Option(False, "--flat", help="One colour per patch (shows the patches)."),
+        falsecolor: bool = typer.Option(False, "--falsecolor", help="False colour of luminance-weighted "
+                                                                    "radiosity, with a colour bar."),
+        unit: str = typer.Option("W/m2", "--unit", help="False-colour unit: W/m2, or lux (683 lm/W x luminance)."),
+    ) -> None:
+        """Solve for the scene's emitters (or --emission) and draw the radiosity as a PNG.
+
+        Pixels show radiance B/pi (W/m^2/sr) of the first surface seen from the
+        front; walls seen from behind are transparent, so a camera outside a
+        closed room looks in.
+        """
+        import numpy as np
+
+        from ..render import Camera, render_image, save_png
+        from .solve import exitance_from_options
+
+        with common.user_errors():
+            if output.suffix.lower() != ".png":
+                raise ValueError(f"output must be a .png file, got '{output}'")
+            if falsecolor:
+                from ..render.falsecolor import check_unit
+                check_unit(unit)
+            Camera.parse(camera, np.array([[0.0, 0, 0], [1, 1, 1]]))  # fail on a bad spec before the solve
+            scene, fac = _load(factorization)
+            E = exitance_from_options(scene, emission, emission_scale)
+            t0 = time.perf_counter()
+            B = fac.solve(E)
+            t_solve = time.perf_counter() - t0
+            t1 = time.perf_counter()
+            image = render_image(scene.replace(emission=E), B, camera=camera, width=width, height=height,
+                                 exposure=exposure, auto_exposure=auto_exposure, flat=flat,
+                                 falsecolor=falsecolor, unit=unit)
+            t_render = time.perf_counter() - t1
+            save_png(output, image)
+        common.console.print(f"wrote {output}: {width}x{height}, {scene.n_patches:,} patches; "
+                             f"solve {t_solve * 1e3:.1f} ms, render {t_render:.2f} s", highlight=False)

@@ -1,0 +1,68 @@
+"""``hfrad solve FILE.hfr -o OUT``: radiosity for the scene's (or new) emission, in O(nk)."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import List, Optional
+
+import numpy as np
+import typer
+
+from . import common
+from .info import parse_emit
+
+EmissionOption = typer.Option(None, "--emission", help="Set a material's or group's exitance: NAME=R,G,B (W/m^2); "
+                                                       "0 switches it off. Other emitters keep theirs. Repeatable.")
+EmissionScaleOption = typer.Option(1.0, "--emission-scale", help="Multiply every emission by this.")
+
+
+def exitance_from_options(scene, emission: Optional[List[str]], scale: float) -> np.ndarray:
+    """(n, 3) exitance: the scene's emitters, overridden per material/group, scaled."""
+    from ..errors import SceneError
+    from ..scene.load import set_emission
+
+    if not (scale >= 0 and np.isfinite(scale)):
+        raise ValueError(f"--emission-scale must be a finite number >= 0; got {scale}")
+    lit = set_emission(scene, parse_emit(emission)) if emission else scene
+    E = lit.emission * scale
+    if not E.any():
+        raise SceneError(f"{scene.name}: no emitter, nothing to solve; light the scene with "
+                         "--emission NAME=R,G,B (a material or group name, see hfrad info)")
+    return E
+
+
+def register(app: typer.Typer) -> None:
+    @app.command()
+    def solve(
+        factorization: Path = typer.Argument(..., help="Factorization file from `hfrad precompute` (.hfr)."),
+        output: Path = typer.Option(..., "-o", "--output", help="Result: .ply, .glb, .npz or .csv (by extension)."),
+        emission: Optional[List[str]] = EmissionOption,
+        emission_scale: float = EmissionScaleOption,
+        colors: Optional[str] = typer.Option(None, "--colors", help="Vertex colours of exports: srgb or linear "
+                                                                 "(default: linear in .glb as glTF requires, sRGB in .ply)."),
+    ) -> None:
+        """Solve (I - RF) B = E for the scene's emitters (or --emission) and write B.
+
+        Memory: the factors (about 5 n k x 4 bytes in float32) plus O(n).
+        Prints the eq. 5 bound on the relative radiosity error.
+        """
+        from ..io.export import write_radiosity
+        from ..io.hfr import load_hfr
+
+        with common.user_errors():
+            t0 = time.perf_counter()
+            fac = load_hfr(factorization)
+            if fac.scene is None:
+                raise ValueError(f"{factorization}: has no patches stored; cannot map emission names")
+            t_load = time.perf_counter() - t0
+            E = exitance_from_options(fac.scene, emission, emission_scale)
+            t1 = time.perf_counter()
+            B = fac.solve(E)
+            t_solve = time.perf_counter() - t1
+            write_radiosity(output, fac.scene, B, E, colors=colors)
+        bound = ", ".join(f"{b:.3g}" for b in fac.error_bound)
+        common.console.print(
+            f"wrote {output}: {fac.n_patches:,} patches, rank {fac.rank:,}; solve {t_solve * 1e3:.1f} ms "
+            f"(load {t_load:.2f} s); eq. 5 bound on the relative radiosity error (R,G,B): {bound}",
+            highlight=False)

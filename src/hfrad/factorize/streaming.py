@@ -1,0 +1,76 @@
+"""Checkpoints of a running HF stream, so an interrupted precompute resumes.
+
+The state of :class:`~hfrad.factorize.hf.HFStream` is its binary-counter stack
+(O(log m) factor pairs) plus counters; saving it lets a long precomputation
+resume after the last saved block without redoing finished blocks.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+from .hf import HFStream, _Node
+
+CHECKPOINT_VERSION = 1
+
+
+def _params(stream: HFStream) -> dict:
+    return {"n": stream.n, "n_blocks": stream.n_blocks, "eps": stream.eps, "relative": stream.relative,
+            "dtype": stream.dtype.name, "leaf_share": stream.leaf_share}
+
+
+def save_checkpoint(stream: HFStream, path: str | os.PathLike, key: str = "") -> None:
+    """Write the stream state to ``path`` atomically (temporary name, then rename).
+
+    ``key`` identifies the input (scene and parameters hash); :func:`load_checkpoint`
+    refuses a checkpoint whose key differs.
+    """
+    import h5py
+
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    with h5py.File(tmp, "w") as f:
+        f.attrs["version"] = CHECKPOINT_VERSION
+        f.attrs["key"] = key
+        f.attrs["params"] = json.dumps(_params(stream))
+        f.attrs["blocks_done"] = stream.blocks_done
+        f.attrs["columns_done"] = stream.columns_done
+        f.attrs["times"] = json.dumps([stream.time_leaf, stream.time_merge])
+        f.create_dataset("leaf_ranks", data=np.asarray(stream.leaf_ranks, np.int64))
+        for i, node in enumerate(stream.stack):
+            g = f.create_group(f"node{i}")
+            g.attrs["level"], g.attrs["norm2"] = node.level, node.norm2
+            g.attrs["discarded2"], g.attrs["slack2"] = node.discarded2, node.slack2
+            g.create_dataset("U", data=node.U)
+            g.create_dataset("s", data=node.s)
+            g.create_dataset("V", data=node.V)
+        f.attrs["nodes"] = len(stream.stack)
+    os.replace(tmp, path)
+
+
+def load_checkpoint(path: str | os.PathLike, key: str = "") -> HFStream:
+    """Rebuild a stream from a checkpoint; ValueError if it belongs to another input."""
+    import h5py
+
+    with h5py.File(path, "r") as f:
+        if int(f.attrs.get("version", -1)) != CHECKPOINT_VERSION:
+            raise ValueError(f"{path}: checkpoint version {f.attrs.get('version')} is not "
+                             f"{CHECKPOINT_VERSION}; delete it to start over")
+        if str(f.attrs["key"]) != key:
+            raise ValueError(f"{path}: checkpoint was made for another scene or other parameters; "
+                             "delete it to start over")
+        stream = HFStream(**json.loads(f.attrs["params"]))
+        stream.blocks_done = int(f.attrs["blocks_done"])
+        stream.columns_done = int(f.attrs["columns_done"])
+        stream.time_leaf, stream.time_merge = json.loads(f.attrs["times"])
+        stream.leaf_ranks = [int(x) for x in f["leaf_ranks"][()]]
+        for i in range(int(f.attrs["nodes"])):
+            g = f[f"node{i}"]
+            stream.stack.append(_Node(int(g.attrs["level"]), g["U"][()], g["s"][()], g["V"][()],
+                                      float(g.attrs["norm2"]), float(g.attrs["discarded2"]),
+                                      float(g.attrs["slack2"])))
+    return stream

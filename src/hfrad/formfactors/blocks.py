@@ -1,0 +1,362 @@
+"""The form-factor matrix F, streamed in column blocks or assembled densely.
+
+F[i, j] is the fraction of the energy leaving patch i that arrives at patch j,
+visibility included: F = F_unoccluded (kernel.py, exact polygon integral,
+symmetric quadrature) times V (visibility.py, fraction of unoccluded rays).
+Both factors are reciprocity-symmetric, so A_i F_ij = A_j F_ji to rounding.
+
+The hierarchical factorization consumes F one column block at a time
+(METHOD.md s. 5): :func:`iter_column_blocks` yields them in an internal order
+(Z-order), each computed independently of the others, so a run can be
+streamed, cached on disk and resumed, or spread over machines.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
+from typing import Iterator
+
+import numpy as np
+
+from ..errors import MemoryLimitError
+from ..progress import ProgressCallback, report
+from .cache import BlockCache, array_hash, scene_hash
+from .kernel import KERNEL_VERSION, NEAR, NEAR_SPLITS, PatchGeometry, unoccluded_block
+from .visibility import DEFAULT_SAMPLES, RayBuffers, Visibility, check_samples
+
+__all__ = ["FormFactorEngine", "iter_column_blocks", "form_factor_matrix", "row_sums",
+           "available_memory", "DEFAULT_BLOCK_SIZE"]
+
+DEFAULT_BLOCK_SIZE = 256
+_MEMORY_FRACTION = 0.5
+
+
+class FormFactorEngine:
+    """Computes sub-blocks F[rows][:, cols] of one scene.
+
+    Holds the per-scene state (kernel geometry, sample points, Embree scene),
+    so computing many blocks pays for it once, and keeps counters
+    (``kernel_seconds``, ``embree_seconds``, ``pairs``, ``rays``).
+
+    Parameters
+    ----------
+    scene : Scene
+    samples : int
+        Visibility rays per pair (1, 4, 9, ...); 0 disables visibility (F unoccluded).
+    near, near_splits : see :mod:`hfrad.formfactors.kernel`.
+
+    Notes
+    -----
+    :meth:`iter_blocks` overlaps the two halves of the work: Embree (which
+    holds the GIL in ``embreex``) casts the rays of one batch in a worker
+    thread while the numba kernel (``nogil``, all cores) computes the next
+    block, so the ray casting is mostly hidden behind the kernel.
+    """
+
+    def __init__(self, scene, *, samples: int = DEFAULT_SAMPLES, near: float = NEAR,
+                 near_splits: int = NEAR_SPLITS) -> None:
+        self.geometry = PatchGeometry(scene, near=near, near_splits=near_splits)
+        self.samples = int(samples)
+        self.visibility = Visibility(scene, samples=samples) if samples else None
+        self.kernel_seconds = 0.0
+        self.pairs = 0
+        self._executor = None
+        self._buffers = RayBuffers()
+
+    @property
+    def rays(self) -> int:
+        return self.visibility.rays_cast if self.visibility is not None else 0
+
+    @property
+    def embree_seconds(self) -> float:
+        return self.visibility.embree_seconds if self.visibility is not None else 0.0
+
+    def _kernel(self, rows, cols) -> np.ndarray:
+        t0 = time.perf_counter()
+        F = unoccluded_block(self.geometry, rows, cols)
+        self.kernel_seconds += time.perf_counter() - t0
+        self.pairs += F.size
+        return F
+
+    def block(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """(len(rows), len(cols)) float64 F[rows][:, cols] with visibility."""
+        F = self._kernel(rows, cols)
+        if self.visibility is not None:
+            self.visibility.apply(F, rows, cols)
+        return F
+
+    def iter_blocks(self, rows: np.ndarray, col_sets) -> Iterator[np.ndarray]:
+        """F[rows][:, cols] for each ``cols`` of ``col_sets``, in order, pipelined (see Notes)."""
+        if self.visibility is None:
+            for cols in col_sets:
+                yield self._kernel(rows, cols)
+            return
+        if self._executor is None:
+            self._executor = ThreadPoolExecutor(1, thread_name_prefix="hfrad-embree")
+        vis = self.visibility
+        inflight = None  # (F, job, future) of the batch Embree is casting
+        ready: deque = deque()  # [F, jobs still in flight] in block order
+
+        def drain():
+            F, job, fut = inflight
+            vis.finish(F, job, fut.result())
+            ready_entry = next(e for e in ready if e[0] is F)
+            ready_entry[1] -= 1
+
+        try:
+            for cols in col_sets:
+                F = self._kernel(rows, cols)  # runs while Embree works on the previous batch
+                entry = [F, 0]
+                ready.append(entry)
+                for job in vis.jobs(F, rows, cols, self._buffers):
+                    if inflight is not None:
+                        drain()
+                    entry[1] += 1
+                    inflight = (F, job, self._executor.submit(vis.cast, job))
+                # every block before the newest whose rays are all cast can go
+                while len(ready) > 1 and ready[0][1] == 0:
+                    yield ready.popleft()[0]
+            if inflight is not None:
+                drain()
+                inflight = None
+            while ready:
+                yield ready.popleft()[0]
+        finally:
+            if inflight is not None:  # consumer stopped early: let Embree finish before reuse
+                inflight[2].result()
+
+    def close(self) -> None:
+        if self._executor is not None:
+            self._executor.shutdown()
+            self._executor = None
+        if self.visibility is not None:
+            self.visibility.close()
+
+
+def _check_order(order, n: int) -> np.ndarray:
+    if order is None:
+        return np.arange(n, dtype=np.int64)
+    order = np.asarray(order)
+    if order.shape != (n,) or not np.issubdtype(order.dtype, np.integer):
+        raise ValueError(f"order must be a permutation of range({n}) as an int array of shape ({n},), "
+                         f"got {order.dtype} array of shape {order.shape}")
+    if not np.array_equal(np.sort(order), np.arange(n)):
+        raise ValueError(f"order must be a permutation of range({n}) (each patch exactly once)")
+    return order.astype(np.int64)
+
+
+def _check_common(scene, samples, block_size) -> None:
+    if samples != 0:
+        check_samples(samples)
+    if block_size is not None and (int(block_size) != block_size or block_size < 1):
+        raise ValueError(f"block_size must be a positive integer, got {block_size}")
+    if scene.n_patches and not (scene.areas > 0).all():
+        bad = int(np.flatnonzero(~(scene.areas > 0))[0])
+        raise ValueError(f"{scene.name}: patch {bad} has zero area; "
+                         "remove degenerate patches first (hfrad.scene.patches.drop_degenerate)")
+
+
+def cache_key(scene, *, samples: int, block_size: int, order: np.ndarray, dtype) -> dict:
+    """What a cached block depends on (see :mod:`hfrad.formfactors.cache`)."""
+    return {"scene_sha256": scene_hash(scene), "samples": int(samples), "block_size": int(block_size),
+            "order_sha256": array_hash(order.astype(np.int64)), "dtype": np.dtype(dtype).str,
+            "kernel_version": KERNEL_VERSION, "near": NEAR, "near_splits": NEAR_SPLITS,
+            "n": int(scene.n_patches)}
+
+
+def iter_column_blocks(scene, block_size: int = DEFAULT_BLOCK_SIZE, *, order=None,
+                       samples: int = DEFAULT_SAMPLES, dtype=np.float64,
+                       progress: ProgressCallback = None, cache=None,
+                       engine: FormFactorEngine | None = None) -> Iterator[tuple[int, int, np.ndarray]]:
+    """Stream F in column blocks, rows and columns in the internal ``order``.
+
+    Yields ``(start, stop, block)`` with
+
+        block = F[np.ix_(order, order[start:stop])]      (n x (stop - start))
+
+    for start = 0, block_size, 2 block_size, ... Each block is computed
+    independently of the others (any subset can be computed anywhere).
+
+    Parameters
+    ----------
+    scene : Scene
+    block_size : int
+        Columns per block.
+    order : (n,) int permutation, optional
+        Internal patch order (e.g. ``zorder_permutation(scene.centroids)``); identity by default.
+    samples : int
+        Visibility rays per pair (perfect square; 1 = centroid to centroid; 0 = no visibility).
+    dtype : numpy dtype
+        Of the yielded blocks (computed in float64, then cast).
+    progress : callable (done, total), optional
+        Called after each block with the number of columns done.
+    cache : str, Path or BlockCache, optional
+        HDF5 file to read finished blocks from and write new ones to, so an
+        interrupted run resumes (see :mod:`hfrad.formfactors.cache`).
+    engine : FormFactorEngine, optional
+        Reuse per-scene state (and read its timing counters).
+
+    Raises
+    ------
+    ValueError
+        Bad ``order``, ``samples`` or ``block_size``; zero-area patches.
+    CacheMismatchError
+        ``cache`` is a complete cache for another scene or other parameters.
+
+    Notes
+    -----
+    Cost: O(n b) kernel pairs and at most ``samples`` rays per pair per block;
+    memory O(n b) plus the ray batch.
+    """
+    n = scene.n_patches
+    _check_common(scene, samples, block_size)
+    order = _check_order(order, n)
+    dtype = np.dtype(dtype)
+    store = None
+    if cache is not None:
+        store = cache if isinstance(cache, BlockCache) else BlockCache(cache)
+        store.open(cache_key(scene, samples=samples, block_size=block_size, order=order, dtype=dtype),
+                   n, block_size, dtype)
+    starts = list(range(0, n, block_size))
+    cached = [store.get(k, a, min(n, a + block_size)) if store is not None else None
+              for k, a in enumerate(starts)] if store is not None else [None] * len(starts)
+    todo = [k for k in range(len(starts)) if cached[k] is None]
+    own_engine = engine is None
+    if todo and engine is None:
+        engine = FormFactorEngine(scene, samples=samples)
+    computed = engine.iter_blocks(order, (order[starts[k]:starts[k] + block_size] for k in todo)) \
+        if todo else _empty()
+    try:
+        for index, start in enumerate(starts):
+            stop = min(n, start + block_size)
+            block = cached[index]
+            cached[index] = None
+            if block is None:
+                block = next(computed).astype(dtype, copy=False)
+                if store is not None:
+                    store.put(index, start, stop, block)
+            report(progress, stop, n)
+            yield start, stop, block
+        if store is not None:
+            store.finish()
+            store = None
+    finally:
+        computed.close()
+        if store is not None:
+            store.close()
+        if own_engine and engine is not None:
+            engine.close()
+
+
+def _empty() -> Iterator[np.ndarray]:
+    yield from ()
+
+
+def available_memory() -> int:
+    """Bytes of memory available to new allocations (MemAvailable of /proc/meminfo)."""
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:  # pragma: no cover - non-Linux
+        pass
+    try:  # pragma: no cover - non-Linux fallback
+        return os_sysconf_memory()
+    except Exception:  # pragma: no cover
+        return 8 << 30
+
+
+def os_sysconf_memory() -> int:  # pragma: no cover - non-Linux
+    import os
+    return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+
+
+def dense_bytes(n: int, dtype=np.float64, block_size: int = DEFAULT_BLOCK_SIZE) -> int:
+    """Estimated peak bytes of :func:`form_factor_matrix`: the matrix, one float64 block, rays."""
+    return n * n * np.dtype(dtype).itemsize + 3 * n * block_size * 8 + 28 * (1 << 21)
+
+
+def check_dense_memory(n: int, dtype=np.float64, max_bytes: int | None = None) -> int:
+    """Raise MemoryLimitError if a dense n x n F would exceed ``max_bytes``; returns the estimate."""
+    need = dense_bytes(n, dtype)
+    limit = int(_MEMORY_FRACTION * available_memory()) if max_bytes is None else int(max_bytes)
+    if need > limit:
+        raise MemoryLimitError(
+            f"a dense {n} x {n} form-factor matrix needs about {need / 2**30:.2f} GiB, more than the "
+            f"{limit / 2**30:.2f} GiB allowed ({'max_bytes' if max_bytes is not None else '50% of available memory'}); "
+            "stream it instead with hfrad.formfactors.iter_column_blocks (out of core, one column "
+            "block at a time) or factor it directly with `hfrad precompute`")
+    return need
+
+
+def form_factor_matrix(scene, *, samples: int = DEFAULT_SAMPLES, dtype=np.float64,
+                       progress: ProgressCallback = None, max_bytes: int | None = None,
+                       block_size: int = DEFAULT_BLOCK_SIZE) -> np.ndarray:
+    """Dense F (n x n) in the user's patch order, for scenes that fit in memory.
+
+    F[i, j] = fraction of the energy leaving patch i that arrives at patch j,
+    visibility included; A_i F[i, j] == A_j F[j, i] to rounding, F >= 0, and
+    rows of a closed scene sum to ~1.
+
+    Parameters
+    ----------
+    scene : Scene
+    samples : int
+        Visibility rays per pair (1, 4, 9, ...; 0 = no visibility).
+    dtype : numpy dtype
+    progress : callable (done, total), optional
+    max_bytes : int, optional
+        Memory allowed; default 50% of the available memory.
+
+    Returns
+    -------
+    (n, n) ndarray of ``dtype``
+
+    Raises
+    ------
+    MemoryLimitError
+        If the estimated size exceeds the limit; the message names the
+        out-of-core path (``iter_column_blocks`` / ``hfrad precompute``).
+
+    Examples
+    --------
+    >>> from hfrad.scene.builtin import furnace
+    >>> from hfrad.scene.patches import subdivide
+    >>> scene = subdivide(furnace(), max_edge=0.5)
+    >>> F = form_factor_matrix(scene)
+    >>> bool(np.allclose(scene.areas[:, None] * F, (scene.areas[:, None] * F).T, rtol=1e-12, atol=0))
+    True
+    """
+    n = scene.n_patches
+    check_dense_memory(n, dtype, max_bytes)
+    _check_common(scene, samples, block_size)
+    F = np.empty((n, n), dtype=dtype)
+    for start, stop, block in iter_column_blocks(scene, block_size, samples=samples, dtype=dtype,
+                                                 progress=progress):
+        F[:, start:stop] = block
+    return F
+
+
+def row_sums(scene, *, samples: int = DEFAULT_SAMPLES, block_size: int = DEFAULT_BLOCK_SIZE,
+             progress: ProgressCallback = None) -> np.ndarray:
+    """(n,) sum_j F[i, j], streamed (O(n b) memory); ~1 for every patch of a closed scene."""
+    n = scene.n_patches
+    total = np.zeros(n)
+    for _, _, block in iter_column_blocks(scene, block_size, samples=samples, progress=progress):
+        total += block.sum(axis=1)
+    return total
+
+
+def closure_stats(sums: np.ndarray) -> dict:
+    """Mean and worst |row sum - 1| (for closed scenes)."""
+    err = np.abs(np.asarray(sums) - 1.0)
+    return {"mean_abs_error": float(err.mean()) if err.size else 0.0,
+            "max_abs_error": float(err.max()) if err.size else 0.0,
+            "worst_patch": int(err.argmax()) if err.size else -1}
+
+
+_ = math  # (kept for future quadrature settings)

@@ -1,0 +1,312 @@
+"""Visibility between patches: the fraction of unoccluded rays, cast with Embree.
+
+V_ij is estimated from ``samples`` segments between fixed sample points of the
+two patches: the centroids of an m x m split of each triangle (samples = m^2;
+stratified and deterministic). Segment k joins point k of the lower-indexed
+patch to point ``(k + samples // 2) % samples`` of the other one (a fixed
+shift, so that parallel patches are not probed only by parallel rays). The
+pair is put in canonical order (lower patch index first) and always cast in
+that direction, so V_ij == V_ji bit for bit and reciprocity survives.
+
+There is no random jitter on purpose: Monte Carlo noise in F is full rank and
+destroys the low rank the hierarchical factorization relies on (METHOD.md s. 7).
+
+End points are moved off their surfaces along the patch normals by
+``1e-5 x scene size`` so that a ray never hits the face it starts or ends on.
+Rays are cast only for pairs with a nonzero unoccluded form factor that *can*
+be blocked: an occluder triangle can cut a segment only if the segment's end
+points lie on opposite sides of its plane and the pair's bounding box meets the
+triangle's. Per patch and occluder plane, one bit says "wholly on the front
+side" and one "wholly on the back side"; a pair needs rays only if some
+occluder is neither wholly in front of both patches nor wholly behind both and
+its box overlaps theirs (shaft culling with planes and boxes). In a room most
+pairs of wall patches need no ray at all.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+from numba import njit, prange
+
+from .kernel import points_on_triangles, split_centroids
+from .raycast import RayCaster
+
+#: Rays per patch pair by default (a 2 x 2 split of each triangle).
+DEFAULT_SAMPLES = 4
+
+#: Above this many occluder triangles the per-pair culling test costs more than it saves.
+MAX_CULL_OCCLUDERS = 2048
+
+#: Rays per Embree call and per temporary buffer (bounds memory: ~28 bytes a ray).
+RAY_BATCH = 1 << 21
+
+_OFFSET = 1e-5  # end point offset, times the scene size
+
+
+def check_samples(samples: int) -> int:
+    """Validate ``samples`` (a perfect square >= 1); returns its square root."""
+    m = math.isqrt(int(samples)) if int(samples) >= 1 else 0
+    if samples != int(samples) or m < 1 or m * m != int(samples):
+        raise ValueError(f"samples must be a perfect square (1, 4, 9, 16, ...) so the sample points "
+                         f"are a stratified split of each triangle, got {samples}")
+    return m
+
+
+class Visibility:
+    """Ray casting state for one scene: sample points, culling masks, Embree scene.
+
+    Parameters
+    ----------
+    scene : Scene
+        Rays are cast against ``scene.occluder_vertices`` / ``occluder_faces``.
+    samples : int
+        Rays per pair, a perfect square; 1 = centroid to centroid.
+    cull : bool
+        Skip pairs that no occluder can block (exact test, see module docstring).
+    """
+
+    def __init__(self, scene, *, samples: int = DEFAULT_SAMPLES, cull: bool = True) -> None:
+        m = check_samples(samples)
+        self.samples = int(samples)
+        tri = np.asarray(scene.triangles, dtype=np.float64)
+        size = float(np.ptp(scene.bounds, axis=0).max()) if len(tri) else 1.0
+        self.scale = size if size > 0 else 1.0
+        self.offset = _OFFSET * self.scale
+        pts = points_on_triangles(tri, split_centroids(m))
+        nrm = np.asarray(scene.normals, np.float64)
+        self.points = np.ascontiguousarray(pts + self.offset * nrm[:, None, :])
+        # patch planes n . x = n . v0 (sample points are `offset` in front of their own)
+        self.plane = np.ascontiguousarray(np.column_stack([nrm, np.einsum("nd,nd->n", nrm, tri[:, 0])
+                                                           if len(tri) else np.zeros(0)]))
+        self.partner = np.ascontiguousarray((np.arange(self.samples) + self.samples // 2) % self.samples,
+                                            dtype=np.int64)
+        self.caster = RayCaster(scene.occluder_vertices, scene.occluder_faces, threads=1)
+        self._setup_culling(scene, tri, cull)
+        self.rays_cast = 0
+        self.embree_seconds = 0.0
+
+    def _setup_culling(self, scene, tri: np.ndarray, cull: bool) -> None:
+        occ = np.asarray(scene.occluder_vertices, np.float64)[np.asarray(scene.occluder_faces)]
+        m = len(occ)
+        self.n_occluders = m
+        n = len(tri)
+        self.cull = bool(cull) and 0 < m <= MAX_CULL_OCCLUDERS
+        if not self.cull:
+            self.front_bits = np.zeros((n, 1), np.uint64)
+            self.back_bits = np.zeros((n, 1), np.uint64)
+            self.below_bits = np.zeros((n, 3, 1), np.uint64)
+            self.above_bits = np.zeros((n, 3, 1), np.uint64)
+            return
+        cr = np.cross(occ[:, 1] - occ[:, 0], occ[:, 2] - occ[:, 0])
+        length = np.linalg.norm(cr, axis=1)
+        live = length > 1e-12 * self.scale ** 2  # zero-area occluders block nothing
+        nrm = np.divide(cr, length[:, None], out=np.zeros_like(cr), where=live[:, None])
+        d0 = np.einsum("td,td->t", nrm, occ[:, 0])
+        tol = 4 * self.offset  # sample points sit within `offset` of their patch
+        words = (m + 63) // 64
+        front = np.zeros((n, words), np.uint64)
+        back = np.zeros((n, words), np.uint64)
+        step = max(1, (1 << 22) // max(1, 3 * m))
+        for s in range(0, n, step):
+            d = np.einsum("pkd,td->ptk", tri[s:s + step], nrm) - d0[None, :, None]  # (p, m, 3)
+            f = (d >= -tol).all(axis=2) | ~live[None]
+            b = (d <= tol).all(axis=2) | ~live[None]
+            front[s:s + step] = _pack_bits(f, words)
+            back[s:s + step] = _pack_bits(b, words)
+        self.front_bits, self.back_bits = front, back
+        # Box overlap of the pair's box (union of the two patch boxes) with an
+        # occluder box, per axis: occ.lo <= max(hi_i, hi_j) and occ.hi >= min(lo_i, lo_j),
+        # i.e. (below_i | below_j) & (above_i | above_j) with per-patch bit masks.
+        pad = 2 * self.offset
+        lo = tri.min(axis=1) - pad
+        hi = tri.max(axis=1) + pad
+        olo, ohi = occ.min(axis=1), occ.max(axis=1)
+        below = np.zeros((n, 3, words), np.uint64)
+        above = np.zeros((n, 3, words), np.uint64)
+        for axis in range(3):
+            for s in range(0, n, step):
+                below[s:s + step, axis] = _pack_bits(olo[None, :, axis] <= hi[s:s + step, None, axis], words)
+                above[s:s + step, axis] = _pack_bits(ohi[None, :, axis] >= lo[s:s + step, None, axis], words)
+        self.below_bits, self.above_bits = below, above
+
+    # ------------------------------------------------------------------
+    def apply(self, F: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> None:
+        """Multiply the unoccluded block ``F`` (len(rows), len(cols)) by V in place."""
+        for job in self.jobs(F, rows, cols):
+            self.finish(F, job, self.cast(job))
+
+    def jobs(self, F: np.ndarray, rows: np.ndarray, cols: np.ndarray, buffers=None):
+        """Ray jobs (at most RAY_BATCH rays each) for the pairs of ``F`` that need rays.
+
+        A generator: each job is prepared (numba) when asked for, into buffers
+        taken from ``buffers`` (a ``RayBuffers`` pool; a private one by default).
+        """
+        rows = np.ascontiguousarray(rows, np.int64)
+        cols = np.ascontiguousarray(cols, np.int64)
+        need = np.empty(F.shape, np.bool_)
+        _needs_rays(F, rows, cols, self.front_bits, self.back_bits, self.below_bits, self.above_bits,
+                    self.cull, need)
+        flat = np.flatnonzero(need.ravel())
+        s = self.samples
+        per = max(1, RAY_BATCH // s)
+        nc = len(cols)
+        pool = buffers if buffers is not None else RayBuffers()
+        for start in range(0, len(flat), per):
+            pairs = flat[start:start + per]
+            r_idx = rows[pairs // nc]
+            c_idx = cols[pairs % nc]
+            valid = np.empty((len(pairs), s), np.bool_)
+            counts = np.empty(len(pairs), np.int64)
+            _valid_rays(self.points, self.plane, self.partner, r_idx, c_idx, valid, counts)
+            first = np.zeros(len(pairs) + 1, np.int64)
+            np.cumsum(counts, out=first[1:])
+            r = int(first[-1])
+            buf = pool.get(r)
+            o, d, t = buf[0][:r], buf[1][:r], buf[2][:r]
+            _fill_rays(self.points, self.partner, r_idx, c_idx, valid, first, o, d, t)
+            yield RayJob(pairs, first, o, d, t, buf, pool)
+
+    def cast(self, job: "RayJob") -> np.ndarray:
+        """(r,) bool: blocked segments of a job (Embree; holds the GIL, so one call at a time)."""
+        t0 = time.perf_counter()
+        hit = self.caster._scene.run(job.o, job.d, query="OCCLUDED", dists=job.t) >= 0  # noqa: SLF001
+        self.embree_seconds += time.perf_counter() - t0
+        return hit
+
+    def finish(self, F: np.ndarray, job: "RayJob", hit: np.ndarray) -> None:
+        """Scale F's pairs by their visible fractions and hand the buffers back."""
+        _scale_by_visibility(F.reshape(-1), job.pairs, job.first, hit)
+        self.rays_cast += len(job.t)
+        job.pool.put(job.buf)
+
+    def close(self) -> None:
+        self.caster.close()
+
+
+class RayJob:
+    """One batch of segments: origins o, unit directions d, lengths t (float32)."""
+
+    __slots__ = ("pairs", "first", "o", "d", "t", "buf", "pool")
+
+    def __init__(self, pairs, first, o, d, t, buf, pool) -> None:
+        self.pairs, self.first, self.o, self.d, self.t, self.buf, self.pool = pairs, first, o, d, t, buf, pool
+
+
+class RayBuffers:
+    """A free list of ray buffers: fresh pages are slow to fault in, so reuse them."""
+
+    def __init__(self) -> None:
+        self._free: list = []
+
+    def get(self, r: int):
+        for k, buf in enumerate(self._free):
+            if len(buf[2]) >= r:
+                return self._free.pop(k)
+        r = max(r, 1)
+        return (np.empty((r, 3), np.float32), np.empty((r, 3), np.float32), np.empty(r, np.float32))
+
+    def put(self, buf) -> None:
+        self._free.append(buf)
+
+
+def _pack_bits(flags: np.ndarray, words: int) -> np.ndarray:
+    """(p, m) bool -> (p, words) uint64, bit t % 64 of word t // 64."""
+    p, m = flags.shape
+    padded = np.zeros((p, words * 64), np.bool_)
+    padded[:, :m] = flags
+    by = np.packbits(padded.reshape(p, words, 64), axis=2, bitorder="little")  # (p, words, 8)
+    return np.ascontiguousarray(by).view(np.uint64).reshape(p, words)
+
+
+@njit(parallel=True, cache=True)
+def _needs_rays(F, rows, cols, front, back, below, above, cull, need):
+    """need[r, c]: F > 0 and some occluder can cut the pair's segments (bitwise test)."""
+    words = front.shape[1]
+    for r in prange(rows.shape[0]):
+        i = rows[r]
+        for c in range(cols.shape[0]):
+            if F[r, c] <= 0.0:
+                need[r, c] = False
+                continue
+            if not cull:
+                need[r, c] = True
+                continue
+            j = cols[c]
+            found = False
+            for w in range(words):
+                m = ~((front[i, w] & front[j, w]) | (back[i, w] & back[j, w]))
+                for axis in range(3):
+                    m &= (below[i, axis, w] | below[j, axis, w]) & (above[i, axis, w] | above[j, axis, w])
+                if m != 0:
+                    found = True
+                    break
+            need[r, c] = found
+
+
+@njit(parallel=True, cache=True)
+def _valid_rays(P, plane, partner, r_idx, c_idx, valid, counts):
+    """A ray is valid if each end point is in front of the other patch's plane.
+
+    The kernel already gives zero weight to points behind the other patch, so
+    rays from them must not count as blocked a second time. A pair with no
+    valid ray (a sliver only the near-field rule sees) keeps all of its rays.
+    """
+    s = P.shape[1]
+    for p in prange(r_idx.shape[0]):
+        a = min(r_idx[p], c_idx[p])
+        b = max(r_idx[p], c_idx[p])
+        m = 0
+        for k in range(s):
+            q = partner[k]
+            fa = (plane[b, 0] * P[a, k, 0] + plane[b, 1] * P[a, k, 1] + plane[b, 2] * P[a, k, 2]) > plane[b, 3]
+            fb = (plane[a, 0] * P[b, q, 0] + plane[a, 1] * P[b, q, 1] + plane[a, 2] * P[b, q, 2]) > plane[a, 3]
+            valid[p, k] = fa and fb
+            if fa and fb:
+                m += 1
+        if m == 0:
+            for k in range(s):
+                valid[p, k] = True
+            m = s
+        counts[p] = m
+
+
+@njit(parallel=True, cache=True)
+def _scale_by_visibility(F, pairs, first, hit):
+    """F[pairs[p]] *= fraction of the rays first[p]:first[p+1] that are not blocked."""
+    for p in prange(pairs.shape[0]):
+        blocked = 0
+        for k in range(first[p], first[p + 1]):
+            if hit[k]:
+                blocked += 1
+        total = first[p + 1] - first[p]
+        if blocked:
+            F[pairs[p]] *= 1.0 - blocked / total
+
+
+@njit(parallel=True, cache=True)
+def _fill_rays(P, partner, r_idx, c_idx, valid, first, o, d, t):
+    s = P.shape[1]
+    for p in prange(r_idx.shape[0]):
+        a = min(r_idx[p], c_idx[p])  # canonical direction: V_ij == V_ji exactly
+        b = max(r_idx[p], c_idx[p])
+        row = first[p]
+        for k in range(s):
+            if not valid[p, k]:
+                continue
+            q = partner[k]
+            dx = P[b, q, 0] - P[a, k, 0]
+            dy = P[b, q, 1] - P[a, k, 1]
+            dz = P[b, q, 2] - P[a, k, 2]
+            L = math.sqrt(dx * dx + dy * dy + dz * dz)
+            inv = 1.0 / L if L > 0.0 else 0.0
+            o[row, 0] = P[a, k, 0]
+            o[row, 1] = P[a, k, 1]
+            o[row, 2] = P[a, k, 2]
+            d[row, 0] = dx * inv
+            d[row, 1] = dy * inv
+            d[row, 2] = dz * inv
+            t[row] = L
+            row += 1

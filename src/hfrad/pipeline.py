@@ -1,0 +1,142 @@
+"""The precomputation: scene -> Z-order -> form-factor column blocks -> HF -> Woodbury.
+
+``factorize(scene)`` is what ``hfrad precompute`` runs. Column blocks of
+``G = diag(rho_max) F`` are generated one at a time in Z-order, pushed into a
+:class:`~hfrad.factorize.streaming.HFStream` and dropped, so the n x n matrix
+never exists. With ``checkpoint=PATH`` the stream state is saved every
+``checkpoint_interval`` seconds and a rerun resumes after the last saved block.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from .errors import SceneError
+from .factorize.hf import HFStream
+from .factorize.streaming import load_checkpoint, save_checkpoint
+from .progress import ProgressCallback, report
+from .scene.scene import Scene
+from .scene.zorder import patch_order
+from .solve.woodbury import HFactorization
+
+StatusCallback = Callable[[dict], None] | None
+
+
+def _scene_key(scene: Scene, params: dict) -> str:
+    """A hash of everything the factorization depends on: geometry, reflectance, parameters."""
+    h = hashlib.sha256()
+    for a in (scene.vertices, scene.faces, scene.occluder_vertices, scene.occluder_faces,
+              scene.reflectance.max(axis=1)):
+        h.update(np.ascontiguousarray(a).tobytes())
+    h.update(json.dumps(params, sort_keys=True).encode())
+    return h.hexdigest()
+
+
+def check_factorize_args(scene: Scene, eps: float, block_size: int, dtype) -> np.dtype:
+    """Validate the options of :func:`factorize` at the API boundary."""
+    if not isinstance(scene, Scene):
+        raise TypeError(f"scene must be a hfrad Scene (see hfrad.load_scene); got {type(scene).__name__}")
+    if scene.n_patches == 0:
+        raise SceneError(f"{scene.name}: the scene has no patches")
+    if not (0.0 < eps < 1.0):
+        raise ValueError(f"eps must be in (0, 1) (a relative Frobenius error, e.g. 0.02); got {eps}")
+    if not (1 <= block_size <= scene.n_patches):
+        raise ValueError(f"block size must be between 1 and the patch count {scene.n_patches}; got {block_size}")
+    dt = np.dtype(dtype)
+    if dt not in (np.float32, np.float64):
+        raise ValueError(f"dtype must be float32 or float64; got {dt}")
+    return dt
+
+
+def factorize(scene: Scene, *, eps: float = 0.02, relative: bool = True, block_size: int = 256,
+              dtype="float32", samples: int | None = None, order: str = "zorder", leaf_share: float = 0.5,
+              checkpoint: str | Path | None = None, checkpoint_interval: float = 30.0,
+              progress: ProgressCallback = None, status: StatusCallback = None) -> HFactorization:
+    """Precompute a scene: form factors with visibility, HF of ``diag(rho_max) F``, Woodbury factors.
+
+    Parameters
+    ----------
+    scene : Scene
+        Patches with reflectance (n, 3) in [0, 1).
+    eps : float in (0, 1)
+        Target ``||G - Q V^T||_F``, relative to ``||G||_F`` (absolute with ``relative=False``).
+    block_size : int
+        Column block width (patches per block).
+    dtype : {"float32", "float64"}
+        Precision of the factors.
+    samples : int, optional
+        Visibility rays per patch pair (default: the form-factor engine's).
+    order : {"zorder", "hilbert", "random", "input"}
+        Internal patch order; Z-order is the paper's and the default. Only speed and
+        rank depend on it; every input and output stays in the user's order.
+    leaf_share : float in (0, 1]
+        Share of the squared error budget given to the leaf SVDs.
+    checkpoint : path, optional
+        Save the stream state here while running; resume from it if it exists.
+        Deleted when the factorization completes.
+    checkpoint_interval : float, seconds
+    progress : callable (done, total), optional
+        Column blocks done.
+    status : callable (dict), optional
+        Called after each block with ``blocks``, ``rank``, ``elapsed``.
+
+    Returns
+    -------
+    HFactorization
+        ``fac.solve(E)`` gives the radiosity for any exitance E, in O(nk).
+
+    Notes
+    -----
+    Memory: one n x block_size block (float64) plus the factors (O(nk)); the
+    n x n matrix is never formed. Time: dominated by the form factors.
+    """
+    dt = check_factorize_args(scene, eps, block_size, dtype)
+    from .formfactors.blocks import iter_column_blocks
+
+    n = scene.n_patches
+    perm = patch_order(scene.centroids, order)
+    rho_max = scene.reflectance.max(axis=1)
+    n_blocks = math.ceil(n / block_size)
+    params = {"eps": eps, "relative": relative, "block_size": block_size, "dtype": dt.name,
+              "samples": samples, "order": order, "leaf_share": leaf_share}
+    key = _scene_key(scene, params)
+    stream = _open_stream(checkpoint, key, n, n_blocks, eps, relative, dt, leaf_share)
+    t0 = time.perf_counter()
+    last_save = t0
+    ff_kwargs = {} if samples is None else {"samples": samples}
+    blocks = iter_column_blocks(scene, block_size, order=perm, first_block=stream.blocks_done, **ff_kwargs)
+    rows_rho = rho_max[perm][:, None]
+    time_ff = 0.0
+    t_ff = time.perf_counter()
+    for start, stop, block in blocks:
+        time_ff += time.perf_counter() - t_ff
+        stream.push(rows_rho * block)  # G = diag(rho_max) F, rows in internal order
+        del block
+        report(progress, stream.blocks_done, n_blocks)
+        if status is not None:
+            status({"blocks": stream.blocks_done, "rank": stream.current_rank, "elapsed": time.perf_counter() - t0})
+        if checkpoint is not None and time.perf_counter() - last_save > checkpoint_interval \
+                and stream.blocks_done < n_blocks:
+            save_checkpoint(stream, checkpoint, key)
+            last_save = time.perf_counter()
+        t_ff = time.perf_counter()
+    lowrank = stream.finish()
+    lowrank.info.update({"time_formfactors": time_ff, "time_precompute": time.perf_counter() - t0})
+    fac = HFactorization(perm, lowrank.Q, lowrank.V, rho_max, scene.reflectance, lowrank,
+                         params=params, scene=scene)
+    if checkpoint is not None and Path(checkpoint).exists():
+        Path(checkpoint).unlink()
+    return fac
+
+
+def _open_stream(checkpoint, key, n, n_blocks, eps, relative, dt, leaf_share) -> HFStream:
+    if checkpoint is not None and Path(checkpoint).exists():
+        return load_checkpoint(checkpoint, key)
+    return HFStream(n, n_blocks, eps=eps, relative=relative, dtype=dt, leaf_share=leaf_share)

@@ -1,0 +1,133 @@
+"""Form-factor kernel against the view-factor catalogue, closure and reciprocity."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hfrad.formfactors import analytic, form_factor_matrix, point_to_patch, unoccluded_block
+from hfrad.formfactors.kernel import PatchGeometry
+from hfrad.scene.builtin import coaxial_disks, cornell_box, parallel_plates, perpendicular_plates
+from hfrad.scene.patches import subdivide
+
+
+def plate_view_factor(scene, F) -> float:
+    """Area-weighted F from group plate1 to group plate2."""
+    p1 = scene.group == scene.groups.index("plate1")
+    p2 = scene.group == scene.groups.index("plate2")
+    a = scene.areas
+    return float((a[p1, None] * F[np.ix_(p1, p2)]).sum() / a[p1].sum())
+
+
+def unoccluded(scene) -> np.ndarray:
+    g = PatchGeometry(scene)
+    return unoccluded_block(g, np.arange(g.n), np.arange(g.n))
+
+
+def polygon_disks(r1, r2, distance, segments):
+    """Closed form for disks of the regular polygons' areas (the built-in disks are polygons)."""
+    shrink = np.sqrt(np.sin(2 * np.pi / segments) / (2 * np.pi / segments))
+    return analytic.coaxial_disks(r1 * shrink, r2 * shrink, distance)
+
+
+CASES = [
+    ("parallel 1x1 d1", lambda: parallel_plates(1, 1, 1), analytic.parallel_rectangles(1, 1, 1)),
+    ("parallel 2x1 d0.5", lambda: parallel_plates(2, 1, 0.5), analytic.parallel_rectangles(2, 1, 0.5)),
+    ("parallel 1x1 d3", lambda: parallel_plates(1, 1, 3), analytic.parallel_rectangles(1, 1, 3)),
+    ("perpendicular 1,1,1", lambda: perpendicular_plates(1, 1, 1), analytic.perpendicular_rectangles(1, 1, 1)),
+    ("perpendicular 2,0.5,1", lambda: perpendicular_plates(2, 0.5, 1), analytic.perpendicular_rectangles(2, 0.5, 1)),
+    ("perpendicular 1,2,0.5", lambda: perpendicular_plates(1, 2, 0.5), analytic.perpendicular_rectangles(1, 2, 0.5)),
+    ("disks 1,1,1", lambda: coaxial_disks(1, 1, 1, segments=48), polygon_disks(1, 1, 1, 48)),
+    ("disks 1,0.5,0.5", lambda: coaxial_disks(1, 0.5, 0.5, segments=48), polygon_disks(1, 0.5, 0.5, 48)),
+    ("disks 0.5,1,2", lambda: coaxial_disks(0.5, 1, 2, segments=48), polygon_disks(0.5, 1, 2, 48)),
+]
+
+
+@pytest.mark.parametrize("name,make,exact", CASES, ids=[c[0] for c in CASES])
+def test_catalogue_within_half_percent(name, make, exact):
+    base = make()
+    size = float(np.ptp(base.bounds, axis=0).max())
+    scene = subdivide(base, max_edge=size / 12 if "disks" not in name else size / 8)
+    F = form_factor_matrix(scene)  # with visibility: nothing blocks, so V must be exactly 1
+    assert plate_view_factor(scene, F) == pytest.approx(exact, rel=5e-3)
+    np.testing.assert_array_equal(F, unoccluded(scene))
+
+
+@pytest.mark.parametrize("make,exact", [
+    (lambda: perpendicular_plates(1, 1, 1), analytic.perpendicular_rectangles(1, 1, 1)),
+    (lambda: parallel_plates(1, 1, 1), analytic.parallel_rectangles(1, 1, 1)),
+    (lambda: coaxial_disks(1, 0.5, 0.5, segments=24), polygon_disks(1, 0.5, 0.5, 24)),
+])
+def test_error_decreases_with_subdivision(make, exact):
+    errors = [abs(plate_view_factor(s, unoccluded(s)) / exact - 1)
+              for s in (subdivide(make(), max_edge=e) for e in (0.5, 0.2, 0.1))]
+    assert errors[2] < errors[0]
+    assert errors[2] < 2e-3
+
+
+def test_unequal_offset_parallel_rectangles_closed_form():
+    # concentric unequal plates through the general parallel-rectangle formula
+    exact = analytic.parallel_rectangles_offset((0, 2, 0, 1), (0.5, 1.5, 0.25, 0.75), 0.7)
+    assert 0 < exact < 1
+    assert analytic.parallel_rectangles_offset((0, 2, 0, 1), (0, 2, 0, 1), 0.7) == pytest.approx(
+        analytic.parallel_rectangles(2, 1, 0.7), rel=1e-12)
+    with pytest.raises(ValueError, match="distance"):
+        analytic.parallel_rectangles(1, 1, 0)
+
+
+def test_point_to_patch_is_exact_for_a_differential_area():
+    # dA below the corner of a rectangle a x b at height c: catalogue B-3
+    a, b, c = 1.0, 2.0, 0.5
+    A, B = a / c, b / c
+    exact = (A / np.sqrt(1 + A * A) * np.arctan(B / np.sqrt(1 + A * A))
+             + B / np.sqrt(1 + B * B) * np.arctan(A / np.sqrt(1 + B * B))) / (2 * np.pi)
+    quad = np.array([[0, 0, c], [0, b, c], [a, b, c], [a, 0, c]], float)  # faces -z
+    f = sum(point_to_patch([[0, 0, 0]], [0, 0, 1], quad[list(t)])[0] for t in ((0, 1, 2), (0, 2, 3)))
+    assert f == pytest.approx(exact, rel=1e-12)
+    # half behind the tangent plane: only the front half counts (clipping)
+    tilted = np.array([[0, 0, -1], [0, 1, 1], [0, -1, 1]], float)
+    assert 0 < point_to_patch([[1, 0, 0]], [0, 0, 1], tilted)[0] < point_to_patch([[1, 0, 0]], [-1, 0, 0], tilted)[0]
+    assert point_to_patch([[-1, 0, 0]], [1, 0, 0], tilted)[0] == 0  # behind the patch
+
+
+@pytest.fixture(scope="module")
+def cornell_F():
+    scene = subdivide(cornell_box(), patches=1500)
+    return scene, form_factor_matrix(scene)
+
+
+def test_cornell_rows_sum_to_one(cornell_F):
+    scene, F = cornell_F
+    err = np.abs(F.sum(axis=1) - 1)
+    assert err.mean() < 0.01
+    assert err.max() < 0.03
+
+
+def test_cornell_reciprocity_and_sign(cornell_F):
+    scene, F = cornell_F
+    assert np.isfinite(F).all()
+    assert (F >= 0).all()
+    AF = scene.areas[:, None] * F
+    np.testing.assert_allclose(AF, AF.T, rtol=1e-13, atol=1e-300)
+    assert (np.diag(F) == 0).all()
+
+
+def test_adjacent_patches_are_finite_and_positive():
+    scene = subdivide(perpendicular_plates(1, 1, 1), max_edge=0.25)
+    F = unoccluded(scene)
+    assert np.isfinite(F).all()
+    p1 = np.flatnonzero(scene.group == scene.groups.index("plate1"))
+    p2 = np.flatnonzero(scene.group == scene.groups.index("plate2"))
+    # the patches touching the shared edge see each other strongly
+    touching = [(i, j) for i in p1 for j in p2
+                if len(set(map(int, scene.faces[i])) & set(map(int, scene.faces[j]))) >= 1]
+    assert touching and all(F[i, j] > 0 for i, j in touching)
+
+
+def test_coplanar_and_facing_away_are_zero():
+    scene = subdivide(parallel_plates(1, 1, 1), max_edge=0.5)
+    F = unoccluded(scene)
+    p1 = scene.group == scene.groups.index("plate1")
+    assert (F[np.ix_(p1, p1)] == 0).all()  # coplanar
+    flipped = scene.replace(faces=scene.faces[:, ::-1])  # every patch now faces away
+    assert (unoccluded(flipped) == 0).all()

@@ -1,0 +1,106 @@
+"""HF: the achieved Frobenius error meets eps and equals the sum of discards (orthogonality)."""
+
+import numpy as np
+import pytest
+
+from hfrad.factorize.hf import hierarchical_factorization
+
+
+def known_spectrum(n, seed=0, decay=25.0):
+    rng = np.random.default_rng(seed)
+    U, _ = np.linalg.qr(rng.standard_normal((n, n)))
+    W, _ = np.linalg.qr(rng.standard_normal((n, n)))
+    s = np.exp(-np.arange(n) / decay)
+    return (U * s) @ W.T, s
+
+
+def col_blocks(A, b):
+    return [A[:, i:i + b] for i in range(0, A.shape[1], b)]
+
+
+def optimal_rank(s, err):
+    tail = np.append(np.cumsum((s ** 2)[::-1])[::-1], 0.0)
+    return int(np.argmax(tail <= err ** 2 * (1 + 1e-9)))
+
+
+@pytest.fixture(scope="module")
+def matrix():
+    return known_spectrum(400)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("b", [16, 64, 100])
+@pytest.mark.parametrize("eps", [0.05, 0.02, 0.01])
+def test_error_meets_eps(matrix, eps, b, dtype):
+    A, _ = matrix
+    lr = hierarchical_factorization(col_blocks(A, b), 400, eps=eps, dtype=dtype)
+    direct = np.linalg.norm(A - lr.Q.astype(np.float64) @ lr.V.T.astype(np.float64))
+    normA = np.linalg.norm(A)
+    assert direct <= eps * normA
+    assert lr.Q.dtype == dtype and lr.V.shape == (400, lr.rank)
+    assert lr.norm == pytest.approx(normA, rel=1e-6)
+    # reported = sqrt(sum of discards) = actual error: the discards are orthogonal
+    assert lr.achieved_error == pytest.approx(direct, rel=1e-4 if dtype == np.float64 else 1e-2)
+
+
+def test_absolute_mode(matrix):
+    A, _ = matrix
+    lr = hierarchical_factorization(col_blocks(A, 64), 400, eps=0.1, relative=False, dtype=np.float64)
+    assert np.linalg.norm(A - lr.Q @ lr.V.T) <= 0.1
+    assert lr.achieved_error == pytest.approx(np.linalg.norm(A - lr.Q @ lr.V.T), rel=1e-4)
+    assert lr.target_error == 0.1
+
+
+def test_generator_equals_sequence(matrix):
+    A, _ = matrix
+    lr1 = hierarchical_factorization(col_blocks(A, 64), 400, eps=0.02, dtype=np.float64)
+    gen = (A[:, i:i + 64].copy() for i in range(0, 400, 64))
+    lr2 = hierarchical_factorization(gen, 400, eps=0.02, dtype=np.float64, n_blocks=7)
+    np.testing.assert_allclose(lr2.Q, lr1.Q, atol=1e-13)
+    np.testing.assert_allclose(lr2.V, lr1.V, atol=1e-13)
+    with pytest.raises(ValueError, match="n_blocks"):
+        hierarchical_factorization(iter(col_blocks(A, 64)), 400)
+
+
+def test_rank_near_optimal_on_smooth_kernel():
+    x = np.sort(np.random.default_rng(1).random(600))
+    y = np.random.default_rng(2).random((600, 2))
+    P = np.column_stack([x, y[:, 0] * 0.3])
+    A = 1.0 / (0.05 + np.sum((P[:, None] - P[None]) ** 2, axis=-1))
+    s = np.linalg.svd(A, compute_uv=False)
+    for eps in (0.05, 0.01):
+        lr = hierarchical_factorization(col_blocks(A, 64), 600, eps=eps, dtype=np.float64)
+        k_opt = optimal_rank(s, lr.achieved_error)
+        assert lr.relative_error <= eps
+        assert lr.rank <= 1.25 * k_opt + 1, (lr.rank, k_opt)
+
+
+@pytest.mark.parametrize("n, b", [(1, 1), (5, 1), (30, 30), (30, 7)])
+def test_edge_sizes(n, b):
+    A = np.random.default_rng(n).random((n, n))
+    lr = hierarchical_factorization(col_blocks(A, b), n, eps=0.01, dtype=np.float64)
+    assert np.linalg.norm(A - lr.Q @ lr.V.T) <= 0.01 * np.linalg.norm(A) + 1e-14
+
+
+def test_zero_blocks():
+    A = np.zeros((50, 50))
+    A[:, 20:30] = np.random.default_rng(0).random((50, 10))
+    lr = hierarchical_factorization(col_blocks(A, 8), 50, eps=1e-6, dtype=np.float64)
+    np.testing.assert_allclose(lr.Q @ lr.V.T, A, atol=1e-6 * np.linalg.norm(A))
+    z = hierarchical_factorization(col_blocks(np.zeros((50, 50)), 8), 50, eps=0.02)
+    assert z.rank == 0 and z.Q.shape == (50, 0) and z.V.shape == (50, 0) and z.achieved_error == 0
+
+
+def test_deterministic_signs(matrix):
+    A, _ = matrix
+    lr1 = hierarchical_factorization(col_blocks(A, 64), 400, eps=0.05)
+    lr2 = hierarchical_factorization(col_blocks(A, 64), 400, eps=0.05)
+    np.testing.assert_array_equal(lr1.Q, lr2.Q)
+
+
+def test_bad_arguments(matrix):
+    A, _ = matrix
+    with pytest.raises(ValueError, match="eps"):
+        hierarchical_factorization(col_blocks(A, 64), 400, eps=-1)
+    with pytest.raises(ValueError, match=r"block 0 must have shape \(399, b\)"):
+        hierarchical_factorization(col_blocks(A, 64), 399)

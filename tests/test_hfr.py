@@ -1,0 +1,119 @@
+"""The .hfr file: round trip, damaged files, newer versions, atomic writes."""
+
+import h5py
+import numpy as np
+import pytest
+
+import hfrad.io.hfr as hfr
+from hfrad.errors import FileFormatError
+from hfrad.factorize.api import factorize_matrix
+from hfrad.io.hfr import load_hfr, read_hfr_metadata, save_hfr
+from hfrad.scene.scene import Material, Scene
+
+
+def small_scene_and_factorization(n_side=6):
+    """A grid of 2 n_side^2 triangles facing a second, parallel grid (point form factors)."""
+    g = np.linspace(0, 1, n_side + 1)
+    X, Y = np.meshgrid(g, g, indexing="ij")
+    verts, faces = [], []
+    for z, flip in ((0.0, False), (1.0, True)):
+        base = len(verts) and sum(len(v) for v in verts)
+        v = np.column_stack([X.ravel(), Y.ravel(), np.full(X.size, z)])
+        idx = np.arange(X.size).reshape(X.shape) + base
+        for i in range(n_side):
+            for j in range(n_side):
+                a, b, c, d = idx[i, j], idx[i + 1, j], idx[i + 1, j + 1], idx[i, j + 1]
+                tris = [(a, b, c), (a, c, d)]
+                faces += [(t[0], t[2], t[1]) if flip else t for t in tris]
+        verts.append(v)
+    mats = (Material("floor", (0.5, 0.6, 0.7)), Material("lamp", (0.2, 0.2, 0.2), (10.0, 9.0, 8.0)))
+    n = len(faces)
+    scene = Scene(np.vstack(verts), np.array(faces), material=(np.arange(n) >= n // 2).astype(int),
+                  materials=mats, group=(np.arange(n) >= n // 2).astype(int), groups=("floor", "ceiling"),
+                  name="plates")
+    P, N, A = scene.centroids, scene.normals, scene.areas
+    d = P[None] - P[:, None]
+    r2 = np.sum(d * d, axis=-1)
+    np.fill_diagonal(r2, 1.0)
+    F = (np.clip(np.einsum("ik,ijk->ij", N, d), 0, None) * np.clip(-np.einsum("jk,ijk->ij", N, d), 0, None)
+         / (np.pi * r2 ** 2) * A[None])
+    np.fill_diagonal(F, 0.0)
+    fac = factorize_matrix(F, scene.reflectance, eps=0.01, block_size=16, order=np.arange(n)[::-1])
+    fac.scene = scene
+    return scene, fac
+
+
+@pytest.fixture(scope="module")
+def saved(tmp_path_factory):
+    scene, fac = small_scene_and_factorization()
+    path = tmp_path_factory.mktemp("hfr") / "plates.hfr"
+    save_hfr(path, fac, timings={"factor": 1.5})
+    return path, scene, fac
+
+
+def test_round_trip(saved):
+    path, scene, fac = saved
+    back = load_hfr(path)
+    for name in ("perm", "Q", "V", "Y", "rho_max", "reflectance"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(fac, name))
+    assert back.Q.dtype == np.float32
+    assert back.rank == fac.rank and back.eps == fac.eps
+    assert back.achieved_error == fac.achieved_error and back.relative_error == fac.relative_error
+    np.testing.assert_array_equal(back.sigma_max, fac.sigma_max)
+    np.testing.assert_array_equal(back.error_bound, fac.error_bound)
+    assert back.params["block_size"] == 16 and back.timings == {"factor": 1.5}
+    E = scene.emission
+    np.testing.assert_array_equal(back.solve(E), fac.solve(E))
+    s = back.scene
+    np.testing.assert_array_equal(s.vertices, scene.vertices)
+    np.testing.assert_array_equal(s.faces, scene.faces)
+    np.testing.assert_array_equal(s.group, scene.group)
+    np.testing.assert_array_equal(s.emission, scene.emission)
+    assert s.material_names == ("floor", "lamp") and s.groups == ("floor", "ceiling")
+    meta = read_hfr_metadata(path)
+    assert meta["format_version"] == 1 and meta["rank"] == fac.rank and meta["has_patches"]
+    with h5py.File(path) as f:
+        np.testing.assert_array_equal(f["patches/areas"][()], scene.areas)
+
+
+def test_truncated(saved, tmp_path):
+    path, *_ = saved
+    data = path.read_bytes()
+    for cut in (len(data) // 2, 100):
+        bad = tmp_path / f"cut{cut}.hfr"
+        bad.write_bytes(data[:cut])
+        with pytest.raises(FileFormatError, match=f"cut{cut}.hfr"):
+            load_hfr(bad)
+
+
+def test_not_hfr(tmp_path):
+    p = tmp_path / "other.h5"
+    with h5py.File(p, "w") as f:
+        f["x"] = 1
+    with pytest.raises(FileFormatError, match="not an hfrad"):
+        load_hfr(p)
+
+
+def test_newer_version(saved, tmp_path):
+    path, *_ = saved
+    newer = tmp_path / "newer.hfr"
+    newer.write_bytes(path.read_bytes())
+    with h5py.File(newer, "a") as f:
+        f.attrs["format_version"] = 99
+    with pytest.raises(FileFormatError, match="upgrade"):
+        load_hfr(newer)
+    with pytest.raises(FileFormatError, match="upgrade"):
+        read_hfr_metadata(newer)
+
+
+def test_no_partial_file(saved, tmp_path, monkeypatch):
+    _, _, fac = saved
+    target = tmp_path / "fail.hfr"
+
+    def boom(*a, **k):
+        raise RuntimeError("disk full")
+    monkeypatch.setattr(hfr, "_write_scene", boom)
+    with pytest.raises(RuntimeError, match="disk full"):
+        save_hfr(target, fac)
+    assert not target.exists()
+    assert list(tmp_path.iterdir()) == []

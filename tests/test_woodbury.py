@@ -1,0 +1,189 @@
+"""HFactorization: Woodbury solves (eq. 4) against exact solves, eq. 5 bound, colour, adjoint."""
+
+import numpy as np
+import pytest
+
+from hfrad.errors import FactorizationError
+from hfrad.factorize.api import factorize_blocks, factorize_matrix
+from hfrad.solve.bounds import residual_norm
+
+
+def closed_system(n, seed=0):
+    """A closed reciprocal 'radiosity' system: F >= 0, rows sum to 1, A_i F_ij = A_j F_ji.
+
+    F = diag(1/A) S diag(...) with S = D K D symmetric, scaled (symmetric Sinkhorn) so
+    that S's rows sum to the areas; K is a smooth kernel of random points (low rank-ish).
+    """
+    rng = np.random.default_rng(seed)
+    x = rng.random((n, 3))
+    x = x[np.argsort(x[:, 0])]
+    areas = rng.uniform(0.9, 1.1, n)
+    K = 1.0 / (1.0 + np.sum((x[:, None] - x[None]) ** 2, axis=-1) / 0.1)
+    np.fill_diagonal(K, 0.0)
+    d = np.ones(n)
+    for _ in range(500):
+        d = np.sqrt(d * areas / (K @ d))
+    S = d[:, None] * K * d[None]
+    S = 0.5 * (S + S.T)
+    F = S / areas[:, None]
+    F /= F.sum(axis=1, keepdims=True)      # exact row sums; reciprocity holds to ~1e-12
+    rho = rng.uniform(0.1, 0.9, (n, 3))
+    return F, areas, rho
+
+
+def exact(F, rho, E, transpose=False):
+    n = len(F)
+    out = np.empty((n, 3))
+    for c in range(3):
+        A = np.eye(n) - rho[:, c:c + 1] * F
+        out[:, c] = np.linalg.solve(A.T if transpose else A, E[:, c])
+    return out
+
+
+@pytest.fixture(scope="module")
+def system():
+    F, areas, rho = closed_system(300)
+    fac = factorize_matrix(F, rho, eps=0.02, block_size=32, dtype=np.float64)
+    return F, areas, rho, fac
+
+
+def test_system_is_physical(system):
+    F, areas, rho, _ = system
+    assert (F >= 0).all()
+    np.testing.assert_allclose(F.sum(1), 1.0, atol=1e-12)
+    np.testing.assert_allclose(areas[:, None] * F, (areas[:, None] * F).T, rtol=1e-6, atol=1e-12)
+
+
+def test_solve_within_eq5_bound(system):
+    F, _, rho, fac = system
+    E = np.random.default_rng(1).random((300, 3))
+    B = fac.solve(E)
+    Bx = exact(F, rho, E)
+    err = np.linalg.norm(B - Bx, axis=0) / np.linalg.norm(Bx, axis=0)
+    bound = fac.error_bound
+    assert np.isfinite(bound).all()
+    assert (err <= bound).all(), (err, bound)
+    assert fac.relative_error <= 0.02
+    # the a-posteriori residual is small and consistent with the solve
+    blocks = ((s, s + 50, F[:, s:s + 50]) for s in range(0, 300, 50))
+    res = residual_norm(blocks, rho, E, B)
+    assert (res < 0.05).all()
+    res_exact = residual_norm(((0, 300, F),), rho, E, Bx)
+    assert (res_exact < 1e-12).all()
+
+
+def test_furnace_uniform():
+    F, _, _ = closed_system(200, seed=3)
+    n = len(F)
+    rho = np.full((n, 3), 0.5)
+    E = np.ones(n)
+    for eps, tol in ((0.05, 1e-2), (1e-5, 1e-7)):
+        fac = factorize_matrix(F, rho, eps=eps, block_size=16, dtype=np.float64)
+        B = fac.solve(E)
+        np.testing.assert_allclose(B, 2.0, rtol=tol)
+
+
+def test_transpose_matches_adjoint(system):
+    F, _, rho, fac = system
+    e = np.random.default_rng(2).standard_normal((300, 3))   # negative allowed for the adjoint
+    x = fac.solve(e, transpose=True)
+    xx = exact(F, rho, e, transpose=True)
+    err = np.linalg.norm(x - xx, axis=0) / np.linalg.norm(xx, axis=0)
+    assert (err <= fac.error_bound).all()
+    assert (err < 1e-2).all()
+
+
+def test_batched_equals_single(system):
+    *_, fac = system
+    E = np.random.default_rng(3).random((300, 3, 4))
+    B = fac.solve(E)
+    assert B.shape == (300, 3, 4)
+    for i in range(4):
+        np.testing.assert_allclose(B[:, :, i], fac.solve(E[:, :, i]), rtol=1e-12)
+    grey = fac.solve(E[:, 0, 0])
+    np.testing.assert_allclose(grey, fac.solve(np.repeat(E[:, :1, 0], 3, axis=1)), rtol=1e-12)
+
+
+def test_user_order_permutation(system):
+    F, _, rho, fac = system
+    p = np.random.default_rng(4).permutation(300)
+    fac_p = factorize_matrix(F[np.ix_(p, p)], rho[p], eps=0.02, block_size=32, dtype=np.float64,
+                             order=np.argsort(p))     # same internal order as fac
+    E = np.random.default_rng(5).random((300, 3))
+    np.testing.assert_allclose(fac_p.solve(E[p]), fac.solve(E)[p], rtol=1e-9)
+
+
+def test_identity_vs_random_order_within_bound(system):
+    F, _, rho, fac = system
+    perm = np.random.default_rng(6).permutation(300)
+    fac_r = factorize_matrix(F, rho, eps=0.02, block_size=32, dtype=np.float64, order=perm)
+    E = np.random.default_rng(7).random((300, 3))
+    B1, B2 = fac.solve(E), fac_r.solve(E)
+    diff = np.linalg.norm(B1 - B2, axis=0) / np.linalg.norm(B1, axis=0)
+    assert (diff <= fac.error_bound + fac_r.error_bound).all()
+
+
+def test_streaming_equals_in_core(system):
+    F, _, rho, fac = system
+    perm = np.arange(300)
+
+    def gen():
+        for s in range(0, 300, 32):
+            yield s, min(s + 32, 300), F[:, s:s + 32].copy()
+    fac_s = factorize_blocks(gen(), 300, rho, perm, eps=0.02, dtype=np.float64, n_blocks=10)
+    np.testing.assert_allclose(fac_s.Q, fac.Q, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(fac_s.V, fac.V, rtol=0, atol=1e-12)
+
+
+def test_with_reflectance(system):
+    F, _, rho, fac = system
+    rho2 = rho * np.random.default_rng(8).uniform(0.5, 1.0, rho.shape)
+    rho2 = np.minimum(rho2, rho.max(1, keepdims=True))
+    fac2 = fac.with_reflectance(rho2)
+    fresh = factorize_matrix(F, rho2, eps=0.02, block_size=32, dtype=np.float64)
+    E = np.random.default_rng(9).random((300, 3))
+    Bx = exact(F, rho2, E)
+    for f in (fac2, fresh):
+        err = np.linalg.norm(f.solve(E) - Bx, axis=0) / np.linalg.norm(Bx, axis=0)
+        assert (err <= f.error_bound).all()
+    bad = rho.copy()
+    bad[17, 1] = rho[17].max() + 0.05
+    with pytest.raises(ValueError, match="patch 17"):
+        fac.with_reflectance(bad)
+
+
+@pytest.mark.parametrize("E, msg", [
+    (np.ones(299), r"\(300,\), \(300, 3\) or \(300, 3, m\).*got \(299,\)"),
+    (np.ones((300, 2)), r"got \(300, 2\)"),
+    (np.full(300, np.nan), "NaN"),
+    (-np.ones((300, 3)), "negative"),
+])
+def test_bad_inputs(system, E, msg):
+    *_, fac = system
+    with pytest.raises(ValueError, match=msg):
+        fac.solve(E)
+
+
+def test_bad_factorize_inputs(system):
+    F, _, rho, _ = system
+    with pytest.raises(ValueError, match="reflectance"):
+        factorize_matrix(F, np.full((300, 3), 1.0))
+    with pytest.raises(ValueError, match="method"):
+        factorize_matrix(F, rho, method="qr")
+    with pytest.raises(ValueError, match="permutation"):
+        factorize_matrix(F, rho, order=np.zeros(300, int))
+
+
+def test_float32_and_singular():
+    F, _, rho = closed_system(120, seed=11)
+    fac = factorize_matrix(F, rho, eps=0.01, block_size=16)
+    assert fac.Q.dtype == np.float32 and fac.Y.dtype == np.float32
+    E = np.random.default_rng(0).random((120, 3))
+    Bx = exact(F, rho, E)
+    err = np.linalg.norm(fac.solve(E) - Bx, axis=0) / np.linalg.norm(Bx, axis=0)
+    assert (err <= fac.error_bound).all()
+    # rank-1 RF = 1 1^T / n has eigenvalue 1: I - V^T Q = 0 is singular
+    from hfrad.solve.woodbury import HFactorization
+    with pytest.raises(FactorizationError, match="singular"):
+        HFactorization(fac.perm, np.ones((120, 1)), np.full((120, 1), 1.0 / 120), np.full(120, 0.5),
+                       np.full((120, 3), 0.5), fac.lowrank)
