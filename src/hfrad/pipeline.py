@@ -9,6 +9,7 @@ never exists. With ``checkpoint=PATH`` the stream state is saved every
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import math
@@ -39,14 +40,16 @@ def _scene_key(scene: Scene, params: dict) -> str:
     return h.hexdigest()
 
 
-def check_factorize_args(scene: Scene, eps: float, block_size: int, dtype) -> np.dtype:
+def check_factorize_args(scene: Scene, eps: float, block_size: int, dtype, relative: bool = True) -> np.dtype:
     """Validate the options of :func:`factorize` at the API boundary."""
     if not isinstance(scene, Scene):
         raise TypeError(f"scene must be a hfrad Scene (see hfrad.load_scene); got {type(scene).__name__}")
     if scene.n_patches == 0:
         raise SceneError(f"{scene.name}: the scene has no patches")
-    if not (0.0 < eps < 1.0):
+    if relative and not (0.0 < eps < 1.0):
         raise ValueError(f"eps must be in (0, 1) (a relative Frobenius error, e.g. 0.02); got {eps}")
+    if not relative and not (eps > 0.0 and math.isfinite(eps)):
+        raise ValueError(f"an absolute eps must be a positive number; got {eps}")
     if not (1 <= block_size <= scene.n_patches):
         raise ValueError(f"block size must be between 1 and the patch count {scene.n_patches}; got {block_size}")
     dt = np.dtype(dtype)
@@ -58,6 +61,7 @@ def check_factorize_args(scene: Scene, eps: float, block_size: int, dtype) -> np
 def factorize(scene: Scene, *, eps: float = 0.02, relative: bool = True, block_size: int = 256,
               dtype="float32", samples: int | None = None, order: str = "zorder", leaf_share: float = 0.5,
               checkpoint: str | Path | None = None, checkpoint_interval: float = 30.0,
+              blas_threads: int | None = 1,
               progress: ProgressCallback = None, status: StatusCallback = None) -> HFactorization:
     """Precompute a scene: form factors with visibility, HF of ``diag(rho_max) F``, Woodbury factors.
 
@@ -82,6 +86,9 @@ def factorize(scene: Scene, *, eps: float = 0.02, relative: bool = True, block_s
         Save the stream state here while running; resume from it if it exists.
         Deleted when the factorization completes.
     checkpoint_interval : float, seconds
+    blas_threads : int or None
+        BLAS threads during the precomputation (None: leave as is). One is
+        fastest while the form-factor engine uses the other cores.
     progress : callable (done, total), optional
         Column blocks done.
     status : callable (dict), optional
@@ -97,7 +104,7 @@ def factorize(scene: Scene, *, eps: float = 0.02, relative: bool = True, block_s
     Memory: one n x block_size block (float64) plus the factors (O(nk)); the
     n x n matrix is never formed. Time: dominated by the form factors.
     """
-    dt = check_factorize_args(scene, eps, block_size, dtype)
+    dt = check_factorize_args(scene, eps, block_size, dtype, relative)
     from .formfactors.blocks import iter_column_blocks
 
     n = scene.n_patches
@@ -109,10 +116,46 @@ def factorize(scene: Scene, *, eps: float = 0.02, relative: bool = True, block_s
     key = _scene_key(scene, params)
     stream = _open_stream(checkpoint, key, n, n_blocks, eps, relative, dt, leaf_share)
     t0 = time.perf_counter()
-    last_save = t0
     ff_kwargs = {} if samples is None else {"samples": samples}
     blocks = iter_column_blocks(scene, block_size, order=perm, first_block=stream.blocks_done, **ff_kwargs)
     rows_rho = rho_max[perm][:, None]
+    with _blas_threads(blas_threads):
+        lowrank, time_ff = _stream_blocks(blocks, stream, rows_rho, n_blocks, checkpoint, checkpoint_interval,
+                                          key, progress, status, t0)
+    lowrank.info.update({"time_formfactors": time_ff, "time_precompute": time.perf_counter() - t0})
+    fac = HFactorization(perm, lowrank.Q, lowrank.V, rho_max, scene.reflectance, lowrank,
+                         params=params, scene=scene)
+    if checkpoint is not None and Path(checkpoint).exists():
+        Path(checkpoint).unlink()
+    return fac
+
+
+def _open_stream(checkpoint, key, n, n_blocks, eps, relative, dt, leaf_share) -> HFStream:
+    if checkpoint is not None and Path(checkpoint).exists():
+        return load_checkpoint(checkpoint, key)
+    return HFStream(n, n_blocks, eps=eps, relative=relative, dtype=dt, leaf_share=leaf_share)
+
+
+@contextlib.contextmanager
+def _blas_threads(count: int | None):
+    """Limit BLAS/LAPACK threads while the form-factor engine runs beside the factorization.
+
+    The engine keeps the cores busy (numba kernel + Embree); multi-threaded
+    OpenBLAS competing with it spin-waits and slows the small SVDs by 10-50x.
+    """
+    if count is None:
+        yield
+        return
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=count, user_api="blas"):
+        yield
+
+
+def _stream_blocks(blocks, stream: HFStream, rows_rho, n_blocks, checkpoint, checkpoint_interval, key,
+                   progress, status, t0):
+    """Push every column block into the stream (checkpointing); returns (LowRank, form-factor seconds)."""
+    last_save = time.perf_counter()
     time_ff = 0.0
     t_ff = time.perf_counter()
     for start, stop, block in blocks:
@@ -127,16 +170,4 @@ def factorize(scene: Scene, *, eps: float = 0.02, relative: bool = True, block_s
             save_checkpoint(stream, checkpoint, key)
             last_save = time.perf_counter()
         t_ff = time.perf_counter()
-    lowrank = stream.finish()
-    lowrank.info.update({"time_formfactors": time_ff, "time_precompute": time.perf_counter() - t0})
-    fac = HFactorization(perm, lowrank.Q, lowrank.V, rho_max, scene.reflectance, lowrank,
-                         params=params, scene=scene)
-    if checkpoint is not None and Path(checkpoint).exists():
-        Path(checkpoint).unlink()
-    return fac
-
-
-def _open_stream(checkpoint, key, n, n_blocks, eps, relative, dt, leaf_share) -> HFStream:
-    if checkpoint is not None and Path(checkpoint).exists():
-        return load_checkpoint(checkpoint, key)
-    return HFStream(n, n_blocks, eps=eps, relative=relative, dtype=dt, leaf_share=leaf_share)
+    return stream.finish(), time_ff

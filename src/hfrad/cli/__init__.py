@@ -26,9 +26,9 @@ def _root(
 
 
 def _register_commands() -> None:
-    from . import demo, info, precompute, render, solve
+    from . import demo, formfactors, info, precompute, render, solve
 
-    for module in (demo, info, precompute, solve, render):
+    for module in (demo, info, formfactors, precompute, solve, render):
         module.register(app)
 
 

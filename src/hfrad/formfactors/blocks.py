@@ -13,7 +13,6 @@ streamed, cached on disk and resumed, or spread over machines.
 
 from __future__ import annotations
 
-import math
 import time
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
@@ -170,7 +169,8 @@ def cache_key(scene, *, samples: int, block_size: int, order: np.ndarray, dtype)
 def iter_column_blocks(scene, block_size: int = DEFAULT_BLOCK_SIZE, *, order=None,
                        samples: int = DEFAULT_SAMPLES, dtype=np.float64,
                        progress: ProgressCallback = None, cache=None,
-                       engine: FormFactorEngine | None = None) -> Iterator[tuple[int, int, np.ndarray]]:
+                       engine: FormFactorEngine | None = None,
+                       first_block: int = 0) -> Iterator[tuple[int, int, np.ndarray]]:
     """Stream F in column blocks, rows and columns in the internal ``order``.
 
     Yields ``(start, stop, block)`` with
@@ -198,6 +198,8 @@ def iter_column_blocks(scene, block_size: int = DEFAULT_BLOCK_SIZE, *, order=Non
         interrupted run resumes (see :mod:`hfrad.formfactors.cache`).
     engine : FormFactorEngine, optional
         Reuse per-scene state (and read its timing counters).
+    first_block : int
+        Start at this block (resuming an interrupted pass); earlier blocks are not computed.
 
     Raises
     ------
@@ -220,26 +222,26 @@ def iter_column_blocks(scene, block_size: int = DEFAULT_BLOCK_SIZE, *, order=Non
         store = cache if isinstance(cache, BlockCache) else BlockCache(cache)
         store.open(cache_key(scene, samples=samples, block_size=block_size, order=order, dtype=dtype),
                    n, block_size, dtype)
-    starts = list(range(0, n, block_size))
-    cached = [store.get(k, a, min(n, a + block_size)) if store is not None else None
-              for k, a in enumerate(starts)] if store is not None else [None] * len(starts)
-    todo = [k for k in range(len(starts)) if cached[k] is None]
+    starts = list(range(0, n, block_size))[first_block:]
+    # Only flags are read up front: a cached block is read when its turn comes,
+    # so a cache of an out-of-core matrix is streamed, not loaded.
+    todo = [k for k in range(first_block, first_block + len(starts)) if store is None or not store.has(k)]
     own_engine = engine is None
     if todo and engine is None:
         engine = FormFactorEngine(scene, samples=samples)
-    computed = engine.iter_blocks(order, (order[starts[k]:starts[k] + block_size] for k in todo)) \
+    computed = engine.iter_blocks(order, (order[k * block_size:(k + 1) * block_size] for k in todo)) \
         if todo else _empty()
     try:
-        for index, start in enumerate(starts):
+        for index, start in enumerate(starts, first_block):
             stop = min(n, start + block_size)
-            block = cached[index]
-            cached[index] = None
+            block = store.get(index, start, stop) if store is not None else None
             if block is None:
                 block = next(computed).astype(dtype, copy=False)
                 if store is not None:
                     store.put(index, start, stop, block)
             report(progress, stop, n)
             yield start, stop, block
+            del block
         if store is not None:
             store.finish()
             store = None
@@ -359,4 +361,3 @@ def closure_stats(sums: np.ndarray) -> dict:
             "worst_patch": int(err.argmax()) if err.size else -1}
 
 
-_ = math  # (kept for future quadrature settings)

@@ -151,6 +151,10 @@ class BlockCache:
             return None
         return f["F"][:, start:stop]
 
+    def has(self, index: int) -> bool:
+        """Whether block ``index`` is stored (reads only its flag)."""
+        return bool(self._file["done"][index])
+
     def put(self, index: int, start: int, stop: int, block: np.ndarray) -> None:
         """Store a block and mark it done (data first, then the flag, each flushed)."""
         if self._readonly:
