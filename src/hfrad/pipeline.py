@@ -27,6 +27,7 @@ from .scene.scene import Scene
 from .scene.zorder import patch_order
 from .solve.woodbury import HFactorization
 
+DEFAULT_BLOCK_SIZE = 256
 StatusCallback = Callable[[dict], None] | None
 
 
@@ -58,7 +59,7 @@ def check_factorize_args(scene: Scene, eps: float, block_size: int, dtype, relat
     return dt
 
 
-def factorize(scene: Scene, *, eps: float = 0.02, relative: bool = True, block_size: int = 256,
+def factorize(scene: Scene, *, eps: float = 0.02, relative: bool = True, block_size: int | None = None,
               dtype="float32", samples: int | None = None, order: str = "zorder", leaf_share: float = 0.5,
               checkpoint: str | Path | None = None, checkpoint_interval: float = 30.0,
               blas_threads: int | None = 1,
@@ -71,8 +72,8 @@ def factorize(scene: Scene, *, eps: float = 0.02, relative: bool = True, block_s
         Patches with reflectance (n, 3) in [0, 1).
     eps : float in (0, 1)
         Target ``||G - Q V^T||_F``, relative to ``||G||_F`` (absolute with ``relative=False``).
-    block_size : int
-        Column block width (patches per block).
+    block_size : int, optional
+        Column block width (patches per block); default min(256, n).
     dtype : {"float32", "float64"}
         Precision of the factors.
     samples : int, optional
@@ -104,6 +105,8 @@ def factorize(scene: Scene, *, eps: float = 0.02, relative: bool = True, block_s
     Memory: one n x block_size block (float64) plus the factors (O(nk)); the
     n x n matrix is never formed. Time: dominated by the form factors.
     """
+    if block_size is None and isinstance(scene, Scene):
+        block_size = min(DEFAULT_BLOCK_SIZE, max(scene.n_patches, 1))
     dt = check_factorize_args(scene, eps, block_size, dtype, relative)
     from .formfactors.blocks import iter_column_blocks
 

@@ -13,16 +13,22 @@ app = typer.Typer(
 )
 
 
-@app.callback()
+@app.callback(invoke_without_command=True)
 def _root(
+    ctx: typer.Context,
     version: bool = typer.Option(False, "--version", help="Print the version and exit.", is_eager=True),
 ) -> None:
     """Radiosity with infinite bounces: precompute a scene once, re-light it in milliseconds."""
+    from .common import show_warnings_plainly
+
+    show_warnings_plainly()
     if version:
         from .. import __version__
 
         typer.echo(f"hfrad {__version__}")
         raise typer.Exit()
+    if ctx.invoked_subcommand is None:
+        typer.echo(ctx.get_help())
 
 
 def _register_commands() -> None:

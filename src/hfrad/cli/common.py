@@ -60,3 +60,13 @@ def check_memory_for_precompute(n: int, block: int) -> None:
 
     require(precompute_bytes(n, block), f"precomputing {n:,} patches",
             "use fewer patches (--patches/--max-edge) or a larger --eps")
+
+
+def show_warnings_plainly() -> None:
+    """Print library warnings as one 'warning:' line each, without file and line of the source."""
+    import warnings
+
+    def show(message, category, filename, lineno, file=None, line=None) -> None:
+        console.print(f"[yellow]warning:[/] {message}", highlight=False)
+
+    warnings.showwarning = show

@@ -39,6 +39,10 @@ def register(app: typer.Typer) -> None:
         output: Path = typer.Option(..., "-o", "--output", help="Result: .ply, .glb, .npz or .csv (by extension)."),
         emission: Optional[List[str]] = EmissionOption,
         emission_scale: float = EmissionScaleOption,
+        residual: bool = typer.Option(False, "--residual", help="Also compute the a-posteriori residual "
+                                      "||(I - RF) B - E|| / ||E|| (recomputes the form factors: as slow as "
+                                      "the precompute's form-factor stage)."),
+        quiet: bool = common.QuietOption,
         colors: Optional[str] = typer.Option(None, "--colors", help="Vertex colours of exports: srgb or linear "
                                                                  "(default: linear in .glb as glTF requires, sRGB in .ply)."),
     ) -> None:
@@ -61,8 +65,24 @@ def register(app: typer.Typer) -> None:
             B = fac.solve(E)
             t_solve = time.perf_counter() - t1
             write_radiosity(output, fac.scene, B, E, colors=colors)
+            if residual:
+                _print_residual(fac, E, B, quiet)
         bound = ", ".join(f"{b:.3g}" for b in fac.error_bound)
         common.console.print(
             f"wrote {output}: {fac.n_patches:,} patches, rank {fac.rank:,}; solve {t_solve * 1e3:.1f} ms "
             f"(load {t_load:.2f} s); eq. 5 bound on the relative radiosity error (R,G,B): {bound}",
             highlight=False)
+
+
+def _print_residual(fac, E: np.ndarray, B: np.ndarray, quiet: bool) -> None:
+    """Stream F once and print the relative residual per channel."""
+    from ..formfactors.blocks import iter_column_blocks
+    from ..solve.bounds import residual_norm
+
+    samples = fac.params.get("samples")
+    kwargs = {} if samples is None else {"samples": samples}
+    with common.progress_bar("residual (form factors)", quiet) as bar:
+        blocks = iter_column_blocks(fac.scene, order=fac.perm, progress=bar, **kwargs)
+        r = residual_norm(blocks, fac.scene.reflectance, E, B, perm=fac.perm)
+    common.console.print("a-posteriori residual ||(I - RF) B - E|| / ||E|| (R,G,B): "
+                         + ", ".join(f"{x:.3g}" for x in r), highlight=False)

@@ -1,0 +1,110 @@
+"""The whole precomputation: scene -> form factors -> HF -> Woodbury, against exact answers."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hfrad.factorize.api import factorize_matrix
+from hfrad.formfactors import form_factor_matrix
+from hfrad.pipeline import factorize
+from hfrad.scene.load import load_scene
+from hfrad.scene.zorder import patch_order
+
+
+@pytest.fixture(scope="module")
+def cornell():
+    """A ~1,500-patch Cornell box, its dense F and the exact radiosity (LAPACK solve per channel)."""
+    scene = load_scene("cornell", patches=1500)
+    F = form_factor_matrix(scene)
+    n = scene.n_patches
+    exact = np.stack([np.linalg.solve(np.eye(n) - scene.reflectance[:, c, None] * F, scene.emission[:, c])
+                      for c in range(3)], axis=1)
+    return scene, F, exact
+
+
+def _relative_error(B, exact):
+    return np.linalg.norm(B - exact, axis=0) / np.linalg.norm(exact, axis=0)
+
+
+def test_furnace_through_the_pipeline():
+    scene = load_scene("furnace", max_edge=0.2)
+    fac = factorize(scene, eps=0.02, block_size=64)
+    B = fac.solve(scene.emission)
+    rho = scene.reflectance[0, 0]
+    assert np.allclose(B, scene.emission / (1 - rho), rtol=0.01)
+
+
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+def test_cornell_error_within_eq5_bound(cornell, dtype):
+    scene, F, exact = cornell
+    fac = factorize(scene, eps=0.02, block_size=128, dtype=dtype)
+    assert fac.relative_error <= 0.02
+    err = _relative_error(fac.solve(scene.emission), exact)
+    print(f"\n{dtype}: n={fac.n_patches} rank={fac.rank} achieved={fac.relative_error:.4f} "
+          f"radiosity error={err} bound={fac.error_bound}")
+    assert (err <= fac.error_bound).all()
+    assert (err < 0.02).all()  # in practice far below the bound (paper, section 2.3)
+
+
+def test_out_of_core_equals_in_core(cornell):
+    scene, F, exact = cornell
+    perm = patch_order(scene.centroids, "zorder")
+    streamed = factorize(scene, eps=0.02, block_size=128, dtype="float64")
+    in_core = factorize_matrix(F, scene.reflectance, eps=0.02, block_size=128, dtype=np.float64, order=perm)
+    assert streamed.rank == in_core.rank
+    B1, B2 = streamed.solve(scene.emission), in_core.solve(scene.emission)
+    assert np.allclose(B1, B2, rtol=1e-8, atol=1e-10 * np.abs(B2).max())
+
+
+def test_order_changes_speed_not_answer(cornell):
+    scene, F, exact = cornell
+    for order in ("random", "hilbert"):
+        fac = factorize(scene, eps=0.02, block_size=128, order=order)
+        err = _relative_error(fac.solve(scene.emission), exact)
+        assert (err <= fac.error_bound).all() and (err < 0.02).all()
+
+
+def test_checkpoint_resumes_without_redoing_blocks(tmp_path):
+    scene = load_scene("cornell", patches=600)
+    full = factorize(scene, eps=0.02, block_size=64, dtype="float64")
+    ckpt = tmp_path / "run.partial"
+
+    class Interrupt(Exception):
+        pass
+
+    def stop_after_four(info):
+        if info["blocks"] == 4:
+            raise Interrupt
+
+    with pytest.raises(Interrupt):
+        factorize(scene, eps=0.02, block_size=64, dtype="float64", checkpoint=ckpt,
+                  checkpoint_interval=0.0, status=stop_after_four)
+    assert ckpt.exists()
+    pushed = []
+    resumed = factorize(scene, eps=0.02, block_size=64, dtype="float64", checkpoint=ckpt,
+                        status=lambda info: pushed.append(info["blocks"]))
+    n_blocks = -(-scene.n_patches // 64)
+    assert pushed == list(range(4, n_blocks + 1))  # the checkpoint held 3 blocks (saved before the 4th)
+    assert not ckpt.exists()
+    assert resumed.rank == full.rank
+    assert np.allclose(resumed.solve(scene.emission), full.solve(scene.emission), rtol=1e-10)
+    # a checkpoint from other parameters is refused, not silently mixed in
+    with pytest.raises(Interrupt):
+        factorize(scene, eps=0.02, block_size=64, dtype="float64", checkpoint=ckpt,
+                  checkpoint_interval=0.0, status=stop_after_four)
+    with pytest.raises(ValueError, match="another scene or other parameters"):
+        factorize(scene, eps=0.05, block_size=64, dtype="float64", checkpoint=ckpt)
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"eps": 0.0}, "eps must be in"),
+    ({"eps": 1.0}, "eps must be in"),
+    ({"block_size": 10_000}, "block size"),
+    ({"dtype": "int8"}, "dtype"),
+    ({"order": "spiral"}, "order must be one of"),
+])
+def test_bad_arguments(kwargs, match):
+    scene = load_scene("furnace")
+    with pytest.raises(ValueError, match=match):
+        factorize(scene, **kwargs)
