@@ -21,6 +21,7 @@ from typing import Iterator
 import numpy as np
 
 from ..errors import MemoryLimitError
+from ..memory import available_bytes
 from ..progress import ProgressCallback, report
 from .cache import BlockCache, array_hash, scene_hash
 from .kernel import KERNEL_VERSION, NEAR, NEAR_SPLITS, PatchGeometry, unoccluded_block
@@ -258,23 +259,8 @@ def _empty() -> Iterator[np.ndarray]:
 
 
 def available_memory() -> int:
-    """Bytes of memory available to new allocations (MemAvailable of /proc/meminfo)."""
-    try:
-        with open("/proc/meminfo") as fh:
-            for line in fh:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:  # pragma: no cover - non-Linux
-        pass
-    try:  # pragma: no cover - non-Linux fallback
-        return os_sysconf_memory()
-    except Exception:  # pragma: no cover
-        return 8 << 30
-
-
-def os_sysconf_memory() -> int:  # pragma: no cover - non-Linux
-    import os
-    return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    """Bytes of memory available to new allocations (see :func:`hfrad.memory.available_bytes`)."""
+    return available_bytes()
 
 
 def dense_bytes(n: int, dtype=np.float64, block_size: int = DEFAULT_BLOCK_SIZE) -> int:

@@ -1,0 +1,26 @@
+"""Shared test fixtures and builders."""
+
+import numpy as np
+
+
+def closed_system(n, seed=0):
+    """A closed reciprocal 'radiosity' system: F >= 0, rows sum to 1, A_i F_ij = A_j F_ji.
+
+    F = diag(1/A) S diag(...) with S = D K D symmetric, scaled (symmetric Sinkhorn) so
+    that S's rows sum to the areas; K is a smooth kernel of random points (low rank-ish).
+    """
+    rng = np.random.default_rng(seed)
+    x = rng.random((n, 3))
+    x = x[np.argsort(x[:, 0])]
+    areas = rng.uniform(0.9, 1.1, n)
+    K = 1.0 / (1.0 + np.sum((x[:, None] - x[None]) ** 2, axis=-1) / 0.1)
+    np.fill_diagonal(K, 0.0)
+    d = np.ones(n)
+    for _ in range(500):
+        d = np.sqrt(d * areas / (K @ d))
+    S = d[:, None] * K * d[None]
+    S = 0.5 * (S + S.T)
+    F = S / areas[:, None]
+    F /= F.sum(axis=1, keepdims=True)      # exact row sums; reciprocity holds to ~1e-12
+    rho = rng.uniform(0.1, 0.9, (n, 3))
+    return F, areas, rho
