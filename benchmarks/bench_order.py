@@ -36,13 +36,14 @@ def main(argv=None) -> int:
     p.add_argument("--repeat", type=int, default=2)
     p.add_argument("--quick", action="store_true", help="2500 patches, Cornell box only")
     p.add_argument("--out", default="order")
+    common.add_blas_arg(p)
     args = p.parse_args(argv)
     if args.quick:
         args.scenes, args.sizes = "cornell", "2500"
     scenes, sizes = common.parse_list(args.scenes), common.parse_sizes(args.sizes)
     eps_list, orders = common.parse_list(args.eps, float), common.parse_list(args.orders)
     dtype = np.dtype(args.dtype)
-    mach = common.header("Patch ordering: HF time and rank")
+    mach = common.header("Patch ordering: HF time and rank", args.blas_threads)
     t_start = time.perf_counter()
     rows = []
     for scene in scenes:

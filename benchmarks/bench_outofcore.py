@@ -194,6 +194,7 @@ def main(argv=None) -> int:
                    help="run the oracle rSVD for real (every pass regenerates F) up to this n")
     p.add_argument("--quick", action="store_true", help="2500 patches, eps 0.05, Cornell box")
     p.add_argument("--out", default="outofcore")
+    common.add_blas_arg(p)
     args = p.parse_args(argv)
     if args.quick:
         args.scenes, args.sizes, args.eps = "cornell", "2500", "0.05"
@@ -201,7 +202,7 @@ def main(argv=None) -> int:
     args.eps = common.parse_list(args.eps, float)
     args.power_iters = common.parse_list(args.power_iters, int)
     args.methods = common.parse_list(args.methods)
-    mach = common.header("Out of core: form factors + factorization, F regenerated on every pass")
+    mach = common.header("Out of core: form factors + factorization, F regenerated on every pass", args.blas_threads)
     t_start = time.perf_counter()
     rows = []
     for scene in scenes:

@@ -164,12 +164,13 @@ def main(argv=None) -> int:
     p.add_argument("--repeat", type=int, default=3)
     p.add_argument("--quick", action="store_true", help="2500 patches, Cornell box")
     p.add_argument("--out", default="solve")
+    common.add_blas_arg(p)
     args = p.parse_args(argv)
     if args.quick:
         args.scenes, args.sizes = "cornell", "2500"
     scenes, sizes = common.parse_list(args.scenes), common.parse_sizes(args.sizes)
     args.iterative = common.parse_list(args.iterative)
-    mach = common.header("Solve: HF Woodbury vs LU vs iterative (per emission)")
+    mach = common.header("Solve: HF Woodbury vs LU vs iterative (per emission)", args.blas_threads)
     bw = copy_bandwidth()
     print(f"copy bandwidth (np.copyto, read + write): {bw / 1e9:.1f} GB/s")
     t_start = time.perf_counter()

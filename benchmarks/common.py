@@ -343,9 +343,36 @@ def parse_list(text: str, cast=str) -> list:
     return [cast(p.strip()) for p in text.split(",") if p.strip()]
 
 
-def header(title: str) -> dict:
+_BLAS_LIMIT = None
+
+
+def set_blas_threads(threads: int | None):
+    """Limit the BLAS/LAPACK thread pools (numpy's and scipy's OpenBLAS) for the whole run.
+
+    On the 2-core benchmark VM, 1 thread was measured 2-9x *faster* than the default 2
+    (gesdd of a 5K matrix 28.5 s vs 55.6 s, HF at 2.5K 0.9 s vs 2.0 s, rSVD 3.1 s vs 7-29 s):
+    numpy and scipy each load their own OpenBLAS, whose spinning worker threads fight over
+    the two cores. Numba (form factors) is not affected. ``None`` keeps the library default.
+    """
+    global _BLAS_LIMIT
+    if threads is None or threads <= 0:
+        return None
+    import scipy.linalg  # noqa: F401  (load scipy's BLAS before limiting it)
+    from threadpoolctl import threadpool_limits
+    _BLAS_LIMIT = threadpool_limits(limits=int(threads), user_api="blas")
+    return _BLAS_LIMIT
+
+
+def add_blas_arg(p) -> None:
+    p.add_argument("--blas-threads", type=int, default=1,
+                   help="BLAS threads for every method (default 1: fastest on the 2-core VM; 0 = library default)")
+
+
+def header(title: str, blas_threads: int | None = None) -> dict:
     """Print the benchmark title and the machine; return the machine dict for the JSON."""
+    set_blas_threads(blas_threads)
     m = machine()
+    m["blas_threads_requested"] = blas_threads
     print(f"# {title}")
     print(f"machine: {machine_line(m)}")
     check_load()

@@ -38,21 +38,29 @@ def user_errors() -> Iterator[None]:
         fail(str(exc))
 
 
+class _Bar:
+    """``progress(done, total)`` callback over a rich task, plus a free-text note column."""
+
+    def __init__(self, bar: Progress, task) -> None:
+        self._bar, self._task = bar, task
+
+    def __call__(self, done: int, total: int) -> None:
+        self._bar.update(self._task, completed=done, total=total)
+
+    def note(self, text: str) -> None:
+        self._bar.update(self._task, note=text)
+
+
 @contextlib.contextmanager
-def progress_bar(description: str, quiet: bool = False) -> Iterator:
-    """A rich progress bar; yields a ``progress(done, total)`` callback (None when quiet)."""
+def progress_bar(description: str, quiet: bool = False) -> Iterator[Optional[_Bar]]:
+    """A rich progress bar (done/total, elapsed, ETA, a note); yields None when quiet."""
     if quiet:
         yield None
         return
     with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
-                  TimeElapsedColumn(), TimeRemainingColumn(), console=console, transient=False) as bar:
-        task = bar.add_task(description, total=None)
-
-        def update(done: int, total: int) -> None:
-            bar.update(task, completed=done, total=total)
-
-        yield update
-
+                  TimeElapsedColumn(), TimeRemainingColumn(), TextColumn("{task.fields[note]}"),
+                  console=console, transient=False) as bar:
+        yield _Bar(bar, bar.add_task(description, total=None, note=""))
 
 def check_memory_for_precompute(n: int, block: int) -> None:
     """Refuse a precompute that would not fit in memory (see ``hfrad precompute --help``)."""

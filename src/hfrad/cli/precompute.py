@@ -54,8 +54,9 @@ def register(app: typer.Typer) -> None:
                 common.console.print(f"resuming from checkpoint {checkpoint}")
             t_load = time.perf_counter() - t0
             with common.progress_bar(f"precompute {s.n_patches:,} patches", quiet) as bar:
+                status = None if bar is None else (lambda info: bar.note(f"rank {info['rank']:,}"))
                 fac = factorize(s, eps=eps, block_size=block, dtype=dtype, samples=samples, order=order,
-                                checkpoint=checkpoint, progress=bar)
+                                checkpoint=checkpoint, progress=bar, status=status)
             timings = {"load": t_load, **{k: v for k, v in fac.lowrank.info.items() if k.startswith("time")}}
             save_hfr(output, fac, timings=timings)
         _report(fac, output, time.perf_counter() - t0)
