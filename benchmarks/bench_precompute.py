@@ -80,9 +80,10 @@ def main() -> None:
             rows.append(row)
     print(machine_line())
     print_table("precompute + relight, Cornell box", rows,
-                ["patches", "eps", "rank", ("achieved_error", ".4f"), ("precompute_s", ".1f"),
-                 ("formfactors_s", ".1f"), ("hf_s", ".1f"), ("peak_rss_gb", ".2f"),
-                 ("solve_rgb_ms_median", ".1f"), ("solve_rgb_ms_batched_per_emission", ".2f")])
+                ["patches", "eps", "rank", ("achieved_error", "achieved"), ("precompute_s", "precompute s"),
+                 ("formfactors_s", "form factors s"), ("hf_s", "HF s"), ("peak_rss_gb", "peak GB"),
+                 ("solve_rgb_ms_median", "RGB solve ms"),
+                 ("solve_rgb_ms_batched_per_emission", "batched ms/emission")])
     write_json("precompute", {"machine": machine(), "rows": rows})
 
 

@@ -241,16 +241,20 @@ class HFactorization:
         if E.ndim == 1:
             E = np.repeat(E[:, None], N_CHANNELS, axis=1)
         batched = E.ndim == 3
-        Ei = E[self.perm]
-        if not batched:
-            Ei = Ei[:, :, None]
-        B = np.empty_like(Ei)
-        for c in range(N_CHANNELS):
-            e = Ei[:, c, :].astype(self.dtype)
-            if transpose:
-                B[:, c, :] = Ei[:, c, :] - self.V @ (self.Y[c].T @ e)    # x = e - V (Y_c^T e)
-            else:
-                B[:, c, :] = Ei[:, c, :] - self.Y[c] @ (self.V.T @ e)    # eq. (4)
+        Ei = E[self.perm] if batched else E[self.perm][:, :, None]   # (n, 3, m), internal order
+        m = Ei.shape[2]
+        # One pass over the shared factor for all channels and emissions at once,
+        # then one pass over each channel's own factor: the solve is bandwidth bound.
+        E2 = Ei.reshape(len(Ei), N_CHANNELS * m).astype(self.dtype)
+        if transpose:
+            # (I - V Q_c^T)^{-1} = I - V Y_c^T:  x = e - V (Y_c^T e)
+            W = np.concatenate([self.Y[c].T @ E2[:, c * m:(c + 1) * m] for c in range(N_CHANNELS)], axis=1)
+            B = Ei - (self.V @ W).reshape(Ei.shape)
+        else:
+            W = self.V.T @ E2                                                  # (k, 3m)
+            B = Ei.copy()
+            for c in range(N_CHANNELS):
+                B[:, c, :] -= self.Y[c] @ W[:, c * m:(c + 1) * m]           # eq. (4)
         out = B[self.inv_perm]
         return out if batched else out[:, :, 0]
 
