@@ -1,0 +1,50 @@
+"""Large-scene checks, too slow for the default suite: ``python3 -m pytest -m slow``.
+
+They repeat the default suite's exactness checks at the sizes the issues name
+(10K patches) and on a shared scene, against a dense LAPACK solve.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hfrad.formfactors import form_factor_matrix
+from hfrad.pipeline import factorize
+from hfrad.scene.load import load_scene
+
+pytestmark = pytest.mark.slow
+
+SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "scenes"
+
+
+def _exact(scene, F):
+    n = scene.n_patches
+    return np.stack([np.linalg.solve(np.eye(n) - scene.reflectance[:, c, None] * F, scene.emission[:, c])
+                     for c in range(3)], axis=1)
+
+
+def _check_against_dense(scene, eps):
+    fac = factorize(scene, eps=eps)
+    F = form_factor_matrix(scene)
+    exact = _exact(scene, F)
+    del F
+    B = fac.solve(scene.emission)
+    err = np.linalg.norm(B - exact, axis=0) / np.linalg.norm(exact, axis=0)
+    print(f"\n{scene.name}: n={fac.n_patches} rank={fac.rank} achieved={fac.relative_error:.4f} "
+          f"error={err} bound={fac.error_bound}")
+    assert fac.relative_error <= eps
+    assert (err <= fac.error_bound).all()
+    assert (err < eps).all()
+
+
+def test_cornell_10k_against_dense_solve():
+    _check_against_dense(load_scene("cornell", patches=10000), 0.02)
+
+
+@pytest.mark.skipif(not SHARED.is_dir(), reason="../shared/scenes is absent (only in the developers' checkout)")
+def test_mcguire_cornell_against_dense_solve():
+    scene = load_scene(SHARED / "cornell-box" / "CornellBox-Original.obj", patches=4000)
+    _check_against_dense(scene, 0.02)
