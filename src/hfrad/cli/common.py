@@ -78,3 +78,13 @@ def show_warnings_plainly() -> None:
         console.print(f"[yellow]warning:[/] {message}", highlight=False)
 
     warnings.showwarning = show
+
+
+def load_factorization(path):
+    """An .hfr file's factorization, which must hold its patches (``fac.scene``)."""
+    from ..io.hfr import load_hfr
+
+    fac = load_hfr(path)
+    if fac.scene is None:
+        raise ValueError(f"{path}: has no patches stored; re-run `hfrad precompute` (it stores them)")
+    return fac

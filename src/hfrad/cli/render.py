@@ -12,17 +12,6 @@ from . import common
 from .solve import EmissionOption, EmissionScaleOption
 
 
-def _load(path: Path):
-    """(scene, factorization) from an .hfr file."""
-    from ..io.hfr import load_hfr
-
-    fac = load_hfr(path)
-    if fac.scene is None:
-        raise ValueError(f"{path}: has no patches stored, so there is nothing to draw; "
-                         "re-run `hfrad precompute` (it stores the patches)")
-    return fac.scene, fac
-
-
 def register(app: typer.Typer) -> None:
     @app.command()
     def render(
@@ -64,7 +53,8 @@ def register(app: typer.Typer) -> None:
                 from ..render.falsecolor import check_unit
                 check_unit(unit)
             Camera.parse(camera, np.array([[0.0, 0, 0], [1, 1, 1]]))  # fail on a bad spec before the solve
-            scene, fac = _load(factorization)
+            fac = common.load_factorization(factorization)
+            scene = fac.scene
             E = exitance_from_options(scene, emission, emission_scale)
             t0 = time.perf_counter()
             B = fac.solve(E)

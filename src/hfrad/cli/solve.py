@@ -52,13 +52,10 @@ def register(app: typer.Typer) -> None:
         Prints the eq. 5 bound on the relative radiosity error.
         """
         from ..io.export import write_radiosity
-        from ..io.hfr import load_hfr
 
         with common.user_errors():
             t0 = time.perf_counter()
-            fac = load_hfr(factorization)
-            if fac.scene is None:
-                raise ValueError(f"{factorization}: has no patches stored; cannot map emission names")
+            fac = common.load_factorization(factorization)
             t_load = time.perf_counter() - t0
             E = exitance_from_options(fac.scene, emission, emission_scale)
             t1 = time.perf_counter()

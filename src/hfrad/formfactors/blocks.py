@@ -21,7 +21,7 @@ from typing import Iterator
 import numpy as np
 
 from ..errors import MemoryLimitError
-from ..memory import available_bytes
+from ..memory import available_bytes as available_memory
 from ..progress import ProgressCallback, report
 from .cache import BlockCache, array_hash, scene_hash
 from .kernel import KERNEL_VERSION, NEAR, NEAR_SPLITS, PatchGeometry, unoccluded_block
@@ -256,11 +256,6 @@ def iter_column_blocks(scene, block_size: int = DEFAULT_BLOCK_SIZE, *, order=Non
 
 def _empty() -> Iterator[np.ndarray]:
     yield from ()
-
-
-def available_memory() -> int:
-    """Bytes of memory available to new allocations (see :func:`hfrad.memory.available_bytes`)."""
-    return available_bytes()
 
 
 def dense_bytes(n: int, dtype=np.float64, block_size: int = DEFAULT_BLOCK_SIZE) -> int:
