@@ -58,7 +58,12 @@ class FormFactorEngine:
 
     def __init__(self, scene, *, samples: int = DEFAULT_SAMPLES, near: float = NEAR,
                  near_splits: int = NEAR_SPLITS) -> None:
-        self.geometry = PatchGeometry(scene, near=near, near_splits=near_splits)
+        if scene.is_clustered:  # patches that are sets of triangles (hfrad.scene.cluster)
+            from .clustered import ClusterGeometry, clustered_block
+            self.geometry, self._unoccluded = ClusterGeometry(scene), clustered_block
+        else:
+            self.geometry = PatchGeometry(scene, near=near, near_splits=near_splits)
+            self._unoccluded = unoccluded_block
         self.samples = int(samples)
         self.visibility = Visibility(scene, samples=samples) if samples else None
         self.kernel_seconds = 0.0
@@ -76,7 +81,7 @@ class FormFactorEngine:
 
     def _kernel(self, rows, cols) -> np.ndarray:
         t0 = time.perf_counter()
-        F = unoccluded_block(self.geometry, rows, cols)
+        F = self._unoccluded(self.geometry, rows, cols)
         self.kernel_seconds += time.perf_counter() - t0
         self.pairs += F.size
         return F
