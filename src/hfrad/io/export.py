@@ -1,7 +1,7 @@
 """Writing radiosity solutions: coloured meshes (.glb, .ply) and tables (.npz, .csv).
 
 Every writer goes through a temporary file in the destination folder that is
-renamed over the target (``os.replace``) when complete, so a reader never sees
+renamed over the target when complete (:func:`hfrad.atomic.atomic_path`), so a reader never sees
 half a file and a failed write leaves nothing behind.
 
 Colours of meshes come from the same smooth per-vertex radiosity as rendered
@@ -20,35 +20,18 @@ vertex colour is the exposed radiance ``clip(B / pi * 2**EV, 0, 1)``:
 
 from __future__ import annotations
 
-import contextlib
 import csv
 import os
-import tempfile
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 
+from ..atomic import atomic_path as _atomic
 from ..render.shading import CREASE_ANGLE, corner_vertices, smooth_corners
 from ..render.tonemap import auto_exposure, tonemap
 
 MESH_FORMATS = (".glb", ".ply")
 RADIOSITY_FORMATS = (".npz", ".csv", ".ply", ".glb")
-
-
-@contextlib.contextmanager
-def _atomic(path: "str | os.PathLike") -> Iterator[Path]:
-    """Yield a temporary path next to ``path``; rename it to ``path`` on success, delete it on failure."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        yield Path(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
 
 
 def _check(scene, array, name: str) -> np.ndarray:
