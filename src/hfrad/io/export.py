@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atomic import atomic_path as _atomic
+from ..atomic import atomic_path
 from ..render.shading import CREASE_ANGLE, corner_vertices, smooth_corners
 from ..render.tonemap import auto_exposure, tonemap
 
@@ -138,7 +138,7 @@ def _write_glb(path, vertices, faces, rgb) -> None:
     rgba = np.concatenate([rgb, np.full((len(rgb), 1), 255, np.uint8)], axis=1)
     mesh = trimesh.Trimesh(vertices=vertices, faces=faces, vertex_colors=rgba, process=False)
     data = mesh.export(file_type="glb")
-    with _atomic(path) as tmp:
+    with atomic_path(path) as tmp:
         tmp.write_bytes(data)
 
 
@@ -170,14 +170,14 @@ def _write_ply(path, scene, vertices, faces, rgb, B, E) -> None:
         *[f"property float {p}" for p in fprops],
         "end_header",
     ]) + "\n"
-    with _atomic(path) as tmp, open(tmp, "wb") as fh:
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
         fh.write(header.encode("ascii"))
         fh.write(v.tobytes())
         fh.write(f.tobytes())
 
 
 def _write_npz(path, scene, B, E) -> None:
-    with _atomic(path) as tmp, open(tmp, "wb") as fh:
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
         np.savez_compressed(
             fh, B=B, E=E, reflectance=np.asarray(scene.reflectance), area=np.asarray(scene.areas),
             centroid=np.asarray(scene.centroids), normal=np.asarray(scene.normals),
@@ -186,7 +186,7 @@ def _write_npz(path, scene, B, E) -> None:
 
 def _write_csv(path, scene, B, E) -> None:
     names = scene.material_names
-    with _atomic(path) as tmp, open(tmp, "w", newline="", encoding="utf-8") as fh:
+    with atomic_path(path) as tmp, open(tmp, "w", newline="", encoding="utf-8") as fh:
         w = csv.writer(fh)
         w.writerow(["index", "material", "area", "centroid_x", "centroid_y", "centroid_z",
                     "B_r", "B_g", "B_b", "E_r", "E_g", "E_b"])
