@@ -39,6 +39,7 @@ def register(app: typer.Typer) -> None:
         unit_scale: float = common.UnitScaleOption,
         samples: int = typer.Option(4, "--samples", help="Visibility rays per patch pair (1, 4, 9, 16, ...; 1 = centroid to centroid)."),
         float32: bool = typer.Option(False, "--float32", help="Store F in single precision (half the memory)."),
+        keep_duplicates: bool = common.KeepDuplicatesOption,
         quiet: bool = common.QuietOption,
     ) -> None:
         """Dense form-factor matrix F (visibility included), in the scene's patch order.
@@ -54,7 +55,8 @@ def register(app: typer.Typer) -> None:
 
         dtype = np.float32 if float32 else np.float64
         with common.user_errors():
-            s = load_scene(scene, unit_scale=unit_scale, max_edge=max_edge, patches=patches)
+            s = load_scene(scene, unit_scale=unit_scale, max_edge=max_edge, patches=patches,
+                           keep_duplicates=keep_duplicates)
             check_dense_memory(s.n_patches, dtype)
             with common.progress_bar(f"form factors ({s.n_patches} patches)", quiet) as progress:
                 F = form_factor_matrix(s, samples=samples, dtype=dtype, progress=progress)

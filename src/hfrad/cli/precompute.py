@@ -28,6 +28,7 @@ def register(app: typer.Typer) -> None:
         emit: Optional[List[str]] = common.EmitOption,
         area_light: Optional[str] = common.AreaLightOption,
         default_reflectance: float = common.DefaultReflectanceOption,
+        keep_duplicates: bool = common.KeepDuplicatesOption,
         quiet: bool = common.QuietOption,
     ) -> None:
         """Precompute a scene once: form factors with visibility, HF, Woodbury factors.
@@ -47,7 +48,7 @@ def register(app: typer.Typer) -> None:
                 raise ValueError(f"output must end in .hfr; got {output}")
             s = load_scene_from_options(scene, unit_scale=unit_scale, emit=emit, area_light=area_light,
                                         default_reflectance=default_reflectance,
-                                        max_edge=max_edge, patches=patches)
+                                        max_edge=max_edge, patches=patches, keep_duplicates=keep_duplicates)
             common.check_memory_for_precompute(s.n_patches, block or 256)
             checkpoint = output.with_name(output.name + ".partial")
             if checkpoint.exists():
