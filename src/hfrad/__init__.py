@@ -35,6 +35,7 @@ _EXPORTS = {
     "render_image": "hfrad.render.image",
     "save_png": "hfrad.render.image",
     "write_radiosity": "hfrad.io.export",
+    "design": "hfrad.inverse",
     "SceneError": "hfrad.errors",
     "FactorizationError": "hfrad.errors",
     "FileFormatError": "hfrad.errors",
