@@ -82,9 +82,11 @@ class Visibility:
         self.offset = _OFFSET * self.scale
         pts, pts_normals = sample_points(scene, m)
         nrm = np.asarray(scene.normals, np.float64)
-        self.points = np.ascontiguousarray(pts + self.offset * pts_normals)
-        # patch planes n . x = n . c (sample points are `offset` in front of their own)
-        self.plane = np.ascontiguousarray(np.column_stack([nrm, np.einsum("nd,nd->n", nrm, scene.centroids if scene.is_clustered else tri[:, 0])
+        self.points = np.ascontiguousarray(pts - self.centre + self.offset * pts_normals)
+        # patch planes n . x = n . v0, or through the centroid of a clustered patch
+        # (sample points are `offset` in front of their own triangles)
+        on_plane = scene.centroids - self.centre if scene.is_clustered else tri[:, 0]
+        self.plane = np.ascontiguousarray(np.column_stack([nrm, np.einsum("nd,nd->n", nrm, on_plane)
                                                            if len(tri) else np.zeros(0)]))
         self.partner = np.ascontiguousarray((np.arange(self.samples) + self.samples // 2) % self.samples,
                                             dtype=np.int64)
