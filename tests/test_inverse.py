@@ -167,6 +167,23 @@ def test_malformed_spec_names_the_field(case, change, field):
     assert f"{field}:" in str(err.value)
 
 
+def test_emission_file_reproduces_the_design(case):
+    from hfrad.inverse.emission import emission_settings
+    from hfrad.io.emission import emission_overrides
+    from hfrad.scene.load import set_emission
+
+    scene, fac, F = case
+    spec = light_spec(min=100.0)
+    spec["emitters"].append({"name": "blue_block", "group": "short_block", "max": 5.0, "color": [0.1, 0.2, 1.0]})
+    spec["background"] = "none"
+    r = design(fac, spec)
+    settings = emission_settings(r, scene)
+    assert np.array_equal(set_emission(scene, emission_overrides(settings)).emission, r.exitance)
+    spec["emitters"][1] = {"name": "two", "patches": [0, 1], "max": 5.0}
+    with pytest.raises(ValueError, match="one material or group name"):
+        emission_settings(design(fac, spec), scene)
+
+
 def test_overlapping_emitters_are_refused(case):
     spec = light_spec(min=1.0)
     spec["emitters"].append({"name": "again", "material": "light"})
@@ -186,10 +203,16 @@ def test_cli_exit_codes(case, tmp_path):
         return runner.invoke(app, ["design", str(path), str(hfr), *map(str, extra)])
 
     out, png = tmp_path / "result.json", tmp_path / "design.png"
-    ok = run(light_spec(min=300.0), "-o", out, "--render", png, "--width", 48, "--height", 32, "--quiet")
+    em = tmp_path / "emission.json"
+    ok = run(light_spec(min=300.0), "-o", out, "--render", png, "--width", 48, "--height", 32, "--quiet",
+             "--emission-out", em, "--falsecolor", "--show", "irradiance")
     assert ok.exit_code == 0, ok.output
     result = json.loads(out.read_text())
     assert result["feasible"] and result["verified"]["goals_met"] and png.stat().st_size > 0
+    lamp = json.loads(em.read_text())["emitters"][0]
+    assert lamp["name"] == "light" and lamp["exitance"][0] == pytest.approx(result["emitters"][0]["intensity"])
+    relit = runner.invoke(app, ["solve", str(hfr), "-o", str(tmp_path / "b.npz"), "--emission-file", str(em)])
+    assert relit.exit_code == 0, relit.output
     for key in ("emitters", "targets", "evaluations", "time_s", "objective"):
         assert key in result
     bad = light_spec(min=300.0)

@@ -14,7 +14,7 @@ import numpy as np
 from ..progress import ProgressCallback, report
 from .optimize import GOAL_RTOL, optimise, power_per_intensity
 from .spec import DesignSpec, Target, parse_spec
-from .transfer import Quantities, design_exitance, response
+from .transfer import design_exitance, response
 
 __all__ = ["design", "DesignResult"]
 
@@ -206,19 +206,18 @@ def design(fac, spec: "Mapping[str, Any] | DesignSpec | str", *, verify: bool = 
     if feasible_lp:
         E = design_exitance(spec, scene, s)
         if verify:
-            out["verified"], B = _verify(fac, spec, E, values, resp.weight)
+            out["verified"], B = _verify(fac, spec, E, values, resp)
     report(progress, 3, 3)
     return DesignResult(out, spec, E, B)
 
 
-def _verify(fac, spec: DesignSpec, E: np.ndarray, predicted: list, weight: list) -> tuple[dict, np.ndarray]:
-    """Solve the chosen emission from scratch and re-measure every target."""
+def _verify(fac, spec: DesignSpec, E: np.ndarray, predicted: list, resp) -> tuple[dict, np.ndarray]:
+    """Solve the chosen emission from scratch (not by superposition) and re-measure every target."""
     t0 = time.perf_counter()
     B = np.asarray(fac.solve(E), dtype=np.float64)
-    quantities = Quantities(fac, spec.targets)
     targets, deviation, met = [], 0.0, True
-    for t, q_pred, w in zip(spec.targets, predicted, weight):
-        q = quantities(t, B[:, :, None], E[:, :, None])[:, 0]
+    for t, q_pred, w in zip(spec.targets, predicted, resp.weight):
+        q = resp.quantities(t, B[:, :, None], E[:, :, None])[:, 0]
         st = _stats(q, w)
         ok = _met(t, st, spec.objective)
         met &= all(ok.values())

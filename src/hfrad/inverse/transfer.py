@@ -66,6 +66,8 @@ class Response:
         Radiosity solves used (right-hand sides).
     seconds : float
         Wall time of the solves and of the quantities.
+    quantities : Quantities
+        The evaluator used (holds the form-factor rows of black target patches).
     """
 
     matrix: list
@@ -73,6 +75,7 @@ class Response:
     weight: list
     evaluations: int
     seconds: float
+    quantities: "Quantities"
 
     def values(self, s: np.ndarray) -> list:
         """Per-target (p_t,) quantities at intensities ``s``."""
@@ -105,14 +108,17 @@ def design_exitance(spec: DesignSpec, scene, intensity) -> np.ndarray:
 class Quantities:
     """Evaluates target quantities from radiosity (see module docstring).
 
-    Holds the exact form-factor rows of the target patches whose reflectance
-    is zero in some channel (computed once, at construction).
+    Parameters
+    ----------
+    fac : HFactorization
+    patches : (p,) int
+        Patches whose irradiance will be asked for. The exact form-factor rows
+        of those with zero reflectance in some channel are computed here, once.
     """
 
-    def __init__(self, fac, targets: tuple[Target, ...]) -> None:
+    def __init__(self, fac, patches) -> None:
         self.reflectance = np.asarray(fac.reflectance, dtype=np.float64)
-        need = [t.patches for t in targets if t.quantity != "radiosity"]
-        rows = np.unique(np.concatenate(need)) if need else np.zeros(0, np.int64)
+        rows = np.unique(np.asarray(patches, dtype=np.int64))
         black = rows[(self.reflectance[rows] <= 0).any(axis=1)]
         self._row_of = {int(i): r for r, i in enumerate(black)}
         self.F_rows = np.zeros((0, fac.n_patches))
@@ -127,23 +133,44 @@ class Quantities:
                 engine.close()
             self.form_factor_seconds = time.perf_counter() - t0
 
+    @classmethod
+    def for_targets(cls, fac, targets: tuple[Target, ...]) -> "Quantities":
+        need = [t.patches for t in targets if t.quantity != "radiosity"]
+        return cls(fac, np.concatenate(need) if need else np.zeros(0, np.int64))
+
     @property
     def black_patches(self) -> int:
-        """Number of target patches whose irradiance comes from form-factor rows (rho_c = 0)."""
+        """Number of patches whose irradiance comes from form-factor rows (rho_c = 0)."""
         return len(self._row_of)
 
-    def __call__(self, target: Target, B: np.ndarray, E: np.ndarray) -> np.ndarray:
-        """(p_t, m) quantity of ``target`` for radiosity ``B`` and exitance ``E``, both (n, 3, m)."""
-        P = target.patches
-        if target.quantity == "radiosity":
-            return photometric(np.moveaxis(B[P], 1, 2))
+    def irradiance(self, P: np.ndarray, B: np.ndarray, E: np.ndarray) -> np.ndarray:
+        """(p, 3, m) irradiance H of patches ``P`` (W/m^2) for radiosity ``B`` and exitance ``E``, (n, 3, m)."""
         rho = self.reflectance[P][:, :, None]
         H = np.divide(B[P] - E[P], rho, out=np.zeros(B[P].shape), where=rho > 0)   # H = (B - E) / rho
         black = np.flatnonzero((self.reflectance[P] <= 0).any(axis=1))
         if black.size:
             rows = [self._row_of[int(i)] for i in P[black]]
             H[black] = np.einsum("rn,ncm->rcm", self.F_rows[rows], B)              # H = F B, by definition
+        return H
+
+    def __call__(self, target: Target, B: np.ndarray, E: np.ndarray) -> np.ndarray:
+        """(p_t, m) quantity of ``target`` for radiosity ``B`` and exitance ``E``, both (n, 3, m)."""
+        if target.quantity == "radiosity":
+            return photometric(np.moveaxis(B[target.patches], 1, 2))
+        H = self.irradiance(target.patches, B, E)
         return photometric(np.moveaxis(H, 1, 2), _UNITS[target.quantity])
+
+
+def irradiance_field(fac, radiosity: np.ndarray, exitance: np.ndarray) -> np.ndarray:
+    """(n, 3) irradiance H of every patch, W/m^2, from a solve's radiosity and its exitance (n, 3).
+
+    ``(B - E) / rho``, and ``F B`` from exact form-factor rows where rho = 0
+    (see the module docstring); e.g. for a false-colour picture of illuminance.
+    """
+    everything = np.arange(fac.n_patches)
+    B = np.asarray(radiosity, np.float64)[:, :, None]
+    E = np.asarray(exitance, np.float64)[:, :, None]
+    return Quantities(fac, everything).irradiance(everything, B, E)[:, :, 0]
 
 
 def response(fac, spec: DesignSpec) -> Response:
@@ -172,7 +199,7 @@ def response(fac, spec: DesignSpec) -> Response:
     with_background = bool(E0.any())
     batch = np.concatenate([E, E0[:, :, None]], axis=2) if with_background else E
     B = np.asarray(fac.solve(batch), dtype=np.float64)
-    quantities = Quantities(fac, spec.targets)
+    quantities = Quantities.for_targets(fac, spec.targets)
     matrix, offset, weight = [], [], []
     m = len(spec.emitters)
     for t in spec.targets:
@@ -181,4 +208,4 @@ def response(fac, spec: DesignSpec) -> Response:
         offset.append(q[:, m] if with_background else np.zeros(len(t.patches)))
         a = scene.areas[t.patches]
         weight.append(a / a.sum())
-    return Response(matrix, offset, weight, batch.shape[2], time.perf_counter() - t0)
+    return Response(matrix, offset, weight, batch.shape[2], time.perf_counter() - t0, quantities)
