@@ -23,7 +23,7 @@ def _root(
 
     show_warnings_plainly()
     if version:
-        from .. import __version__
+        from .._version import __version__
 
         typer.echo(f"hfrad {__version__}")
         raise typer.Exit()

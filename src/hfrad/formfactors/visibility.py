@@ -178,7 +178,7 @@ class Visibility:
     def cast(self, job: "RayJob") -> np.ndarray:
         """(r,) bool: blocked segments of a job (Embree; holds the GIL, so one call at a time)."""
         t0 = time.perf_counter()
-        hit = self.caster._scene.run(job.o, job.d, query="OCCLUDED", dists=job.t) >= 0  # noqa: SLF001
+        hit = self.caster.occluded(job.o, job.d, job.t)
         self.embree_seconds += time.perf_counter() - t0
         return hit
 

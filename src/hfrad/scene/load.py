@@ -1,7 +1,7 @@
 """Loading a scene: file or built-in name -> materials -> lights -> patches.
 
 ``load_scene`` is the one entry point the CLI and the API use. Readers for
-each format (``hfrad.io``) return plain dicts; this module turns them into a
+each format (``obj.py``, ``mesh.py``) return plain dicts; this module turns them into a
 :class:`Scene`, applies the lighting options (make a material or group emit,
 add an area light), drops degenerate faces with a counted warning, merges
 duplicate faces (and reports overlapping ones), and cuts
@@ -25,8 +25,8 @@ MAX_COLOUR_REFLECTANCE = 0.99  # a white colour (1.0) would create energy: clamp
 
 
 def _readers() -> dict[str, Callable[[Path], dict]]:
-    from ..io.mesh import read_gltf, read_ply
-    from ..io.obj import read_obj
+    from .mesh import read_gltf, read_ply
+    from .obj import read_obj
 
     return {".obj": read_obj, ".ply": read_ply, ".gltf": read_gltf, ".glb": read_gltf}
 
