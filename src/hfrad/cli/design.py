@@ -40,7 +40,7 @@ def register(app: typer.Typer) -> None:
 
         from ..inverse import design as run_design
         from ..inverse import parse_spec
-        from ..io.export import _atomic
+        from ..atomic import atomic_path
 
         with common.user_errors():
             if output.suffix.lower() != ".json":
@@ -57,7 +57,7 @@ def register(app: typer.Typer) -> None:
             parsed = parse_spec(spec, fac.scene)
             with common.progress_bar("design", quiet) as bar:
                 result = run_design(fac, parsed, progress=bar)
-            with _atomic(output) as tmp:
+            with atomic_path(output) as tmp:
                 tmp.write_text(result.to_json() + "\n", encoding="utf-8")
             if render is not None and result.radiosity is not None:
                 from ..render import render_image, save_png
