@@ -167,6 +167,23 @@ def test_malformed_spec_names_the_field(case, change, field):
     assert f"{field}:" in str(err.value)
 
 
+def test_emission_file_reproduces_the_design(case):
+    from hfrad.inverse.emission import emission_settings
+    from hfrad.io.emission import emission_overrides
+    from hfrad.scene.load import set_emission
+
+    scene, fac, F = case
+    spec = light_spec(min=100.0)
+    spec["emitters"].append({"name": "blue_block", "group": "short_block", "max": 5.0, "color": [0.1, 0.2, 1.0]})
+    spec["background"] = "none"
+    r = design(fac, spec)
+    settings = emission_settings(r, scene)
+    assert np.array_equal(set_emission(scene, emission_overrides(settings)).emission, r.exitance)
+    spec["emitters"][1] = {"name": "two", "patches": [0, 1], "max": 5.0}
+    with pytest.raises(ValueError, match="one material or group name"):
+        emission_settings(design(fac, spec), scene)
+
+
 def test_overlapping_emitters_are_refused(case):
     spec = light_spec(min=1.0)
     spec["emitters"].append({"name": "again", "material": "light"})
@@ -186,10 +203,16 @@ def test_cli_exit_codes(case, tmp_path):
         return runner.invoke(app, ["design", str(path), str(hfr), *map(str, extra)])
 
     out, png = tmp_path / "result.json", tmp_path / "design.png"
-    ok = run(light_spec(min=300.0), "-o", out, "--render", png, "--width", 48, "--height", 32, "--quiet")
+    em = tmp_path / "emission.json"
+    ok = run(light_spec(min=300.0), "-o", out, "--render", png, "--width", 48, "--height", 32, "--quiet",
+             "--emission-out", em, "--falsecolor", "--show", "irradiance")
     assert ok.exit_code == 0, ok.output
     result = json.loads(out.read_text())
     assert result["feasible"] and result["verified"]["goals_met"] and png.stat().st_size > 0
+    lamp = json.loads(em.read_text())["emitters"][0]
+    assert lamp["name"] == "light" and lamp["exitance"][0] == pytest.approx(result["emitters"][0]["intensity"])
+    relit = runner.invoke(app, ["solve", str(hfr), "-o", str(tmp_path / "b.npz"), "--emission-file", str(em)])
+    assert relit.exit_code == 0, relit.output
     for key in ("emitters", "targets", "evaluations", "time_s", "objective"):
         assert key in result
     bad = light_spec(min=300.0)
@@ -203,3 +226,40 @@ def test_cli_exit_codes(case, tmp_path):
     assert err.exit_code == 2 and "targets[0].quantity" in err.output and "Traceback" not in err.output
     assert not (tmp_path / "r3.json").exists()
     assert run(light_spec(min=1.0), "-o", tmp_path / "r.txt").exit_code == 2
+
+
+def test_batches_of_emitters_give_the_same_response(case):
+    """Many emitters are solved in several batches (bounded memory) with the same result."""
+    from hfrad.inverse.transfer import response
+
+    scene, fac, F = case
+    spec = parse_spec({"emitters": [{"name": f"p{i}", "patches": [int(i)]} for i in range(0, 40, 3)],
+                       "targets": [{"name": "floor", "group": "floor", "quantity": "irradiance", "min": 0.1}]},
+                      scene)
+    whole = response(fac, spec)
+    done = []
+    pieces = response(fac, spec, batch_bytes=2 * scene.n_patches * 3 * 8 * 4, progress=lambda d, t: done.append(d))
+    # 14 emitters and the background (the scene's own light): 15 right-hand sides, 4 per batch
+    assert done == [4, 8, 12, 15] and whole.evaluations == pieces.evaluations == 15
+    np.testing.assert_allclose(pieces.matrix[0], whole.matrix[0], rtol=1e-12, atol=0)
+    np.testing.assert_allclose(pieces.offset[0], whole.offset[0], rtol=1e-12, atol=0)
+
+
+def test_toml_spec_and_the_office_example(tmp_path):
+    from pathlib import Path
+
+    office = Path(__file__).resolve().parent.parent / "examples" / "office"
+    scene = hfrad.load_scene(str(office / "office.obj"))
+    spec = parse_spec(office / "spec.json", scene)
+    assert [e.name for e in spec.emitters] == [f"lum_{k}" for k in range(1, 7)]
+    desk = spec.targets[0]
+    assert (scene.material[desk.patches] == scene.material_names.index("desk")).all()
+    assert (scene.group[desk.patches] == scene.groups.index("desk_1")).all()
+    toml = tmp_path / "spec.toml"
+    toml.write_text('objective = "min_power"\n[[emitters]]\nmaterial = "luminaire"\nmax = 60\n'
+                    '[[targets]]\nmaterial = "desk"\nquantity = "irradiance_lux"\nmin = 500\n')
+    parsed = parse_spec(toml, scene)
+    assert parsed.emitters[0].max == 60.0 and parsed.targets[0].min == 500.0
+    toml.write_text('[[emitters]]\nmaterial = "luminaire"\nmax = -60\n[[targets]]\nmaterial = "desk"\n')
+    with pytest.raises(SpecError, match=r"spec.toml: emitters\[0\].max"):
+        parse_spec(toml, scene)

@@ -71,12 +71,16 @@ class Emitter:
     patches : (p,) int, user patch order
     color : (3,) float >= 0, exitance per unit intensity, W/m^2 per channel
     max : float, upper bound of the intensity (inf when absent)
+    scene_name : str or None
+        The material or group name that selects exactly these patches (when
+        the emitter was given by one name), for emission files.
     """
 
     name: str
     patches: np.ndarray
     color: np.ndarray
     max: float
+    scene_name: str | None = None
 
 
 @dataclass(frozen=True)
@@ -287,7 +291,10 @@ def _emitter(obj: Any, scene, where: str, field: str) -> Emitter:
         raise SpecError(f"{where}: {field}.color: expected three finite numbers >= 0 (R, G, B), got {color!r}")
     if not photometric(np.asarray(color, float)) > 0:
         raise SpecError(f"{where}: {field}.color: {color!r} has zero luminance; it cannot light anything visible")
-    return Emitter(name, patches, np.asarray(color, dtype=np.float64), math.inf if upper is None else upper)
+    given = [k for k in _SELECTORS if k in obj]
+    scene_name = obj[given[0]] if given in (["material"], ["group"]) and isinstance(obj[given[0]], str) else None
+    return Emitter(name, patches, np.asarray(color, dtype=np.float64), math.inf if upper is None else upper,
+                   scene_name)
 
 
 def _target(obj: Any, scene, where: str, field: str) -> Target:
