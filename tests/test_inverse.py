@@ -144,6 +144,12 @@ def test_infeasible_names_the_conflicting_goals(case):
     weak = light_spec(min=300.0)
     weak["emitters"][0]["max"] = 0.01
     assert sorted(design(fac, weak).report["conflicts"]) == ["floor.min", "light.max"]
+    # a goal the fixed background light alone breaks conflicts with nothing else
+    dark = light_spec(min=1.0)
+    dark["emitters"][0] = {"name": "short", "group": "short_block", "max": 10.0}
+    dark["targets"].append({"name": "ceiling", "group": "ceiling", "quantity": "irradiance", "max": 1e-6})
+    r = design(fac, dark)
+    assert r.report["conflicts"] == ["ceiling.max"] and "on its own" in r.report["message"]
 
 
 @pytest.mark.parametrize("change, field", [
@@ -225,4 +231,49 @@ def test_cli_exit_codes(case, tmp_path):
     err = run(malformed, "-o", tmp_path / "r3.json")
     assert err.exit_code == 2 and "targets[0].quantity" in err.output and "Traceback" not in err.output
     assert not (tmp_path / "r3.json").exists()
-    assert run(light_spec(min=1.0), "-o", tmp_path / "r.txt").exit_code == 2
+    for bad_option in (["-o", tmp_path / "r.txt"], ["-o", out, "--emission-out", tmp_path / "e.txt"],
+                       ["-o", out, "--render", png, "--show", "luminance"],
+                       ["-o", out, "--render", png, "--camera", "nowhere"]):
+        bad_run = run(light_spec(min=1.0), *bad_option)
+        assert bad_run.exit_code == 2 and "Traceback" not in bad_run.output, bad_option
+    by_patches = light_spec(min=1.0)
+    by_patches["emitters"][0] = {"name": "two", "patches": [0, 1], "max": 100.0}
+    refused = run(by_patches, "-o", tmp_path / "r4.json", "--emission-out", em)
+    assert refused.exit_code == 2 and "emitters[0]" in refused.output and not (tmp_path / "r4.json").exists()
+
+
+def test_batches_of_emitters_give_the_same_response(case):
+    """Many emitters are solved in several batches (bounded memory) with the same result."""
+    from hfrad.inverse.transfer import response
+
+    scene, fac, F = case
+    spec = parse_spec({"emitters": [{"name": f"p{i}", "patches": [int(i)]} for i in range(0, 40, 3)],
+                       "targets": [{"name": "floor", "group": "floor", "quantity": "irradiance", "min": 0.1}]},
+                      scene)
+    whole = response(fac, spec)
+    done = []
+    pieces = response(fac, spec, batch_bytes=2 * scene.n_patches * 3 * 8 * 4, progress=lambda d, t: done.append(d))
+    # 14 emitters and the background (the scene's own light): 15 right-hand sides, 4 per batch
+    assert done == [4, 8, 12, 15] and whole.evaluations == pieces.evaluations == 15
+    np.testing.assert_allclose(pieces.matrix[0], whole.matrix[0], rtol=1e-12, atol=0)
+    np.testing.assert_allclose(pieces.offset[0], whole.offset[0], rtol=1e-12, atol=0)
+
+
+def test_toml_spec_and_the_office_example(tmp_path):
+    from pathlib import Path
+
+    office = Path(__file__).resolve().parent.parent / "examples" / "office"
+    scene = hfrad.load_scene(str(office / "office.obj"))
+    spec = parse_spec(office / "spec.json", scene)
+    assert [e.name for e in spec.emitters] == [f"lum_{k}" for k in range(1, 7)]
+    desk = spec.targets[0]
+    assert (scene.material[desk.patches] == scene.material_names.index("desk")).all()
+    assert (scene.group[desk.patches] == scene.groups.index("desk_1")).all()
+    toml = tmp_path / "spec.toml"
+    toml.write_text('objective = "min_power"\n[[emitters]]\nmaterial = "luminaire"\nmax = 60\n'
+                    '[[targets]]\nmaterial = "desk"\nquantity = "irradiance_lux"\nmin = 500\n')
+    parsed = parse_spec(toml, scene)
+    assert parsed.emitters[0].max == 60.0 and parsed.targets[0].min == 500.0
+    toml.write_text('[[emitters]]\nmaterial = "luminaire"\nmax = -60\n[[targets]]\nmaterial = "desk"\n')
+    with pytest.raises(SpecError, match=r"spec.toml: emitters\[0\].max"):
+        parse_spec(toml, scene)

@@ -102,7 +102,8 @@ def design(fac, spec: "Mapping[str, Any] | DesignSpec | str", *, verify: bool = 
         Check the answer with an independent full solve of the chosen emission
         (one more ``fac.solve``); fills ``report['verified']``.
     progress : callable (done, total), optional
-        Called after each of the three stages (response, optimisation, verification).
+        Radiosity solves done, of at most one per emitter, one for the
+        background and one for the verification.
 
     Returns
     -------
@@ -147,13 +148,12 @@ def design(fac, spec: "Mapping[str, Any] | DesignSpec | str", *, verify: bool = 
                          "written by `hfrad precompute` or build it with hfrad.factorize(scene)")
     if not isinstance(spec, DesignSpec):
         spec = parse_spec(spec, scene)
-    resp = response(fac, spec)
-    report(progress, 1, 3)
+    columns = len(spec.emitters) + 1                       # right-hand sides, at most, + verification
+    resp = response(fac, spec, progress=None if progress is None else lambda d, t: progress(d, columns + 1))
     t1 = time.perf_counter()
     cost = power_per_intensity(spec, scene)
     sol = optimise(spec, resp, cost)
     t_opt = time.perf_counter() - t1
-    report(progress, 2, 3)
     s = sol.intensity
     feasible_lp = s is not None
     targets_out, all_met = [], feasible_lp
@@ -207,7 +207,7 @@ def design(fac, spec: "Mapping[str, Any] | DesignSpec | str", *, verify: bool = 
         E = design_exitance(spec, scene, s)
         if verify:
             out["verified"], B = _verify(fac, spec, E, values, resp)
-    report(progress, 3, 3)
+    report(progress, columns + 1, columns + 1)
     return DesignResult(out, spec, E, B)
 
 

@@ -44,8 +44,12 @@ import numpy as np
 
 from ..formfactors.blocks import FormFactorEngine
 from ..formfactors.visibility import DEFAULT_SAMPLES
+from ..progress import ProgressCallback, report
 from ..render.falsecolor import photometric
 from .spec import DesignSpec, Target
+
+#: memory for one batch of right-hand sides and radiosities (bytes); more emitters take several batches
+BATCH_BYTES = 256 * 2**20
 
 _UNITS = {"radiosity": "W/m2", "irradiance": "W/m2", "irradiance_lux": "lux"}
 
@@ -82,11 +86,12 @@ class Response:
         return [a + M @ s for M, a in zip(self.matrix, self.offset)]
 
 
-def emitter_exitance(spec: DesignSpec, scene) -> np.ndarray:
-    """(n, 3, m) float: exitance of each emitter at unit intensity, W/m^2."""
-    E = np.zeros((scene.n_patches, 3, len(spec.emitters)))
-    for j, e in enumerate(spec.emitters):
-        E[e.patches, :, j] = e.color
+def emitter_exitance(spec: DesignSpec, scene, emitters: range | None = None) -> np.ndarray:
+    """(n, 3, m) float: exitance of each emitter (or of ``emitters`` only) at unit intensity, W/m^2."""
+    emitters = range(len(spec.emitters)) if emitters is None else emitters
+    E = np.zeros((scene.n_patches, 3, len(emitters)))
+    for col, j in enumerate(emitters):
+        E[spec.emitters[j].patches, :, col] = spec.emitters[j].color
     return E
 
 
@@ -102,7 +107,10 @@ def background_exitance(spec: DesignSpec, scene) -> np.ndarray:
 
 def design_exitance(spec: DesignSpec, scene, intensity) -> np.ndarray:
     """(n, 3) float: the emission of a design, background plus ``intensity[e] * color[e]``."""
-    return background_exitance(spec, scene) + emitter_exitance(spec, scene) @ np.asarray(intensity, float)
+    E = background_exitance(spec, scene)
+    for e, s in zip(spec.emitters, np.asarray(intensity, float)):
+        E[e.patches] += s * e.color
+    return E
 
 
 class Quantities:
@@ -173,14 +181,20 @@ def irradiance_field(fac, radiosity: np.ndarray, exitance: np.ndarray) -> np.nda
     return Quantities(fac, everything).irradiance(everything, B, E)[:, :, 0]
 
 
-def response(fac, spec: DesignSpec) -> Response:
-    """The affine map from intensities to every target quantity (one batched solve).
+def response(fac, spec: DesignSpec, *, progress: ProgressCallback = None,
+             batch_bytes: int = BATCH_BYTES) -> Response:
+    """The affine map from intensities to every target quantity (batched solves).
 
     Parameters
     ----------
     fac : HFactorization
         With its scene (``fac.scene``), e.g. from :func:`hfrad.load`.
     spec : DesignSpec
+    progress : callable (done, total), optional
+        Right-hand sides solved so far, of m (+1 for a background).
+    batch_bytes : int
+        Memory for one batch of right-hand sides and their radiosities
+        (float64); more emitters are solved in several batches.
 
     Returns
     -------
@@ -189,23 +203,28 @@ def response(fac, spec: DesignSpec) -> Response:
     Notes
     -----
     m = len(spec.emitters) right-hand sides, plus one for a non-zero
-    background: O((m + 1) n k) in one call of ``fac.solve``. Never forms
-    ``(I - RF)^-1``.
+    background: O((m + 1) n k), in batches of ``fac.solve``. Never forms
+    ``(I - RF)^-1``. Memory: the batch, plus (target patches) x m quantities.
     """
     t0 = time.perf_counter()
     scene = fac.scene
-    E = emitter_exitance(spec, scene)
+    n, m = scene.n_patches, len(spec.emitters)
     E0 = background_exitance(spec, scene)
     with_background = bool(E0.any())
-    batch = np.concatenate([E, E0[:, :, None]], axis=2) if with_background else E
-    B = np.asarray(fac.solve(batch), dtype=np.float64)
+    columns = m + int(with_background)
+    chunk = max(1, int(batch_bytes // (2 * n * 3 * 8)))      # E and B of one batch, float64
     quantities = Quantities.for_targets(fac, spec.targets)
-    matrix, offset, weight = [], [], []
-    m = len(spec.emitters)
-    for t in spec.targets:
-        q = quantities(t, B, batch)
-        matrix.append(q[:, :m])
-        offset.append(q[:, m] if with_background else np.zeros(len(t.patches)))
-        a = scene.areas[t.patches]
-        weight.append(a / a.sum())
-    return Response(matrix, offset, weight, batch.shape[2], time.perf_counter() - t0, quantities)
+    q_all = [np.empty((len(t.patches), columns)) for t in spec.targets]
+    for start in range(0, columns, chunk):
+        stop = min(columns, start + chunk)
+        batch = emitter_exitance(spec, scene, range(start, min(stop, m)))
+        if stop > m:                                          # the background is the last column
+            batch = np.concatenate([batch, E0[:, :, None]], axis=2)
+        B = np.asarray(fac.solve(batch), dtype=np.float64)
+        for q, t in zip(q_all, spec.targets):
+            q[:, start:stop] = quantities(t, B, batch)
+        report(progress, stop, columns)
+    matrix = [q[:, :m] for q in q_all]
+    offset = [q[:, m] if with_background else np.zeros(len(q)) for q in q_all]
+    weight = [scene.areas[t.patches] / scene.areas[t.patches].sum() for t in spec.targets]
+    return Response(matrix, offset, weight, columns, time.perf_counter() - t0, quantities)
