@@ -37,7 +37,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from .kernel import _point_to_patch, split_centroids
+from .kernel import PatchGeometry, _point_to_patch, split_centroids, unoccluded_block
 
 #: Clustered pairs farther than FAR * (D_P + D_Q) are treated as two points.
 FAR = 3.0
@@ -192,3 +192,21 @@ def clustered_block(geom: ClusterGeometry, rows: np.ndarray, cols: np.ndarray) -
                          geom.normals, geom.centroids, geom.diameters, geom.points, geom.point_normals,
                          geom.weights, rows, cols, geom.far, geom.near, geom.eps, out)
     return out
+
+
+def kernel_for(scene, **options):
+    """(geometry, block function) of the unoccluded kernel that fits ``scene``.
+
+    :class:`ClusterGeometry` and :func:`clustered_block` when its patches are
+    clusters of triangles, else kernel.py's :class:`PatchGeometry` (built with
+    ``options``) and :func:`unoccluded_block`. ``block(geometry, rows, cols)``
+    gives F[rows][:, cols] without visibility either way.
+    """
+    if scene.is_clustered:
+        return ClusterGeometry(scene), clustered_block
+    return PatchGeometry(scene, **options), unoccluded_block
+
+
+def block_function(geometry):
+    """The block function that reads ``geometry`` (see :func:`kernel_for`)."""
+    return clustered_block if isinstance(geometry, ClusterGeometry) else unoccluded_block
