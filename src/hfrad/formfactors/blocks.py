@@ -24,7 +24,7 @@ from ..errors import MemoryLimitError
 from ..memory import available_bytes as available_memory
 from ..progress import ProgressCallback, report
 from .cache import BlockCache, array_hash, scene_hash
-from .kernel import KERNEL_VERSION, NEAR, NEAR_SPLITS, PatchGeometry, unoccluded_block
+from .kernel import ADAPTIVE, KERNEL_VERSION, NEAR, TOLERANCE, PatchGeometry, unoccluded_block
 from .visibility import DEFAULT_SAMPLES, RayBuffers, Visibility, check_samples
 
 __all__ = ["FormFactorEngine", "iter_column_blocks", "form_factor_matrix", "row_sums",
@@ -46,7 +46,8 @@ class FormFactorEngine:
     scene : Scene
     samples : int
         Visibility rays per pair (1, 4, 9, ...); 0 disables visibility (F unoccluded).
-    near, near_splits : see :mod:`hfrad.formfactors.kernel`.
+    near, tolerance : see :mod:`hfrad.formfactors.kernel` (adaptive-path threshold and its
+        relative tolerance).
 
     Notes
     -----
@@ -57,8 +58,8 @@ class FormFactorEngine:
     """
 
     def __init__(self, scene, *, samples: int = DEFAULT_SAMPLES, near: float = NEAR,
-                 near_splits: int = NEAR_SPLITS) -> None:
-        self.geometry = PatchGeometry(scene, near=near, near_splits=near_splits)
+                 tolerance: float = TOLERANCE) -> None:
+        self.geometry = PatchGeometry(scene, near=near, tolerance=tolerance)
         self.samples = int(samples)
         self.visibility = Visibility(scene, samples=samples) if samples else None
         self.kernel_seconds = 0.0
@@ -163,7 +164,7 @@ def cache_key(scene, *, samples: int, block_size: int, order: np.ndarray, dtype)
     """What a cached block depends on (see :mod:`hfrad.formfactors.cache`)."""
     return {"scene_sha256": scene_hash(scene), "samples": int(samples), "block_size": int(block_size),
             "order_sha256": array_hash(order.astype(np.int64)), "dtype": np.dtype(dtype).str,
-            "kernel_version": KERNEL_VERSION, "near": NEAR, "near_splits": NEAR_SPLITS,
+            "kernel_version": KERNEL_VERSION, "near": NEAR, "adaptive": ADAPTIVE, "tolerance": TOLERANCE,
             "n": int(scene.n_patches)}
 
 
