@@ -40,8 +40,8 @@ class Cluster:
     kind : {"local", "scheduler", "client"}
         A LocalCluster started here, an existing scheduler, or a Client passed in.
     task_threads : int or None
-        Numba/BLAS threads per task: the cores of this machine shared among the
-        workers of a LocalCluster; None (the worker's own settings) elsewhere.
+        Numba threads per task: the cores of this machine shared among the
+        workers of a LocalCluster; None (the worker's own setting) elsewhere.
     """
 
     client: object

@@ -48,8 +48,9 @@ def factorize_distributed(scene, *, scheduler=None, workers: int | None = None, 
     eps, relative, block_size, dtype, samples, order, leaf_share
         As in :func:`hfrad.factorize` (same meaning, same defaults).
     task_threads : int, optional
-        Numba/BLAS threads per task (default: this machine's cores shared among
-        a LocalCluster's workers; the workers' own settings on a scheduler).
+        Numba threads of the form-factor kernel per task (default: this machine's
+        cores shared among a LocalCluster's workers; the workers' own setting,
+        NUMBA_NUM_THREADS, on a scheduler). BLAS runs one thread per task.
     connect_timeout : float, seconds, optional
         Default: Dask's ``distributed.comm.timeouts.connect``.
     progress : callable (done, total), optional

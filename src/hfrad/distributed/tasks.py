@@ -42,8 +42,7 @@ class Job:
     samples : int or None
         Visibility rays per pair (None: the engine's default).
     task_threads : int or None
-        Threads of the numba kernel and of BLAS inside one task (None: leave the
-        worker's settings).
+        Threads of the numba kernel inside one task (None: the worker's setting).
     token : str
         Names this run: the per-worker engine cache and the progress topic.
     """
@@ -123,18 +122,21 @@ def drop_engines(token: str) -> int:
 
 @contextlib.contextmanager
 def _threads(count: int | None):
-    """Numba and BLAS threads for this task: ``count`` cores' worth, or as the worker set them."""
+    """``count`` numba threads for this task's form-factor kernel (None: the worker's setting).
+
+    BLAS stays at one thread, as in the local path: Dask's nanny starts workers
+    with OPENBLAS_NUM_THREADS=1, and a multi-threaded BLAS beside busy cores
+    spin-waits (10-50x slower small SVDs, see hfrad.pipeline).
+    """
     if count is None:
         yield
         return
     import numba
-    from threadpoolctl import threadpool_limits
 
     before = numba.get_num_threads()
-    numba.set_num_threads(max(1, min(count, numba.config.NUMBA_NUM_THREADS)))
+    numba.set_num_threads(max(1, min(count, numba.config.NUMBA_NUM_THREADS)))  # thread-local in numba
     try:
-        with threadpool_limits(limits=count, user_api="blas"):
-            yield
+        yield
     finally:
         numba.set_num_threads(before)
 
@@ -191,8 +193,7 @@ def merge_task(job: Job, node_id: int, left: Part, right: Part) -> Part:
     orthogonalised block, and the merged U with its two products.
     """
     t0 = time.perf_counter()
-    with _threads(job.task_threads):
-        node = merge_nodes(left.node, right.node, job.budget, f"merge node {node_id}")
+    node = merge_nodes(left.node, right.node, job.budget, f"merge node {node_id}")
     seconds = time.perf_counter() - t0
     rank = int(node.s.size)
     _announce(job, {"node": node_id, "kind": "merge", "rank": rank})
@@ -204,6 +205,4 @@ def merge_task(job: Job, node_id: int, left: Part, right: Part) -> Part:
 
 def root_task(job: Job, root: Part) -> tuple[LowRank, list]:
     """``Q V^T`` of the root with its achieved error (``Q`` and ``V`` are n x k), and all task records."""
-    with _threads(job.task_threads):
-        lowrank = root_lowrank(root.node, job.eps, job.relative)
-    return lowrank, root.records
+    return root_lowrank(root.node, job.eps, job.relative), root.records
