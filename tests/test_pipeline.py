@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hfrad.factorize.api import factorize_matrix
+from hfrad.pipeline import factorize_matrix
 from hfrad.formfactors import form_factor_matrix
 from hfrad.pipeline import factorize
 from hfrad.scene.load import load_scene

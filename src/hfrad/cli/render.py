@@ -9,7 +9,7 @@ from typing import List, Optional
 import typer
 
 from . import common
-from .solve import EmissionOption, EmissionScaleOption
+from .solve import EmissionFileOption, EmissionOption, EmissionScaleOption
 
 
 def register(app: typer.Typer) -> None:
@@ -19,6 +19,7 @@ def register(app: typer.Typer) -> None:
         output: Path = typer.Option(..., "-o", "--output", help="Picture to write (.png)."),
         emission: Optional[List[str]] = EmissionOption,
         emission_scale: float = EmissionScaleOption,
+        emission_file: Optional[Path] = EmissionFileOption,
         camera: str = typer.Option("auto", "--camera",
                                    help="auto (three-quarter view), front (along -z, the Cornell box view) "
                                         "or x,y,z:tx,ty,tz[:fov_degrees]."),
@@ -55,7 +56,7 @@ def register(app: typer.Typer) -> None:
             Camera.parse(camera, np.array([[0.0, 0, 0], [1, 1, 1]]))  # fail on a bad spec before the solve
             fac = common.load_factorization(factorization)
             scene = fac.scene
-            E = exitance_from_options(scene, emission, emission_scale)
+            E = exitance_from_options(scene, emission, emission_scale, emission_file)
             t0 = time.perf_counter()
             B = fac.solve(E)
             t_solve = time.perf_counter() - t0

@@ -15,16 +15,22 @@ from .info import parse_emit
 EmissionOption = typer.Option(None, "--emission", help="Set a material's or group's exitance: NAME=R,G,B (W/m^2); "
                                                        "0 switches it off. Other emitters keep theirs. Repeatable.")
 EmissionScaleOption = typer.Option(1.0, "--emission-scale", help="Multiply every emission by this.")
+EmissionFileOption = typer.Option(None, "--emission-file", help="Emission JSON (as `hfrad view` saves it; format in "
+                                                                "docs/emission.md), applied before --emission.")
 
 
-def exitance_from_options(scene, emission: Optional[List[str]], scale: float) -> np.ndarray:
-    """(n, 3) exitance: the scene's emitters, overridden per material/group, scaled."""
+def exitance_from_options(scene, emission: Optional[List[str]], scale: float,
+                          emission_file: Optional[Path] = None) -> np.ndarray:
+    """(n, 3) exitance: the scene's emitters, overridden per material/group (file, then
+    ``--emission``), scaled."""
     from ..errors import SceneError
+    from ..io.emission import emission_overrides, read_emission
     from ..scene.load import set_emission
 
     if not (scale >= 0 and np.isfinite(scale)):
         raise ValueError(f"--emission-scale must be a finite number >= 0; got {scale}")
-    lit = set_emission(scene, parse_emit(emission)) if emission else scene
+    lit = set_emission(scene, emission_overrides(read_emission(emission_file))) if emission_file else scene
+    lit = set_emission(lit, parse_emit(emission)) if emission else lit
     E = lit.emission * scale
     if not E.any():
         raise SceneError(f"{scene.name}: no emitter, nothing to solve; light the scene with "
@@ -39,6 +45,7 @@ def register(app: typer.Typer) -> None:
         output: Path = typer.Option(..., "-o", "--output", help="Result: .ply, .glb, .npz or .csv (by extension)."),
         emission: Optional[List[str]] = EmissionOption,
         emission_scale: float = EmissionScaleOption,
+        emission_file: Optional[Path] = EmissionFileOption,
         residual: bool = typer.Option(False, "--residual", help="Also compute the a-posteriori residual "
                                       "||(I - RF) B - E|| / ||E|| (recomputes the form factors: as slow as "
                                       "the precompute's form-factor stage)."),
@@ -57,7 +64,7 @@ def register(app: typer.Typer) -> None:
             t0 = time.perf_counter()
             fac = common.load_factorization(factorization)
             t_load = time.perf_counter() - t0
-            E = exitance_from_options(fac.scene, emission, emission_scale)
+            E = exitance_from_options(fac.scene, emission, emission_scale, emission_file)
             t1 = time.perf_counter()
             B = fac.solve(E)
             t_solve = time.perf_counter() - t1

@@ -17,11 +17,15 @@ import uuid
 
 import numpy as np
 
+from ..defaults import DEFAULT_BLOCK_SIZE
+from ..errors import MemoryLimitError, SceneError
 from ..factorize.hf import counter_tree
-from ..formfactors.blocks import DEFAULT_BLOCK_SIZE
+from ..memory import human
 from ..progress import ProgressCallback, report
+from ..scene.scene import Scene
 from ..scene.zorder import patch_order
 from ..solve.woodbury import HFactorization
+from ..validation import check_factorize_options
 from . import sizing
 from .cluster import Cluster, connect
 from .tasks import Job, drop_engines, leaf_task, merge_task, root_task
@@ -85,11 +89,12 @@ def factorize_distributed(scene, *, scheduler=None, workers: int | None = None, 
     A worker lost mid-run costs only its tasks: Dask recomputes them from the
     graph. Memory per worker: :func:`hfrad.distributed.sizing.worker_bytes`.
     """
-    from ..pipeline import check_factorize_args
-
-    if block_size is None and getattr(scene, "n_patches", 0):
-        block_size = min(DEFAULT_BLOCK_SIZE, scene.n_patches)
-    dt = check_factorize_args(scene, eps, block_size, dtype, relative)
+    if not isinstance(scene, Scene):
+        raise TypeError(f"scene must be a hfrad Scene (see hfrad.load_scene); got {type(scene).__name__}")
+    if scene.n_patches == 0:
+        raise SceneError(f"{scene.name}: the scene has no patches")
+    block_size = min(DEFAULT_BLOCK_SIZE, scene.n_patches) if block_size is None else block_size
+    dt = check_factorize_options(scene.n_patches, eps, block_size, dtype, relative)
     if isinstance(scheduler, Cluster):
         return _run(scheduler, scene, eps, relative, block_size, dt, samples, order, leaf_share,
                     task_threads, progress, status, records)
@@ -100,9 +105,6 @@ def factorize_distributed(scene, *, scheduler=None, workers: int | None = None, 
 
 def _check_worker_memory(cluster: Cluster, n: int, block_size: int) -> None:
     """Refuse a run no worker can hold a leaf of (it would be killed, retried and killed again)."""
-    from ..errors import MemoryLimitError
-    from ..memory import human
-
     need = sizing.ENGINE_BYTES_PER_PATCH * n + sizing.leaf_bytes(n, block_size)
     limits = [x for x in cluster.worker_memory_limits() if x > 0]
     if limits and min(limits) < need:

@@ -20,9 +20,11 @@ from typing import Iterator
 
 import numpy as np
 
+from ..defaults import DEFAULT_BLOCK_SIZE
 from ..errors import MemoryLimitError
 from ..memory import available_bytes as available_memory
 from ..progress import ProgressCallback, report
+from ..validation import check_permutation
 from .cache import BlockCache, array_hash, scene_hash
 from .kernel import KERNEL_VERSION, NEAR, NEAR_SPLITS, PatchGeometry, unoccluded_block
 from .visibility import DEFAULT_SAMPLES, RayBuffers, Visibility, check_samples
@@ -30,7 +32,6 @@ from .visibility import DEFAULT_SAMPLES, RayBuffers, Visibility, check_samples
 __all__ = ["FormFactorEngine", "iter_column_blocks", "form_factor_matrix", "row_sums",
            "available_memory", "DEFAULT_BLOCK_SIZE"]
 
-DEFAULT_BLOCK_SIZE = 256
 _MEMORY_FRACTION = 0.5
 
 
@@ -136,18 +137,6 @@ class FormFactorEngine:
             self.visibility.close()
 
 
-def _check_order(order, n: int) -> np.ndarray:
-    if order is None:
-        return np.arange(n, dtype=np.int64)
-    order = np.asarray(order)
-    if order.shape != (n,) or not np.issubdtype(order.dtype, np.integer):
-        raise ValueError(f"order must be a permutation of range({n}) as an int array of shape ({n},), "
-                         f"got {order.dtype} array of shape {order.shape}")
-    if not np.array_equal(np.sort(order), np.arange(n)):
-        raise ValueError(f"order must be a permutation of range({n}) (each patch exactly once)")
-    return order.astype(np.int64)
-
-
 def _check_common(scene, samples, block_size) -> None:
     if samples != 0:
         check_samples(samples)
@@ -216,7 +205,7 @@ def iter_column_blocks(scene, block_size: int = DEFAULT_BLOCK_SIZE, *, order=Non
     """
     n = scene.n_patches
     _check_common(scene, samples, block_size)
-    order = _check_order(order, n)
+    order = check_permutation(order, n)
     dtype = np.dtype(dtype)
     store = None
     if cache is not None:
@@ -332,13 +321,4 @@ def row_sums(scene, *, samples: int = DEFAULT_SAMPLES, block_size: int = DEFAULT
     for _, _, block in iter_column_blocks(scene, block_size, samples=samples, progress=progress):
         total += block.sum(axis=1)
     return total
-
-
-def closure_stats(sums: np.ndarray) -> dict:
-    """Mean and worst |row sum - 1| (for closed scenes)."""
-    err = np.abs(np.asarray(sums) - 1.0)
-    return {"mean_abs_error": float(err.mean()) if err.size else 0.0,
-            "max_abs_error": float(err.max()) if err.size else 0.0,
-            "worst_patch": int(err.argmax()) if err.size else -1}
-
 

@@ -22,12 +22,12 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import warnings
 from pathlib import Path
 
 import numpy as np
 
+from ..atomic import publish
 from ..errors import FileFormatError
 
 FORMAT_VERSION = 1
@@ -174,7 +174,7 @@ class BlockCache:
         f.close()
         self._file = None
         if not self._readonly and complete:
-            os.replace(self.partial, self.path)
+            publish(self.partial, self.path)
 
     def close(self) -> None:
         """Close without renaming (an interrupted run keeps its partial file)."""

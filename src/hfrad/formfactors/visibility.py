@@ -13,6 +13,9 @@ destroys the low rank the hierarchical factorization relies on (METHOD.md s. 7).
 
 End points are moved off their surfaces along the patch normals by
 ``1e-5 x scene size`` so that a ray never hits the face it starts or ends on.
+Rays are cast in coordinates relative to the centre of the scene's bounding
+box: Embree works in float32, whose resolution far from the origin (site or
+georeferenced coordinates: 0.06 m at 1e6 m) would swallow the offset.
 Rays are cast only for pairs with a nonzero unoccluded form factor that *can*
 be blocked: an occluder triangle can cut a segment only if the segment's end
 points lie on opposite sides of its plane and the pair's bounding box meets the
@@ -71,7 +74,9 @@ class Visibility:
     def __init__(self, scene, *, samples: int = DEFAULT_SAMPLES, cull: bool = True) -> None:
         m = check_samples(samples)
         self.samples = int(samples)
-        tri = np.asarray(scene.triangles, dtype=np.float64)
+        # everything below is relative to the scene's centre (float32 rays, see module docstring)
+        self.centre = 0.5 * (scene.bounds[0] + scene.bounds[1]) if scene.n_patches else np.zeros(3)
+        tri = np.asarray(scene.triangles, dtype=np.float64) - self.centre
         size = float(np.ptp(scene.bounds, axis=0).max()) if len(tri) else 1.0
         self.scale = size if size > 0 else 1.0
         self.offset = _OFFSET * self.scale
@@ -83,13 +88,14 @@ class Visibility:
                                                            if len(tri) else np.zeros(0)]))
         self.partner = np.ascontiguousarray((np.arange(self.samples) + self.samples // 2) % self.samples,
                                             dtype=np.int64)
-        self.caster = RayCaster(scene.occluder_vertices, scene.occluder_faces, threads=1)
+        self.caster = RayCaster(np.asarray(scene.occluder_vertices, np.float64) - self.centre,
+                                scene.occluder_faces, threads=1)
         self._setup_culling(scene, tri, cull)
         self.rays_cast = 0
         self.embree_seconds = 0.0
 
     def _setup_culling(self, scene, tri: np.ndarray, cull: bool) -> None:
-        occ = np.asarray(scene.occluder_vertices, np.float64)[np.asarray(scene.occluder_faces)]
+        occ = (np.asarray(scene.occluder_vertices, np.float64) - self.centre)[np.asarray(scene.occluder_faces)]
         m = len(occ)
         self.n_occluders = m
         n = len(tri)
@@ -172,7 +178,7 @@ class Visibility:
     def cast(self, job: "RayJob") -> np.ndarray:
         """(r,) bool: blocked segments of a job (Embree; holds the GIL, so one call at a time)."""
         t0 = time.perf_counter()
-        hit = self.caster._scene.run(job.o, job.d, query="OCCLUDED", dists=job.t) >= 0  # noqa: SLF001
+        hit = self.caster.occluded(job.o, job.d, job.t)
         self.embree_seconds += time.perf_counter() - t0
         return hit
 

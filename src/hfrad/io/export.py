@@ -1,7 +1,7 @@
 """Writing radiosity solutions: coloured meshes (.glb, .ply) and tables (.npz, .csv).
 
 Every writer goes through a temporary file in the destination folder that is
-renamed over the target (``os.replace``) when complete, so a reader never sees
+renamed over the target when complete (:func:`hfrad.atomic.atomic_path`), so a reader never sees
 half a file and a failed write leaves nothing behind.
 
 Colours of meshes come from the same smooth per-vertex radiosity as rendered
@@ -20,35 +20,18 @@ vertex colour is the exposed radiance ``clip(B / pi * 2**EV, 0, 1)``:
 
 from __future__ import annotations
 
-import contextlib
 import csv
 import os
-import tempfile
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 
+from ..atomic import atomic_path
 from ..render.shading import CREASE_ANGLE, corner_vertices, smooth_corners
 from ..render.tonemap import auto_exposure, tonemap
 
 MESH_FORMATS = (".glb", ".ply")
 RADIOSITY_FORMATS = (".npz", ".csv", ".ply", ".glb")
-
-
-@contextlib.contextmanager
-def _atomic(path: "str | os.PathLike") -> Iterator[Path]:
-    """Yield a temporary path next to ``path``; rename it to ``path`` on success, delete it on failure."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        yield Path(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
 
 
 def _check(scene, array, name: str) -> np.ndarray:
@@ -155,7 +138,7 @@ def _write_glb(path, vertices, faces, rgb) -> None:
     rgba = np.concatenate([rgb, np.full((len(rgb), 1), 255, np.uint8)], axis=1)
     mesh = trimesh.Trimesh(vertices=vertices, faces=faces, vertex_colors=rgba, process=False)
     data = mesh.export(file_type="glb")
-    with _atomic(path) as tmp:
+    with atomic_path(path) as tmp:
         tmp.write_bytes(data)
 
 
@@ -187,14 +170,14 @@ def _write_ply(path, scene, vertices, faces, rgb, B, E) -> None:
         *[f"property float {p}" for p in fprops],
         "end_header",
     ]) + "\n"
-    with _atomic(path) as tmp, open(tmp, "wb") as fh:
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
         fh.write(header.encode("ascii"))
         fh.write(v.tobytes())
         fh.write(f.tobytes())
 
 
 def _write_npz(path, scene, B, E) -> None:
-    with _atomic(path) as tmp, open(tmp, "wb") as fh:
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
         np.savez_compressed(
             fh, B=B, E=E, reflectance=np.asarray(scene.reflectance), area=np.asarray(scene.areas),
             centroid=np.asarray(scene.centroids), normal=np.asarray(scene.normals),
@@ -203,7 +186,7 @@ def _write_npz(path, scene, B, E) -> None:
 
 def _write_csv(path, scene, B, E) -> None:
     names = scene.material_names
-    with _atomic(path) as tmp, open(tmp, "w", newline="", encoding="utf-8") as fh:
+    with atomic_path(path) as tmp, open(tmp, "w", newline="", encoding="utf-8") as fh:
         w = csv.writer(fh)
         w.writerow(["index", "material", "area", "centroid_x", "centroid_y", "centroid_z",
                     "B_r", "B_g", "B_b", "E_r", "E_g", "E_b"])

@@ -21,13 +21,13 @@ when complete, so a crash never leaves a partial ``.hfr`` behind.
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from pathlib import Path
 
 import h5py
 import numpy as np
 
+from .._version import __version__
+from ..atomic import atomic_path
 from ..errors import FileFormatError
 from ..factorize.lowrank import LowRank
 from ..solve.woodbury import HFactorization
@@ -36,14 +36,6 @@ FORMAT = "hfrad-factorization"
 FORMAT_VERSION = 1
 
 __all__ = ["save_hfr", "load_hfr", "read_hfr_metadata", "FORMAT_VERSION"]
-
-
-def _package_version() -> str:
-    try:
-        from .. import __version__
-        return str(__version__)
-    except Exception:  # noqa: BLE001 - the version is informative only
-        return "0"
 
 
 def _json_default(o):
@@ -85,15 +77,13 @@ def save_hfr(path, factorization: HFactorization, *, scene=None, timings: dict |
     path = Path(path)
     fac = factorization
     scene = fac.scene if scene is None else scene
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent or ".")
-    os.close(fd)
-    try:
+    with atomic_path(path) as tmp:
         with h5py.File(tmp, "w") as f:
             lr = fac.lowrank
             a = f.attrs
             a["format"] = FORMAT
             a["format_version"] = FORMAT_VERSION
-            a["hfrad_version"] = _package_version()
+            a["hfrad_version"] = __version__
             a["n_patches"] = fac.n_patches
             a["rank"] = fac.rank
             a["eps"] = lr.eps
@@ -116,11 +106,6 @@ def save_hfr(path, factorization: HFactorization, *, scene=None, timings: dict |
             g.create_dataset("reflectance", data=fac.reflectance)
             if scene is not None:
                 _write_scene(f.create_group("patches"), scene)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-        raise
     return path
 
 

@@ -1,9 +1,10 @@
 """Loading a scene: file or built-in name -> materials -> lights -> patches.
 
 ``load_scene`` is the one entry point the CLI and the API use. Readers for
-each format (``hfrad.io``) return plain dicts; this module turns them into a
+each format (``obj.py``, ``mesh.py``) return plain dicts; this module turns them into a
 :class:`Scene`, applies the lighting options (make a material or group emit,
-add an area light), drops degenerate faces with a counted warning, and cuts
+add an area light), drops degenerate faces with a counted warning, merges
+duplicate faces (and reports overlapping ones), and cuts
 the faces into patches.
 """
 
@@ -16,6 +17,7 @@ import numpy as np
 
 from ..errors import SceneError
 from .builtin import BUILTIN_SCENES, builtin_scene
+from .cleanup import merge_duplicates
 from .patches import drop_degenerate, subdivide
 from .scene import Material, Scene
 
@@ -23,8 +25,8 @@ MAX_COLOUR_REFLECTANCE = 0.99  # a white colour (1.0) would create energy: clamp
 
 
 def _readers() -> dict[str, Callable[[Path], dict]]:
-    from ..io.mesh import read_gltf, read_ply
-    from ..io.obj import read_obj
+    from .mesh import read_gltf, read_ply
+    from .obj import read_obj
 
     return {".obj": read_obj, ".ply": read_ply, ".gltf": read_gltf, ".glb": read_gltf}
 
@@ -44,6 +46,7 @@ def load_scene(
     allow_missing_materials: bool = False,
     max_edge: float | None = None,
     patches: int | None = None,
+    keep_duplicates: bool = False,
 ) -> Scene:
     """Load a scene file (OBJ/MTL, PLY, glTF/GLB) or a built-in scene by name.
 
@@ -65,6 +68,10 @@ def load_scene(
         reflectance instead of raising.
     max_edge, patches : optional
         Subdivision into patches (see :func:`hfrad.scene.patches.subdivide`).
+    keep_duplicates : bool
+        Keep faces that duplicate another face (same corners) instead of merging
+        them; either way duplicates, coplanar overlaps and faces touching face to
+        face are listed in ``scene.warnings`` (see :mod:`hfrad.scene.cleanup`).
 
     Returns
     -------
@@ -88,6 +95,7 @@ def load_scene(
     if area_light is not None:
         scene = add_area_light(scene, area_light)
     scene = drop_degenerate(scene)
+    scene = merge_duplicates(scene, keep_duplicates=keep_duplicates)
     return subdivide(scene, max_edge=max_edge, patches=patches)
 
 
