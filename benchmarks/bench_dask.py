@@ -63,7 +63,7 @@ def one_run(config: str, patches: int, eps: float, block: int, out_npy: str) -> 
         workers = int(config.split("-")[1])
         t = time.perf_counter()
         with connect(workers=workers) as cluster:
-            cluster.client.run(lambda: __import__("hfrad.formfactors.blocks"))  # workers import hfrad
+            cluster.client.run(_import_hfrad)  # start-up includes the workers' imports
             result["startup_s"] = time.perf_counter() - t
             records: list = []
             t = time.perf_counter()
@@ -81,6 +81,10 @@ def one_run(config: str, patches: int, eps: float, block: int, out_npy: str) -> 
                    "peak_rss_client_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20})
     np.save(out_npy, fac.solve(scene.emission))
     return result
+
+
+def _import_hfrad() -> None:
+    import hfrad.distributed.tasks  # noqa: F401
 
 
 def _noop(i: int) -> int:
