@@ -144,6 +144,12 @@ def test_infeasible_names_the_conflicting_goals(case):
     weak = light_spec(min=300.0)
     weak["emitters"][0]["max"] = 0.01
     assert sorted(design(fac, weak).report["conflicts"]) == ["floor.min", "light.max"]
+    # a goal the fixed background light alone breaks conflicts with nothing else
+    dark = light_spec(min=1.0)
+    dark["emitters"][0] = {"name": "short", "group": "short_block", "max": 10.0}
+    dark["targets"].append({"name": "ceiling", "group": "ceiling", "quantity": "irradiance", "max": 1e-6})
+    r = design(fac, dark)
+    assert r.report["conflicts"] == ["ceiling.max"] and "on its own" in r.report["message"]
 
 
 @pytest.mark.parametrize("change, field", [
@@ -225,7 +231,15 @@ def test_cli_exit_codes(case, tmp_path):
     err = run(malformed, "-o", tmp_path / "r3.json")
     assert err.exit_code == 2 and "targets[0].quantity" in err.output and "Traceback" not in err.output
     assert not (tmp_path / "r3.json").exists()
-    assert run(light_spec(min=1.0), "-o", tmp_path / "r.txt").exit_code == 2
+    for bad_option in (["-o", tmp_path / "r.txt"], ["-o", out, "--emission-out", tmp_path / "e.txt"],
+                       ["-o", out, "--render", png, "--show", "luminance"],
+                       ["-o", out, "--render", png, "--camera", "nowhere"]):
+        bad_run = run(light_spec(min=1.0), *bad_option)
+        assert bad_run.exit_code == 2 and "Traceback" not in bad_run.output, bad_option
+    by_patches = light_spec(min=1.0)
+    by_patches["emitters"][0] = {"name": "two", "patches": [0, 1], "max": 100.0}
+    refused = run(by_patches, "-o", tmp_path / "r4.json", "--emission-out", em)
+    assert refused.exit_code == 2 and "emitters[0]" in refused.output and not (tmp_path / "r4.json").exists()
 
 
 def test_batches_of_emitters_give_the_same_response(case):

@@ -64,6 +64,9 @@ def register(app: typer.Typer) -> None:
                 Camera.parse(camera, np.array([[0.0, 0, 0], [1, 1, 1]]))  # fail on a bad camera before solving
             fac = common.load_factorization(factorization)
             parsed = parse_spec(spec, fac.scene)
+            if emission_out is not None:
+                from ..inverse.emission import check_nameable
+                check_nameable(parsed)
             with common.progress_bar("design", quiet) as bar:
                 result = run_design(fac, parsed, progress=bar)
             with atomic_path(output) as tmp:

@@ -91,6 +91,10 @@ class Visibility:
         self.caster = RayCaster(np.asarray(scene.occluder_vertices, np.float64) - self.centre,
                                 scene.occluder_faces, threads=1)
         self._setup_culling(scene, tri, cull)
+        self.areas = np.ascontiguousarray(scene.areas, dtype=np.float64)
+        #: Pairs with A_i F_ij (symmetric, so V_ij == V_ji still) below this get one ray, not
+        #: ``samples`` (see hfrad.formfactors.parallel.one_ray_threshold); 0 = off.
+        self.one_ray_below = 0.0
         self.rays_cast = 0
         self.embree_seconds = 0.0
 
@@ -167,6 +171,12 @@ class Visibility:
             valid = np.empty((len(pairs), s), np.bool_)
             counts = np.empty(len(pairs), np.int64)
             _valid_rays(self.points, self.plane, self.partner, r_idx, c_idx, valid, counts)
+            if self.one_ray_below > 0.0 and s > 1:
+                weak = np.flatnonzero(self.areas[r_idx] * F.ravel()[pairs] < self.one_ray_below)
+                first_valid = valid[weak].argmax(axis=1)
+                valid[weak] = False
+                valid[weak, first_valid] = True
+                counts[weak] = 1
             first = np.zeros(len(pairs) + 1, np.int64)
             np.cumsum(counts, out=first[1:])
             r = int(first[-1])

@@ -7,6 +7,15 @@ import numpy as np
 from ..io.emission import EmitterSetting, emission_overrides
 from ..scene.load import set_emission
 from .design import DesignResult
+from .spec import DesignSpec, SpecError
+
+
+def check_nameable(spec: DesignSpec) -> None:
+    """SpecError unless every emitter is one material or group name (what an emission file can set)."""
+    for i, e in enumerate(spec.emitters):
+        if e.scene_name is None:
+            raise SpecError(f"emitters[{i}] ({e.name!r}): not selected by one material or group name; an "
+                            "emission file (--emission-out) can only set whole materials or groups")
 
 
 def emission_settings(result: DesignResult, scene) -> list[EmitterSetting]:
@@ -19,7 +28,9 @@ def emission_settings(result: DesignResult, scene) -> list[EmitterSetting]:
     Raises
     ------
     ValueError
-        The design is infeasible, or an emitter was not selected by a single
+        The design is infeasible.
+    SpecError
+        An emitter was not selected by a single
         material or group name (an emission file can name nothing else), or
         the file would not reproduce the design when read back (a group named
         like a material; a background set on other than whole materials).
@@ -31,16 +42,14 @@ def emission_settings(result: DesignResult, scene) -> list[EmitterSetting]:
         for m in scene.materials:
             if m.is_emitter:
                 out.append(EmitterSetting(m.name, tuple(float(x) for x in m.emission), on=False))
+    check_nameable(result.spec)
     for e, rep in zip(result.spec.emitters, result.report["emitters"]):
-        if e.scene_name is None:
-            raise ValueError(f"emitter {e.name!r} is not selected by one material or group name; an emission "
-                             "file can only set whole materials or groups")
         out.append(EmitterSetting(e.scene_name, tuple(float(x) for x in rep["exitance_W_m2"])))
     # the file must reproduce the design exactly when read back (as --emission-file reads it)
     lit = set_emission(scene, emission_overrides(out)).emission
     if not np.allclose(lit, result.exitance, rtol=1e-12, atol=0.0):
         bad = int(np.flatnonzero(~np.isclose(lit, result.exitance, rtol=1e-12, atol=0.0).all(axis=1))[0])
-        raise ValueError(f"the design cannot be written as an emission file: read back, it would give patch "
+        raise SpecError(f"the design cannot be written as an emission file: read back, it would give patch "
                          f"{bad} another emission (a group named like a material, or a background that is "
                          "not set by whole materials)")
     return out
