@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from hfrad.distributed import SchedulerUnreachableError, connect, factorize_distributed
-from hfrad.distributed.tasks import Job, leaf_task, merge_task, root_task
+from hfrad.distributed import tasks
+from hfrad.distributed.tasks import Job
 from hfrad.factorize.hf import HFStream, counter_tree
 from hfrad.pipeline import factorize
 from hfrad.scene.load import load_scene
@@ -38,7 +39,7 @@ def _assert_same_factorization(dist, local, scene):
 
 
 @pytest.mark.parametrize("m", [1, 2, 3, 5, 8, 13])
-def test_counter_tree_is_hfstream(m):
+def test_counter_tree_is_hfstream(m, monkeypatch):
     """The task tree (leaf/merge/root pieces run in counter_tree order) gives HFStream's factorization."""
     rng = np.random.default_rng(m)
     n, b = 40, 7
@@ -48,27 +49,20 @@ def test_counter_tree_is_hfstream(m):
         stream.push(A[:, j * b:(j + 1) * b])
     expected = stream.finish()
 
-    class Engine:  # stands in for the form-factor engine: "F" is A itself
-        def block(self, rows, cols):
-            return A[:, cols].copy()
-
+    # "F" is A itself: the leaves read its columns instead of computing form factors
+    monkeypatch.setattr(tasks, "column_block", lambda scene, cols, **kw: A[:, cols].copy())
     job = Job(scene=None, perm=np.arange(m * b), rows_rho=np.ones((n, 1)), block_size=b, n_blocks=m,
-              dtype="float64", eps=0.05, relative=True, leaf_share=0.5, samples=None, task_threads=None,
-              token="t")
-    import hfrad.distributed.tasks as tasks
-    tasks._ENGINES[__import__("threading").get_ident()] = ("t", Engine())
-    try:
-        parts = {j: leaf_task(job, j) for j in range(m)}
-    finally:
-        tasks._ENGINES.clear()
+              dtype="float64", eps=0.05, relative=True, leaf_share=0.5, samples=0, one_ray_below=0.0,
+              task_threads=None, token="t")
+    parts = {j: tasks.leaf_task(job, j) for j in range(m)}
     for i, (left, right) in enumerate(counter_tree(m)):
-        parts[m + i] = merge_task(job, m + i, parts.pop(left), parts.pop(right))
+        parts[m + i] = tasks.merge_task(job, m + i, parts.pop(left), parts.pop(right))
     (root,) = parts.values()
-    got, records = root_task(job, root)
+    got, records = tasks.root_task(job, root)
     assert got.rank == expected.rank and got.achieved_error == pytest.approx(expected.achieved_error, rel=1e-12)
     assert np.allclose(got.Q @ got.V.T, expected.Q @ expected.V.T, atol=1e-12)
     assert np.linalg.norm(A - got.Q @ got.V.T) <= 0.05 * np.linalg.norm(A)
-    assert len(records) == 2 * m - 1 and max(len(counter_tree(m)), 0) == m - 1
+    assert len(records) == 2 * m - 1 and len(counter_tree(m)) == m - 1
 
 
 def test_in_process_cluster_matches_local(cornell):

@@ -28,7 +28,7 @@ from ..solve.woodbury import HFactorization
 from ..validation import check_factorize_options
 from . import sizing
 from .cluster import Cluster, connect
-from .tasks import Job, drop_engines, leaf_task, merge_task, root_task
+from .tasks import Job, leaf_task, merge_task, root_task
 
 _POLL_SECONDS = 0.2
 
@@ -36,7 +36,7 @@ _POLL_SECONDS = 0.2
 def factorize_distributed(scene, *, scheduler=None, workers: int | None = None, eps: float = 0.02,
                           relative: bool = True, block_size: int | None = None, dtype="float32",
                           samples: int | None = None, order: str = "zorder", leaf_share: float = 0.5,
-                          task_threads: int | None = None, connect_timeout: float | None = None,
+                          one_ray_tol: float | None = None, task_threads: int | None = None, connect_timeout: float | None = None,
                           progress: ProgressCallback = None, status=None,
                           records: list | None = None) -> HFactorization:
     """Precompute a scene on a Dask cluster: form factors, HF and Woodbury, as :func:`hfrad.factorize`.
@@ -49,7 +49,7 @@ def factorize_distributed(scene, *, scheduler=None, workers: int | None = None, 
         :class:`~hfrad.distributed.cluster.Cluster` from :func:`~hfrad.distributed.connect`.
     workers : int, optional
         Instead of ``scheduler``: start a LocalCluster of this many worker processes.
-    eps, relative, block_size, dtype, samples, order, leaf_share
+    eps, relative, block_size, dtype, samples, order, leaf_share, one_ray_tol
         As in :func:`hfrad.factorize` (same meaning, same defaults).
     task_threads : int, optional
         Numba threads of the form-factor kernel per task (default: this machine's
@@ -95,12 +95,13 @@ def factorize_distributed(scene, *, scheduler=None, workers: int | None = None, 
         raise SceneError(f"{scene.name}: the scene has no patches")
     block_size = min(DEFAULT_BLOCK_SIZE, scene.n_patches) if block_size is None else block_size
     dt = check_factorize_options(scene.n_patches, eps, block_size, dtype, relative)
+    options = {"eps": eps, "relative": relative, "block_size": block_size, "dtype": dt.name,
+               "samples": samples, "order": order, "leaf_share": leaf_share,
+               "one_ray_tol": (0.25 * eps if relative else 0.0) if one_ray_tol is None else one_ray_tol}
     if isinstance(scheduler, Cluster):
-        return _run(scheduler, scene, eps, relative, block_size, dt, samples, order, leaf_share,
-                    task_threads, progress, status, records)
+        return _run(scheduler, scene, options, task_threads, progress, status, records)
     with connect(scheduler, workers=workers, timeout=connect_timeout) as cluster:
-        return _run(cluster, scene, eps, relative, block_size, dt, samples, order, leaf_share,
-                    task_threads, progress, status, records)
+        return _run(cluster, scene, options, task_threads, progress, status, records)
 
 
 def _check_worker_memory(cluster: Cluster, n: int, block_size: int) -> None:
@@ -166,18 +167,22 @@ class _Tracker:
         return sum(k for node, k in self.rank_of.items() if self.parents.get(node) not in self.rank_of)
 
 
-def _run(cluster: Cluster, scene, eps, relative, block_size, dt, samples, order, leaf_share, task_threads,
-         progress, status, records_out) -> HFactorization:
+def _run(cluster: Cluster, scene, options: dict, task_threads, progress, status, records_out) -> HFactorization:
+    from ..formfactors.parallel import one_ray_threshold
+    from ..formfactors.visibility import DEFAULT_SAMPLES
+
     client = cluster.client
-    n = scene.n_patches
+    n, block_size, dt = scene.n_patches, options["block_size"], np.dtype(options["dtype"])
     m = math.ceil(n / block_size)
     _check_worker_memory(cluster, n, block_size)
-    perm = patch_order(scene.centroids, order)
+    perm = patch_order(scene.centroids, options["order"])
     rho_max = scene.reflectance.max(axis=1)
+    samples = DEFAULT_SAMPLES if options["samples"] is None else int(options["samples"])
     token = uuid.uuid4().hex[:12]
-    job = Job(scene=scene, perm=np.asarray(perm, np.int64), rows_rho=rho_max[perm][:, None],
-              block_size=int(block_size), n_blocks=m, dtype=dt.name, eps=float(eps), relative=bool(relative),
-              leaf_share=float(leaf_share), samples=samples,
+    job = Job(scene=scene, perm=np.asarray(perm, np.int64), rows_rho=rho_max[perm][:, None].astype(dt),
+              block_size=int(block_size), n_blocks=m, dtype=dt.name, eps=float(options["eps"]),
+              relative=bool(options["relative"]), leaf_share=float(options["leaf_share"]), samples=samples,
+              one_ray_below=one_ray_threshold(scene, options["one_ray_tol"]) if samples else 0.0,
               task_threads=task_threads if task_threads is not None else cluster.task_threads, token=token)
     t0 = time.perf_counter()
     [job_future] = client.scatter([job], broadcast=True, hash=False)  # the scene travels once per worker
@@ -204,17 +209,12 @@ def _run(cluster: Cluster, scene, eps, relative, block_size, dt, samples, order,
         client.unsubscribe_topic(job.topic)
     wall = time.perf_counter() - t0
     report(progress, m, m)
-    try:
-        client.run(drop_engines, token)  # free the workers' Embree scenes
-    except Exception:  # noqa: BLE001 - a worker gone at the end loses nothing
-        pass
     del job_future
-    lowrank.info.update(_info(records, m, dt, leaf_share, cluster, time_scatter, time_gather, wall,
+    lowrank.info.update(_info(records, m, dt, job.leaf_share, cluster, time_scatter, time_gather, wall,
                               tracker.executions))
     if records_out is not None:
         records_out.extend(records)
-    params = {"eps": eps, "relative": relative, "block_size": block_size, "dtype": dt.name, "samples": samples,
-              "order": order, "leaf_share": leaf_share, "backend": "dask", "workers": cluster.n_workers}
+    params = {**options, "backend": "dask", "workers": cluster.n_workers}
     return HFactorization(perm, lowrank.Q, lowrank.V, rho_max, scene.reflectance, lowrank, params=params,
                           scene=scene)
 

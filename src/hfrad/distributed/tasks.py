@@ -12,7 +12,6 @@ validated it on the client.
 from __future__ import annotations
 
 import contextlib
-import threading
 import time
 from dataclasses import dataclass, field
 
@@ -20,6 +19,7 @@ import numpy as np
 
 from ..factorize.hf import ErrorBudget, compress_leaf, merge_nodes, root_lowrank
 from ..factorize.lowrank import LowRank
+from ..formfactors.parallel import column_block
 
 
 @dataclass(frozen=True)
@@ -29,22 +29,25 @@ class Job:
     Attributes
     ----------
     scene : Scene
-        The patches; each worker builds its own Embree scene from it (once).
+        The patches; each worker process builds its form-factor engine and
+        Embree scene from it once (:func:`hfrad.formfactors.parallel.column_block`).
     perm : (n,) int64
         Internal (Z-)order: internal index t holds user patch ``perm[t]``.
-    rows_rho : (n, 1) float64
+    rows_rho : (n, 1) of ``dtype``
         ``rho_max`` in internal order: a block of G is ``rows_rho * F[perm][:, cols]``.
     block_size, n_blocks : int
     dtype : str
         Working precision of the factors ("float32" or "float64").
     eps, relative, leaf_share
         The error budget, as in :class:`~hfrad.factorize.hf.HFStream`.
-    samples : int or None
-        Visibility rays per pair (None: the engine's default).
+    samples : int
+        Visibility rays per pair.
+    one_ray_below : float
+        Pairs with ``A_i F_ij`` below this get one ray (the local path's threshold).
     task_threads : int or None
         Threads of the numba kernel inside one task (None: the worker's setting).
     token : str
-        Names this run: the per-worker engine cache and the progress topic.
+        Names this run (task keys, the progress topic).
     """
 
     scene: object
@@ -56,7 +59,8 @@ class Job:
     eps: float
     relative: bool
     leaf_share: float
-    samples: int | None
+    samples: int
+    one_ray_below: float
     task_threads: int | None
     token: str
 
@@ -81,43 +85,6 @@ class Part:
 
     node: object
     records: list = field(default_factory=list)
-
-
-# -- one form-factor engine (Embree scene included) per worker thread --------------
-_ENGINES: dict = {}
-_ENGINES_LOCK = threading.Lock()
-
-
-def _engine(job: Job):
-    """The FormFactorEngine of this run on this worker thread, built on first use.
-
-    Keyed by thread: a worker with threads_per_worker=1 has one, and an
-    in-process cluster (processes=False) keeps one per worker without sharing
-    the engine's ray buffers between threads. A new run replaces the old one.
-    """
-    from ..formfactors.blocks import FormFactorEngine
-
-    key = threading.get_ident()
-    with _ENGINES_LOCK:
-        token, engine = _ENGINES.get(key, (None, None))
-    if token != job.token:
-        if engine is not None:
-            engine.close()
-        kwargs = {} if job.samples is None else {"samples": job.samples}
-        engine = FormFactorEngine(job.scene, **kwargs)
-        with _ENGINES_LOCK:
-            _ENGINES[key] = (job.token, engine)
-    return engine
-
-
-def drop_engines(token: str) -> int:
-    """Close this process's engines of run ``token`` (called on every worker at the end); returns how many."""
-    with _ENGINES_LOCK:
-        keys = [k for k, (t, _) in _ENGINES.items() if t == token]
-        engines = [_ENGINES.pop(k)[1] for k in keys]
-    for engine in engines:
-        engine.close()
-    return len(engines)
 
 
 @contextlib.contextmanager
@@ -164,20 +131,18 @@ def leaf_task(job: Job, j: int) -> Part:
     """Leaf ``j``: compute the column block ``G[:, cols_j]`` of ``G = diag(rho_max) F`` and compress it.
 
     Returns the truncated SVD of the block (n x k_j, k_j, b x k_j), never the block.
-    Peak memory: the float64 block (8 n b bytes), its ``dtype`` copy and the SVD's
-    workspace, about 25 n b bytes with float32 factors.
+    The block is the local path's, value for value (same engine, threshold and
+    dtype). Peak memory: the float64 block (8 n b bytes), its ``dtype`` copies
+    and the SVD's workspace, about 25 n b bytes with float32 factors.
     """
     t0 = time.perf_counter()
     cols = job.perm[j * job.block_size:(j + 1) * job.block_size]
     with _threads(job.task_threads):
-        engine = _engine(job)
-        F = engine.block(job.perm, cols)       # (n, b) float64, rows and columns in internal order
-        F *= job.rows_rho                      # G = diag(rho_max) F, in place (same values as a product)
-        A = F.astype(job.dtype, copy=False)
-        del F
-        t1 = time.perf_counter()
-        node = compress_leaf(A, job.budget, j)
-        del A
+        A = job.rows_rho * column_block(job.scene, cols, order=job.perm, samples=job.samples,
+                                        one_ray_below=job.one_ray_below, dtype=job.dtype)
+    t1 = time.perf_counter()
+    node = compress_leaf(A, job.budget, j)
+    del A
     t2 = time.perf_counter()
     rank = int(node.s.size)
     _announce(job, {"node": j, "kind": "leaf", "rank": rank})
