@@ -35,7 +35,7 @@ StatusCallback = Callable[[dict], None] | None
 def _scene_key(scene: Scene, params: dict) -> str:
     """A hash of everything the factorization depends on: geometry, reflectance, parameters."""
     h = hashlib.sha256()
-    for a in (scene.vertices, scene.faces, scene.occluder_vertices, scene.occluder_faces,
+    for a in (scene.vertices, scene.faces, scene.occluder_vertices, scene.occluder_faces, scene.patch_of_triangle,
               scene.reflectance.max(axis=1)):
         h.update(np.ascontiguousarray(a).tobytes())
     h.update(json.dumps(params, sort_keys=True).encode())
@@ -63,7 +63,7 @@ def check_factorize_args(scene: Scene, eps: float, block_size: int, dtype, relat
 def factorize(scene: Scene, *, eps: float = 0.02, relative: bool = True, block_size: int | None = None,
               dtype="float32", samples: int | None = None, order: str = "zorder", leaf_share: float = 0.5,
               checkpoint: str | Path | None = None, checkpoint_interval: float = 30.0,
-              blas_threads: int | None = 1,
+              blas_threads: int | None = 1, processes: int | None = None, one_ray_tol: float | None = None,
               progress: ProgressCallback = None, status: StatusCallback = None) -> HFactorization:
     """Precompute a scene: form factors with visibility, HF of ``diag(rho_max) F``, Woodbury factors.
 
@@ -91,6 +91,13 @@ def factorize(scene: Scene, *, eps: float = 0.02, relative: bool = True, block_s
     blas_threads : int or None
         BLAS threads during the precomputation (None: leave as is). One is
         fastest while the form-factor engine uses the other cores.
+    processes : int or None
+        Form-factor worker processes (None: one per core from 4,000 patches on);
+        the result does not depend on it.
+    one_ray_tol : float or None
+        Pairs that together hold at most this share of ``||F||_F`` get one
+        visibility ray instead of several (:func:`hfrad.formfactors.parallel.one_ray_threshold`);
+        None: ``eps / 4`` for a relative eps, 0 (off) for an absolute one.
     progress : callable (done, total), optional
         Column blocks done.
     status : callable (dict), optional
@@ -115,14 +122,20 @@ def factorize(scene: Scene, *, eps: float = 0.02, relative: bool = True, block_s
     perm = patch_order(scene.centroids, order)
     rho_max = scene.reflectance.max(axis=1)
     n_blocks = math.ceil(n / block_size)
+    if one_ray_tol is None:
+        one_ray_tol = 0.25 * eps if relative else 0.0
     params = {"eps": eps, "relative": relative, "block_size": block_size, "dtype": dt.name,
-              "samples": samples, "order": order, "leaf_share": leaf_share}
+              "samples": samples, "order": order, "leaf_share": leaf_share, "one_ray_tol": one_ray_tol}
     key = _scene_key(scene, params)
     stream = _open_stream(checkpoint, key, n, n_blocks, eps, relative, dt, leaf_share)
     t0 = time.perf_counter()
     ff_kwargs = {} if samples is None else {"samples": samples}
-    blocks = iter_column_blocks(scene, block_size, order=perm, first_block=stream.blocks_done, **ff_kwargs)
-    rows_rho = rho_max[perm][:, None]
+    if samples != 0:
+        from .formfactors.parallel import one_ray_threshold
+        ff_kwargs["one_ray_below"] = one_ray_threshold(scene, one_ray_tol)
+    blocks = iter_column_blocks(scene, block_size, order=perm, first_block=stream.blocks_done,
+                                processes=processes, dtype=dt, **ff_kwargs)
+    rows_rho = rho_max[perm][:, None].astype(dt)
     with _blas_threads(blas_threads):
         lowrank, time_ff = _stream_blocks(blocks, stream, rows_rho, n_blocks, checkpoint, checkpoint_interval,
                                           key, progress, status, t0)
