@@ -35,7 +35,7 @@ StatusCallback = Callable[[dict], None] | None
 def _scene_key(scene: Scene, params: dict) -> str:
     """A hash of everything the factorization depends on: geometry, reflectance, parameters."""
     h = hashlib.sha256()
-    for a in (scene.vertices, scene.faces, scene.occluder_vertices, scene.occluder_faces,
+    for a in (scene.vertices, scene.faces, scene.occluder_vertices, scene.occluder_faces, scene.patch_of_triangle,
               scene.reflectance.max(axis=1)):
         h.update(np.ascontiguousarray(a).tobytes())
     h.update(json.dumps(params, sort_keys=True).encode())

@@ -26,7 +26,8 @@ from ..memory import available_bytes as available_memory
 from ..progress import ProgressCallback, report
 from ..validation import check_permutation
 from .cache import BlockCache, array_hash, scene_hash
-from .kernel import KERNEL_VERSION, NEAR, NEAR_SPLITS, PatchGeometry, unoccluded_block
+from .clustered import kernel_for
+from .kernel import KERNEL_VERSION, NEAR, NEAR_SPLITS
 from .visibility import DEFAULT_SAMPLES, RayBuffers, Visibility, check_samples
 
 __all__ = ["FormFactorEngine", "iter_column_blocks", "form_factor_matrix", "row_sums",
@@ -62,7 +63,8 @@ class FormFactorEngine:
 
     def __init__(self, scene, *, samples: int = DEFAULT_SAMPLES, near: float = NEAR,
                  near_splits: int = NEAR_SPLITS, one_ray_below: float = 0.0) -> None:
-        self.geometry = PatchGeometry(scene, near=near, near_splits=near_splits)
+        # patches that are clusters of triangles (hfrad.scene.cluster) have their own kernel
+        self.geometry, self._unoccluded = kernel_for(scene, near=near, near_splits=near_splits)
         self.samples = int(samples)
         self.visibility = Visibility(scene, samples=samples) if samples else None
         if self.visibility is not None:
@@ -82,7 +84,7 @@ class FormFactorEngine:
 
     def _kernel(self, rows, cols) -> np.ndarray:
         t0 = time.perf_counter()
-        F = unoccluded_block(self.geometry, rows, cols)
+        F = self._unoccluded(self.geometry, rows, cols)
         self.kernel_seconds += time.perf_counter() - t0
         self.pairs += F.size
         return F
