@@ -23,7 +23,7 @@ def _root(
 
     show_warnings_plainly()
     if version:
-        from .. import __version__
+        from .._version import __version__
 
         typer.echo(f"hfrad {__version__}")
         raise typer.Exit()
@@ -32,9 +32,9 @@ def _root(
 
 
 def _register_commands() -> None:
-    from . import bench, demo, formfactors, info, precompute, render, solve
+    from . import bench, demo, design, formfactors, info, precompute, render, solve
 
-    for module in (demo, info, formfactors, precompute, solve, render, bench):
+    for module in (demo, info, formfactors, precompute, solve, render, design, bench):
         module.register(app)
 
 

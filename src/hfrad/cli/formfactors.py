@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 from typing import Optional
 
@@ -15,18 +14,15 @@ def write_npz(path: Path, scene, F) -> None:
     """Write F and the patch data (user order) to ``path`` via a temporary name + rename."""
     import numpy as np
 
+    from ..atomic import atomic_path
+
     path = Path(path)
     if path.suffix != ".npz":
         path = path.with_name(path.name + ".npz")
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp.npz")
-    try:
+    with atomic_path(path, suffix=".npz") as tmp:
         np.savez(tmp, F=F, area=np.asarray(scene.areas), centroid=np.asarray(scene.centroids),
                  normal=np.asarray(scene.normals), material=np.asarray(scene.material, dtype=np.int64),
                  material_names=np.array(scene.material_names, dtype=str))
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
 
 
 def register(app: typer.Typer) -> None:
