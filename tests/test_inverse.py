@@ -277,3 +277,51 @@ def test_toml_spec_and_the_office_example(tmp_path):
     toml.write_text('[[emitters]]\nmaterial = "luminaire"\nmax = -60\n[[targets]]\nmaterial = "desk"\n')
     with pytest.raises(SpecError, match=r"spec.toml: emitters\[0\].max"):
         parse_spec(toml, scene)
+
+
+def test_adjoint_rows_equal_the_forward_response(case):
+    """Transposed solves give the same rows as forward solves (radiosity, irradiance, black patches, means)."""
+    from hfrad.inverse.transfer import adjoint_response, response
+
+    scene, fac, F = case
+    floor = np.flatnonzero(scene.group == scene.groups.index("floor"))
+    rho = fac.reflectance.copy()
+    rho[floor[:5]] = 0.0                                       # some black patches: H = F B rows
+    black = fac.with_reflectance(rho)
+    spec = parse_spec({
+        "emitters": [{"name": "light", "material": "light"}, {"name": "tall", "group": "tall_block"},
+                     {"name": "left", "group": "left", "color": [0.9, 0.1, 0.1]}],
+        "targets": [{"name": "floor", "group": "floor", "quantity": "irradiance_lux", "min": 1.0},
+                    {"name": "back", "group": "back", "quantity": "radiosity", "max": 9.0},
+                    {"name": "short", "group": "short_block", "quantity": "irradiance", "mean": 1.0},
+                    {"name": "ceiling", "group": "ceiling", "quantity": "radiosity"}]}, scene)
+    fwd, adj = response(black, spec), adjoint_response(black, spec)
+    assert adj.rows == ["patches", "patches", "mean", "none"] and adj.method == "adjoint"
+    assert adj.evaluations == len(floor) + int((scene.group == scene.groups.index("back")).sum()) + 1
+    for j in (0, 1):
+        np.testing.assert_allclose(adj.matrix[j], fwd.matrix[j], rtol=1e-9, atol=1e-12 * np.abs(fwd.matrix[j]).max())
+        np.testing.assert_allclose(adj.offset[j], fwd.offset[j], rtol=1e-9, atol=1e-12 * np.abs(fwd.offset[j]).max())
+    w = fwd.weight[2]
+    np.testing.assert_allclose(adj.matrix[2][0], w @ fwd.matrix[2], rtol=1e-9)
+    np.testing.assert_allclose(adj.offset[2][0], w @ fwd.offset[2], rtol=1e-9)
+    assert adj.matrix[3].shape == (0, 3)
+
+
+def test_many_emitters_few_goals_take_the_adjoint(case):
+    """'Painting with light': every ceiling patch an emitter, two mean goals: 2 + 1 solves, not 30+."""
+    scene, fac, F = case
+    ceiling = np.flatnonzero(scene.group == scene.groups.index("ceiling"))
+    spec = {"emitters": [{"name": f"c{i}", "patches": [int(i)], "max": 50.0} for i in ceiling],
+            "targets": [{"name": "floor", "group": "floor", "quantity": "irradiance_lux", "mean": 300.0},
+                        {"name": "tall", "group": "tall_block", "quantity": "irradiance_lux", "mean": 150.0}],
+            "background": "none"}
+    auto = design(fac, spec)
+    forward = design(fac, spec, method="forward")
+    assert auto.report["method"] == "adjoint" and auto.report["evaluations"] == 3
+    assert forward.report["evaluations"] == len(ceiling)
+    assert auto.feasible and auto.report["verified"]["goals_met"]
+    assert auto.report["verified"]["max_relative_deviation"] < 1e-9
+    assert auto.report["total_power_W"] == pytest.approx(forward.report["total_power_W"], rel=1e-7)
+    B = dense_solve(F, fac.reflectance, auto.exitance)
+    floor = np.flatnonzero(scene.group == scene.groups.index("floor"))
+    assert scene.areas[floor] @ lux(F, B, floor) / scene.areas[floor].sum() >= 300.0 * (1 - 1e-6)

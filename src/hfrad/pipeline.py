@@ -30,7 +30,8 @@ from .scene.scene import Scene
 from .scene.zorder import patch_order
 from .solve.nearfield import NearFieldFactorization
 from .solve.woodbury import HFactorization
-from .validation import check_permutation, check_reflectance
+from .validation import check_factorize_options, check_permutation, check_reflectance
+
 #: ``near_field="auto"`` splits the near field from this many patches on (below, it does not pay).
 NEAR_FIELD_MIN_PATCHES = 3000
 
@@ -40,7 +41,7 @@ StatusCallback = Callable[[dict], None] | None
 def _scene_key(scene: Scene, params: dict) -> str:
     """A hash of everything the factorization depends on: geometry, reflectance, parameters."""
     h = hashlib.sha256()
-    for a in (scene.vertices, scene.faces, scene.occluder_vertices, scene.occluder_faces,
+    for a in (scene.vertices, scene.faces, scene.occluder_vertices, scene.occluder_faces, scene.patch_of_triangle,
               scene.reflectance.max(axis=1)):
         h.update(np.ascontiguousarray(a).tobytes())
     h.update(json.dumps(params, sort_keys=True).encode())
@@ -53,16 +54,7 @@ def check_factorize_args(scene: Scene, eps: float, block_size: int, dtype, relat
         raise TypeError(f"scene must be a hfrad Scene (see hfrad.load_scene); got {type(scene).__name__}")
     if scene.n_patches == 0:
         raise SceneError(f"{scene.name}: the scene has no patches")
-    if relative and not (0.0 < eps < 1.0):
-        raise ValueError(f"eps must be in (0, 1) (a relative Frobenius error, e.g. 0.02); got {eps}")
-    if not relative and not (eps > 0.0 and math.isfinite(eps)):
-        raise ValueError(f"an absolute eps must be a positive number; got {eps}")
-    if not (1 <= block_size <= scene.n_patches):
-        raise ValueError(f"block size must be between 1 and the patch count {scene.n_patches}; got {block_size}")
-    dt = np.dtype(dtype)
-    if dt not in (np.float32, np.float64):
-        raise ValueError(f"dtype must be float32 or float64; got {dt}")
-    return dt
+    return check_factorize_options(scene.n_patches, eps, block_size, dtype, relative)
 
 
 def factorize(scene: Scene, *, eps: float = 0.02, relative: bool = True, block_size: int | None = None,

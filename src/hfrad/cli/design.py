@@ -31,6 +31,8 @@ def register(app: typer.Typer) -> None:
                                  "sees), or irradiance (light arriving; with --falsecolor --unit lux: illuminance)."),
         width: int = typer.Option(640, "--width", min=1, help="--render width, pixels."),
         height: int = typer.Option(480, "--height", min=1, help="--render height, pixels."),
+        method: str = typer.Option("auto", "--method", help="auto (fewer solves), forward (one solve per "
+                                   "emitter) or adjoint (one transposed solve per target row the goals need)."),
         quiet: bool = common.QuietOption,
     ) -> None:
         """Find the least-power (or best-fitting) emitter intensities that meet the spec's goals.
@@ -68,7 +70,7 @@ def register(app: typer.Typer) -> None:
                 from ..inverse.emission import check_nameable
                 check_nameable(parsed)
             with common.progress_bar("design", quiet) as bar:
-                result = run_design(fac, parsed, progress=bar)
+                result = run_design(fac, parsed, method=method, progress=bar)
             with atomic_path(output) as tmp:
                 tmp.write_text(result.to_json() + "\n", encoding="utf-8")
             if emission_out is not None and result.feasible:

@@ -32,7 +32,8 @@ from typing import Iterator
 
 import numpy as np
 
-from .kernel import PatchGeometry, unoccluded_block
+from .clustered import block_function, kernel_for
+from .kernel import PatchGeometry
 from .visibility import DEFAULT_SAMPLES
 
 __all__ = ["ProcessEngine", "column_block", "one_ray_threshold", "default_workers",
@@ -82,10 +83,10 @@ def one_ray_threshold(scene, tol: float, *, geometry: PatchGeometry | None = Non
     """
     if tol <= 0 or scene.n_patches == 0:
         return 0.0
-    geom = geometry if geometry is not None else PatchGeometry(scene)
+    geom, block = (geometry, block_function(geometry)) if geometry is not None else kernel_for(scene)
     n = scene.n_patches
     cols = np.unique(np.linspace(0, n - 1, min(n, sample_columns)).astype(np.int64))
-    F = unoccluded_block(geom, np.arange(n), cols)
+    F = block(geom, np.arange(n), cols)
     a = (geom.areas[:, None] * F).ravel()
     f2 = np.square(F).ravel()
     total = f2.sum()

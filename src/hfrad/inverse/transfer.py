@@ -4,7 +4,9 @@ Radiosity is linear in the emission, so with ``E(s) = E_0 + sum_e s_e E_e``
 (``E_0`` the fixed background, ``E_e`` emitter e at unit intensity) every
 target quantity is ``q(s) = q_0 + M s``. The columns of ``M`` come from one
 batched solve ``fac.solve([E_1 ... E_m])`` (m right-hand sides, O(m n k); no
-dense inverse, no form-factor matrix).
+dense inverse, no form-factor matrix). When the goals need fewer rows than
+there are emitters, :func:`adjoint_response` gets the same rows by transposed
+solves, one per row, each row's response to every emitter at once.
 
 Irradiance
 ----------
@@ -72,6 +74,12 @@ class Response:
         Wall time of the solves and of the quantities.
     quantities : Quantities
         The evaluator used (holds the form-factor rows of black target patches).
+    rows : list of str
+        Per target, what the rows are: ``"patches"`` (one per target patch),
+        ``"mean"`` (one row, the area-weighted mean; weight [1]) or ``"none"``
+        (no rows: a target without goals). The forward method always gives
+        ``"patches"``; the adjoint method only what the goals need.
+    method : {"forward", "adjoint"}
     """
 
     matrix: list
@@ -80,6 +88,17 @@ class Response:
     evaluations: int
     seconds: float
     quantities: "Quantities"
+    rows: list = None
+    method: str = "forward"
+
+    def __post_init__(self) -> None:
+        if self.rows is None:
+            self.rows = ["patches"] * len(self.matrix)
+
+    @property
+    def complete(self) -> bool:
+        """True when every target patch has its row (the report's min/max come from them)."""
+        return all(r == "patches" for r in self.rows)
 
     def values(self, s: np.ndarray) -> list:
         """Per-target (p_t,) quantities at intensities ``s``."""
@@ -146,6 +165,10 @@ class Quantities:
         need = [t.patches for t in targets if t.quantity != "radiosity"]
         return cls(fac, np.concatenate(need) if need else np.zeros(0, np.int64))
 
+    def form_factor_row(self, i: int) -> np.ndarray:
+        """(n,) exact F[i, :] of a target patch with zero reflectance in some channel."""
+        return self.F_rows[self._row_of[int(i)]]
+
     @property
     def black_patches(self) -> int:
         """Number of patches whose irradiance comes from form-factor rows (rho_c = 0)."""
@@ -157,8 +180,8 @@ class Quantities:
         H = np.divide(B[P] - E[P], rho, out=np.zeros(B[P].shape), where=rho > 0)   # H = (B - E) / rho
         black = np.flatnonzero((self.reflectance[P] <= 0).any(axis=1))
         if black.size:
-            rows = [self._row_of[int(i)] for i in P[black]]
-            H[black] = np.einsum("rn,ncm->rcm", self.F_rows[rows], B)              # H = F B, by definition
+            F = np.array([self.form_factor_row(i) for i in P[black]])
+            H[black] = np.einsum("rn,ncm->rcm", F, B)                              # H = F B, by definition
         return H
 
     def __call__(self, target: Target, B: np.ndarray, E: np.ndarray) -> np.ndarray:
@@ -228,3 +251,96 @@ def response(fac, spec: DesignSpec, *, progress: ProgressCallback = None,
     offset = [q[:, m] if with_background else np.zeros(len(q)) for q in q_all]
     weight = [scene.areas[t.patches] / scene.areas[t.patches].sum() for t in spec.targets]
     return Response(matrix, offset, weight, columns, time.perf_counter() - t0, quantities)
+
+
+# -- the adjoint method ---------------------------------------------------------------------------
+def adjoint_rows(spec: DesignSpec) -> list[str]:
+    """Per target, the rows the goals need: every patch (min, max, uniformity), the mean only, or none."""
+    return ["patches" if (t.min, t.max, t.uniformity) != (None, None, None)
+            else "mean" if t.mean is not None else "none" for t in spec.targets]
+
+
+def adjoint_solves(spec: DesignSpec) -> int:
+    """Right-hand sides of the adjoint method (one per row the goals need)."""
+    return sum(len(t.patches) if r == "patches" else int(r == "mean")
+               for t, r in zip(spec.targets, adjoint_rows(spec)))
+
+
+def _solve_adjoint(fac, g: np.ndarray) -> np.ndarray:
+    """``(I - R_c F)^T x = g`` per channel, by whichever spelling this factorization's solve takes."""
+    import inspect
+    if "trans" in inspect.signature(fac.solve).parameters:
+        return fac.solve(g, trans="T")
+    return fac.solve(g, transpose=True)
+
+
+def adjoint_response(fac, spec: DesignSpec, *, progress: ProgressCallback = None,
+                     batch_bytes: int = BATCH_BYTES) -> Response:
+    """The rows of the affine map that the goals need, by adjoint (transposed) solves.
+
+    A target quantity is a linear read-out of the radiosity, ``q_r = sum_c g_rc . B_c
+    (+ d_rc . E_c)``, and ``B_c = A_c^{-1} E_c`` with ``A_c = I - R_c F``, so
+    ``q_r = sum_c (A_c^{-T} g_rc + d_rc) . E_c``: one transposed solve per row r
+    gives that row's response to *every* emitter at once. Cheaper than the
+    forward method when the goals need fewer rows than there are emitters (many
+    emitters, few target patches or only means). The read-outs g, d:
+
+    - radiosity of patch i: ``g = W_c e_i`` (W: luminance weights, x 683 for lux);
+    - irradiance, rho_ic > 0: ``H = (B - E) / rho``, so ``g = W_c e_i / rho_ic``, ``d = -g``;
+    - irradiance, rho_ic = 0: ``H = F[i] B``, so ``g = W_c F[i]`` (exact form-factor row);
+    - a mean: the area-weighted sum of its patches' read-outs.
+
+    Returns
+    -------
+    Response
+        With ``rows`` from :func:`adjoint_rows` and ``method='adjoint'``.
+    """
+    t0 = time.perf_counter()
+    scene = fac.scene
+    n, m = scene.n_patches, len(spec.emitters)
+    kinds = adjoint_rows(spec)
+    quantities = Quantities.for_targets(fac, spec.targets)
+    rho = quantities.reflectance
+    E0 = background_exitance(spec, scene)
+    # every row as (target, patches, weights)
+    rows = []
+    for j, (t, kind) in enumerate(zip(spec.targets, kinds)):
+        w = scene.areas[t.patches] / scene.areas[t.patches].sum()
+        if kind == "patches":
+            rows += [(j, t.patches[k:k + 1], np.ones(1)) for k in range(len(t.patches))]
+        elif kind == "mean":
+            rows.append((j, t.patches, w))
+    R = len(rows)
+    out = np.empty((R, m))
+    base = np.empty(R)
+    chunk = max(1, int(batch_bytes // (2 * n * 3 * 8)))
+    for start in range(0, R, chunk):
+        part = rows[start:start + chunk]
+        g = np.zeros((n, 3, len(part)))
+        d = np.zeros((n, 3, len(part)))
+        for col, (j, P, w) in enumerate(part):
+            t = spec.targets[j]
+            W = photometric(np.eye(3), _UNITS[t.quantity])                     # (3,) luminance weights x units
+            if t.quantity == "radiosity":
+                g[P, :, col] += w[:, None] * W
+                continue
+            black = (rho[P] <= 0).any(axis=1)
+            lit = ~black
+            coef = np.divide(W, rho[P[lit]], out=np.zeros((int(lit.sum()), 3)), where=rho[P[lit]] > 0)
+            g[P[lit], :, col] += w[lit, None] * coef                            # H = (B - E) / rho
+            d[P[lit], :, col] -= w[lit, None] * coef
+            for i, wi in zip(P[black], w[black]):
+                g[:, :, col] += wi * np.outer(quantities.form_factor_row(i), W)   # H = F B
+        X = np.asarray(_solve_adjoint(fac, g), dtype=np.float64) + d               # q_r = sum X_r * E
+        for e_index, e in enumerate(spec.emitters):
+            out[start:start + len(part), e_index] = e.color @ X[e.patches].sum(axis=0)
+        base[start:start + len(part)] = np.einsum("nc,ncr->r", E0, X)
+        report(progress, start + len(part), R)
+    matrix, offset, weight, k = [], [], [], 0
+    for t, kind in zip(spec.targets, kinds):
+        count = len(t.patches) if kind == "patches" else int(kind == "mean")
+        matrix.append(out[k:k + count])
+        offset.append(base[k:k + count])
+        weight.append(scene.areas[t.patches] / scene.areas[t.patches].sum() if kind == "patches" else np.ones(count))
+        k += count
+    return Response(matrix, offset, weight, R, time.perf_counter() - t0, quantities, kinds, "adjoint")
