@@ -22,7 +22,7 @@ least-power LP has near-degenerate optima, and a 0.1% change of the model can tr
 luminaire against another at the same power.
 
 Run:  python benchmarks/bench_design.py [--patches 3000] [--eps 0.01]
-Writes benchmarks/results/design.json.
+Writes benchmarks/results/design.json (or --name).
 """
 
 from __future__ import annotations
@@ -80,6 +80,7 @@ def main() -> None:
     p.add_argument("--patches", type=int, default=3000)
     p.add_argument("--eps", type=float, default=0.01)
     p.add_argument("--repeat", type=int, default=3, help="design runs per case (best is reported)")
+    p.add_argument("--name", default="design", help="results/NAME.json")
     common.add_blas_arg(p)
     args = p.parse_args()
     m = common.header("inverse design: HF vs dense LU", args.blas_threads)
@@ -136,7 +137,7 @@ def main() -> None:
                        f"{t_ff:.1f} s, HF precompute {t_hf:.1f} s, 3 dense LU {t_lu:.1f} s",
                        rows, list(rows[0]))
     print(f"load average before {load_before[0]:.2f}, after {load_after[0]:.2f}")
-    path = common.write_json("design", {
+    path = common.write_json(args.name, {
         "machine": m, "n_patches": n, "eps": args.eps, "rank": fac.rank,
         "one_off_s": {"form_factors_dense": t_ff, "hf_precompute": t_hf, "dense_lu_3_channels": t_lu},
         "loadavg_before": load_before, "loadavg_after": load_after, "cases": cases})
