@@ -32,9 +32,9 @@ def _root(
 
 
 def _register_commands() -> None:
-    from . import bench, demo, formfactors, info, precompute, render, solve
+    from . import bench, demo, formfactors, info, precompute, render, solve, view
 
-    for module in (demo, info, formfactors, precompute, solve, render, bench):
+    for module in (demo, info, formfactors, precompute, solve, render, view, bench):
         module.register(app)
 
 

@@ -78,6 +78,36 @@ def _corner_pairs(scene, crease_angle: float) -> tuple[np.ndarray, np.ndarray, n
     return a, b, start
 
 
+def corner_weights(scene, *, crease_angle: float = CREASE_ANGLE):
+    """(3n, n) sparse matrix W: corner values are ``W @ B`` (rows: corner 3 f + k).
+
+    Row ``3 f + k`` holds the area weights ``A_q / sum A`` of the patches q in
+    the smoothing set of corner k of patch f (see the module docstring); a
+    corner whose set has zero total area takes its own patch's value. Build it
+    once to smooth many radiosities (the viewer does, per slider move).
+
+    Returns
+    -------
+    scipy.sparse.csr_matrix, shape (3n, n)
+    """
+    from scipy import sparse
+
+    n = scene.n_patches
+    if n == 0:
+        return sparse.csr_matrix((0, 0))
+    a, b, _ = _corner_pairs(scene, crease_angle)
+    fb = b // 3
+    w = scene.areas[fb]
+    total = np.bincount(a, weights=w, minlength=3 * n)
+    ok = total[a] > 0
+    rows, cols, vals = a[ok], fb[ok], w[ok] / total[a[ok]]
+    lonely = np.flatnonzero(total <= 0)  # fallback: the patch's own value
+    rows = np.concatenate([rows, lonely])
+    cols = np.concatenate([cols, lonely // 3])
+    vals = np.concatenate([vals, np.ones(len(lonely))])
+    return sparse.csr_matrix((vals, (rows, cols)), shape=(3 * n, n))
+
+
 def smooth_corners(scene, radiosity: np.ndarray, *, crease_angle: float = CREASE_ANGLE) -> np.ndarray:
     """(n, 3, 3) float: radiosity at each patch corner (patch, corner, channel).
 
@@ -92,6 +122,7 @@ def smooth_corners(scene, radiosity: np.ndarray, *, crease_angle: float = CREASE
     -----
     Cost O(sum of vertex degree^2), about 20 n for subdivided meshes.
     A corner whose smoothing set has zero total area keeps its patch's value.
+    Equals ``corner_weights(scene) @ radiosity``.
 
     Examples
     --------
@@ -106,16 +137,7 @@ def smooth_corners(scene, radiosity: np.ndarray, *, crease_angle: float = CREASE
     n = scene.n_patches
     if n == 0:
         return np.zeros((0, 3, 3))
-    a, b, _ = _corner_pairs(scene, crease_angle)
-    fb = b // 3
-    w = scene.areas[fb]
-    total = np.bincount(a, weights=w, minlength=3 * n)
-    out = np.repeat(B, 3, axis=0)  # fallback: the patch's own value
-    ok = total > 0
-    for ch in range(3):
-        s = np.bincount(a, weights=w * B[fb, ch], minlength=3 * n)
-        out[ok, ch] = s[ok] / total[ok]
-    return out.reshape(n, 3, 3)
+    return np.asarray(corner_weights(scene, crease_angle=crease_angle) @ B).reshape(n, 3, 3)
 
 
 def corner_vertices(scene, *, crease_angle: float = CREASE_ANGLE) -> tuple[np.ndarray, np.ndarray]:
