@@ -35,7 +35,7 @@ import time
 import numpy as np
 
 import common
-from hfrad.factorize.api import factorize_matrix
+from hfrad.pipeline import factorize_matrix
 from hfrad.solve.direct import LUFactorization
 from hfrad.solve.iterative import gauss_seidel, gmres, jacobi, southwell
 

@@ -131,3 +131,14 @@ def test_coplanar_and_facing_away_are_zero():
     assert (F[np.ix_(p1, p1)] == 0).all()  # coplanar
     flipped = scene.replace(faces=scene.faces[:, ::-1])  # every patch now faces away
     assert (unoccluded(flipped) == 0).all()
+
+
+def test_scene_far_from_origin_gives_the_same_form_factors():
+    # site coordinates: float32 spacing at 3e6 m is 0.25 m, far above the ray end-point offset
+    scene = subdivide(cornell_box(), patches=600)
+    shift = np.array([1e6, 2e5, -3e6])
+    moved = scene.replace(vertices=scene.vertices + shift, occluder_vertices=scene.occluder_vertices + shift)
+    F, G = form_factor_matrix(scene), form_factor_matrix(moved)
+    err = np.abs(F - G).max()
+    assert err < 1e-4, f"max |F - F_translated| = {err:.2e}"
+    assert np.abs(F.sum(axis=1) - G.sum(axis=1)).max() < 1e-4

@@ -6,7 +6,7 @@ import pytest
 
 import hfrad.io.hfr as hfr
 from hfrad.errors import FileFormatError
-from hfrad.factorize.api import factorize_matrix
+from hfrad.pipeline import factorize_matrix
 from hfrad.io.hfr import load_hfr, read_hfr_metadata, save_hfr
 from hfrad.scene.scene import Material, Scene
 

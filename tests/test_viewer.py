@@ -56,7 +56,7 @@ def test_superposition_equals_direct_solves(fac):
 def test_vertex_colors_match_render_tonemap(fac):
     scene = fac.scene
     colors = MeshColors(scene)
-    assert colors.faces.shape == (scene.n_patches, 3)
+    assert colors.faces.shape == (scene.n_triangles, 3)
     B = np.full((scene.n_patches, 3), 3.0)     # constant radiosity: smoothing leaves it unchanged
     display, ev = colors.shaded(B, np.zeros_like(B), exposure=-1.0)
     expected = tonemap(np.full(3, 3.0 / np.pi), exposure=-1.0)
@@ -78,7 +78,7 @@ def test_glb_is_valid_gltf(fac):
     c = np.random.default_rng(0).random((len(colors.vertices), 3))
     data = glb.encode(c)
     mesh = trimesh.load(trimesh.util.wrap_as_stream(data), file_type="glb", force="mesh", process=False)
-    assert len(mesh.faces) == fac.scene.n_patches
+    assert len(mesh.faces) == fac.scene.n_triangles
     with pytest.raises(ValueError, match="shape"):
         glb.encode(c[:-1])
 

@@ -5,7 +5,7 @@ import pytest
 from conftest import closed_system
 
 from hfrad.errors import FactorizationError
-from hfrad.factorize.api import factorize_blocks, factorize_matrix
+from hfrad.pipeline import factorize_blocks, factorize_matrix
 from hfrad.solve.bounds import residual_norm
 
 

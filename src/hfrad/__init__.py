@@ -16,8 +16,10 @@ Names are imported lazily so that ``import hfrad`` stays fast.
 from __future__ import annotations
 
 import importlib
+import sys
+import types
 
-__version__ = "0.1.0"
+from ._version import __version__
 
 _EXPORTS = {
     "Scene": "hfrad.scene.scene",
@@ -26,13 +28,14 @@ _EXPORTS = {
     "builtin_scene": "hfrad.scene.builtin",
     "subdivide": "hfrad.scene.patches",
     "factorize": "hfrad.pipeline",
-    "factorize_matrix": "hfrad.factorize.api",
+    "factorize_matrix": "hfrad.pipeline",
     "HFactorization": "hfrad.solve.woodbury",
     "form_factor_matrix": "hfrad.formfactors.blocks",
     "iter_column_blocks": "hfrad.formfactors.blocks",
     "render_image": "hfrad.render.image",
     "save_png": "hfrad.render.image",
     "write_radiosity": "hfrad.io.export",
+    "design": "hfrad.inverse",
     "SceneError": "hfrad.errors",
     "FactorizationError": "hfrad.errors",
     "FileFormatError": "hfrad.errors",
@@ -53,6 +56,25 @@ def save(factorization, path) -> None:
     from .io.hfr import save_hfr
 
     save_hfr(path, factorization)
+
+
+class _Package(types.ModuleType):
+    """The ``hfrad`` module, keeping ``hfrad.factorize`` the function.
+
+    Importing any module of the subpackage ``hfrad.factorize`` makes Python set
+    the attribute ``hfrad.factorize`` to that subpackage, which would shadow the
+    lazily exported function (``TypeError: 'module' object is not callable`` on
+    the next call). The subpackage stays importable by its dotted name
+    (``from hfrad.factorize.hf import HFStream``); only the attribute is kept.
+    """
+
+    def __setattr__(self, name: str, value) -> None:
+        if name == "factorize" and isinstance(value, types.ModuleType):
+            return
+        super().__setattr__(name, value)
+
+
+sys.modules[__name__].__class__ = _Package
 
 
 def __getattr__(name: str):

@@ -19,22 +19,23 @@ from typing import Callable
 
 import numpy as np
 
+from .defaults import DEFAULT_BLOCK_SIZE
 from .errors import SceneError
+from .factorize.api import check_method, lowrank_from_blocks, lowrank_from_matrix
 from .factorize.hf import HFStream
 from .factorize.streaming import load_checkpoint, save_checkpoint
 from .progress import ProgressCallback, report
 from .scene.scene import Scene
 from .scene.zorder import patch_order
 from .solve.woodbury import HFactorization
-
-DEFAULT_BLOCK_SIZE = 256
+from .validation import check_permutation, check_reflectance
 StatusCallback = Callable[[dict], None] | None
 
 
 def _scene_key(scene: Scene, params: dict) -> str:
     """A hash of everything the factorization depends on: geometry, reflectance, parameters."""
     h = hashlib.sha256()
-    for a in (scene.vertices, scene.faces, scene.occluder_vertices, scene.occluder_faces,
+    for a in (scene.vertices, scene.faces, scene.occluder_vertices, scene.occluder_faces, scene.patch_of_triangle,
               scene.reflectance.max(axis=1)):
         h.update(np.ascontiguousarray(a).tobytes())
     h.update(json.dumps(params, sort_keys=True).encode())
@@ -62,7 +63,7 @@ def check_factorize_args(scene: Scene, eps: float, block_size: int, dtype, relat
 def factorize(scene: Scene, *, eps: float = 0.02, relative: bool = True, block_size: int | None = None,
               dtype="float32", samples: int | None = None, order: str = "zorder", leaf_share: float = 0.5,
               checkpoint: str | Path | None = None, checkpoint_interval: float = 30.0,
-              blas_threads: int | None = 1,
+              blas_threads: int | None = 1, processes: int | None = None, one_ray_tol: float | None = None,
               progress: ProgressCallback = None, status: StatusCallback = None) -> HFactorization:
     """Precompute a scene: form factors with visibility, HF of ``diag(rho_max) F``, Woodbury factors.
 
@@ -90,6 +91,13 @@ def factorize(scene: Scene, *, eps: float = 0.02, relative: bool = True, block_s
     blas_threads : int or None
         BLAS threads during the precomputation (None: leave as is). One is
         fastest while the form-factor engine uses the other cores.
+    processes : int or None
+        Form-factor worker processes (None: one per core from 4,000 patches on);
+        the result does not depend on it.
+    one_ray_tol : float or None
+        Pairs that together hold at most this share of ``||F||_F`` get one
+        visibility ray instead of several (:func:`hfrad.formfactors.parallel.one_ray_threshold`);
+        None: ``eps / 4`` for a relative eps, 0 (off) for an absolute one.
     progress : callable (done, total), optional
         Column blocks done.
     status : callable (dict), optional
@@ -114,14 +122,20 @@ def factorize(scene: Scene, *, eps: float = 0.02, relative: bool = True, block_s
     perm = patch_order(scene.centroids, order)
     rho_max = scene.reflectance.max(axis=1)
     n_blocks = math.ceil(n / block_size)
+    if one_ray_tol is None:
+        one_ray_tol = 0.25 * eps if relative else 0.0
     params = {"eps": eps, "relative": relative, "block_size": block_size, "dtype": dt.name,
-              "samples": samples, "order": order, "leaf_share": leaf_share}
+              "samples": samples, "order": order, "leaf_share": leaf_share, "one_ray_tol": one_ray_tol}
     key = _scene_key(scene, params)
     stream = _open_stream(checkpoint, key, n, n_blocks, eps, relative, dt, leaf_share)
     t0 = time.perf_counter()
     ff_kwargs = {} if samples is None else {"samples": samples}
-    blocks = iter_column_blocks(scene, block_size, order=perm, first_block=stream.blocks_done, **ff_kwargs)
-    rows_rho = rho_max[perm][:, None]
+    if samples != 0:
+        from .formfactors.parallel import one_ray_threshold
+        ff_kwargs["one_ray_below"] = one_ray_threshold(scene, one_ray_tol)
+    blocks = iter_column_blocks(scene, block_size, order=perm, first_block=stream.blocks_done,
+                                processes=processes, dtype=dt, **ff_kwargs)
+    rows_rho = rho_max[perm][:, None].astype(dt)
     with _blas_threads(blas_threads):
         lowrank, time_ff = _stream_blocks(blocks, stream, rows_rho, n_blocks, checkpoint, checkpoint_interval,
                                           key, progress, status, t0)
@@ -174,3 +188,93 @@ def _stream_blocks(blocks, stream: HFStream, rows_rho, n_blocks, checkpoint, che
             last_save = time.perf_counter()
         t_ff = time.perf_counter()
     return stream.finish(), time_ff
+
+
+def factorize_matrix(F, reflectance, *, eps: float = 0.02, relative: bool = True,
+                     block_size: int = DEFAULT_BLOCK_SIZE, dtype=np.float32, order=None, method: str = "hf",
+                     rng=None, progress: ProgressCallback = None) -> HFactorization:
+    """Factor an in-core form-factor matrix: ``diag(rho_max) F ~= Q V^T`` in internal order.
+
+    Parameters
+    ----------
+    F : (n, n) float
+        Form factors in the user's patch order (F[i, j]: fraction leaving i that reaches j).
+    reflectance : (n, 3) float in [0, 1)
+    eps : float
+        Frobenius tolerance on ``G = diag(rho_max) F`` (relative to ``||G||_F``
+        unless ``relative=False``).
+    block_size : int
+        Column block width streamed to the factorizer.
+    dtype : float32 or float64
+    order : (n,) int, optional
+        Internal order (e.g. Z-order): internal index t holds user patch order[t].
+    method : {"hf", "svd", "rsvd", "sketch"}
+    rng : seed for the randomized methods.
+    progress : callable (done, total), optional
+
+    Returns
+    -------
+    HFactorization
+
+    Raises
+    ------
+    ValueError
+        Bad shapes, reflectance outside [0, 1), unknown method or order.
+    """
+    F = np.asarray(F)
+    if F.ndim != 2 or F.shape[0] != F.shape[1]:
+        raise ValueError(f"form factors must be a square (n, n) matrix; got {F.shape}")
+    n = F.shape[0]
+    rho = check_reflectance(reflectance, n)
+    perm = check_permutation(order, n)
+    check_method(method)
+    if block_size < 1:
+        raise ValueError(f"block_size must be >= 1; got {block_size}")
+    rho_max = rho.max(axis=1)
+    lr = lowrank_from_matrix(F, rho_max, perm, eps=eps, relative=relative, block_size=block_size, dtype=dtype,
+                             method=method, rng=rng, progress=progress)
+    params = {"method": method, "block_size": block_size, "dtype": np.dtype(dtype).name,
+              "time_factor": lr.info["time_factor"]}
+    if method == "hf":
+        params["leaf_share"] = 0.5
+    return HFactorization(perm, lr.Q, lr.V, rho_max, rho, lr, params=params)
+
+
+def factorize_blocks(blocks, n: int, reflectance, perm, *, eps: float = 0.02, relative: bool = True,
+                     dtype=np.float32, n_blocks: int | None = None, leaf_share: float = 0.5,
+                     block_size: int | None = None, progress: ProgressCallback = None) -> HFactorization:
+    """Out-of-core HF: one pass over column blocks of F in internal order.
+
+    Parameters
+    ----------
+    blocks : iterable of (start, stop, Fblock)
+        ``Fblock = F[perm][:, perm[start:stop]]`` (n x b), rows already in
+        internal order and not yet multiplied by rho_max; consecutive, left to right.
+    n : int
+    reflectance : (n, 3) float in [0, 1), user order
+    perm : (n,) int, internal order
+    eps, relative, dtype, leaf_share, progress : see
+        :func:`~hfrad.factorize.hf.hierarchical_factorization`
+    n_blocks : int, optional
+        Number of blocks (needed for the error budget when ``blocks`` has no len);
+        defaults to ``ceil(n / block_size)`` when ``block_size`` is given.
+
+    Returns
+    -------
+    HFactorization
+    """
+    rho = check_reflectance(reflectance, n)
+    perm = check_permutation(perm, n)
+    rho_max = rho.max(axis=1)
+    if n_blocks is None and block_size is not None:
+        n_blocks = -(-n // block_size) if n else 0
+    if n_blocks is None:
+        try:
+            n_blocks = len(blocks)
+        except TypeError:
+            raise ValueError("pass n_blocks (or block_size) when blocks is a generator") from None
+    lr = lowrank_from_blocks(blocks, n, rho_max, perm, eps=eps, relative=relative, dtype=dtype,
+                             n_blocks=n_blocks, leaf_share=leaf_share, progress=progress)
+    params = {"method": "hf", "block_size": block_size, "dtype": np.dtype(dtype).name,
+              "leaf_share": leaf_share, "time_factor": lr.info["time_factor"]}
+    return HFactorization(perm, lr.Q, lr.V, rho_max, rho, lr, params=params)

@@ -23,7 +23,7 @@ def _root(
 
     show_warnings_plainly()
     if version:
-        from .. import __version__
+        from .._version import __version__
 
         typer.echo(f"hfrad {__version__}")
         raise typer.Exit()
@@ -32,9 +32,9 @@ def _root(
 
 
 def _register_commands() -> None:
-    from . import bench, demo, formfactors, info, precompute, render, solve, view
+    from . import bench, demo, design, formfactors, info, precompute, render, solve, view
 
-    for module in (demo, info, formfactors, precompute, solve, render, view, bench):
+    for module in (demo, info, formfactors, precompute, solve, render, design, view, bench):
         module.register(app)
 
 

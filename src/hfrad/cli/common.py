@@ -19,6 +19,7 @@ EmitOption = typer.Option(None, "--emit", help="Make a material or group emit: N
 AreaLightOption = typer.Option(None, "--area-light", help="Add a rectangular light under the ceiling: R,G,B (W/m^2).")
 DefaultReflectanceOption = typer.Option(0.7, "--default-reflectance", help="Grey reflectance for faces with no material.")
 QuietOption = typer.Option(False, "--quiet", "-q", help="No progress bars.")
+KeepDuplicatesOption = typer.Option(False, "--keep-duplicates", help="Keep faces that duplicate another face (same corners) instead of merging them (their light is then counted twice).")
 
 
 def fail(message: str, code: int = 2) -> "typer.Exit":

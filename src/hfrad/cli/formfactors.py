@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 from typing import Optional
 
@@ -15,18 +14,15 @@ def write_npz(path: Path, scene, F) -> None:
     """Write F and the patch data (user order) to ``path`` via a temporary name + rename."""
     import numpy as np
 
+    from ..atomic import atomic_path
+
     path = Path(path)
     if path.suffix != ".npz":
         path = path.with_name(path.name + ".npz")
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp.npz")
-    try:
+    with atomic_path(path, suffix=".npz") as tmp:
         np.savez(tmp, F=F, area=np.asarray(scene.areas), centroid=np.asarray(scene.centroids),
                  normal=np.asarray(scene.normals), material=np.asarray(scene.material, dtype=np.int64),
                  material_names=np.array(scene.material_names, dtype=str))
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
 
 
 def register(app: typer.Typer) -> None:
@@ -39,6 +35,7 @@ def register(app: typer.Typer) -> None:
         unit_scale: float = common.UnitScaleOption,
         samples: int = typer.Option(4, "--samples", help="Visibility rays per patch pair (1, 4, 9, 16, ...; 1 = centroid to centroid)."),
         float32: bool = typer.Option(False, "--float32", help="Store F in single precision (half the memory)."),
+        keep_duplicates: bool = common.KeepDuplicatesOption,
         quiet: bool = common.QuietOption,
     ) -> None:
         """Dense form-factor matrix F (visibility included), in the scene's patch order.
@@ -54,7 +51,8 @@ def register(app: typer.Typer) -> None:
 
         dtype = np.float32 if float32 else np.float64
         with common.user_errors():
-            s = load_scene(scene, unit_scale=unit_scale, max_edge=max_edge, patches=patches)
+            s = load_scene(scene, unit_scale=unit_scale, max_edge=max_edge, patches=patches,
+                           keep_duplicates=keep_duplicates)
             check_dense_memory(s.n_patches, dtype)
             with common.progress_bar(f"form factors ({s.n_patches} patches)", quiet) as progress:
                 F = form_factor_matrix(s, samples=samples, dtype=dtype, progress=progress)

@@ -42,13 +42,14 @@ def parse_rgb(value: Optional[str]) -> Optional[tuple[float, ...]]:
 
 def load_scene_from_options(scene: str, *, unit_scale: float = 1.0, emit=None, area_light=None,
                             default_reflectance: float = 0.7, allow_missing_materials: bool = False,
-                            max_edge=None, patches=None):
+                            max_edge=None, patches=None, keep_duplicates: bool = False):
     """Load a scene the way every command does, from its CLI options."""
     from ..scene.load import load_scene
 
     return load_scene(scene, unit_scale=unit_scale, emit=parse_emit(emit), area_light=parse_rgb(area_light),
                       default_reflectance=default_reflectance,
-                      allow_missing_materials=allow_missing_materials, max_edge=max_edge, patches=patches)
+                      allow_missing_materials=allow_missing_materials, max_edge=max_edge, patches=patches,
+                      keep_duplicates=keep_duplicates)
 
 
 def register(app: typer.Typer) -> None:
@@ -62,20 +63,27 @@ def register(app: typer.Typer) -> None:
         area_light: Optional[str] = common.AreaLightOption,
         default_reflectance: float = common.DefaultReflectanceOption,
         allow_missing_materials: bool = typer.Option(False, "--allow-missing-materials", help="Faces whose material is missing get the default reflectance."),
+        keep_duplicates: bool = common.KeepDuplicatesOption,
         as_json: bool = typer.Option(False, "--json", help="Print JSON instead of tables."),
     ) -> None:
         """Patch count, area, bounds, materials, emitters and warnings of a scene.
 
         Memory: about 1 KB per patch (no form factors are computed).
         """
+        from ..scene.cleanup import find_face_problems
         from ..scene.summary import scene_summary
 
         with common.user_errors():
             s = load_scene_from_options(scene, unit_scale=unit_scale, emit=emit, area_light=area_light,
                                         default_reflectance=default_reflectance,
                                         allow_missing_materials=allow_missing_materials,
-                                        max_edge=max_edge, patches=patches)
+                                        max_edge=max_edge, patches=patches, keep_duplicates=keep_duplicates)
+            # the input faces as read (duplicates kept), for the structured report of broken faces
+            faces = load_scene_from_options(scene, unit_scale=unit_scale, emit=emit, area_light=area_light,
+                                            default_reflectance=default_reflectance,
+                                            allow_missing_materials=allow_missing_materials, keep_duplicates=True)
         summary = scene_summary(s)
+        summary["face_problems"] = {**find_face_problems(faces).summary(faces), "merged": not keep_duplicates}
         if as_json:
             typer.echo(json.dumps(summary, indent=2))
             return
@@ -86,6 +94,13 @@ def _print_summary(summary: dict) -> None:
     out = Console()
     out.print(f"[bold]{summary['scene']}[/]: {summary['patches']:,} patches from {summary['input_faces']:,} faces, "
               f"{summary['vertices']:,} vertices, area {summary['total_area_m2']:.4g} m^2")
+    c = summary["clustering"]
+    if c["clustered"]:
+        per = c["triangles_per_patch"]
+        out.print(f"clustered: {summary['patches']:,} patches of {c['triangles']:,} triangles "
+                  f"({per['mean']:.1f} per patch on average, median {per['median']:g}, at most {per['max']:,}); "
+                  f"patch area spread (std/mean) {c['area_cv']:.2f}; worst non-flatness {c['worst_non_flatness']:.3f} "
+                  "(1 - |mean normal|; 0 = flat)", highlight=False)
     lo, hi = summary["bounds_min"], summary["bounds_max"]
     out.print("bounds: min (" + ", ".join(f"{x:.4g}" for x in lo) + ")  max (" + ", ".join(f"{x:.4g}" for x in hi) + ")")
     table = Table("material", "reflectance (R,G,B)", "emission W/m^2", "patches", "area m^2")
@@ -95,5 +110,10 @@ def _print_summary(summary: dict) -> None:
     out.print(table)
     out.print(f"emitters: {summary['emitter_patches']:,} patches ({', '.join(summary['emitter_materials']) or 'none'}), "
               f"power (W) " + ", ".join(f"{x:.4g}" for x in summary["emitted_power_w"]))
+    faces = summary.get("face_problems")
+    if faces:
+        out.print(f"faces: {faces['duplicates']['count']} duplicates ({'merged' if faces['merged'] else 'kept'}), "
+                  f"{faces['overlaps']['count']} coplanar overlapping pairs, "
+                  f"{faces['facing']['count']} pairs touching face to face")
     for w in summary["warnings"]:
         out.print(f"[yellow]warning:[/] {w}", highlight=False)

@@ -8,6 +8,7 @@ from typing import List, Optional
 
 import typer
 
+from ..defaults import DEFAULT_BLOCK_SIZE
 from . import common
 from .info import load_scene_from_options
 
@@ -20,7 +21,7 @@ def register(app: typer.Typer) -> None:
         eps: float = typer.Option(0.02, "--eps", help="Target relative Frobenius error of RF ~ Q V^T, in (0, 1)."),
         max_edge: Optional[float] = common.MaxEdgeOption,
         patches: Optional[int] = common.PatchesOption,
-        block: Optional[int] = typer.Option(None, "--block", help="Column block width (patches); default min(256, n)."),
+        block: Optional[int] = typer.Option(None, "--block", help=f"Column block width (patches); default min({DEFAULT_BLOCK_SIZE}, n)."),
         dtype: str = typer.Option("float32", "--dtype", help="float32 (default) or float64."),
         samples: Optional[int] = typer.Option(None, "--samples", help="Visibility rays per patch pair."),
         order: str = typer.Option("zorder", "--order", help="Internal patch order: zorder, hilbert, random, input."),
@@ -28,6 +29,7 @@ def register(app: typer.Typer) -> None:
         emit: Optional[List[str]] = common.EmitOption,
         area_light: Optional[str] = common.AreaLightOption,
         default_reflectance: float = common.DefaultReflectanceOption,
+        keep_duplicates: bool = common.KeepDuplicatesOption,
         quiet: bool = common.QuietOption,
     ) -> None:
         """Precompute a scene once: form factors with visibility, HF, Woodbury factors.
@@ -47,8 +49,8 @@ def register(app: typer.Typer) -> None:
                 raise ValueError(f"output must end in .hfr; got {output}")
             s = load_scene_from_options(scene, unit_scale=unit_scale, emit=emit, area_light=area_light,
                                         default_reflectance=default_reflectance,
-                                        max_edge=max_edge, patches=patches)
-            common.check_memory_for_precompute(s.n_patches, block or 256)
+                                        max_edge=max_edge, patches=patches, keep_duplicates=keep_duplicates)
+            common.check_memory_for_precompute(s.n_patches, block or DEFAULT_BLOCK_SIZE)
             checkpoint = output.with_name(output.name + ".partial")
             if checkpoint.exists():
                 common.console.print(f"resuming from checkpoint {checkpoint}")

@@ -1,9 +1,9 @@
 """Low-rank factorization of diag(rho_max) F: HF (the paper's method) and baselines."""
 
-from .api import factorize_blocks, factorize_matrix
+from .api import lowrank_from_blocks, lowrank_from_matrix
 from .baselines import randomized_factorization, sketch_factorization, svd_factorization
 from .hf import hierarchical_factorization
 from .lowrank import LowRank
 
 __all__ = ["LowRank", "hierarchical_factorization", "svd_factorization", "randomized_factorization",
-           "sketch_factorization", "factorize_matrix", "factorize_blocks"]
+           "sketch_factorization", "lowrank_from_matrix", "lowrank_from_blocks"]

@@ -9,10 +9,10 @@ from __future__ import annotations
 
 import json
 import os
-from pathlib import Path
 
 import numpy as np
 
+from ..atomic import atomic_path
 from .hf import HFStream, _Node
 
 CHECKPOINT_VERSION = 1
@@ -31,9 +31,7 @@ def save_checkpoint(stream: HFStream, path: str | os.PathLike, key: str = "") ->
     """
     import h5py
 
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    with h5py.File(tmp, "w") as f:
+    with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
         f.attrs["version"] = CHECKPOINT_VERSION
         f.attrs["key"] = key
         f.attrs["params"] = json.dumps(_params(stream))
@@ -49,7 +47,6 @@ def save_checkpoint(stream: HFStream, path: str | os.PathLike, key: str = "") ->
             g.create_dataset("s", data=node.s)
             g.create_dataset("V", data=node.V)
         f.attrs["nodes"] = len(stream.stack)
-    os.replace(tmp, path)
 
 
 def load_checkpoint(path: str | os.PathLike, key: str = "") -> HFStream:

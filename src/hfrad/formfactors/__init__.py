@@ -12,14 +12,14 @@ visibility included (METHOD.md s. 7). Public entry points:
 
 from . import analytic
 from .blocks import (DEFAULT_BLOCK_SIZE, FormFactorEngine, available_memory, check_dense_memory,
-                     closure_stats, form_factor_matrix, iter_column_blocks, row_sums)
+                     form_factor_matrix, iter_column_blocks, row_sums)
 from .cache import BlockCache, CacheMismatchError, scene_hash
 from .kernel import KERNEL_VERSION, PatchGeometry, point_to_patch, unoccluded_block
 from .visibility import DEFAULT_SAMPLES, Visibility
 
 __all__ = [
     "analytic", "DEFAULT_BLOCK_SIZE", "DEFAULT_SAMPLES", "FormFactorEngine", "available_memory",
-    "check_dense_memory", "closure_stats", "form_factor_matrix", "iter_column_blocks", "row_sums",
+    "check_dense_memory", "form_factor_matrix", "iter_column_blocks", "row_sums",
     "BlockCache", "CacheMismatchError", "scene_hash", "KERNEL_VERSION", "PatchGeometry",
     "point_to_patch", "unoccluded_block", "Visibility",
 ]

@@ -22,12 +22,12 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import warnings
 from pathlib import Path
 
 import numpy as np
 
+from ..atomic import publish
 from ..errors import FileFormatError
 
 FORMAT_VERSION = 1
@@ -40,7 +40,7 @@ class CacheMismatchError(FileFormatError):
 def scene_hash(scene) -> str:
     """SHA-256 (hex) of the patch geometry and the occluder mesh."""
     h = hashlib.sha256()
-    for a in (scene.vertices, scene.faces, scene.occluder_vertices, scene.occluder_faces):
+    for a in (scene.vertices, scene.faces, scene.occluder_vertices, scene.occluder_faces, scene.patch_of_triangle):
         a = np.ascontiguousarray(a)
         h.update(str((a.dtype.str, a.shape)).encode())
         h.update(a.tobytes())
@@ -174,7 +174,7 @@ class BlockCache:
         f.close()
         self._file = None
         if not self._readonly and complete:
-            os.replace(self.partial, self.path)
+            publish(self.partial, self.path)
 
     def close(self) -> None:
         """Close without renaming (an interrupted run keeps its partial file)."""

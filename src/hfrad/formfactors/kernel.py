@@ -82,6 +82,7 @@ class PatchGeometry:
 
     Attributes
     ----------
+    centre : (3,) the scene's bounding-box centre; positions below are relative to it
     triangles : (n, 3, 3)
     normals : (n, 3) unit (zero for a degenerate patch)
     areas : (n,)
@@ -93,11 +94,14 @@ class PatchGeometry:
     """
 
     def __init__(self, scene, *, near: float = NEAR, near_splits: int = NEAR_SPLITS) -> None:
-        tri = np.ascontiguousarray(scene.triangles, dtype=np.float64)
+        # Coordinates relative to the scene's centre: the plane tests compare with
+        # eps = 1e-9 x scene size, which must stay above the rounding of the coordinates.
+        self.centre = 0.5 * (scene.bounds[0] + scene.bounds[1]) if scene.n_patches else np.zeros(3)
+        tri = np.ascontiguousarray(np.asarray(scene.triangles, dtype=np.float64) - self.centre)
         self.triangles = tri
         self.normals = np.ascontiguousarray(scene.normals, dtype=np.float64)
         self.areas = np.ascontiguousarray(scene.areas, dtype=np.float64)
-        self.centroids = np.ascontiguousarray(scene.centroids, dtype=np.float64)
+        self.centroids = np.ascontiguousarray(tri.mean(axis=1))
         edges = np.stack([tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 1], tri[:, 0] - tri[:, 2]], axis=1)
         self.diameters = np.ascontiguousarray(np.linalg.norm(edges, axis=2).max(axis=1) if len(tri) else np.zeros(0))
         self.near_points = np.ascontiguousarray(points_on_triangles(tri, split_centroids(near_splits)))

@@ -68,28 +68,31 @@ class RayCaster:
             return [fn(chunks[0])]
         return list(self._pool.map(fn, chunks))
 
-    def occluded(self, origins: np.ndarray, targets: np.ndarray) -> np.ndarray:
-        """(r,) bool: whether something blocks each open segment origin -> target.
+    def occluded(self, origins: np.ndarray, directions: np.ndarray, distances: np.ndarray) -> np.ndarray:
+        """(r,) bool: whether something blocks each ray before its distance.
 
-        The caller offsets the end points off their surfaces; a segment of zero
-        length is reported unoccluded.
+        Parameters
+        ----------
+        origins, directions : (r, 3) float
+            Directions of unit length; the caller offsets origins off their surfaces.
+        distances : (r,) float
+            Ray length to test (the segment's end).
+
+        Contiguous float32 arrays are passed to Embree without a copy.
         """
-        origins = np.ascontiguousarray(origins, dtype=np.float32)
-        delta = np.asarray(targets, dtype=np.float32) - origins
-        length = np.linalg.norm(delta, axis=1)
-        safe = np.where(length > 0, length, 1.0).astype(np.float32)
-        directions = np.ascontiguousarray(delta / safe[:, None])
-        out = np.empty(len(origins), dtype=bool)
-        if not len(self.triangles) or not len(origins):
-            out[:] = False
-            return out
+        o = np.ascontiguousarray(origins, dtype=np.float32)
+        d = np.ascontiguousarray(directions, dtype=np.float32)
+        t = np.ascontiguousarray(distances, dtype=np.float32)
+        if not len(self.triangles) or not len(o):
+            return np.zeros(len(o), dtype=bool)
+        if self._pool is None:
+            return self._scene.run(o, d, query="OCCLUDED", dists=t) >= 0
+        out = np.empty(len(o), dtype=bool)
 
         def run(s: slice) -> None:
-            hit = self._scene.run(origins[s], directions[s], query="OCCLUDED", dists=safe[s])
-            out[s] = hit >= 0
+            out[s] = self._scene.run(o[s], d[s], query="OCCLUDED", dists=t[s]) >= 0
 
-        self._map(run, len(origins))
-        out[length <= 0] = False
+        self._map(run, len(o))
         return out
 
     def intersect(self, origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

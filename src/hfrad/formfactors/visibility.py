@@ -13,6 +13,9 @@ destroys the low rank the hierarchical factorization relies on (METHOD.md s. 7).
 
 End points are moved off their surfaces along the patch normals by
 ``1e-5 x scene size`` so that a ray never hits the face it starts or ends on.
+Rays are cast in coordinates relative to the centre of the scene's bounding
+box: Embree works in float32, whose resolution far from the origin (site or
+georeferenced coordinates: 0.06 m at 1e6 m) would swallow the offset.
 Rays are cast only for pairs with a nonzero unoccluded form factor that *can*
 be blocked: an occluder triangle can cut a segment only if the segment's end
 points lie on opposite sides of its plane and the pair's bounding box meets the
@@ -71,28 +74,37 @@ class Visibility:
     def __init__(self, scene, *, samples: int = DEFAULT_SAMPLES, cull: bool = True) -> None:
         m = check_samples(samples)
         self.samples = int(samples)
-        tri = np.asarray(scene.triangles, dtype=np.float64)
+        # everything below is relative to the scene's centre (float32 rays, see module docstring)
+        self.centre = 0.5 * (scene.bounds[0] + scene.bounds[1]) if scene.n_patches else np.zeros(3)
+        tri = np.asarray(scene.triangles, dtype=np.float64) - self.centre
         size = float(np.ptp(scene.bounds, axis=0).max()) if len(tri) else 1.0
         self.scale = size if size > 0 else 1.0
         self.offset = _OFFSET * self.scale
-        pts = points_on_triangles(tri, split_centroids(m))
+        pts, pts_normals = sample_points(scene, m)
         nrm = np.asarray(scene.normals, np.float64)
-        self.points = np.ascontiguousarray(pts + self.offset * nrm[:, None, :])
-        # patch planes n . x = n . v0 (sample points are `offset` in front of their own)
-        self.plane = np.ascontiguousarray(np.column_stack([nrm, np.einsum("nd,nd->n", nrm, tri[:, 0])
+        self.points = np.ascontiguousarray(pts - self.centre + self.offset * pts_normals)
+        # patch planes n . x = n . v0, or through the centroid of a clustered patch
+        # (sample points are `offset` in front of their own triangles)
+        on_plane = scene.centroids - self.centre if scene.is_clustered else tri[:, 0]
+        self.plane = np.ascontiguousarray(np.column_stack([nrm, np.einsum("nd,nd->n", nrm, on_plane)
                                                            if len(tri) else np.zeros(0)]))
         self.partner = np.ascontiguousarray((np.arange(self.samples) + self.samples // 2) % self.samples,
                                             dtype=np.int64)
-        self.caster = RayCaster(scene.occluder_vertices, scene.occluder_faces, threads=1)
+        self.caster = RayCaster(np.asarray(scene.occluder_vertices, np.float64) - self.centre,
+                                scene.occluder_faces, threads=1)
         self._setup_culling(scene, tri, cull)
+        self.areas = np.ascontiguousarray(scene.areas, dtype=np.float64)
+        #: Pairs with A_i F_ij (symmetric, so V_ij == V_ji still) below this get one ray, not
+        #: ``samples`` (see hfrad.formfactors.parallel.one_ray_threshold); 0 = off.
+        self.one_ray_below = 0.0
         self.rays_cast = 0
         self.embree_seconds = 0.0
 
     def _setup_culling(self, scene, tri: np.ndarray, cull: bool) -> None:
-        occ = np.asarray(scene.occluder_vertices, np.float64)[np.asarray(scene.occluder_faces)]
+        occ = (np.asarray(scene.occluder_vertices, np.float64) - self.centre)[np.asarray(scene.occluder_faces)]
         m = len(occ)
         self.n_occluders = m
-        n = len(tri)
+        n = scene.n_patches
         self.cull = bool(cull) and 0 < m <= MAX_CULL_OCCLUDERS
         if not self.cull:
             self.front_bits = np.zeros((n, 1), np.uint64)
@@ -110,12 +122,19 @@ class Visibility:
         front = np.zeros((n, words), np.uint64)
         back = np.zeros((n, words), np.uint64)
         step = max(1, (1 << 22) // max(1, 3 * m))
-        for s in range(0, n, step):
+        if scene.is_clustered:  # per triangle first, then all of a patch's triangles must agree
+            front = np.zeros((len(tri), words), np.uint64)
+            back = np.zeros((len(tri), words), np.uint64)
+        for s in range(0, len(tri), step):
             d = np.einsum("pkd,td->ptk", tri[s:s + step], nrm) - d0[None, :, None]  # (p, m, 3)
             f = (d >= -tol).all(axis=2) | ~live[None]
             b = (d <= tol).all(axis=2) | ~live[None]
             front[s:s + step] = _pack_bits(f, words)
             back[s:s + step] = _pack_bits(b, words)
+        if scene.is_clustered:
+            start, index = scene.patch_triangles
+            front = np.bitwise_and.reduceat(front[index], start[:-1], axis=0)
+            back = np.bitwise_and.reduceat(back[index], start[:-1], axis=0)
         self.front_bits, self.back_bits = front, back
         # Box overlap of the pair's box (union of the two patch boxes) with an
         # occluder box, per axis: occ.lo <= max(hi_i, hi_j) and occ.hi >= min(lo_i, lo_j),
@@ -123,6 +142,10 @@ class Visibility:
         pad = 2 * self.offset
         lo = tri.min(axis=1) - pad
         hi = tri.max(axis=1) + pad
+        if scene.is_clustered:
+            start, index = scene.patch_triangles
+            lo = np.minimum.reduceat(lo[index], start[:-1], axis=0)
+            hi = np.maximum.reduceat(hi[index], start[:-1], axis=0)
         olo, ohi = occ.min(axis=1), occ.max(axis=1)
         below = np.zeros((n, 3, words), np.uint64)
         above = np.zeros((n, 3, words), np.uint64)
@@ -161,6 +184,12 @@ class Visibility:
             valid = np.empty((len(pairs), s), np.bool_)
             counts = np.empty(len(pairs), np.int64)
             _valid_rays(self.points, self.plane, self.partner, r_idx, c_idx, valid, counts)
+            if self.one_ray_below > 0.0 and s > 1:
+                weak = np.flatnonzero(self.areas[r_idx] * F.ravel()[pairs] < self.one_ray_below)
+                first_valid = valid[weak].argmax(axis=1)
+                valid[weak] = False
+                valid[weak, first_valid] = True
+                counts[weak] = 1
             first = np.zeros(len(pairs) + 1, np.int64)
             np.cumsum(counts, out=first[1:])
             r = int(first[-1])
@@ -172,7 +201,7 @@ class Visibility:
     def cast(self, job: "RayJob") -> np.ndarray:
         """(r,) bool: blocked segments of a job (Embree; holds the GIL, so one call at a time)."""
         t0 = time.perf_counter()
-        hit = self.caster._scene.run(job.o, job.d, query="OCCLUDED", dists=job.t) >= 0  # noqa: SLF001
+        hit = self.caster.occluded(job.o, job.d, job.t)
         self.embree_seconds += time.perf_counter() - t0
         return hit
 
@@ -210,6 +239,39 @@ class RayBuffers:
 
     def put(self, buf) -> None:
         self._free.append(buf)
+
+
+def sample_points(scene, m: int) -> tuple[np.ndarray, np.ndarray]:
+    """Visibility sample points of each patch and the normals of the triangles they lie on.
+
+    A one-triangle patch gets the centroids of an m x m split. A clustered
+    patch gets m^2 points spread over its area: point k lies in the triangle
+    where the patch's cumulative area reaches (k + 1/2) / m^2 of the total,
+    at one of the 4 centroids of a 2 x 2 split of it (which one follows the
+    position within that triangle), so points in one triangle do not coincide.
+
+    Returns
+    -------
+    points, normals : (n, m^2, 3) float
+    """
+    tri = np.asarray(scene.triangles, dtype=np.float64)
+    s = m * m
+    if not scene.is_clustered:
+        nrm = np.asarray(scene.normals, np.float64)
+        return points_on_triangles(tri, split_centroids(m)), np.repeat(nrm[:, None, :], s, axis=1)
+    start, index = scene.patch_triangles
+    ta = scene.triangle_areas[index]
+    cum = np.cumsum(ta)
+    before = np.r_[0.0, cum][start[:-1]]  # cumulative area before each patch
+    target = before[:, None] + (np.arange(s) + 0.5)[None, :] / s * scene.areas[:, None]  # (n, s)
+    k = np.searchsorted(cum, target, side="right")
+    k = np.clip(k, start[:-1, None], start[1:, None] - 1)  # stay inside the patch (rounding)
+    within = (target - (cum[k] - ta[k])) / ta[k]
+    quarter = np.clip((within * 4).astype(np.int64), 0, 3)
+    corners = tri[index[k]]  # (n, s, 3, 3)
+    w = split_centroids(2)[quarter]  # (n, s, 3)
+    pts = np.einsum("nsk,nskd->nsd", w, corners)
+    return pts, scene.triangle_normals[index[k]]
 
 
 def _pack_bits(flags: np.ndarray, words: int) -> np.ndarray:

@@ -187,9 +187,9 @@ def emission_json(settings: Sequence[EmitterSetting]) -> str:
 
 def write_emission(path: "str | os.PathLike", settings: Sequence[EmitterSetting]) -> Path:
     """Write an emission file atomically (temporary name, then rename)."""
-    from .export import _atomic
+    from ..atomic import atomic_path
 
     text = emission_json(settings)
-    with _atomic(path) as tmp:
+    with atomic_path(path) as tmp:
         Path(tmp).write_text(text, encoding="utf-8")
     return Path(path)

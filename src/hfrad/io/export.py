@@ -1,7 +1,7 @@
 """Writing radiosity solutions: coloured meshes (.glb, .ply) and tables (.npz, .csv).
 
 Every writer goes through a temporary file in the destination folder that is
-renamed over the target (``os.replace``) when complete, so a reader never sees
+renamed over the target when complete (:func:`hfrad.atomic.atomic_path`), so a reader never sees
 half a file and a failed write leaves nothing behind.
 
 Colours of meshes come from the same smooth per-vertex radiosity as rendered
@@ -20,35 +20,18 @@ vertex colour is the exposed radiance ``clip(B / pi * 2**EV, 0, 1)``:
 
 from __future__ import annotations
 
-import contextlib
 import csv
 import os
-import tempfile
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 
+from ..atomic import atomic_path
 from ..render.shading import CREASE_ANGLE, corner_vertices, smooth_corners
 from ..render.tonemap import auto_exposure, tonemap
 
 MESH_FORMATS = (".glb", ".ply")
 RADIOSITY_FORMATS = (".npz", ".csv", ".ply", ".glb")
-
-
-@contextlib.contextmanager
-def _atomic(path: "str | os.PathLike") -> Iterator[Path]:
-    """Yield a temporary path next to ``path``; rename it to ``path`` on success, delete it on failure."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        yield Path(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
 
 
 def _check(scene, array, name: str) -> np.ndarray:
@@ -86,7 +69,7 @@ def vertex_colors(scene, radiosity: np.ndarray, *, colors: str = "linear", expos
     Returns
     -------
     vertices : (v, 3) float, metres
-    faces : (n, 3) int, in patch order
+    faces : (t, 3) int, the detail triangles in ``scene.faces`` order
     rgb : (v, 3) uint8
     """
     if colors not in ("linear", "srgb"):
@@ -134,9 +117,11 @@ def export_mesh(path: "str | os.PathLike", scene, radiosity: np.ndarray, *, colo
 
     Notes
     -----
-    The mesh has one face per patch in patch order; its vertices are split
-    where patches meet at a crease or a material border, so it has more
-    vertices than ``scene.vertices``.
+    The mesh has one face per detail triangle (one per patch unless the scene
+    is clustered; the PLY ``patch`` face property says which), colours
+    interpolated smoothly from the patches; its vertices are split where
+    triangles meet at a crease or a material border, so it has more vertices
+    than ``scene.vertices``.
     """
     ext = _extension(path, MESH_FORMATS, "a mesh")
     colors = colors or ("linear" if ext == ".glb" else "srgb")
@@ -155,7 +140,7 @@ def _write_glb(path, vertices, faces, rgb) -> None:
     rgba = np.concatenate([rgb, np.full((len(rgb), 1), 255, np.uint8)], axis=1)
     mesh = trimesh.Trimesh(vertices=vertices, faces=faces, vertex_colors=rgba, process=False)
     data = mesh.export(file_type="glb")
-    with _atomic(path) as tmp:
+    with atomic_path(path) as tmp:
         tmp.write_bytes(data)
 
 
@@ -164,20 +149,24 @@ def _write_ply(path, scene, vertices, faces, rgb, B, E) -> None:
     vdtype = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
                        ("red", "u1"), ("green", "u1"), ("blue", "u1")])
     fprops = ["radiosity_r", "radiosity_g", "radiosity_b", "emission_r", "emission_g", "emission_b", "area"]
-    fdtype = np.dtype([("count", "u1"), ("vertex_indices", "<i4", (3,))] + [(p, "<f4") for p in fprops])
+    fdtype = np.dtype([("count", "u1"), ("vertex_indices", "<i4", (3,))] + [(p, "<f4") for p in fprops]
+                      + [("patch", "<i4")])
     v = np.empty(len(vertices), vdtype)
     v["x"], v["y"], v["z"] = vertices.T
     v["red"], v["green"], v["blue"] = rgb.T
     f = np.empty(n, fdtype)
     f["count"] = 3
     f["vertex_indices"] = faces
+    patch = scene.patch_of_triangle
     for k, c in enumerate("rgb"):
-        f[f"radiosity_{c}"] = B[:, k]
-        f[f"emission_{c}"] = E[:, k]
-    f["area"] = scene.areas
+        f[f"radiosity_{c}"] = B[patch, k]
+        f[f"emission_{c}"] = E[patch, k]
+    f["area"] = scene.triangle_areas
+    f["patch"] = patch
     header = "\n".join([
         "ply", "format binary_little_endian 1.0",
-        "comment hfrad radiosity: face radiosity_* and emission_* in W/m^2, area in m^2",
+        "comment hfrad radiosity: face radiosity_* and emission_* in W/m^2 (of the face's patch), "
+        "area in m^2 (of the face), patch = index of the patch the face belongs to",
         "comment vertex colours: sRGB-encoded exposed radiance B/pi",
         f"element vertex {len(v)}",
         "property float x", "property float y", "property float z",
@@ -185,16 +174,17 @@ def _write_ply(path, scene, vertices, faces, rgb, B, E) -> None:
         f"element face {n}",
         "property list uchar int vertex_indices",
         *[f"property float {p}" for p in fprops],
+        "property int patch",
         "end_header",
     ]) + "\n"
-    with _atomic(path) as tmp, open(tmp, "wb") as fh:
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
         fh.write(header.encode("ascii"))
         fh.write(v.tobytes())
         fh.write(f.tobytes())
 
 
 def _write_npz(path, scene, B, E) -> None:
-    with _atomic(path) as tmp, open(tmp, "wb") as fh:
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
         np.savez_compressed(
             fh, B=B, E=E, reflectance=np.asarray(scene.reflectance), area=np.asarray(scene.areas),
             centroid=np.asarray(scene.centroids), normal=np.asarray(scene.normals),
@@ -203,7 +193,7 @@ def _write_npz(path, scene, B, E) -> None:
 
 def _write_csv(path, scene, B, E) -> None:
     names = scene.material_names
-    with _atomic(path) as tmp, open(tmp, "w", newline="", encoding="utf-8") as fh:
+    with atomic_path(path) as tmp, open(tmp, "w", newline="", encoding="utf-8") as fh:
         w = csv.writer(fh)
         w.writerow(["index", "material", "area", "centroid_x", "centroid_y", "centroid_z",
                     "B_r", "B_g", "B_b", "E_r", "E_g", "E_b"])

@@ -11,7 +11,9 @@ Layout (format version 1)::
     /factors/Y         (3, n, k), eq. 4 per channel
     /factors/rho_max   (n,) float64, user order
     /patches/...       vertices, faces, material, reflectance, emission,
-                       areas, normals, centroids, group; attrs
+                       areas, normals, centroids, group, triangle_patch
+                       (only for clustered patches: the patch of each
+                       triangle of ``faces``); attrs
                        material_names, group_names, materials (JSON)
 
 The file is written under a temporary name in the same folder and renamed
@@ -21,13 +23,13 @@ when complete, so a crash never leaves a partial ``.hfr`` behind.
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from pathlib import Path
 
 import h5py
 import numpy as np
 
+from .._version import __version__
+from ..atomic import atomic_path
 from ..errors import FileFormatError
 from ..factorize.lowrank import LowRank
 from ..solve.woodbury import HFactorization
@@ -36,14 +38,6 @@ FORMAT = "hfrad-factorization"
 FORMAT_VERSION = 1
 
 __all__ = ["save_hfr", "load_hfr", "read_hfr_metadata", "FORMAT_VERSION"]
-
-
-def _package_version() -> str:
-    try:
-        from .. import __version__
-        return str(__version__)
-    except Exception:  # noqa: BLE001 - the version is informative only
-        return "0"
 
 
 def _json_default(o):
@@ -58,6 +52,8 @@ def _write_scene(g: h5py.Group, scene) -> None:
     for name in ("vertices", "faces", "material", "reflectance", "emission", "areas", "normals",
                  "centroids", "group", "parent", "occluder_vertices", "occluder_faces"):
         g.create_dataset(name, data=np.asarray(getattr(scene, name)))
+    if scene.is_clustered:  # patches that are clusters of the detail triangles `faces`
+        g.create_dataset("triangle_patch", data=np.asarray(scene.triangle_patch))
     g.attrs["material_names"] = json.dumps(list(scene.material_names))
     g.attrs["group_names"] = json.dumps(list(scene.groups))
     g.attrs["materials"] = json.dumps([{"name": m.name, "reflectance": list(m.reflectance),
@@ -85,15 +81,13 @@ def save_hfr(path, factorization: HFactorization, *, scene=None, timings: dict |
     path = Path(path)
     fac = factorization
     scene = fac.scene if scene is None else scene
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent or ".")
-    os.close(fd)
-    try:
+    with atomic_path(path) as tmp:
         with h5py.File(tmp, "w") as f:
             lr = fac.lowrank
             a = f.attrs
             a["format"] = FORMAT
             a["format_version"] = FORMAT_VERSION
-            a["hfrad_version"] = _package_version()
+            a["hfrad_version"] = __version__
             a["n_patches"] = fac.n_patches
             a["rank"] = fac.rank
             a["eps"] = lr.eps
@@ -116,11 +110,6 @@ def save_hfr(path, factorization: HFactorization, *, scene=None, timings: dict |
             g.create_dataset("reflectance", data=fac.reflectance)
             if scene is not None:
                 _write_scene(f.create_group("patches"), scene)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-        raise
     return path
 
 
@@ -182,7 +171,7 @@ def _read_scene(g: h5py.Group):
     return Scene(vertices=g["vertices"][()], faces=g["faces"][()], material=g["material"][()],
                  materials=mats, group=g["group"][()], groups=tuple(json.loads(g.attrs["group_names"])),
                  reflectance=g["reflectance"][()], emission=g["emission"][()], name=str(g.attrs["name"]),
-                 **{k: g[k][()] for k in ("parent", "occluder_vertices", "occluder_faces") if k in g})
+                 **{k: g[k][()] for k in ("parent", "occluder_vertices", "occluder_faces", "triangle_patch") if k in g})
 
 
 def load_hfr(path) -> HFactorization:

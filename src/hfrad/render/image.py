@@ -13,10 +13,11 @@ encoding are in :mod:`hfrad.render.tonemap`.
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
+
+from ..atomic import atomic_path
 
 from .camera import Camera
 from .falsecolor import check_unit, colorbar_width, falsecolor_image, photometric
@@ -71,14 +72,16 @@ def render_radiance(scene, radiosity, camera: "Camera | str" = "auto", *, width:
     B = _check_radiosity(scene, radiosity)
     _check_size(width, height)
     cam = Camera.parse(camera, scene.bounds, aspect=width / height)
-    face, _, uv = trace_camera(scene, cam, width, height, caster=caster)
+    tri, _, uv = trace_camera(scene, cam, width, height, caster=caster)
     radiance = np.zeros((height, width, 3))
-    hit = face >= 0
+    hit = tri >= 0
+    face = np.full_like(tri, -1)
+    face[hit] = scene.patch_of_triangle[tri[hit]]
     if hit.any():
         if flat:
             radiance[hit] = B[face[hit]]
         else:
-            radiance[hit] = interpolate(smooth_corners(scene, B, crease_angle=crease_angle), face[hit], uv[hit])
+            radiance[hit] = interpolate(smooth_corners(scene, B, crease_angle=crease_angle), tri[hit], uv[hit])
     radiance /= np.pi
     return radiance, face
 
@@ -173,15 +176,6 @@ def save_png(path: "str | os.PathLike", image: np.ndarray) -> Path:
     arr = np.asarray(image)
     if arr.dtype != np.uint8 or arr.ndim not in (2, 3):
         raise ValueError(f"image must be an (h, w, 3) or (h, w) uint8 array, got {arr.dtype} {arr.shape}")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent or ".")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            Image.fromarray(arr).save(fh, format="PNG")
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        Image.fromarray(arr).save(fh, format="PNG")
     return path

@@ -14,6 +14,13 @@ corner between the red wall and the floor, nor from a light onto the ceiling.
 Vertices are welded by position first, so triangle soups (every face with its
 own three vertices) are smoothed as well as meshes that share vertices.
 
+Everything works on the detail triangles (``scene.faces``). When patches are
+clusters of many triangles, per-corner averaging alone would only blend one
+triangle wide at patch borders and the patches would look blocky, so the
+triangle values are first diffused within their smoothing sets: ``k`` Jacobi
+steps (triangle value <- mean of its corner values), ``k`` ~ the mean number of
+triangles per patch, blur the radiosity over about one patch width.
+
 Units: radiosity B is an exitance in W/m^2. A Lambertian surface of radiosity B
 has radiance L = B / pi in W/(m^2 sr) in every direction; that is what a pixel
 of a rendered image measures (see :func:`hfrad.render.render_radiance`).
@@ -22,26 +29,14 @@ of a rendered image measures (see :func:`hfrad.render.render_radiance`).
 from __future__ import annotations
 
 import math
+from typing import Callable
 
 import numpy as np
 
+from ..scene.cluster import weld
+
 #: Default largest angle between patch normals that are still smoothed together, degrees.
 CREASE_ANGLE = 30.0
-
-
-def weld(vertices: np.ndarray, faces: np.ndarray, *, rel_tol: float = 1e-9) -> np.ndarray:
-    """(n, 3) int: face corners renumbered so coincident vertices share one id.
-
-    Positions are rounded to ``rel_tol`` times the largest coordinate.
-    """
-    vertices = np.asarray(vertices, dtype=np.float64)
-    faces = np.asarray(faces, dtype=np.int64)
-    if not len(faces):
-        return faces.reshape(0, 3)
-    scale = float(np.abs(vertices).max(initial=0.0)) or 1.0
-    key = np.rint(vertices / (scale * rel_tol)).astype(np.int64)
-    _, inverse = np.unique(key, axis=0, return_inverse=True)
-    return inverse.reshape(-1)[faces]
 
 
 def _corner_pairs(scene, crease_angle: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -51,7 +46,7 @@ def _corner_pairs(scene, crease_angle: float) -> tuple[np.ndarray, np.ndarray, n
     (each corner's partners are contiguous), ``b``, and the (3n + 1,) start of
     each corner's block in them. Cost O(sum over vertices of degree^2).
     """
-    n = scene.n_patches
+    n = scene.n_triangles
     vid = weld(scene.vertices, scene.faces).reshape(-1)
     order = np.argsort(vid, kind="stable")
     sv = vid[order]
@@ -66,8 +61,9 @@ def _corner_pairs(scene, crease_angle: float) -> tuple[np.ndarray, np.ndarray, n
     b = order[np.repeat(group_start[g], d) + k]
     fa, fb = a // 3, b // 3
     cos_min = math.cos(math.radians(crease_angle))
-    normals = scene.normals
-    keep = (scene.material[fa] == scene.material[fb]) & (
+    normals = scene.triangle_normals
+    material = scene.material[scene.patch_of_triangle]
+    keep = (material[fa] == material[fb]) & (
         np.einsum("ij,ij->i", normals[fa], normals[fb]) >= cos_min)
     keep |= a == b
     a, b = a[keep], b[keep]
@@ -79,50 +75,79 @@ def _corner_pairs(scene, crease_angle: float) -> tuple[np.ndarray, np.ndarray, n
 
 
 def corner_weights(scene, *, crease_angle: float = CREASE_ANGLE):
-    """(3n, n) sparse matrix W: corner values are ``W @ B`` (rows: corner 3 f + k).
+    """(3t, t) sparse matrix W: corner values are ``W @ v`` for per-triangle values v.
 
-    Row ``3 f + k`` holds the area weights ``A_q / sum A`` of the patches q in
-    the smoothing set of corner k of patch f (see the module docstring); a
-    corner whose set has zero total area takes its own patch's value. Build it
-    once to smooth many radiosities (the viewer does, per slider move).
+    Row ``3 f + k`` (corner k of triangle f) holds the area weights
+    ``A_q / sum A`` of the triangles q in that corner's smoothing set (see the
+    module docstring); a corner whose set has zero total area takes its own
+    triangle's value.
 
     Returns
     -------
-    scipy.sparse.csr_matrix, shape (3n, n)
+    scipy.sparse.csr_matrix, shape (3t, t)
     """
     from scipy import sparse
 
-    n = scene.n_patches
-    if n == 0:
+    t = scene.n_triangles
+    if t == 0:
         return sparse.csr_matrix((0, 0))
     a, b, _ = _corner_pairs(scene, crease_angle)
     fb = b // 3
-    w = scene.areas[fb]
-    total = np.bincount(a, weights=w, minlength=3 * n)
+    w = scene.triangle_areas[fb]
+    total = np.bincount(a, weights=w, minlength=3 * t)
     ok = total[a] > 0
-    rows, cols, vals = a[ok], fb[ok], w[ok] / total[a[ok]]
-    lonely = np.flatnonzero(total <= 0)  # fallback: the patch's own value
-    rows = np.concatenate([rows, lonely])
-    cols = np.concatenate([cols, lonely // 3])
-    vals = np.concatenate([vals, np.ones(len(lonely))])
-    return sparse.csr_matrix((vals, (rows, cols)), shape=(3 * n, n))
+    lonely = np.flatnonzero(total <= 0)  # fallback: the triangle's own value
+    rows = np.concatenate([a[ok], lonely])
+    cols = np.concatenate([fb[ok], lonely // 3])
+    vals = np.concatenate([w[ok] / total[a[ok]], np.ones(len(lonely))])
+    return sparse.csr_matrix((vals, (rows, cols)), shape=(3 * t, t))
 
 
-def smooth_corners(scene, radiosity: np.ndarray, *, crease_angle: float = CREASE_ANGLE) -> np.ndarray:
-    """(n, 3, 3) float: radiosity at each patch corner (patch, corner, channel).
+def corner_smoother(scene, *, crease_angle: float = CREASE_ANGLE,
+                    steps: int | None = None) -> Callable[[np.ndarray], np.ndarray]:
+    """``smooth(radiosity) -> (t, 3, 3)``: :func:`smooth_corners` with its sparse weights built once.
+
+    For smoothing many radiosities of one scene (the viewer does, per slider
+    move): each call costs ``steps + 1`` sparse products, O(20 t) each.
+    """
+    t = scene.n_triangles
+    if steps is None:
+        steps = 0 if not scene.is_clustered else int(min(48, round(t / max(scene.n_patches, 1))))
+    W = corner_weights(scene, crease_angle=crease_angle)
+    patch = scene.patch_of_triangle
+
+    def smooth(radiosity: np.ndarray) -> np.ndarray:
+        values = np.asarray(radiosity, dtype=np.float64).reshape(scene.n_patches, 3)[patch]
+        if t == 0:
+            return np.zeros((0, 3, 3))
+        for _ in range(steps):
+            values = np.asarray(W @ values).reshape(t, 3, 3).mean(axis=1)
+        return np.asarray(W @ values).reshape(t, 3, 3)
+
+    return smooth
+
+
+def smooth_corners(scene, radiosity: np.ndarray, *, crease_angle: float = CREASE_ANGLE,
+                   steps: int | None = None) -> np.ndarray:
+    """(t, 3, 3) float: radiosity at each detail triangle's corners (triangle, corner, channel).
 
     Parameters
     ----------
     scene : Scene
     radiosity : (n, 3) float, W/m^2
+        Per patch.
     crease_angle : float, degrees
-        Patches whose normals differ by more than this are not averaged.
+        Triangles whose normals differ by more than this are not averaged.
+    steps : int, optional
+        Diffusion steps before the corner averaging (see the module
+        docstring); default 0 for an unclustered scene, else the mean number
+        of triangles per patch (at most 48).
 
     Notes
     -----
-    Cost O(sum of vertex degree^2), about 20 n for subdivided meshes.
-    A corner whose smoothing set has zero total area keeps its patch's value.
-    Equals ``corner_weights(scene) @ radiosity``.
+    Cost O(sum of vertex degree^2) per step, about 20 t for subdivided meshes.
+    A corner whose smoothing set has zero total area keeps its triangle's value.
+    To smooth many radiosities of one scene, build :func:`corner_smoother` once.
 
     Examples
     --------
@@ -133,11 +158,7 @@ def smooth_corners(scene, radiosity: np.ndarray, *, crease_angle: float = CREASE
     >>> bool(np.allclose(c, 2.0))
     True
     """
-    B = np.asarray(radiosity, dtype=np.float64).reshape(scene.n_patches, 3)
-    n = scene.n_patches
-    if n == 0:
-        return np.zeros((0, 3, 3))
-    return np.asarray(corner_weights(scene, crease_angle=crease_angle) @ B).reshape(n, 3, 3)
+    return corner_smoother(scene, crease_angle=crease_angle, steps=steps)(radiosity)
 
 
 def corner_vertices(scene, *, crease_angle: float = CREASE_ANGLE) -> tuple[np.ndarray, np.ndarray]:
@@ -151,10 +172,10 @@ def corner_vertices(scene, *, crease_angle: float = CREASE_ANGLE) -> tuple[np.nd
     Returns
     -------
     vertices : (v, 3) float, metres
-    faces : (n, 3) int
-        Same patch order as ``scene.faces``.
+    faces : (t, 3) int
+        Same triangle order as ``scene.faces``.
     """
-    n = scene.n_patches
+    n = scene.n_triangles
     if n == 0:
         return np.zeros((0, 3)), np.zeros((0, 3), np.int64)
     a, b, start = _corner_pairs(scene, crease_angle)
@@ -175,9 +196,9 @@ def interpolate(corners: np.ndarray, face: np.ndarray, uv: np.ndarray) -> np.nda
 
     Parameters
     ----------
-    corners : (n, 3, 3) float
-        Values at the corners of each patch.
-    face : (r,) int, patch hit (>= 0)
+    corners : (t, 3, 3) float
+        Values at the corners of each triangle.
+    face : (r,) int, triangle hit (>= 0)
     uv : (r, 2) float
         Barycentric weights of corners 1 and 2 (corner 0 gets 1 - u - v).
     """

@@ -1,9 +1,10 @@
 """Loading a scene: file or built-in name -> materials -> lights -> patches.
 
 ``load_scene`` is the one entry point the CLI and the API use. Readers for
-each format (``hfrad.io``) return plain dicts; this module turns them into a
+each format (``obj.py``, ``mesh.py``) return plain dicts; this module turns them into a
 :class:`Scene`, applies the lighting options (make a material or group emit,
-add an area light), drops degenerate faces with a counted warning, and cuts
+add an area light), drops degenerate faces with a counted warning, merges
+duplicate faces (and reports overlapping ones), and cuts
 the faces into patches.
 """
 
@@ -16,6 +17,8 @@ import numpy as np
 
 from ..errors import SceneError
 from .builtin import BUILTIN_SCENES, builtin_scene
+from .cleanup import merge_duplicates
+from .cluster import cluster
 from .patches import drop_degenerate, subdivide
 from .scene import Material, Scene
 
@@ -23,8 +26,8 @@ MAX_COLOUR_REFLECTANCE = 0.99  # a white colour (1.0) would create energy: clamp
 
 
 def _readers() -> dict[str, Callable[[Path], dict]]:
-    from ..io.mesh import read_gltf, read_ply
-    from ..io.obj import read_obj
+    from .mesh import read_gltf, read_ply
+    from .obj import read_obj
 
     return {".obj": read_obj, ".ply": read_ply, ".gltf": read_gltf, ".glb": read_gltf}
 
@@ -44,6 +47,7 @@ def load_scene(
     allow_missing_materials: bool = False,
     max_edge: float | None = None,
     patches: int | None = None,
+    keep_duplicates: bool = False,
 ) -> Scene:
     """Load a scene file (OBJ/MTL, PLY, glTF/GLB) or a built-in scene by name.
 
@@ -64,7 +68,15 @@ def load_scene(
         Give faces whose material (or .mtl file) is missing the default
         reflectance instead of raising.
     max_edge, patches : optional
-        Subdivision into patches (see :func:`hfrad.scene.patches.subdivide`).
+        Patch size or count. Faces larger than the target are split
+        (:func:`hfrad.scene.patches.subdivide`); when ``patches`` is below the
+        face count, or ``max_edge`` is more than twice some faces' longest
+        edge, small faces are grown into clustered patches instead
+        (:func:`hfrad.scene.cluster.cluster`; ``Scene.triangle_patch``).
+    keep_duplicates : bool
+        Keep faces that duplicate another face (same corners) instead of merging
+        them; either way duplicates, coplanar overlaps and faces touching face to
+        face are listed in ``scene.warnings`` (see :mod:`hfrad.scene.cleanup`).
 
     Returns
     -------
@@ -88,6 +100,14 @@ def load_scene(
     if area_light is not None:
         scene = add_area_light(scene, area_light)
     scene = drop_degenerate(scene)
+    scene = merge_duplicates(scene, keep_duplicates=keep_duplicates)
+    if patches is not None and 1 <= patches < scene.n_patches:
+        return cluster(scene, patches=patches)
+    if max_edge is not None and max_edge > 0 and np.isfinite(max_edge) and scene.n_patches:
+        tri = scene.triangles
+        longest = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max(axis=1)
+        if (longest < 0.5 * max_edge).sum() > 1:
+            return cluster(scene, max_edge=max_edge)
     return subdivide(scene, max_edge=max_edge, patches=patches)
 
 

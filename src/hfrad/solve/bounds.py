@@ -2,13 +2,35 @@
 
 from __future__ import annotations
 
+import math
 from typing import Iterable
 
 import numpy as np
 
-from .woodbury import power_sigma_max
-
 __all__ = ["power_sigma_max", "eq5_bound", "residual_norm"]
+
+
+def power_sigma_max(Q: np.ndarray, V: np.ndarray, *, rtol: float = 1e-7, max_iter: int = 500) -> float:
+    """Largest singular value of ``Q V^T`` by power iteration on the factors, O(nk) per step."""
+    k = Q.shape[1]
+    if k == 0:
+        return 0.0
+    x = np.ones(V.shape[0]) / math.sqrt(V.shape[0])
+    Q64, V64 = Q.astype(np.float64), V.astype(np.float64)
+    sigma = 0.0
+    for _ in range(max_iter):
+        y = Q64 @ (V64.T @ x)                   # A x
+        z = V64 @ (Q64.T @ y)                   # A^T A x
+        nz = np.linalg.norm(z)
+        if nz == 0.0:
+            return 0.0
+        new = math.sqrt(nz)                     # ||A^T A x|| -> sigma^2 as x converges
+        x = z / nz
+        if abs(new - sigma) <= rtol * new:
+            sigma = new
+            break
+        sigma = new
+    return float(np.linalg.norm(Q64 @ (V64.T @ x)))
 
 
 def eq5_bound(error: float, sigma_max) -> np.ndarray:

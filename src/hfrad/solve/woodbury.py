@@ -7,7 +7,6 @@ D_c = diag(rho_c / rho_max), so ``R_c F ~= Q_c V^T`` with the same error bound.
 
 from __future__ import annotations
 
-import math
 import warnings
 
 import numpy as np
@@ -15,6 +14,8 @@ import scipy.linalg as sla
 
 from ..errors import AccuracyWarning, FactorizationError
 from ..factorize.lowrank import LowRank
+from ..validation import check_reflectance
+from .bounds import eq5_bound, power_sigma_max
 
 N_CHANNELS = 3
 _RCOND_MIN = 1e-12   # below this the k x k system has no meaningful solution
@@ -63,29 +64,6 @@ def woodbury_factors(Q: np.ndarray, V: np.ndarray, D: np.ndarray) -> np.ndarray:
         # Y_c^T = -M^{-T} Q_c^T                                       # eq. (4)
         Y[c] = -sla.lu_solve((lu, piv), Qc.T, check_finite=False).T
     return Y
-
-
-def power_sigma_max(Q: np.ndarray, V: np.ndarray, *, rtol: float = 1e-7, max_iter: int = 500) -> float:
-    """Largest singular value of ``Q V^T`` by power iteration on the factors, O(nk) per step."""
-    k = Q.shape[1]
-    if k == 0:
-        return 0.0
-    x = np.ones(V.shape[0]) / math.sqrt(V.shape[0])
-    Q64, V64 = Q.astype(np.float64), V.astype(np.float64)
-    sigma = 0.0
-    for _ in range(max_iter):
-        y = Q64 @ (V64.T @ x)                   # A x
-        z = V64 @ (Q64.T @ y)                   # A^T A x
-        nz = np.linalg.norm(z)
-        if nz == 0.0:
-            return 0.0
-        new = math.sqrt(nz)                     # ||A^T A x|| -> sigma^2 as x converges
-        x = z / nz
-        if abs(new - sigma) <= rtol * new:
-            sigma = new
-            break
-        sigma = new
-    return float(np.linalg.norm(Q64 @ (V64.T @ x)))
 
 
 class HFactorization:
@@ -187,9 +165,8 @@ class HFactorization:
         """
         e = self.achieved_error
         sigma = self.sigma_max + e
-        bound = np.full(N_CHANNELS, np.inf)
-        ok = sigma < 1.0
-        bound[ok] = e / (1.0 - sigma[ok])                              # eq. (5)
+        bound = eq5_bound(e, sigma)
+        ok = np.isfinite(bound)
         if not ok.all():
             warnings.warn(f"sigma_max + error >= 1 for channels {np.flatnonzero(~ok).tolist()} "
                           f"(sigma estimates {sigma.round(4).tolist()}); eq. 5 gives no bound",
@@ -271,12 +248,7 @@ class HFactorization:
             exceeds the rho_max the factorization was built for (a new
             factorization is needed then).
         """
-        rho = np.asarray(reflectance, dtype=np.float64)
-        n = self.n_patches
-        if rho.shape != (n, N_CHANNELS):
-            raise ValueError(f"reflectance must have shape ({n}, 3); got {rho.shape}")
-        if not (np.isfinite(rho).all() and (rho >= 0).all() and (rho < 1).all()):
-            raise ValueError("reflectance must be finite and in [0, 1)")
+        rho = check_reflectance(reflectance, self.n_patches)
         over = rho.max(axis=1) > self.rho_max * (1 + 1e-12)
         if over.any():
             i = int(np.flatnonzero(over)[0])

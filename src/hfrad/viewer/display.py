@@ -2,8 +2,8 @@
 
 The patch mesh is split along creases and material borders
 (:func:`hfrad.render.corner_vertices`) and each vertex gets the area-weighted
-mean radiosity of its smoothing set (:func:`hfrad.render.corner_weights`, a
-sparse matrix built once, so a new radiosity costs one sparse product). Then:
+mean radiosity of its smoothing set (:func:`hfrad.render.corner_smoother`:
+sparse weights built once, so a new radiosity costs a few sparse products). Then:
 
 - shaded: radiance ``B / pi`` exposed and sRGB-encoded to 8 bits by
   :func:`hfrad.render.tonemap.tonemap`, exactly as a rendered picture;
@@ -29,7 +29,7 @@ import struct
 import numpy as np
 
 from ..render.falsecolor import colormap, falsecolor_image, nice_scale, photometric
-from ..render.shading import CREASE_ANGLE, corner_vertices, corner_weights
+from ..render.shading import CREASE_ANGLE, corner_smoother, corner_vertices
 from ..render.tonemap import auto_exposure, srgb_decode, to_uint8, tonemap
 
 # three.js ACESFilmicToneMapping (src/renderers/shaders/ShaderChunk/tonemapping_pars_fragment.glsl.js):
@@ -81,7 +81,7 @@ class MeshColors:
     Attributes
     ----------
     vertices : (v, 3) float, metres
-    faces : (n, 3) int, patch order
+    faces : (t, 3) int, the scene's detail triangles in order
     """
 
     def __init__(self, scene, *, crease_angle: float = CREASE_ANGLE) -> None:
@@ -90,12 +90,13 @@ class MeshColors:
         corners = self.faces.reshape(-1)
         first = np.empty(len(self.vertices), np.int64)
         first[corners[::-1]] = np.arange(len(corners))[::-1]   # one corner per vertex (they agree)
-        self._weights = corner_weights(scene, crease_angle=crease_angle)[first].tocsr()
-        self._vertex_patch = first // 3
+        self._first_corner = first
+        self._smooth = corner_smoother(scene, crease_angle=crease_angle)
+        self._vertex_patch = scene.patch_of_triangle[first // 3]
 
     def radiosity(self, B: np.ndarray) -> np.ndarray:
         """(v, 3) float, W/m^2: smoothed radiosity at the vertices."""
-        return np.asarray(self._weights @ np.asarray(B, dtype=np.float64))
+        return self._smooth(B).reshape(-1, 3)[self._first_corner]
 
     def shaded(self, B: np.ndarray, E: np.ndarray, exposure: float | None = None) -> tuple[np.ndarray, float]:
         """Display colours of radiance ``B / pi``.

@@ -1,6 +1,6 @@
 """PLY and glTF/GLB readers through trimesh.
 
-Each reader returns the same plain dict as :func:`hfrad.io.obj.read_obj`, so
+Each reader returns the same plain dict as :func:`hfrad.scene.obj.read_obj`, so
 the scene builder does not care where a mesh came from.
 
 PLY: per-face float properties ``reflectance_r/g/b`` and ``emission_r/g/b``

@@ -1,0 +1,109 @@
+"""``hfrad design SPEC.json FILE.hfr -o RESULT.json``: emitter intensities that meet lighting goals."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from . import common
+
+#: exit code when the spec is valid but no design meets it (the result JSON says why)
+EXIT_INFEASIBLE = 1
+
+
+def register(app: typer.Typer) -> None:
+    @app.command()
+    def design(
+        spec: Path = typer.Argument(..., help="Design spec (.json or .toml): emitters, targets, objective."),
+        factorization: Path = typer.Argument(..., help="Factorization file from `hfrad precompute` (.hfr)."),
+        output: Path = typer.Option(..., "-o", "--output", help="Result to write (.json)."),
+        render: Optional[Path] = typer.Option(None, "--render", help="Also draw the designed lighting (.png)."),
+        emission_out: Optional[Path] = typer.Option(
+            None, "--emission-out", help="Also write the designed emission as an emission file (.json) for "
+                                         "`hfrad render/solve --emission-file` and `hfrad view`."),
+        camera: str = typer.Option("auto", "--camera", help="Camera of --render: auto, front or "
+                                                            "x,y,z:tx,ty,tz[:fov_degrees]."),
+        falsecolor: bool = typer.Option(False, "--falsecolor", help="--render in false colour with a colour bar."),
+        unit: str = typer.Option("lux", "--unit", help="False-colour unit of --render: W/m2 or lux."),
+        show: str = typer.Option("radiosity", "--show", help="What --render draws: radiosity (what the eye "
+                                 "sees), or irradiance (light arriving; with --falsecolor --unit lux: illuminance)."),
+        width: int = typer.Option(640, "--width", min=1, help="--render width, pixels."),
+        height: int = typer.Option(480, "--height", min=1, help="--render height, pixels."),
+        method: str = typer.Option("auto", "--method", help="auto (fewer solves), forward (one solve per "
+                                   "emitter) or adjoint (one transposed solve per target row the goals need)."),
+        quiet: bool = common.QuietOption,
+    ) -> None:
+        """Find the least-power (or best-fitting) emitter intensities that meet the spec's goals.
+
+        One batched solve gives every target's response to every emitter
+        (O(m n k) for m emitters), then SciPy solves an LP (HiGHS) or a bounded
+        least-squares problem; the answer is checked with an independent solve.
+        Exit codes: 0 designed, 1 no design meets the spec (RESULT.json names the
+        conflicting goals), 2 bad input (the message names the file or field).
+        """
+        import numpy as np
+
+        from ..inverse import design as run_design
+        from ..inverse import parse_spec
+        from ..atomic import atomic_path
+
+        with common.user_errors():
+            if output.suffix.lower() != ".json":
+                raise ValueError(f"output must be a .json file, got '{output}'")
+            if emission_out is not None and emission_out.suffix.lower() != ".json":
+                raise ValueError(f"--emission-out must be a .json file, got '{emission_out}'")
+            if render is not None:
+                from ..render import Camera
+                if render.suffix.lower() != ".png":
+                    raise ValueError(f"--render must be a .png file, got '{render}'")
+                if falsecolor:
+                    from ..render.falsecolor import check_unit
+                    check_unit(unit)
+                if show not in ("radiosity", "irradiance"):
+                    raise ValueError(f"--show must be radiosity or irradiance, got {show!r}")
+                Camera.parse(camera, np.array([[0.0, 0, 0], [1, 1, 1]]))  # fail on a bad camera before solving
+            fac = common.load_factorization(factorization)
+            parsed = parse_spec(spec, fac.scene)
+            if emission_out is not None:
+                from ..inverse.emission import check_nameable
+                check_nameable(parsed)
+            with common.progress_bar("design", quiet) as bar:
+                result = run_design(fac, parsed, method=method, progress=bar)
+            with atomic_path(output) as tmp:
+                tmp.write_text(result.to_json() + "\n", encoding="utf-8")
+            if emission_out is not None and result.feasible:
+                from ..inverse.emission import emission_settings
+                from ..io.emission import write_emission
+                write_emission(emission_out, emission_settings(result, fac.scene))
+            if render is not None and result.radiosity is not None:
+                from ..inverse.transfer import irradiance_field
+                from ..render import render_image, save_png
+                drawn = result.radiosity if show == "radiosity" else \
+                    irradiance_field(fac, result.radiosity, result.exitance)
+                image = render_image(fac.scene.replace(emission=result.exitance), drawn,
+                                     camera=camera, width=width, height=height, falsecolor=falsecolor, unit=unit)
+                save_png(render, image)
+        _summary(result.report, output, render)
+        if not result.feasible:
+            raise typer.Exit(EXIT_INFEASIBLE)
+
+
+def _summary(r: dict, output: Path, render: Optional[Path]) -> None:
+    say = common.console.print
+    if r["emitters"][0]["intensity"] is not None:
+        for e in r["emitters"]:
+            say(f"  {e['name']}: intensity {e['intensity']:.4g}, {e['power_W']:.4g} W", highlight=False)
+        for t in r["targets"]:
+            a = t["achieved"]
+            u = "-" if a["uniformity"] is None else f"{a['uniformity']:.3f}"
+            say(f"  {t['name']} ({t['quantity']}, {t['unit']}): min {a['min']:.4g}, mean {a['mean']:.4g}, "
+                f"max {a['max']:.4g}, uniformity {u}", highlight=False)
+    verified = r.get("verified") or {}
+    check = (f"; verified by a full solve (max deviation {verified['max_relative_deviation']:.1e})"
+             if verified else "")
+    head = "designed" if r["feasible"] else f"[bold red]not feasible[/] ({r['status']})"
+    say(f"{head}: {r['message']}", highlight=False)
+    say(f"wrote {output}" + (f" and {render}" if render is not None and r["feasible"] else "")
+        + f": {r['evaluations']} radiosity solves, {r['time_s'] * 1e3:.1f} ms{check}", highlight=False)

@@ -1,0 +1,293 @@
+"""Broken meshes: duplicate faces, coplanar overlapping faces, faces that touch face to face.
+
+Real meshes (CAD exports, scans, game levels, the shared McGuire Cornell box)
+contain faces that radiosity must not take at face value:
+
+- **duplicates**: two triangles with the same three corners (in any order or
+  rotation; corners are compared after welding positions that agree to
+  ``WELD`` x the scene size) and the same orientation. Both copies would get
+  the full form factor, so the light they reflect is counted twice (rows of F
+  sum to up to 1.45 on ``CornellBox-Original.obj``). They are merged by
+  default: the first copy is kept.
+- **coplanar overlaps**: two triangles in the same plane, same orientation,
+  whose interiors overlap by more than ``MIN_OVERLAP`` of the smaller area
+  (z-fighting geometry). Their light is partly double counted too, but
+  which part is ambiguous, so they are only reported.
+- **face to face**: two triangles in the same plane with opposite normals that
+  overlap (a box's bottom lying on the floor, a wall modelled as two
+  back-to-back faces). The kernel gives such pairs zero form factor (each lies
+  in the other's tangent plane); reported so the user knows the surfaces touch.
+
+All tests are exact up to the welding tolerance; the cost is a sort of the
+faces by plane plus a sweep over each plane's faces (O(n log n) plus the
+candidate pairs whose bounding boxes overlap).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+from .scene import Scene
+
+#: Corners closer than this times the scene size are one vertex when comparing faces.
+WELD = 1e-6
+
+#: Normals within this angle (radians) are parallel when grouping faces by plane.
+PLANE_ANGLE = 1e-4
+
+#: Coplanar triangles overlap if their intersection exceeds this fraction of the smaller one.
+MIN_OVERLAP = 1e-4
+
+# A fixed direction no normal in a real scene is perpendicular to, to orient planes canonically.
+_CANONICAL = np.array([0.2113248654, 0.5773502692, 0.7886751346])
+
+
+@dataclass(frozen=True)
+class FaceReport:
+    """Duplicate, overlapping and face-to-face triangles of a scene.
+
+    Attributes
+    ----------
+    duplicates : (d, 2) int
+        Pairs (kept, duplicate): ``duplicate`` repeats ``kept`` with the same orientation.
+    overlaps : (o, 2) int
+        Coplanar pairs of the same orientation whose interiors overlap (duplicates excluded).
+    facing : (f, 2) int
+        Coplanar pairs of opposite orientation that overlap (touch face to face).
+    """
+
+    duplicates: np.ndarray
+    overlaps: np.ndarray
+    facing: np.ndarray
+
+    def summary(self, scene: Scene) -> dict:
+        """Counts, example pairs and the materials involved, for ``hfrad info``."""
+        def part(pairs: np.ndarray) -> dict:
+            faces = np.unique(pairs) if len(pairs) else np.zeros(0, np.int64)
+            mats = sorted({scene.material_names[m] for m in np.unique(scene.material[faces])})
+            return {"count": int(len(pairs)), "examples": pairs[:5].tolist(), "materials": mats}
+        return {"duplicates": part(self.duplicates), "overlaps": part(self.overlaps),
+                "facing": part(self.facing)}
+
+    def warnings(self, scene: Scene, *, merged: bool) -> list[str]:
+        """One line per kind of problem found (empty when the mesh is clean)."""
+        out = []
+        s = self.summary(scene)
+        if s["duplicates"]["count"]:
+            d = s["duplicates"]
+            what = (f"{d['count']} duplicate faces (same corners as another face) of material(s) "
+                    f"{', '.join(d['materials'])}, e.g. face pairs {d['examples'][:3]}")
+            out.append(f"merged {what}" if merged else
+                       f"kept {what} (--keep-duplicates): their light is counted twice")
+        if s["overlaps"]["count"]:
+            o = s["overlaps"]
+            out.append(f"{o['count']} pairs of coplanar faces overlap (material(s) {', '.join(o['materials'])}), "
+                       f"e.g. face pairs {o['examples'][:3]}; the overlap's light is counted twice")
+        if s["facing"]["count"]:
+            f = s["facing"]
+            out.append(f"{f['count']} pairs of faces touch face to face at zero distance (material(s) "
+                       f"{', '.join(f['materials'])}), e.g. face pairs {f['examples'][:3]}")
+        return out
+
+
+def _size(scene: Scene) -> float:
+    if not scene.n_patches:
+        return 1.0
+    lo, hi = scene.bounds
+    size = float(np.max(hi - lo))
+    return size if size > 0 else 1.0
+
+
+def weld(scene: Scene) -> np.ndarray:
+    """(v,) int: one id per distinct vertex position (rounded to ``WELD`` x scene size)."""
+    centre = 0.5 * (scene.bounds[0] + scene.bounds[1])
+    key = np.rint((scene.vertices - centre) / (WELD * _size(scene))).astype(np.int64)
+    _, ids = np.unique(key, axis=0, return_inverse=True)
+    return ids.reshape(-1)
+
+
+def find_face_problems(scene: Scene) -> FaceReport:
+    """Duplicate, coplanar-overlapping and face-to-face triangles (see module docstring).
+
+    Parameters
+    ----------
+    scene : Scene
+        Patches without zero-area ones (see :func:`hfrad.scene.patches.drop_degenerate`).
+
+    Returns
+    -------
+    FaceReport
+        Pairs of patch indices, each pair (i, j) with i < j.
+    """
+    n = scene.n_patches
+    empty = np.zeros((0, 2), np.int64)
+    if n < 2:
+        return FaceReport(empty, empty, empty)
+    normals = np.asarray(scene.normals)
+    corners = np.sort(weld(scene)[scene.faces], axis=1)
+    _, group = np.unique(corners, axis=0, return_inverse=True)
+    group = group.reshape(-1)
+    order = np.lexsort((np.arange(n), group))
+    g = group[order]
+    starts = np.r_[0, np.flatnonzero(g[1:] != g[:-1]) + 1]  # first position of each corner set
+    later = np.flatnonzero(g[1:] == g[:-1]) + 1  # positions repeating the corner set before them
+    first = order[starts[np.searchsorted(starts, later, side="right") - 1]]
+    other = order[later]
+    aligned = np.einsum("pd,pd->p", normals[first], normals[other]) > 0
+    duplicates = np.column_stack([first[aligned], other[aligned]]).astype(np.int64)
+    reversed_pairs = np.column_stack([first[~aligned], other[~aligned]]).astype(np.int64)
+
+    live = np.ones(n, bool)
+    live[duplicates[:, 1]] = False
+    pairs, area, sign = _coplanar_overlaps(scene, np.flatnonzero(live))
+    overlap_mask = area > MIN_OVERLAP * np.minimum(scene.areas[pairs[:, 0]], scene.areas[pairs[:, 1]]) \
+        if len(pairs) else np.zeros(0, bool)
+    pairs, sign = pairs[overlap_mask], sign[overlap_mask]
+    overlaps = pairs[sign > 0]
+    facing = pairs[sign < 0]
+    if len(reversed_pairs):  # reversed copies are caught by the sweep too; keep each pair once
+        facing = np.unique(np.vstack([np.sort(facing, axis=1), np.sort(reversed_pairs, axis=1)]), axis=0)
+    return FaceReport(_sorted_pairs(duplicates), _sorted_pairs(overlaps), _sorted_pairs(facing))
+
+
+def _sorted_pairs(pairs: np.ndarray) -> np.ndarray:
+    if not len(pairs):
+        return np.zeros((0, 2), np.int64)
+    return pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))].astype(np.int64)
+
+
+def _coplanar_overlaps(scene: Scene, faces: np.ndarray):
+    """Pairs of ``faces`` in one plane whose bounding boxes overlap, with overlap area and orientation sign."""
+    tri = np.asarray(scene.triangles)[faces]
+    nrm = np.asarray(scene.normals)[faces]
+    centre = 0.5 * (scene.bounds[0] + scene.bounds[1])
+    flip = np.where(nrm @ _CANONICAL < 0, -1.0, 1.0)
+    plane_n = nrm * flip[:, None]  # canonical orientation: both sides of a plane share it
+    offset = np.einsum("pd,pd->p", plane_n, tri.mean(axis=1) - centre)
+    size = _size(scene)
+    key = np.column_stack([np.rint(plane_n / PLANE_ANGLE), np.rint(offset / (WELD * size))]).astype(np.int64)
+    _, plane = np.unique(key, axis=0, return_inverse=True)
+    plane = plane.reshape(-1)
+    # 2D coordinates in each plane: one (u, v) basis per plane, from its first face's normal
+    # (per-face bases would differ by up to PLANE_ANGLE and fake overlaps along shared edges)
+    _, first = np.unique(plane, return_index=True)
+    rep = plane_n[first][plane]
+    helper = np.where(np.abs(rep[:, :1]) < 0.9, np.array([[1.0, 0, 0]]), np.array([[0, 1.0, 0]]))
+    u = np.cross(rep, helper)
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    v = np.cross(rep, u)
+    rel = tri - centre
+    uv = np.stack([np.einsum("pkd,pd->pk", rel, u), np.einsum("pkd,pd->pk", rel, v)], axis=2)  # (p, 3, 2)
+    lo, hi = uv.min(axis=1), uv.max(axis=1)
+    order = np.lexsort((lo[:, 0], plane))
+    i, j, area = _sweep(np.ascontiguousarray(uv[order]), plane[order], lo[order], hi[order], 1e-9 * size)
+    i, j = order[i], order[j]
+    sign = flip[i] * flip[j]
+    pairs = np.column_stack([faces[i], faces[j]])
+    pairs.sort(axis=1)
+    return pairs.astype(np.int64), area, sign
+
+
+@njit(cache=True)
+def _sweep(uv, plane, lo, hi, tol):
+    """Candidate pairs in one plane with overlapping boxes (sorted by plane, then lo u), and their overlap areas."""
+    n = uv.shape[0]
+    out_i, out_j, out_a = [], [], []
+    for a in range(n):
+        for b in range(a + 1, n):
+            if plane[b] != plane[a] or lo[b, 0] > hi[a, 0] - tol:
+                break
+            if lo[b, 1] > hi[a, 1] - tol or lo[a, 1] > hi[b, 1] - tol:
+                continue
+            area = _intersection_area(uv[a], uv[b])
+            if area > 0.0:
+                out_i.append(a)
+                out_j.append(b)
+                out_a.append(area)
+    ri = np.empty(len(out_i), np.int64)
+    rj = np.empty(len(out_i), np.int64)
+    ra = np.empty(len(out_i))
+    for k in range(len(out_i)):
+        ri[k], rj[k], ra[k] = out_i[k], out_j[k], out_a[k]
+    return ri, rj, ra
+
+
+@njit(cache=True)
+def _signed_area(p, m):
+    s = 0.0
+    for k in range(m):
+        k1 = (k + 1) % m
+        s += p[k, 0] * p[k1, 1] - p[k1, 0] * p[k, 1]
+    return 0.5 * s
+
+
+@njit(cache=True)
+def _intersection_area(t1, t2):
+    """Area of the intersection of two 2D triangles (Sutherland-Hodgman clip of t1 by t2)."""
+    poly = np.empty((9, 2))
+    nxt = np.empty((9, 2))
+    for k in range(3):
+        poly[k, 0], poly[k, 1] = t1[k, 0], t1[k, 1]
+    m = 3
+    clip = t2.copy()
+    if _signed_area(clip, 3) < 0:  # make the clipping triangle counter-clockwise
+        clip[1, 0], clip[2, 0] = t2[2, 0], t2[1, 0]
+        clip[1, 1], clip[2, 1] = t2[2, 1], t2[1, 1]
+    for e in range(3):
+        ax, ay = clip[e, 0], clip[e, 1]
+        bx, by = clip[(e + 1) % 3, 0], clip[(e + 1) % 3, 1]
+        k2 = 0
+        for k in range(m):
+            px, py = poly[k, 0], poly[k, 1]
+            qx, qy = poly[(k + 1) % m, 0], poly[(k + 1) % m, 1]
+            dp = (bx - ax) * (py - ay) - (by - ay) * (px - ax)
+            dq = (bx - ax) * (qy - ay) - (by - ay) * (qx - ax)
+            if dp >= 0.0:
+                nxt[k2, 0], nxt[k2, 1] = px, py
+                k2 += 1
+            if (dp >= 0.0) != (dq >= 0.0):
+                t = dp / (dp - dq)
+                nxt[k2, 0], nxt[k2, 1] = px + t * (qx - px), py + t * (qy - py)
+                k2 += 1
+        m = k2
+        if m < 3:
+            return 0.0
+        for k in range(m):
+            poly[k, 0], poly[k, 1] = nxt[k, 0], nxt[k, 1]
+    return abs(_signed_area(poly, m))
+
+
+def merge_duplicates(scene: Scene, *, keep_duplicates: bool = False) -> Scene:
+    """Drop exact duplicate faces (keeping the first copy) and note every problem in ``scene.warnings``.
+
+    Parameters
+    ----------
+    scene : Scene
+        Input faces, before subdivision into patches.
+    keep_duplicates : bool
+        Keep duplicate faces (only warn). Their light is then counted twice.
+
+    Returns
+    -------
+    Scene
+        Without the duplicates (same materials, groups and occluder mesh; ``parent``
+        still points into the occluder mesh), with one warning per kind of problem.
+    """
+    report = find_face_problems(scene)
+    notes = tuple(report.warnings(scene, merged=not keep_duplicates))
+    if not notes:
+        return scene
+    if keep_duplicates or not len(report.duplicates):
+        return scene.replace(warnings=scene.warnings + notes)
+    keep = np.ones(scene.n_patches, bool)
+    keep[report.duplicates[:, 1]] = False
+    return Scene(
+        vertices=scene.vertices, faces=scene.faces[keep], material=scene.material[keep],
+        materials=scene.materials, group=scene.group[keep], groups=scene.groups,
+        reflectance=scene.reflectance[keep], emission=scene.emission[keep], parent=scene.parent[keep],
+        occluder_vertices=scene.occluder_vertices, occluder_faces=scene.occluder_faces,
+        name=scene.name, warnings=scene.warnings + notes,
+    )

@@ -1,0 +1,137 @@
+"""The layer rule of docs/architecture.md, enforced on every import in the package.
+
+Every module of ``src/hfrad`` is parsed (not imported); every ``import`` and
+``from ... import`` statement counts, wherever it is (module level, inside a
+function, under ``if TYPE_CHECKING``), relative imports resolved. A module may
+import its own package and any package of a strictly lower layer; anything
+else (a higher layer, or a different package on the same layer) fails, naming
+the file, the line and the rule.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+SRC = Path(__file__).resolve().parents[1] / "src"
+PACKAGE = SRC / "hfrad"
+
+#: (layer, unit, module prefixes), lowest first. Keep in step with docs/architecture.md.
+LAYERS: list[tuple[int, str, tuple[str, ...]]] = [
+    (0, "base", ("hfrad._version", "hfrad.errors", "hfrad.progress", "hfrad.memory", "hfrad.atomic",
+                 "hfrad.validation", "hfrad.defaults")),
+    (1, "scene", ("hfrad.scene",)),
+    (2, "formfactors", ("hfrad.formfactors",)),
+    (3, "factorize", ("hfrad.factorize",)),
+    (4, "solve", ("hfrad.solve",)),
+    (5, "distributed", ("hfrad.distributed",)),
+    (6, "pipeline", ("hfrad.pipeline",)),
+    (6, "render", ("hfrad.render",)),
+    (7, "io", ("hfrad.io",)),
+    (8, "viewer", ("hfrad.viewer",)),
+    (8, "inverse", ("hfrad.inverse",)),
+    (9, "cli", ("hfrad.cli", "hfrad.__main__")),
+    (10, "api", ("hfrad",)),          # hfrad/__init__.py: the public facade, lazily importing everything
+]
+
+
+def unit_of(module: str) -> tuple[int, str] | None:
+    """(layer, unit) of a dotted module name: the longest matching prefix."""
+    best = None
+    for layer, unit, prefixes in LAYERS:
+        for p in prefixes:
+            if module == p or module.startswith(p + "."):
+                if best is None or len(p) > best[0]:
+                    best = (len(p), layer, unit)
+    return None if best is None else (best[1], best[2])
+
+
+def module_name(path: Path) -> str:
+    parts = list(path.relative_to(SRC).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts.pop()
+    return ".".join(parts)
+
+
+def imported_modules(path: Path, text: str | None = None) -> list[tuple[int, str]]:
+    """(line, absolute module) for every hfrad import in ``path``, relative ones resolved.
+
+    ``from pkg import name`` yields ``pkg.name`` when that is a module or
+    package of hfrad, else ``pkg``. ``text`` replaces the file's content (for
+    testing the checker itself).
+    """
+    name = module_name(path)
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    out = []
+    text = path.read_text() if text is None else text
+    for node in ast.walk(ast.parse(text, filename=str(path))):
+        if isinstance(node, ast.Import):
+            out += [(node.lineno, a.name) for a in node.names if a.name.split(".")[0] == "hfrad"]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base_parts = package.split(".")
+                if node.level > 1:
+                    base_parts = base_parts[:len(base_parts) - (node.level - 1)]
+                base = ".".join(base_parts + ([node.module] if node.module else []))
+            else:
+                base = node.module or ""
+            if base.split(".")[0] != "hfrad":
+                continue
+            for a in node.names:
+                sub = f"{base}.{a.name}"
+                out.append((node.lineno, sub if _is_module(sub) else base))
+    return out
+
+
+def _is_module(dotted: str) -> bool:
+    rel = Path(*dotted.split("."))
+    return (SRC / rel).with_suffix(".py").exists() or (SRC / rel / "__init__.py").exists()
+
+
+def all_modules() -> list[Path]:
+    return sorted(PACKAGE.rglob("*.py"))
+
+
+def test_every_module_has_a_layer():
+    missing = [module_name(p) for p in all_modules() if unit_of(module_name(p)) is None]
+    assert not missing, (f"modules without a layer: {missing}; add them to LAYERS here and to the "
+                         "table in docs/architecture.md")
+
+
+def violations() -> list[str]:
+    found = []
+    for path in all_modules():
+        src = module_name(path)
+        src_layer, src_unit = unit_of(src)
+        for line, target in imported_modules(path):
+            tgt = unit_of(target)
+            if tgt is None:
+                found.append(f"{path.relative_to(SRC)}:{line}: imports {target}, which has no layer")
+                continue
+            tgt_layer, tgt_unit = tgt
+            if tgt_unit == src_unit or tgt_layer < src_layer:
+                continue
+            why = "a higher layer" if tgt_layer > src_layer else "another package on the same layer"
+            found.append(f"{path.relative_to(SRC)}:{line}: {src} ({src_unit}, layer {src_layer}) imports "
+                         f"{target} ({tgt_unit}, layer {tgt_layer}): {why}")
+    return found
+
+
+def test_no_import_goes_up_the_layers():
+    found = violations()
+    assert not found, "imports against docs/architecture.md:\n" + "\n".join(found)
+
+
+@pytest.mark.parametrize("source, expected", [
+    ("from ..solve.woodbury import HFactorization\n", "hfrad.solve.woodbury"),
+    ("from .. import solve\n", "hfrad.solve"),
+    ("def f():\n    import hfrad.render.image\n", "hfrad.render.image"),
+    ("if TYPE_CHECKING:\n    from hfrad.cli import common\n", "hfrad.cli.common"),
+    ("from . import hf\n", "hfrad.factorize.hf"),
+])
+def test_the_checker_sees_relative_and_lazy_imports(source, expected):
+    # as if the text were hfrad/factorize/api.py
+    found = [t for _, t in imported_modules(PACKAGE / "factorize" / "api.py", text=source)]
+    assert found == [expected]
