@@ -260,6 +260,8 @@ class ViewerApp:
     # -- page ----------------------------------------------------------------------
     def _frame_camera(self) -> None:
         self.server.scene.set_up_direction("+y")
+        # black behind the scene, as in rendered pictures
+        self.server.scene.set_background_image(np.zeros((8, 8, 3), np.uint8), format="png")
         cam = Camera.auto(self.scene.bounds, aspect=4 / 3)
         self.server.initial_camera.position = cam.position
         self.server.initial_camera.look_at = cam.target
@@ -338,7 +340,7 @@ class ViewerApp:
                     with folder:
                         on = gui.add_checkbox("on", initial_value=e.on)
                         top = max(4 * e.intensity, DEFAULT_INTENSITY)
-                        step = 10.0 ** math.floor(math.log10(top / 1000))
+                        step = 10.0 ** math.floor(math.log10(top / 100))
                         intensity = gui.add_slider("intensity W/m2", min=0.0, max=top, step=step,
                                                    initial_value=e.intensity)
                         color = gui.add_rgb("colour", initial_value=tuple(int(round(255 * c)) for c in e.color))
