@@ -28,7 +28,7 @@ from .progress import ProgressCallback, report
 from .scene.scene import Scene
 from .scene.zorder import patch_order
 from .solve.woodbury import HFactorization
-from .validation import check_permutation, check_reflectance
+from .validation import check_factorize_options, check_permutation, check_reflectance
 StatusCallback = Callable[[dict], None] | None
 
 
@@ -48,16 +48,7 @@ def check_factorize_args(scene: Scene, eps: float, block_size: int, dtype, relat
         raise TypeError(f"scene must be a hfrad Scene (see hfrad.load_scene); got {type(scene).__name__}")
     if scene.n_patches == 0:
         raise SceneError(f"{scene.name}: the scene has no patches")
-    if relative and not (0.0 < eps < 1.0):
-        raise ValueError(f"eps must be in (0, 1) (a relative Frobenius error, e.g. 0.02); got {eps}")
-    if not relative and not (eps > 0.0 and math.isfinite(eps)):
-        raise ValueError(f"an absolute eps must be a positive number; got {eps}")
-    if not (1 <= block_size <= scene.n_patches):
-        raise ValueError(f"block size must be between 1 and the patch count {scene.n_patches}; got {block_size}")
-    dt = np.dtype(dtype)
-    if dt not in (np.float32, np.float64):
-        raise ValueError(f"dtype must be float32 or float64; got {dt}")
-    return dt
+    return check_factorize_options(scene.n_patches, eps, block_size, dtype, relative)
 
 
 def factorize(scene: Scene, *, eps: float = 0.02, relative: bool = True, block_size: int | None = None,

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
-__all__ = ["check_permutation", "check_reflectance"]
+__all__ = ["check_permutation", "check_reflectance", "check_factorize_options"]
 
 
 def check_permutation(order, n: int, name: str = "order") -> np.ndarray:
@@ -43,3 +45,24 @@ def check_reflectance(reflectance, n: int, name: str = "reflectance") -> np.ndar
         raise ValueError(f"{name} must be finite and in [0, 1) (a reflectance of 1 or more creates energy); "
                          f"patch {i} has {rho[i].tolist()}")
     return rho
+
+
+def check_factorize_options(n: int, eps: float, block_size: int, dtype, relative: bool = True) -> np.dtype:
+    """The precompute's options for an n-patch scene (every backend's); returns the factor dtype.
+
+    Raises
+    ------
+    ValueError
+        eps outside (0, 1) (relative) or not positive (absolute), a block size
+        outside [1, n], or a dtype other than float32/float64.
+    """
+    if relative and not (0.0 < eps < 1.0):
+        raise ValueError(f"eps must be in (0, 1) (a relative Frobenius error, e.g. 0.02); got {eps}")
+    if not relative and not (eps > 0.0 and math.isfinite(eps)):
+        raise ValueError(f"an absolute eps must be a positive number; got {eps}")
+    if not (1 <= block_size <= n):
+        raise ValueError(f"block size must be between 1 and the patch count {n}; got {block_size}")
+    dt = np.dtype(dtype)
+    if dt not in (np.float32, np.float64):
+        raise ValueError(f"dtype must be float32 or float64; got {dt}")
+    return dt
