@@ -1,6 +1,6 @@
 """Benchmark: inverse lighting design (``hfrad.design``) through HF vs through a dense LU.
 
-The office of ``examples/office`` (``--patches`` patches), two specs:
+The office of ``examples/office`` (``--patches`` patches), three specs:
 
 * ``office``: ``examples/office/spec.json``, the six luminaires as six emitters;
 * ``every-patch``: the same targets, but every patch of the ceiling (luminaires
@@ -11,8 +11,8 @@ The office of ``examples/office`` (``--patches`` patches), two specs:
 For each, the same :func:`hfrad.design` call runs twice, once on the HF factorization
 (``fac.solve``, Woodbury, O(nk) per right-hand side) and once on an exact dense solver
 (``scipy.linalg.lu_factor`` of ``I - R_c F`` for the three channels, then ``lu_solve``
-per evaluation). The table gives the
-radiosity solves (evaluations) the optimiser used, the design's wall time, and the
+per evaluation). The table gives the radiosity solves (evaluations) the optimiser used,
+the design's wall time, and the
 one-off costs (form factors, HF / LU), plus what refactoring the dense matrix at every
 evaluation would cost (3 LU factorizations per evaluation, measured once and multiplied).
 Accuracy: the HF design's least power against the exact (dense) design's, and the HF
