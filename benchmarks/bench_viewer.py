@@ -110,7 +110,7 @@ def bench_file(path: Path, direct: bool, repeat: int) -> dict:
             if r >= 2:
                 received.append(arrival - t)
             time.sleep(0.05)
-        stats = stats[2:]
+        slider = list(stats[2:])                        # the listener keeps appending to `stats`
         extra = {}
         if not direct:
             # a material made an emitter: one batched solve for all emitters, then the same path
@@ -134,10 +134,10 @@ def bench_file(path: Path, direct: bool, repeat: int) -> dict:
         listener.close()
         app.close()
     row = {"file": str(path), "n": fac.n_patches, "k": fac.rank, "mode": "direct" if direct else "superposition",
-           "emitters": len(app.state.emitters), "mesh_mb": stats[-1].bytes / 1e6, "startup_s": t_start,
-           "repeats": len(stats)}
-    for key, values in (("solve", [s.solve for s in stats]), ("colours", [s.colors for s in stats]),
-                        ("sent", [s.sent for s in stats]), ("received", received)):
+           "emitters": len(app.state.emitters), "mesh_mb": slider[-1].bytes / 1e6, "startup_s": t_start,
+           "repeats": len(slider)}
+    for key, values in (("solve", [s.solve for s in slider]), ("colours", [s.colors for s in slider]),
+                        ("sent", [s.sent for s in slider]), ("received", received)):
         ok = [v for v in values if v == v]           # NaN: the client saw no new mesh within 30 s
         row[f"{key}_ms"] = 1e3 * statistics.median(ok) if ok else float("nan")
         row[f"{key}_max_ms"] = 1e3 * max(ok) if ok else float("nan")
