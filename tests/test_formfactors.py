@@ -201,3 +201,15 @@ def test_scene_far_from_origin_gives_the_same_form_factors():
     err = np.abs(F - G).max()
     assert err < 1e-4, f"max |F - F_translated| = {err:.2e}"
     assert np.abs(F.sum(axis=1) - G.sum(axis=1)).max() < 1e-4
+
+
+def test_kernel_settings_are_recorded_in_the_hfr(tmp_path):
+    import hfrad
+    from hfrad.formfactors.kernel import KERNEL_VERSION, TOLERANCE
+    from hfrad.scene.builtin import furnace
+
+    fac = hfrad.factorize(subdivide(furnace(), max_edge=0.5), eps=0.05)
+    hfrad.save(fac, tmp_path / "f.hfr")
+    recorded = hfrad.load(tmp_path / "f.hfr").params["form_factors"]
+    assert recorded["tolerance"] == TOLERANCE and recorded["kernel_version"] == KERNEL_VERSION
+    assert recorded["refine_samples"] == 16

@@ -64,6 +64,11 @@ RAY_BATCH = 1 << 21
 _OFFSET = 1e-5  # end point offset, times the scene size
 
 
+def settings() -> dict:
+    """The second-round visibility parameters, as recorded with results (.hfr files)."""
+    return {"refine_samples": REFINE_SAMPLES, "refine_above": REFINE_ABOVE, "refine_near": REFINE_NEAR}
+
+
 def check_samples(samples: int) -> int:
     """Validate ``samples`` (a perfect square >= 1); returns its square root."""
     m = math.isqrt(int(samples)) if int(samples) >= 1 else 0
