@@ -132,7 +132,7 @@ def factorize(scene: Scene, *, eps: float = 0.02, relative: bool = True, block_s
                                           key, progress, status, t0)
     lowrank.info.update({"time_formfactors": time_ff, "time_precompute": time.perf_counter() - t0})
     fac = HFactorization(perm, lowrank.Q, lowrank.V, rho_max, scene.reflectance, lowrank,
-                         params=params, scene=scene)
+                         params={**params, "backend": "local"}, scene=scene)  # "dask": hfrad.distributed
     if checkpoint is not None and Path(checkpoint).exists():
         Path(checkpoint).unlink()
     return fac
