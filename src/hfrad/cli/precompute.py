@@ -84,7 +84,8 @@ def _stage_times(fac) -> dict:
 
 def _on_cluster(scene, scheduler: Optional[str], workers: Optional[int], quiet: bool, **options):
     """The precompute as Dask tasks; a scheduler that cannot be reached exits 2 naming its address."""
-    from ..distributed import SchedulerUnreachableError, connect, factorize_distributed, rank_guess, worker_bytes
+    from ..distributed import (SchedulerUnreachableError, WorkerLostError, connect, factorize_distributed,
+                               rank_guess, worker_bytes)
     from ..memory import human
 
     if scheduler is not None and workers is not None:
@@ -102,7 +103,7 @@ def _on_cluster(scene, scheduler: Optional[str], workers: Optional[int], quiet: 
             with common.progress_bar(f"precompute {n:,} patches on Dask", quiet) as bar:
                 status = None if bar is None else (lambda info: bar.note(f"rank {info['rank']:,}"))
                 return factorize_distributed(scene, scheduler=cluster, progress=bar, status=status, **options)
-    except SchedulerUnreachableError as exc:
+    except (SchedulerUnreachableError, WorkerLostError) as exc:
         common.fail(str(exc))
 
 
