@@ -32,6 +32,13 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+def recv_mesh(ws, timeout: float = 10.0) -> None:
+    """Read messages until one that carries a mesh (viser compresses it; other messages are < 1 KB)."""
+    end = time.monotonic() + timeout
+    while len(ws.recv(timeout=max(0.1, end - time.monotonic()))) <= 2048:
+        pass
+
+
 def test_superposition_equals_direct_solves(fac):
     """Radiosity is linear in the exitance: sums of batched unit solves = one solve of the summed exitance."""
     lighting = Lighting(fac)
@@ -142,11 +149,15 @@ def test_server_survives_bad_clients(fac, tmp_path):
         app.set_emitter("light", intensity=30.0)
         assert done.wait(10) and app.wait_idle(10)
         assert app.last.sent < 5.0
-        # a new client still gets the scene
-        ws = connect(ws_url, subprotocols=[proto], open_timeout=10)
-        got = b"".join(m if isinstance(m, bytes) else m.encode() for m in [ws.recv(timeout=10)])
-        ws.close()
-        assert got
+        # several tabs at once: two new clients both get the scene, then both get the next change
+        tabs = [connect(ws_url, subprotocols=[proto], open_timeout=10, max_size=None) for _ in range(2)]
+        for ws in tabs:
+            recv_mesh(ws)                                    # the initial scene, mesh included
+        app.set_emitter("light", color=(0.2, 0.4, 1.0))    # (auto exposure: an intensity alone changes nothing)
+        assert app.wait_idle(10)
+        for ws in tabs:
+            recv_mesh(ws)                                    # the new colours
+            ws.close()
         # a bad emission upload is refused with a message, the state unchanged
         with pytest.raises(ValueError, match="emitters\\[0\\].exitance"):
             app.load_emission('{"format": "hfrad-emission", "version": 1, '
@@ -184,10 +195,21 @@ def test_emission_round_trip_and_png(fac, tmp_path):
         data = np.load(out)
         assert np.array_equal(data["E"], E_page)
         assert np.abs(data["B"] - B_page).max() <= 1e-5 * np.abs(B_page).max()
-        png = app.save_png(Camera.auto(fac.scene.bounds), tmp_path / "v.png", height=48)
         from PIL import Image
+        png = app.save_png(Camera.auto(fac.scene.bounds), tmp_path / "v.png", height=48)
         img = np.asarray(Image.open(png))
         assert img.shape == (48, 64, 3) and img.max() > 0
+        # false colour in lux: the scale tops the brightest non-emitting vertex, as in pictures
+        app.state.falsecolor, app.state.unit = True, "lux"
+        app.submit()
+        assert app.wait_idle(10)
+        unit, top = app._colorbar_key
+        lux = 683.0 * app.colors.radiosity(B_page) @ [0.2126, 0.7152, 0.0722]
+        lit = E_page.max(axis=1)[app.colors._vertex_patch] <= 0
+        assert unit == "lux" and app._colorbar.visible
+        assert lux[lit].max() <= top <= 1.4 * lux[lit].max()     # rounded up to a tick (step <= 2/5 of max)
+        png = app.save_png(Camera.auto(fac.scene.bounds), tmp_path / "f.png", height=96)
+        assert np.asarray(Image.open(png)).shape == (96, 128, 3)
     finally:
         app.close()
 

@@ -34,6 +34,8 @@ def register(app: typer.Typer) -> None:
             if factorization.suffix.lower() != ".hfr":
                 raise ValueError(f"{factorization}: not a factorization file (.hfr); make one with "
                                  "`hfrad precompute SCENE -o FILE.hfr`")
+            if not factorization.is_file():
+                raise FileNotFoundError(f"{factorization}: no such file")
             if not save_dir.is_dir():
                 raise ValueError(f"--save-dir {save_dir}: no such folder")
             fac = common.load_factorization(factorization)
