@@ -160,13 +160,13 @@ def factorize(scene: Scene, *, eps: float = 0.02, relative: bool = True, block_s
     lowrank.info.update({"time_formfactors": time_ff, "time_precompute": time.perf_counter() - t0})
     if split is None:
         fac = HFactorization(perm, lowrank.Q, lowrank.V, rho_max, scene.reflectance, lowrank,
-                             params=params, scene=scene)
+                             params={**params, "backend": "local"}, scene=scene)
     else:
         t1 = time.perf_counter()
         N = split.matrix()
         lowrank.info.update({"near_radius": split.radius, "near_nnz": int(N.nnz)})
         fac = NearFieldFactorization(perm, lowrank.Q, lowrank.V, N, rho_max, scene.reflectance, lowrank,
-                                     params=params, scene=scene)
+                                     params={**params, "backend": "local"}, scene=scene)
         lowrank.info["time_nearfield_setup"] = time.perf_counter() - t1
     lowrank.info["solver"] = fac.solver
     if checkpoint is not None and Path(checkpoint).exists():
