@@ -47,6 +47,8 @@ def save_checkpoint(stream: HFStream, path: str | os.PathLike, key: str = "") ->
             g.create_dataset("s", data=node.s)
             g.create_dataset("V", data=node.V)
         f.attrs["nodes"] = len(stream.stack)
+        for name, arr in stream.extra.items():
+            f.create_dataset(f"extra/{name}", data=arr)
 
 
 def load_checkpoint(path: str | os.PathLike, key: str = "") -> HFStream:
@@ -70,4 +72,6 @@ def load_checkpoint(path: str | os.PathLike, key: str = "") -> HFStream:
             stream.stack.append(_Node(int(g.attrs["level"]), g["U"][()], g["s"][()], g["V"][()],
                                       float(g.attrs["norm2"]), float(g.attrs["discarded2"]),
                                       float(g.attrs["slack2"])))
+        if "extra" in f:
+            stream.extra = {name: ds[()] for name, ds in f["extra"].items()}
     return stream

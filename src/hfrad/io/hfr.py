@@ -8,7 +8,10 @@ Layout (format version 1)::
                        parameters (JSON), timings (JSON)
     /factors/perm      (n,) int64, internal order
     /factors/Q, V      (n, k) float32/64, internal order
-    /factors/Y         (3, n, k), eq. 4 per channel
+    /factors/Y         (3, n, k), eq. 4 per channel (plain solver only)
+    /factors/near_data, near_indices, near_indptr
+                       the near field N (CSR, internal order) instead of Y when
+                       the near-field split was used (attr solver says which)
     /factors/rho_max   (n,) float64, user order
     /patches/...       vertices, faces, material, reflectance, emission,
                        areas, normals, centroids, group, triangle_patch
@@ -27,11 +30,13 @@ from pathlib import Path
 
 import h5py
 import numpy as np
+import scipy.sparse as sp
 
 from .._version import __version__
 from ..atomic import atomic_path
 from ..errors import FileFormatError
 from ..factorize.lowrank import LowRank
+from ..solve.nearfield import NearFieldFactorization
 from ..solve.woodbury import HFactorization
 
 FORMAT = "hfrad-factorization"
@@ -105,7 +110,14 @@ def save_hfr(path, factorization: HFactorization, *, scene=None, timings: dict |
             g.create_dataset("perm", data=fac.perm)
             g.create_dataset("Q", data=fac.Q)
             g.create_dataset("V", data=fac.V)
-            g.create_dataset("Y", data=fac.Y)
+            a["solver"] = getattr(fac, "solver", "woodbury")
+            N = getattr(fac, "N", None)
+            if N is None:
+                g.create_dataset("Y", data=fac.Y)
+            else:  # near-field split: sparse N (CSR, internal order) instead of the Y_c
+                g.create_dataset("near_data", data=N.data)
+                g.create_dataset("near_indices", data=N.indices)
+                g.create_dataset("near_indptr", data=N.indptr)
             g.create_dataset("rho_max", data=fac.rho_max)
             g.create_dataset("reflectance", data=fac.reflectance)
             if scene is not None:
@@ -145,7 +157,8 @@ def _metadata(f: h5py.File) -> dict:
             "sigma_max": np.asarray(a["sigma_max"], np.float64),
             "error_bound": np.asarray(a["error_bound"], np.float64),
             "parameters": json.loads(a["parameters"]), "timings": json.loads(a["timings"]),
-            "lowrank_info": json.loads(a["lowrank_info"]), "has_patches": "patches" in f}
+            "lowrank_info": json.loads(a["lowrank_info"]), "has_patches": "patches" in f,
+            "solver": str(a.get("solver", "woodbury"))}
 
 
 def read_hfr_metadata(path) -> dict:
@@ -189,7 +202,10 @@ def load_hfr(path) -> HFactorization:
         try:
             meta = _metadata(f)
             g = f["factors"]
-            perm, Q, V, Y = g["perm"][()], g["Q"][()], g["V"][()], g["Y"][()]
+            perm, Q, V = g["perm"][()], g["Q"][()], g["V"][()]
+            Y = g["Y"][()] if "Y" in g else None
+            near = tuple(g[k][()] for k in ("near_data", "near_indices", "near_indptr")) \
+                if "near_data" in g else None
             rho_max, rho = g["rho_max"][()], g["reflectance"][()]
             scene = _read_scene(f["patches"]) if "patches" in f else None
         except FileFormatError:
@@ -197,11 +213,18 @@ def load_hfr(path) -> HFactorization:
         except Exception as exc:  # h5py raises KeyError/OSError/ValueError on damaged data
             raise FileFormatError(f"{path}: truncated or corrupted .hfr file: {exc}") from exc
     n, k = meta["n_patches"], meta["rank"]
-    if Q.shape != (n, k) or V.shape != (n, k) or Y.shape != (3, n, k) or perm.shape != (n,):
-        raise FileFormatError(f"{path}: inconsistent array shapes (Q {Q.shape}, V {V.shape}, Y {Y.shape})")
+    if Q.shape != (n, k) or V.shape != (n, k) or perm.shape != (n,) or (near is None) == (Y is None) \
+            or (Y is not None and Y.shape != (3, n, k)):
+        raise FileFormatError(f"{path}: inconsistent arrays (Q {Q.shape}, V {V.shape}, "
+                              f"Y {None if Y is None else Y.shape}, near field {near is not None})")
     lr = LowRank(Q=Q, V=V, achieved_error=meta["achieved_error"], norm=meta["norm"], eps=meta["eps"],
                  relative=meta["relative"], method=meta["method"], info=meta["lowrank_info"])
-    fac = HFactorization(perm, Q, V, rho_max, rho, lr, Y=Y, sigma_max=meta["sigma_max"],
-                         params=meta["parameters"], scene=scene)
+    if near is None:
+        fac = HFactorization(perm, Q, V, rho_max, rho, lr, Y=Y, sigma_max=meta["sigma_max"],
+                             params=meta["parameters"], scene=scene)
+    else:
+        N = sp.csr_matrix(near, shape=(n, n))
+        fac = NearFieldFactorization(perm, Q, V, N, rho_max, rho, lr, sigma_max=meta["sigma_max"],
+                                     params=meta["parameters"], scene=scene)
     fac.timings = meta["timings"]
     return fac

@@ -94,9 +94,12 @@ class HFactorization:
 
     Notes
     -----
+    ``solver`` names the method ("woodbury"; the near-field split's subclass says its own).
     Memory O(nk) (Q, V and three Y_c in the factor dtype). Each right-hand side
     costs O(nk). Aguerre & Fernández 2016, eq. 2-5.
     """
+
+    solver = "woodbury"
 
     def __init__(self, perm, Q, V, rho_max, reflectance, lowrank: LowRank, *, Y=None,
                  sigma_max=None, params: dict | None = None, scene=None):
@@ -235,6 +238,17 @@ class HFactorization:
         out = B[self.inv_perm]
         return out if batched else out[:, :, 0]
 
+    def _checked_reflectance(self, reflectance) -> np.ndarray:
+        """(n, 3) float64 reflectance, validated and <= rho_max (ValueError naming the patch)."""
+        rho = check_reflectance(reflectance, self.n_patches)
+        over = rho.max(axis=1) > self.rho_max * (1 + 1e-12)
+        if over.any():
+            i = int(np.flatnonzero(over)[0])
+            raise ValueError(f"patch {i} reflectance {rho[i].tolist()} exceeds rho_max "
+                             f"{self.rho_max[i]:.6g} of this factorization; refactorize with the "
+                             "new reflectance (factorize again)")
+        return rho
+
     def with_reflectance(self, reflectance) -> "HFactorization":
         """The same factorization with new reflectances, without refactoring.
 
@@ -248,13 +262,7 @@ class HFactorization:
             exceeds the rho_max the factorization was built for (a new
             factorization is needed then).
         """
-        rho = check_reflectance(reflectance, self.n_patches)
-        over = rho.max(axis=1) > self.rho_max * (1 + 1e-12)
-        if over.any():
-            i = int(np.flatnonzero(over)[0])
-            raise ValueError(f"patch {i} reflectance {rho[i].tolist()} exceeds rho_max "
-                             f"{self.rho_max[i]:.6g} of this factorization; refactorize with the "
-                             "new reflectance (factorize again)")
+        rho = self._checked_reflectance(reflectance)
         return HFactorization(self.perm, self.Q, self.V, self.rho_max, rho, self.lowrank,
                               params=self.params, scene=self.scene)
 
