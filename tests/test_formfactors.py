@@ -129,9 +129,9 @@ def cornell_F():
 def test_cornell_rows_sum_to_one(cornell_F):
     scene, F = cornell_F
     err = np.abs(F.sum(axis=1) - 1)
-    assert err.mean() < 0.01
-    # the worst rows are floor slivers beside the blocks, limited by 4-ray visibility
-    assert err.max() < 0.045
+    # observed: mean 8.5e-4, max 8.4e-3 (visibility of floor patches between the blocks)
+    assert err.mean() < 2e-3, f"mean |row sum - 1| = {err.mean():.2e}"
+    assert err.max() < 0.015, f"max |row sum - 1| = {err.max():.2e} (patch {err.argmax()})"
 
 
 def test_cornell_reciprocity_and_sign(cornell_F):
@@ -141,6 +141,34 @@ def test_cornell_reciprocity_and_sign(cornell_F):
     AF = scene.areas[:, None] * F
     np.testing.assert_allclose(AF, AF.T, rtol=1e-13, atol=1e-300)
     assert (np.diag(F) == 0).all()
+
+
+ASPECTS = [(1, 1, 1), (1, 0.1, 1), (1, 1, 0.05), (0.1, 1, 1), (4, 0.2, 0.2), (0.05, 0.5, 0.05)]
+
+
+@pytest.mark.parametrize("edge,w1,w2", ASPECTS, ids=[f"C-14 {e}x{a}x{b}" for e, a, b in ASPECTS])
+def test_adjacent_plates_at_several_aspect_ratios(edge, w1, w2):
+    # one quad each (two triangles), sharing an edge: all pairs on the adaptive path
+    scene = perpendicular_plates(edge, w1, w2)
+    exact = analytic.perpendicular_rectangles(edge, w1, w2)
+    e12, e21 = _both_directions(scene, unoccluded(scene), exact)
+    assert max(abs(e12), abs(e21)) < 1e-3, f"aspect {edge}:{w1}:{w2}: F12 error {e12:+.2e}, F21 {e21:+.2e}"
+
+
+def test_differential_element_to_rectangle_both_sides():
+    # catalogue B-3 (dA below a corner of a rectangle) integrated over a small plate:
+    # the plate-to-rectangle factor tends to B-3 as the plate shrinks, seen from both sides
+    a, b, c = 1.0, 2.0, 0.5
+    A, B = a / c, b / c
+    exact = (A / np.sqrt(1 + A * A) * np.arctan(B / np.sqrt(1 + A * A))
+             + B / np.sqrt(1 + B * B) * np.arctan(A / np.sqrt(1 + B * B))) / (2 * np.pi)
+    small = 1e-3
+    scene = parallel_unequal((0, small, 0, small), (0, a, 0, b), c)
+    F = unoccluded(scene)
+    f12 = plate_view_factor(scene, F)
+    assert f12 == pytest.approx(exact, rel=5e-3)  # 5e-3: the plate is not a point (size 2e-3 c)
+    e12, e21 = _both_directions(scene, F, f12)
+    assert abs(e21) < 1e-12  # reciprocity, exact
 
 
 def test_adjacent_patches_are_finite_and_positive():
@@ -173,3 +201,15 @@ def test_scene_far_from_origin_gives_the_same_form_factors():
     err = np.abs(F - G).max()
     assert err < 1e-4, f"max |F - F_translated| = {err:.2e}"
     assert np.abs(F.sum(axis=1) - G.sum(axis=1)).max() < 1e-4
+
+
+def test_kernel_settings_are_recorded_in_the_hfr(tmp_path):
+    import hfrad
+    from hfrad.formfactors.kernel import KERNEL_VERSION, TOLERANCE
+    from hfrad.scene.builtin import furnace
+
+    fac = hfrad.factorize(subdivide(furnace(), max_edge=0.5), eps=0.05)
+    hfrad.save(fac, tmp_path / "f.hfr")
+    recorded = hfrad.load(tmp_path / "f.hfr").params["form_factors"]
+    assert recorded["tolerance"] == TOLERANCE and recorded["kernel_version"] == KERNEL_VERSION
+    assert recorded["refine_samples"] == 16

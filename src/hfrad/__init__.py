@@ -29,6 +29,7 @@ _EXPORTS = {
     "subdivide": "hfrad.scene.patches",
     "factorize": "hfrad.pipeline",
     "factorize_matrix": "hfrad.pipeline",
+    "factorize_distributed": "hfrad.distributed",
     "HFactorization": "hfrad.solve.woodbury",
     "form_factor_matrix": "hfrad.formfactors.blocks",
     "iter_column_blocks": "hfrad.formfactors.blocks",

@@ -127,6 +127,8 @@ def factorize(scene: Scene, *, eps: float = 0.02, relative: bool = True, block_s
         block_size = min(DEFAULT_BLOCK_SIZE, max(scene.n_patches, 1))
     dt = check_factorize_args(scene, eps, block_size, dtype, relative)
     from .formfactors.blocks import iter_column_blocks
+    from .formfactors.kernel import settings as kernel_settings
+    from .formfactors.visibility import settings as visibility_settings
 
     n = scene.n_patches
     perm = patch_order(scene.centroids, order)
@@ -136,7 +138,9 @@ def factorize(scene: Scene, *, eps: float = 0.02, relative: bool = True, block_s
         one_ray_tol = 0.25 * eps if relative else 0.0
     params = {"eps": eps, "relative": relative, "block_size": block_size, "dtype": dt.name,
               "samples": samples, "order": order, "leaf_share": leaf_share, "one_ray_tol": one_ray_tol,
-              "near_field": near_entries(near_field, n)}
+              "near_field": near_entries(near_field, n),
+              # kernel version and tolerance: recorded in the .hfr, part of the checkpoint key
+              "form_factors": {**kernel_settings(), **visibility_settings()}}
     key = _scene_key(scene, params)
     stream = _open_stream(checkpoint, key, n, n_blocks, eps, relative, dt, leaf_share)
     t0 = time.perf_counter()
@@ -158,13 +162,13 @@ def factorize(scene: Scene, *, eps: float = 0.02, relative: bool = True, block_s
     lowrank.info.update({"time_formfactors": time_ff, "time_precompute": time.perf_counter() - t0})
     if split is None:
         fac = HFactorization(perm, lowrank.Q, lowrank.V, rho_max, scene.reflectance, lowrank,
-                             params=params, scene=scene)
+                             params={**params, "backend": "local"}, scene=scene)
     else:
         t1 = time.perf_counter()
         N = split.matrix()
         lowrank.info.update({"near_radius": split.radius, "near_nnz": int(N.nnz)})
         fac = NearFieldFactorization(perm, lowrank.Q, lowrank.V, N, rho_max, scene.reflectance, lowrank,
-                                     params=params, scene=scene)
+                                     params={**params, "backend": "local"}, scene=scene)
         lowrank.info["time_nearfield_setup"] = time.perf_counter() - t1
     lowrank.info["solver"] = fac.solver
     if checkpoint is not None and Path(checkpoint).exists():

@@ -12,8 +12,8 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 console = Console(stderr=True, soft_wrap=True)
 
 # Shared option declarations so every command spells them the same way.
-MaxEdgeOption = typer.Option(None, "--max-edge", help="Split faces into patches no longer than this (metres).")
-PatchesOption = typer.Option(None, "--patches", help="Split faces to roughly this many patches.")
+MaxEdgeOption = typer.Option(None, "--max-edge", help="Patches no longer than this (metres): long faces are split, faces under half of it grouped into clusters.")
+PatchesOption = typer.Option(None, "--patches", help="Roughly this many patches: faces are split, or grouped into clusters of triangles when fewer patches than faces are asked for.")
 UnitScaleOption = typer.Option(1.0, "--unit-scale", help="Multiply coordinates by this to get metres.")
 EmitOption = typer.Option(None, "--emit", help="Make a material or group emit: NAME=R,G,B (W/m^2). Repeatable.")
 AreaLightOption = typer.Option(None, "--area-light", help="Add a rectangular light under the ceiling: R,G,B (W/m^2).")

@@ -67,6 +67,10 @@ def register(app: typer.Typer) -> None:
                                      f" for {s.n_patches:,} patches (rank guessed; refused above 80% of the "
                                      "available memory)", highlight=False)
             if scheduler is not None or workers is not None:
+                if near_field or processes is not None:
+                    raise ValueError("--near-field and --processes are for the in-process path; with --scheduler "
+                                     "or --workers the Dask workers compute the blocks and HF has no near-field "
+                                     "split yet")
                 t_load = time.perf_counter() - t0
                 fac = _on_cluster(s, scheduler, workers, quiet, eps=eps, block_size=block, dtype=dtype,
                                   samples=samples, order=order)
@@ -92,7 +96,8 @@ def _stage_times(fac) -> dict:
 
 def _on_cluster(scene, scheduler: Optional[str], workers: Optional[int], quiet: bool, **options):
     """The precompute as Dask tasks; a scheduler that cannot be reached exits 2 naming its address."""
-    from ..distributed import SchedulerUnreachableError, connect, factorize_distributed, rank_guess, worker_bytes
+    from ..distributed import (SchedulerUnreachableError, WorkerLostError, connect, factorize_distributed,
+                               rank_guess, worker_bytes)
     from ..memory import human
 
     if scheduler is not None and workers is not None:
@@ -110,7 +115,7 @@ def _on_cluster(scene, scheduler: Optional[str], workers: Optional[int], quiet: 
             with common.progress_bar(f"precompute {n:,} patches on Dask", quiet) as bar:
                 status = None if bar is None else (lambda info: bar.note(f"rank {info['rank']:,}"))
                 return factorize_distributed(scene, scheduler=cluster, progress=bar, status=status, **options)
-    except SchedulerUnreachableError as exc:
+    except (SchedulerUnreachableError, WorkerLostError) as exc:
         common.fail(str(exc))
 
 

@@ -66,7 +66,7 @@ import numpy as np
 from numba import njit, prange
 
 #: Bumped whenever the numbers produced by this module change (cache keys use it).
-KERNEL_VERSION = 3
+KERNEL_VERSION = 4  # 4: visibility's second round of rays (visibility.py)
 
 #: Triangle pairs closer than NEAR * (D_t + D_u) (centroid distance) leave the centroid rule.
 NEAR = 3.0
@@ -86,6 +86,12 @@ FLOOR = 1e-2
 
 
 _INV_2PI = 1.0 / (2.0 * math.pi)
+
+
+def settings(*, near: float = NEAR, adaptive: float = ADAPTIVE, tolerance: float = TOLERANCE) -> dict:
+    """The kernel's version and parameters, as recorded with results (.hfr files, cache keys)."""
+    return {"kernel_version": KERNEL_VERSION, "near": float(near), "adaptive": float(adaptive),
+            "tolerance": float(tolerance)}
 
 
 def split_centroids(m: int) -> np.ndarray:
