@@ -384,14 +384,14 @@ class ViewerApp:
         client = event.client
         camera, aspect = self._client_camera(client)
         path = self.save_png(camera, self.save_dir / f"hfrad-view-{self._stamp()}.png", aspect=aspect)
-        client.send_file_download(path.name, path.read_bytes())
+        client.send_file_download(path.name, path.read_bytes(), save_immediately=True)
         self._notify(client, "Saved picture", str(path.resolve()))
 
     def _save_emission(self, event) -> None:
         with self._lock:
             settings = [e.setting() for e in self.state.emitters]
         path = write_emission(self.save_dir / f"hfrad-emission-{self._stamp()}.json", settings)
-        event.client.send_file_download(path.name, path.read_bytes())
+        event.client.send_file_download(path.name, path.read_bytes(), save_immediately=True)
         self._notify(event.client, "Saved emission", f"{path.resolve()} (use with --emission-file)")
 
     def _load_upload(self, event) -> None:
