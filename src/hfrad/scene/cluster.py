@@ -225,13 +225,7 @@ def _merge_small(label, n_clusters, key, welded, vstart, vtris, nrm, area, cos_t
             c_count[best] += c_count[c]
             for k in range(3):
                 c_vec[best, k] += c_vec[c, k]
-    for t in range(t_count):
-        o = label[t]
-        if o < 0:
-            continue
-        while parent[o] != o:
-            o = parent[o]
-        label[t] = o
+    _to_roots(label, parent)
 
 
 @njit(cache=True)
@@ -275,6 +269,13 @@ def _merge_nearby(label, c_area, c_vec, c_key, c_count, cand, a_small, a_max, co
             c_vec[o, 0], c_vec[o, 1], c_vec[o, 2] = sx, sy, sz
             merged += 1
             break
+    _to_roots(label, parent)
+    return merged
+
+
+@njit(cache=True)
+def _to_roots(label, parent):
+    """Relabel every assigned triangle with the cluster its cluster was merged into."""
     for t in range(label.shape[0]):
         o = label[t]
         if o < 0:
@@ -282,7 +283,6 @@ def _merge_nearby(label, c_area, c_vec, c_key, c_count, cand, a_small, a_max, co
         while parent[o] != o:
             o = parent[o]
         label[t] = o
-    return merged
 
 
 def _relabel(label: np.ndarray) -> int:
