@@ -76,6 +76,8 @@ def test_in_process_cluster_matches_local(cornell):
     m = -(-scene.n_patches // 64)
     assert seen[-1] == (m, m)
     assert dist.params["backend"] == "dask" and dist.params["workers"] == 2
+    assert dist.params["form_factors"] == local.params["form_factors"]
+    assert local.params["backend"] == "local"
     info = dist.lowrank.info
     assert info["n_blocks"] == m and info["tasks"] == 2 * m - 1 == len(records)
     assert info["time_formfactors"] > 0 and info["time_precompute"] > 0

@@ -225,7 +225,12 @@ def _run(cluster: Cluster, scene, options: dict, task_threads, progress, status,
                               tracker.executions))
     if records_out is not None:
         records_out.extend(records)
-    params = {**options, "backend": "dask", "workers": cluster.n_workers}
+    from ..formfactors.kernel import settings as kernel_settings
+    from ..formfactors.visibility import settings as visibility_settings
+
+    # as the local path records them: the form-factor kernel's version and tolerances
+    params = {**options, "form_factors": {**kernel_settings(), **visibility_settings()}, "backend": "dask",
+              "workers": cluster.n_workers}
     return HFactorization(perm, lowrank.Q, lowrank.V, rho_max, scene.reflectance, lowrank, params=params,
                           scene=scene)
 
