@@ -60,7 +60,7 @@ def check_factorize_args(scene: Scene, eps: float, block_size: int, dtype, relat
 def factorize(scene: Scene, *, eps: float = 0.02, relative: bool = True, block_size: int | None = None,
               dtype="float32", samples: int | None = None, order: str = "zorder", leaf_share: float = 0.5,
               checkpoint: str | Path | None = None, checkpoint_interval: float = 30.0,
-              blas_threads: int | None = 1, processes: int | None = None, one_ray_tol: float | None = None,
+              blas_threads: int | None = 1, processes: int | None = 1, one_ray_tol: float | None = None,
               near_field: int | str | None = None,
               progress: ProgressCallback = None, status: StatusCallback = None) -> HFactorization:
     """Precompute a scene: form factors with visibility, HF of ``diag(rho_max) F``, Woodbury factors.
@@ -91,7 +91,9 @@ def factorize(scene: Scene, *, eps: float = 0.02, relative: bool = True, block_s
         fastest while the form-factor engine uses the other cores.
     processes : int or None
         Form-factor worker processes (None: one per core from 4,000 patches on);
-        the result does not depend on it.
+        the result does not depend on it. Default 1 (this process: numba threads
+        plus one Embree thread), because on the shared benchmark machine (load
+        ~25) two worker processes were measured 2x slower in wall time.
     one_ray_tol : float or None
         Pairs that together hold at most this share of ``||F||_F`` get one
         visibility ray instead of several (:func:`hfrad.formfactors.parallel.one_ray_threshold`);

@@ -25,7 +25,7 @@ def register(app: typer.Typer) -> None:
         dtype: str = typer.Option("float32", "--dtype", help="float32 (default) or float64."),
         samples: Optional[int] = typer.Option(None, "--samples", help="Visibility rays per patch pair."),
         order: str = typer.Option("zorder", "--order", help="Internal patch order: zorder, hilbert, random, input."),
-        processes: Optional[int] = typer.Option(None, "--processes", help="Form-factor worker processes (default: one per core from 4,000 patches on)."),
+        processes: int = typer.Option(1, "--processes", help="Form-factor worker processes, each with its own Embree scene (default 1: this process, numba threads + one Embree thread)."),
         near_field: Optional[int] = typer.Option(None, "--near-field", help="Split pairs within ~this many neighbours per row into a sparse N (e.g. 64); solver: Woodbury around a sparse LU. Default: off."),
         unit_scale: float = common.UnitScaleOption,
         emit: Optional[List[str]] = common.EmitOption,
