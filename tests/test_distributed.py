@@ -148,3 +148,15 @@ def test_worker_processes_match_local_despite_a_killed_worker(cornell, process_c
     assert killed and killed[0] < -(-scene.n_patches // 64), "the worker must die while blocks remain"
     _assert_same_factorization(dist, local, scene)
     assert victim[0] not in client.run(os.getpid)  # that worker really is gone (its nanny started a new one)
+
+
+def test_refuses_workers_too_small_for_one_leaf(cornell, monkeypatch):
+    from hfrad.distributed.cluster import Cluster
+    from hfrad.distributed.sizing import leaf_bytes
+    from hfrad.errors import MemoryLimitError
+
+    scene, _ = cornell
+    monkeypatch.setattr(Cluster, "worker_memory_limits", lambda self: [leaf_bytes(scene.n_patches, 64)])
+    with connect(workers=1, processes=False) as cluster:
+        with pytest.raises(MemoryLimitError, match="one leaf task needs about"):
+            factorize_distributed(scene, scheduler=cluster, eps=EPS, block_size=64)

@@ -67,7 +67,7 @@ def register(app: typer.Typer) -> None:
                                      f" for {s.n_patches:,} patches (rank guessed; refused above 80% of the "
                                      "available memory)", highlight=False)
             if scheduler is not None or workers is not None:
-                if near_field or processes is not None:
+                if near_field or processes != 1:
                     raise ValueError("--near-field and --processes are for the in-process path; with --scheduler "
                                      "or --workers the Dask workers compute the blocks and HF has no near-field "
                                      "split yet")

@@ -110,7 +110,7 @@ def factorize_distributed(scene, *, scheduler=None, workers: int | None = None, 
 
 def _check_worker_memory(cluster: Cluster, n: int, block_size: int) -> None:
     """Refuse a run no worker can hold a leaf of (it would be killed, retried and killed again)."""
-    need = sizing.ENGINE_BYTES_PER_PATCH * n + sizing.leaf_bytes(n, block_size)
+    need = sizing.PROCESS_BYTES + sizing.ENGINE_BYTES_PER_PATCH * n + sizing.leaf_bytes(n, block_size)
     limits = [x for x in cluster.worker_memory_limits() if x > 0]
     if limits and min(limits) < need:
         raise MemoryLimitError(
