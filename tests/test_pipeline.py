@@ -5,9 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hfrad.pipeline import factorize_matrix
+from hfrad import factorize
 from hfrad.formfactors import form_factor_matrix
-from hfrad.pipeline import factorize
 from hfrad.scene.load import load_scene
 from hfrad.scene.zorder import patch_order
 
@@ -51,7 +50,7 @@ def test_out_of_core_equals_in_core(cornell):
     scene, F, exact = cornell
     perm = patch_order(scene.centroids, "zorder")
     streamed = factorize(scene, eps=0.02, block_size=128, dtype="float64")
-    in_core = factorize_matrix(F, scene.reflectance, eps=0.02, block_size=128, dtype=np.float64, order=perm)
+    in_core = factorize(F, scene.reflectance, eps=0.02, block_size=128, dtype=np.float64, order=perm)
     assert streamed.rank == in_core.rank
     B1, B2 = streamed.solve(scene.emission), in_core.solve(scene.emission)
     assert np.allclose(B1, B2, rtol=1e-8, atol=1e-10 * np.abs(B2).max())

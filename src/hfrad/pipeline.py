@@ -20,7 +20,7 @@ from typing import Callable
 import numpy as np
 
 from .defaults import DEFAULT_BLOCK_SIZE
-from .errors import SceneError
+from .errors import InputError, SceneError
 from .factorize.api import check_method, lowrank_from_blocks, lowrank_from_matrix
 from .factorize.hf import HFStream
 from .factorize.streaming import load_checkpoint, save_checkpoint
@@ -49,70 +49,133 @@ def check_factorize_args(scene: Scene, eps: float, block_size: int, dtype, relat
     if scene.n_patches == 0:
         raise SceneError(f"{scene.name}: the scene has no patches")
     if relative and not (0.0 < eps < 1.0):
-        raise ValueError(f"eps must be in (0, 1) (a relative Frobenius error, e.g. 0.02); got {eps}")
+        raise InputError(f"eps must be in (0, 1) (a relative Frobenius error, e.g. 0.02); got {eps}")
     if not relative and not (eps > 0.0 and math.isfinite(eps)):
-        raise ValueError(f"an absolute eps must be a positive number; got {eps}")
+        raise InputError(f"an absolute eps must be a positive number; got {eps}")
     if not (1 <= block_size <= scene.n_patches):
-        raise ValueError(f"block size must be between 1 and the patch count {scene.n_patches}; got {block_size}")
+        raise InputError(f"block size must be between 1 and the patch count {scene.n_patches}; got {block_size}")
     dt = np.dtype(dtype)
     if dt not in (np.float32, np.float64):
-        raise ValueError(f"dtype must be float32 or float64; got {dt}")
+        raise InputError(f"dtype must be float32 or float64; got {dt}")
     return dt
 
 
-def factorize(scene: Scene, *, eps: float = 0.02, relative: bool = True, block_size: int | None = None,
-              dtype="float32", samples: int | None = None, order: str = "zorder", leaf_share: float = 0.5,
+def factorize(scene_or_matrix, reflectance=None, *, eps: float = 0.02, relative: bool = True,
+              block_size: int | None = None, dtype="float32", order=None, method: str = "hf",
+              samples: int | None = None, leaf_share: float = 0.5,
               checkpoint: str | Path | None = None, checkpoint_interval: float = 30.0,
-              blas_threads: int | None = 1,
+              blas_threads: int | None = 1, rng=None,
               progress: ProgressCallback = None, status: StatusCallback = None) -> HFactorization:
-    """Precompute a scene: form factors with visibility, HF of ``diag(rho_max) F``, Woodbury factors.
+    """Factor a radiosity system once: ``diag(rho_max) F ~= Q V^T``, then solve it for any light in O(nk).
 
     Parameters
     ----------
-    scene : Scene
-        Patches with reflectance (n, 3) in [0, 1).
+    scene_or_matrix : Scene or (n, n) float array
+        A :class:`~hfrad.scene.scene.Scene` (form factors with visibility are
+        computed and streamed in column blocks; the n x n matrix is never
+        formed), or form factors F in the user's patch order (F[i, j]:
+        fraction of the energy leaving i that reaches j).
+    reflectance : (n, 3) float in [0, 1), optional
+        Needed with a matrix; a scene carries its own.
     eps : float in (0, 1)
-        Target ``||G - Q V^T||_F``, relative to ``||G||_F`` (absolute with ``relative=False``).
+        Target ``||G - Q V^T||_F`` relative to ``||G||_F`` (absolute with
+        ``relative=False``), ``G = diag(rho_max) F``.
     block_size : int, optional
-        Column block width (patches per block); default min(256, n).
+        Column block width; default ``min(DEFAULT_BLOCK_SIZE, n)`` (256).
     dtype : {"float32", "float64"}
         Precision of the factors.
+    order : {"zorder", "hilbert", "random", "input"} or (n,) int, optional
+        Internal patch order (internal index t holds user patch order[t]);
+        default Z-order for a scene (the paper's), the input order for a
+        matrix. Only speed and rank depend on it: every input and output
+        stays in the user's order.
+    method : {"hf", "svd", "rsvd", "sketch"}
+        The factorizer; a scene is always streamed through HF (the others
+        need the dense matrix and are baselines).
     samples : int, optional
-        Visibility rays per patch pair (default: the form-factor engine's).
-    order : {"zorder", "hilbert", "random", "input"}
-        Internal patch order; Z-order is the paper's and the default. Only speed and
-        rank depend on it; every input and output stays in the user's order.
+        Visibility rays per patch pair (scene only; default: the engine's).
     leaf_share : float in (0, 1]
         Share of the squared error budget given to the leaf SVDs.
     checkpoint : path, optional
-        Save the stream state here while running; resume from it if it exists.
-        Deleted when the factorization completes.
+        Scene only: save the stream state here while running and resume
+        from it if it exists; deleted when the factorization completes.
     checkpoint_interval : float, seconds
     blas_threads : int or None
-        BLAS threads during the precomputation (None: leave as is). One is
-        fastest while the form-factor engine uses the other cores.
+        Scene only: BLAS threads while the form-factor engine runs (None:
+        leave as is). One is fastest while the engine uses the other cores.
+    rng : None, int or numpy Generator
+        Seed of the randomized baselines ("rsvd", "sketch").
     progress : callable (done, total), optional
         Column blocks done.
     status : callable (dict), optional
-        Called after each block with ``blocks``, ``rank``, ``elapsed``.
+        Scene only: called after each block with ``blocks``, ``rank``, ``elapsed``.
 
     Returns
     -------
     HFactorization
         ``fac.solve(E)`` gives the radiosity for any exitance E, in O(nk).
 
+    Raises
+    ------
+    InputError (a ValueError)
+        Bad shapes, values or options (names the argument).
+    SceneError
+        A scene without patches.
+
     Notes
     -----
-    Memory: one n x block_size block (float64) plus the factors (O(nk)); the
-    n x n matrix is never formed. Time: dominated by the form factors.
+    Memory: one n x block_size block (float64) plus the factors (O(nk)).
+    Time: for a scene, dominated by the form factors. docs/method.md
+    explains the method; Aguerre & Fernández 2016.
+
+    Examples
+    --------
+    >>> import numpy as np, hfrad
+    >>> F = np.full((40, 40), 1 / 40)                 # a closed, uniform enclosure
+    >>> fac = hfrad.factorize(F, np.full((40, 3), 0.5), eps=1e-3)
+    >>> bool(np.allclose(fac.solve(np.ones(40)), 2.0))   # B = E / (1 - rho)
+    True
     """
-    if block_size is None and isinstance(scene, Scene):
+    if isinstance(scene_or_matrix, Scene):
+        if reflectance is not None:
+            raise InputError("a Scene carries its reflectance: pass reflectance only with a matrix "
+                             "(or use scene.replace(reflectance=...))")
+        if method != "hf":
+            raise InputError(f"a scene is factored by streaming HF; method {method!r} needs the dense "
+                             "matrix (hfrad.form_factor_matrix(scene)) and is a baseline")
+        return _factorize_scene(scene_or_matrix, eps=eps, relative=relative, block_size=block_size, dtype=dtype,
+                                samples=samples, order="zorder" if order is None else order,
+                                leaf_share=leaf_share, checkpoint=checkpoint,
+                                checkpoint_interval=checkpoint_interval, blas_threads=blas_threads,
+                                progress=progress, status=status)
+    if isinstance(scene_or_matrix, (str, Path)):
+        raise InputError(f"factorize takes a Scene or a matrix; load the file first: "
+                         f"hfrad.load_scene({str(scene_or_matrix)!r})")
+    if reflectance is None:
+        raise InputError("factorize(F, reflectance): a form-factor matrix needs the (n, 3) reflectance")
+    for name, value in (("samples", samples), ("checkpoint", checkpoint), ("status", status)):
+        if value is not None:
+            raise InputError(f"{name} applies to a Scene only, not to a form-factor matrix")
+    return _factorize_matrix(scene_or_matrix, reflectance, eps=eps, relative=relative,
+                             block_size=DEFAULT_BLOCK_SIZE if block_size is None else block_size, dtype=dtype,
+                             order=order, method=method, leaf_share=leaf_share, rng=rng, progress=progress)
+
+
+def _factorize_scene(scene: Scene, *, eps: float, relative: bool, block_size: int | None, dtype, samples,
+                     order, leaf_share: float, checkpoint, checkpoint_interval: float, blas_threads,
+                     progress: ProgressCallback, status: StatusCallback) -> HFactorization:
+    """The scene branch of :func:`factorize` (arguments as there): streamed form factors into HF."""
+    if block_size is None:
         block_size = min(DEFAULT_BLOCK_SIZE, max(scene.n_patches, 1))
     dt = check_factorize_args(scene, eps, block_size, dtype, relative)
     from .formfactors.blocks import iter_column_blocks
 
     n = scene.n_patches
-    perm = patch_order(scene.centroids, order)
+    if isinstance(order, str):
+        perm = patch_order(scene.centroids, order)
+    else:
+        perm = check_permutation(order, n)
+        order = "custom"
     rho_max = scene.reflectance.max(axis=1)
     n_blocks = math.ceil(n / block_size)
     params = {"eps": eps, "relative": relative, "block_size": block_size, "dtype": dt.name,
@@ -177,53 +240,38 @@ def _stream_blocks(blocks, stream: HFStream, rows_rho, n_blocks, checkpoint, che
     return stream.finish(), time_ff
 
 
-def factorize_matrix(F, reflectance, *, eps: float = 0.02, relative: bool = True,
-                     block_size: int = DEFAULT_BLOCK_SIZE, dtype=np.float32, order=None, method: str = "hf",
-                     rng=None, progress: ProgressCallback = None) -> HFactorization:
-    """Factor an in-core form-factor matrix: ``diag(rho_max) F ~= Q V^T`` in internal order.
-
-    Parameters
-    ----------
-    F : (n, n) float
-        Form factors in the user's patch order (F[i, j]: fraction leaving i that reaches j).
-    reflectance : (n, 3) float in [0, 1)
-    eps : float
-        Frobenius tolerance on ``G = diag(rho_max) F`` (relative to ``||G||_F``
-        unless ``relative=False``).
-    block_size : int
-        Column block width streamed to the factorizer.
-    dtype : float32 or float64
-    order : (n,) int, optional
-        Internal order (e.g. Z-order): internal index t holds user patch order[t].
-    method : {"hf", "svd", "rsvd", "sketch"}
-    rng : seed for the randomized methods.
-    progress : callable (done, total), optional
-
-    Returns
-    -------
-    HFactorization
-
-    Raises
-    ------
-    ValueError
-        Bad shapes, reflectance outside [0, 1), unknown method or order.
-    """
+def _factorize_matrix(F, reflectance, *, eps: float, relative: bool, block_size: int, dtype, order,
+                      method: str, leaf_share: float, rng, progress: ProgressCallback) -> HFactorization:
+    """The matrix branch of :func:`factorize` (arguments as there): validation, then the factorizer."""
     F = np.asarray(F)
     if F.ndim != 2 or F.shape[0] != F.shape[1]:
-        raise ValueError(f"form factors must be a square (n, n) matrix; got {F.shape}")
+        raise InputError(f"form factors must be a square (n, n) matrix; got {F.shape}")
     n = F.shape[0]
     rho = check_reflectance(reflectance, n)
+    if isinstance(order, str):
+        if order != "input":
+            raise InputError(f"order {order!r} needs patch positions: pass a Scene, or an (n,) permutation "
+                             "with a matrix")
+        order = None
     perm = check_permutation(order, n)
     check_method(method)
+    dt = np.dtype(dtype)
+    if dt not in (np.float32, np.float64):
+        raise InputError(f"dtype must be float32 or float64; got {dt}")
+    if not (0.0 < eps < 1.0 if relative else eps > 0.0 and math.isfinite(eps)):
+        raise InputError(f"eps must be in (0, 1) (relative) or > 0 (absolute); got {eps}")
     if block_size < 1:
-        raise ValueError(f"block_size must be >= 1; got {block_size}")
+        raise InputError(f"block_size must be >= 1; got {block_size}")
     rho_max = rho.max(axis=1)
-    lr = lowrank_from_matrix(F, rho_max, perm, eps=eps, relative=relative, block_size=block_size, dtype=dtype,
-                             method=method, rng=rng, progress=progress)
-    params = {"method": method, "block_size": block_size, "dtype": np.dtype(dtype).name,
+    if not np.isfinite(F).all():
+        i, j = np.argwhere(~np.isfinite(F))[0]
+        raise InputError(f"form factors have a NaN or infinite value at F[{i}, {j}]")
+    lr = lowrank_from_matrix(F, rho_max, perm, eps=eps, relative=relative, block_size=block_size, dtype=dt,
+                             method=method, rng=rng, leaf_share=leaf_share, progress=progress)
+    params = {"method": method, "block_size": block_size, "dtype": dt.name,
               "time_factor": lr.info["time_factor"]}
     if method == "hf":
-        params["leaf_share"] = 0.5
+        params["leaf_share"] = leaf_share
     return HFactorization(perm, lr.Q, lr.V, rho_max, rho, lr, params=params)
 
 
@@ -259,7 +307,7 @@ def factorize_blocks(blocks, n: int, reflectance, perm, *, eps: float = 0.02, re
         try:
             n_blocks = len(blocks)
         except TypeError:
-            raise ValueError("pass n_blocks (or block_size) when blocks is a generator") from None
+            raise InputError("pass n_blocks (or block_size) when blocks is a generator") from None
     lr = lowrank_from_blocks(blocks, n, rho_max, perm, eps=eps, relative=relative, dtype=dtype,
                              n_blocks=n_blocks, leaf_share=leaf_share, progress=progress)
     params = {"method": "hf", "block_size": block_size, "dtype": np.dtype(dtype).name,

@@ -2,9 +2,14 @@
 
 from __future__ import annotations
 
+import os
+import warnings
+
 import numpy as np
 
-__all__ = ["check_permutation", "check_reflectance"]
+from .errors import InputError
+
+__all__ = ["check_permutation", "check_reflectance", "check_trans", "check_finite", "object_first"]
 
 
 def check_permutation(order, n: int, name: str = "order") -> np.ndarray:
@@ -19,10 +24,10 @@ def check_permutation(order, n: int, name: str = "order") -> np.ndarray:
         return np.arange(n, dtype=np.int64)
     perm = np.asarray(order)
     if perm.shape != (n,) or not (np.issubdtype(perm.dtype, np.integer) or perm.size == 0):
-        raise ValueError(f"{name} must be a permutation of range({n}) as an int array of shape ({n},); "
+        raise InputError(f"{name} must be a permutation of range({n}) as an int array of shape ({n},); "
                          f"got {perm.dtype} array of shape {perm.shape}")
     if not np.array_equal(np.sort(perm), np.arange(n)):
-        raise ValueError(f"{name} must be a permutation of range({n}) (each patch exactly once)")
+        raise InputError(f"{name} must be a permutation of range({n}) (each patch exactly once)")
     return perm.astype(np.int64)
 
 
@@ -36,10 +41,39 @@ def check_reflectance(reflectance, n: int, name: str = "reflectance") -> np.ndar
     """
     rho = np.asarray(reflectance, dtype=np.float64)
     if rho.shape != (n, 3):
-        raise ValueError(f"{name} must have shape ({n}, 3); got {rho.shape}")
+        raise InputError(f"{name} must have shape ({n}, 3); got {rho.shape}")
     bad = ~(np.isfinite(rho) & (rho >= 0) & (rho < 1)).all(axis=1)
     if bad.any():
         i = int(np.flatnonzero(bad)[0])
-        raise ValueError(f"{name} must be finite and in [0, 1) (a reflectance of 1 or more creates energy); "
+        raise InputError(f"{name} must be finite and in [0, 1) (a reflectance of 1 or more creates energy); "
                          f"patch {i} has {rho[i].tolist()}")
     return rho
+
+
+def check_trans(trans) -> bool:
+    """True for an adjoint solve (``"T"``; ``"H"`` is the same for real matrices), False for ``"N"``."""
+    if trans not in ("N", "T", "H"):
+        raise InputError(f"trans must be 'N' (solve) or 'T' (adjoint solve), as in scipy; got {trans!r}")
+    return trans != "N"
+
+
+def check_finite(array, name: str) -> np.ndarray:
+    """``array`` as a float64 array; InputError naming the first NaN/inf entry (LAPACK runs unchecked)."""
+    a = np.asarray(array, dtype=np.float64)
+    if not np.isfinite(a).all():
+        where = tuple(int(i) for i in np.argwhere(~np.isfinite(a))[0])
+        raise InputError(f"{name} has a NaN or infinite value at index {where}")
+    return a
+
+
+def object_first(obj, path, call: str):
+    """``(obj, path)`` for writers that take the object first; an old path-first call is swapped with a warning.
+
+    Every hfrad writer is ``write(object, path)``; until the 0.2 release a
+    call in the old order (path first) still works but emits a
+    DeprecationWarning naming the new spelling ``call``.
+    """
+    if isinstance(obj, (str, os.PathLike)) and not isinstance(path, (str, os.PathLike)):
+        warnings.warn(f"the object comes first, then the path: {call}", DeprecationWarning, stacklevel=3)
+        return path, obj
+    return obj, path

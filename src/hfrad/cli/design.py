@@ -7,6 +7,7 @@ from typing import Optional
 
 import typer
 
+from ..errors import InputError
 from . import common
 
 #: exit code when the spec is valid but no design meets it (the result JSON says why)
@@ -44,11 +45,11 @@ def register(app: typer.Typer) -> None:
 
         with common.user_errors():
             if output.suffix.lower() != ".json":
-                raise ValueError(f"output must be a .json file, got '{output}'")
+                raise InputError(f"output must be a .json file, got '{output}'")
             if render is not None:
                 from ..render import Camera
                 if render.suffix.lower() != ".png":
-                    raise ValueError(f"--render must be a .png file, got '{render}'")
+                    raise InputError(f"--render must be a .png file, got '{render}'")
                 if falsecolor:
                     from ..render.falsecolor import check_unit
                     check_unit(unit)
@@ -63,7 +64,7 @@ def register(app: typer.Typer) -> None:
                 from ..render import render_image, save_png
                 image = render_image(fac.scene.replace(emission=result.exitance), result.radiosity,
                                      camera=camera, width=width, height=height, falsecolor=falsecolor, unit=unit)
-                save_png(render, image)
+                save_png(image, render)
         _summary(result.report, output, render)
         if not result.feasible:
             raise typer.Exit(EXIT_INFEASIBLE)

@@ -8,6 +8,7 @@ from typing import List, Optional
 
 import typer
 
+from ..errors import InputError
 from ..defaults import DEFAULT_BLOCK_SIZE
 from . import common
 from .info import load_scene_from_options
@@ -22,13 +23,14 @@ def register(app: typer.Typer) -> None:
         max_edge: Optional[float] = common.MaxEdgeOption,
         patches: Optional[int] = common.PatchesOption,
         block: Optional[int] = typer.Option(None, "--block", help=f"Column block width (patches); default min({DEFAULT_BLOCK_SIZE}, n)."),
-        dtype: str = typer.Option("float32", "--dtype", help="float32 (default) or float64."),
+        dtype: str = common.dtype_option("float32"),
         samples: Optional[int] = typer.Option(None, "--samples", help="Visibility rays per patch pair."),
         order: str = typer.Option("zorder", "--order", help="Internal patch order: zorder, hilbert, random, input."),
         unit_scale: float = common.UnitScaleOption,
-        emit: Optional[List[str]] = common.EmitOption,
+        emission: Optional[List[str]] = common.EmissionOption,
         area_light: Optional[str] = common.AreaLightOption,
         default_reflectance: float = common.DefaultReflectanceOption,
+        allow_missing_materials: bool = common.AllowMissingMaterialsOption,
         keep_duplicates: bool = common.KeepDuplicatesOption,
         quiet: bool = common.QuietOption,
     ) -> None:
@@ -40,17 +42,19 @@ def register(app: typer.Typer) -> None:
         A checkpoint (OUTPUT.partial) is written every 30 s; rerun the same
         command to resume after an interruption.
         """
-        from ..io.hfr import save_hfr
+        from ..solve.hfr import save_hfr
         from ..pipeline import factorize
 
         t0 = time.perf_counter()
         with common.user_errors():
+            common.check_dtype(dtype)
             if output.suffix != ".hfr":
-                raise ValueError(f"output must end in .hfr; got {output}")
-            s = load_scene_from_options(scene, unit_scale=unit_scale, emit=emit, area_light=area_light,
+                raise InputError(f"output must end in .hfr; got {output}")
+            s = load_scene_from_options(scene, unit_scale=unit_scale, emit=emission, area_light=area_light,
                                         default_reflectance=default_reflectance,
+                                        allow_missing_materials=allow_missing_materials,
                                         max_edge=max_edge, patches=patches, keep_duplicates=keep_duplicates)
-            common.check_memory_for_precompute(s.n_patches, block or DEFAULT_BLOCK_SIZE)
+            common.check_memory_for_precompute(s.n_patches, block or DEFAULT_BLOCK_SIZE, dtype)
             checkpoint = output.with_name(output.name + ".partial")
             if checkpoint.exists():
                 common.console.print(f"resuming from checkpoint {checkpoint}")
@@ -60,7 +64,7 @@ def register(app: typer.Typer) -> None:
                 fac = factorize(s, eps=eps, block_size=block, dtype=dtype, samples=samples, order=order,
                                 checkpoint=checkpoint, progress=bar, status=status)
             timings = {"load": t_load, **{k: v for k, v in fac.lowrank.info.items() if k.startswith("time")}}
-            save_hfr(output, fac, timings=timings)
+            save_hfr(fac, output, timings=timings)
         _report(fac, output, time.perf_counter() - t0)
 
 

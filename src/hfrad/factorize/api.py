@@ -27,7 +27,7 @@ def check_method(method: str) -> None:
 
 
 def lowrank_from_matrix(F: np.ndarray, rho_max: np.ndarray, perm: np.ndarray, *, eps: float, relative: bool,
-                        block_size: int, dtype, method: str, rng=None,
+                        block_size: int, dtype, method: str, rng=None, leaf_share: float = 0.5,
                         progress: ProgressCallback = None) -> LowRank:
     """``G_int = diag(rho_max) F`` in internal order ``perm``, factored by ``method``.
 
@@ -36,7 +36,7 @@ def lowrank_from_matrix(F: np.ndarray, rho_max: np.ndarray, perm: np.ndarray, *,
     F : (n, n) float, user order
     rho_max : (n,) float, user order
     perm : (n,) int, internal order (internal index t holds user patch perm[t])
-    eps, relative, block_size, dtype, rng, progress
+    eps, relative, block_size, dtype, rng, leaf_share, progress
         As in :func:`hfrad.factorize`.
     method : {"hf", "svd", "rsvd", "sketch"}
 
@@ -50,7 +50,7 @@ def lowrank_from_matrix(F: np.ndarray, rho_max: np.ndarray, perm: np.ndarray, *,
         blocks = ((s, min(s + block_size, n), F[np.ix_(perm, perm[s:s + block_size])])
                   for s in range(0, n, block_size))
         return lowrank_from_blocks(blocks, n, rho_max, perm, eps=eps, relative=relative, dtype=dtype,
-                                   n_blocks=-(-n // block_size), progress=progress)
+                                   n_blocks=-(-n // block_size), leaf_share=leaf_share, progress=progress)
     t0 = time.perf_counter()
     G = (rho_max[perm, None] * F[np.ix_(perm, perm)]).astype(dtype)
     if method == "svd":

@@ -12,6 +12,7 @@ import os
 
 import numpy as np
 
+from ..errors import InputError
 from ..atomic import atomic_path
 from .hf import HFStream, _Node
 
@@ -55,10 +56,10 @@ def load_checkpoint(path: str | os.PathLike, key: str = "") -> HFStream:
 
     with h5py.File(path, "r") as f:
         if int(f.attrs.get("version", -1)) != CHECKPOINT_VERSION:
-            raise ValueError(f"{path}: checkpoint version {f.attrs.get('version')} is not "
+            raise InputError(f"{path}: checkpoint version {f.attrs.get('version')} is not "
                              f"{CHECKPOINT_VERSION}; delete it to start over")
         if str(f.attrs["key"]) != key:
-            raise ValueError(f"{path}: checkpoint was made for another scene or other parameters; "
+            raise InputError(f"{path}: checkpoint was made for another scene or other parameters; "
                              "delete it to start over")
         stream = HFStream(**json.loads(f.attrs["params"]))
         stream.blocks_done = int(f.attrs["blocks_done"])

@@ -9,7 +9,7 @@ pair is put in canonical order (lower patch index first) and always cast in
 that direction, so V_ij == V_ji bit for bit and reciprocity survives.
 
 There is no random jitter on purpose: Monte Carlo noise in F is full rank and
-destroys the low rank the hierarchical factorization relies on (METHOD.md s. 7).
+destroys the low rank the hierarchical factorization relies on (docs/method.md, section 2).
 
 End points are moved off their surfaces along the patch normals by
 ``1e-5 x scene size`` so that a ray never hits the face it starts or ends on.
@@ -34,6 +34,7 @@ import time
 import numpy as np
 from numba import njit, prange
 
+from ..errors import InputError
 from .kernel import points_on_triangles, split_centroids
 from .raycast import RayCaster
 
@@ -53,7 +54,7 @@ def check_samples(samples: int) -> int:
     """Validate ``samples`` (a perfect square >= 1); returns its square root."""
     m = math.isqrt(int(samples)) if int(samples) >= 1 else 0
     if samples != int(samples) or m < 1 or m * m != int(samples):
-        raise ValueError(f"samples must be a perfect square (1, 4, 9, 16, ...) so the sample points "
+        raise InputError(f"samples must be a perfect square (1, 4, 9, 16, ...) so the sample points "
                          f"are a stratified split of each triangle, got {samples}")
     return m
 

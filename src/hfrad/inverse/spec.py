@@ -38,6 +38,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from ..errors import InputError
 from ..render.falsecolor import photometric
 
 #: quantity -> (unit printed in results, description)
@@ -57,7 +58,7 @@ _TARGET_KEYS = {"name", "quantity", *GOALS, *_SELECTORS}
 _TOP_KEYS = {"emitters", "targets", "objective", "background", "description"}
 
 
-class SpecError(ValueError):
+class SpecError(InputError):
     """A design spec is malformed; the message names the field (``targets[1].quantity``)."""
 
 

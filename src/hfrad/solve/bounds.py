@@ -3,11 +3,53 @@
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Iterable
 
 import numpy as np
 
-__all__ = ["power_sigma_max", "eq5_bound", "residual_norm"]
+__all__ = ["ErrorEstimate", "estimate_errors", "power_sigma_max", "eq5_bound", "residual_norm"]
+
+
+@dataclass(frozen=True)
+class ErrorEstimate:
+    """Accuracy figures of a factorization, per colour channel (R, G, B).
+
+    Attributes
+    ----------
+    bound : (3,) float
+        The relative radiosity error figure to quote, in the norm ``norm``.
+    norm : str
+        The norm of ``bound``.
+    eq5_bound : (3,) float
+        Aguerre & Fernández 2016, eq. 5: ``eps / (1 - sigma)`` with the
+        achieved Frobenius error (a secondary figure; inf where sigma >= 1).
+    sigma_max : (3,) float
+        Power-iteration estimate of sigma_max(Q_c V^T).
+    """
+
+    bound: np.ndarray
+    norm: str
+    eq5_bound: np.ndarray
+    sigma_max: np.ndarray
+
+    def as_dict(self) -> dict:
+        """JSON-ready figures (inf becomes None)."""
+        def num(a):
+            return [float(x) if np.isfinite(x) else None for x in np.atleast_1d(a)]
+        return {"error_bound": num(self.bound), "error_norm": self.norm, "eq5_bound": num(self.eq5_bound),
+                "sigma_max": num(self.sigma_max)}
+
+
+def estimate_errors(achieved_error: float, sigma_max) -> ErrorEstimate:
+    """The figures of :class:`ErrorEstimate` from the achieved Frobenius error and sigma_max(Q_c V^T).
+
+    eq. 5 uses ``sigma = sigma_max(Q_c V^T) + error`` (Weyl: an upper bound on
+    sigma_max(R_c F) when the power estimate has converged).
+    """
+    sigma = np.asarray(sigma_max, dtype=np.float64)
+    eq5 = eq5_bound(achieved_error, sigma + achieved_error)
+    return ErrorEstimate(bound=eq5, norm="2", eq5_bound=eq5, sigma_max=sigma)
 
 
 def power_sigma_max(Q: np.ndarray, V: np.ndarray, *, rtol: float = 1e-7, max_iter: int = 500) -> float:

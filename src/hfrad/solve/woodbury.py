@@ -1,6 +1,6 @@
 """The factorization object: solve (I - R_c F) B_c = E_c in O(nk) by Sherman-Morrison-Woodbury.
 
-Colour without three factorizations (METHOD.md section 3): G = diag(rho_max) F
+Colour without three factorizations (docs/method.md, section 6): G = diag(rho_max) F
 is factored once, G ~= Q V^T, and channel c uses Q_c = D_c Q with
 D_c = diag(rho_c / rho_max), so ``R_c F ~= Q_c V^T`` with the same error bound.
 """
@@ -12,10 +12,10 @@ import warnings
 import numpy as np
 import scipy.linalg as sla
 
-from ..errors import AccuracyWarning, FactorizationError
+from ..errors import AccuracyWarning, FactorizationError, InputError
 from ..factorize.lowrank import LowRank
-from ..validation import check_reflectance
-from .bounds import eq5_bound, power_sigma_max
+from ..validation import check_reflectance, check_trans
+from .bounds import ErrorEstimate, estimate_errors, power_sigma_max, residual_norm
 
 N_CHANNELS = 3
 _RCOND_MIN = 1e-12   # below this the k x k system has no meaningful solution
@@ -116,6 +116,7 @@ class HFactorization:
         self.Y = woodbury_factors(self.Q, self.V, D) if Y is None else np.asarray(Y, self.Q.dtype)
         self._D = D
         self._sigma = None if sigma_max is None else np.asarray(sigma_max, np.float64)
+        self._estimate: ErrorEstimate | None = None
 
     # -- sizes and accuracy ------------------------------------------------
     @property
@@ -145,50 +146,72 @@ class HFactorization:
         """``||G - Q V^T||_F / ||G||_F``."""
         return self.lowrank.relative_error
 
+    def error_estimate(self) -> ErrorEstimate:
+        """Accuracy figures of this factorization, per colour channel (computed once, cached).
+
+        Returns
+        -------
+        ErrorEstimate
+            ``bound`` (the figure to quote, see its ``norm``), ``eq5_bound``
+            (Aguerre & Fernández 2016, eq. 5, a secondary figure) and the
+            quantities they are made of.
+
+        Warns
+        -----
+        AccuracyWarning
+            Where a channel has no finite bound (its operator may have an
+            eigenvalue near 1).
+
+        Notes
+        -----
+        Power iteration on the factors, O(nk) per step, a few hundred steps at
+        most; :func:`hfrad.factorize` and :func:`hfrad.load` call it once so
+        that the attributes ``error_bound``, ``eq5_bound`` and ``sigma_max``
+        are stored values.
+        """
+        if self._estimate is None:
+            if self._sigma is None:
+                self._sigma = np.array([power_sigma_max(self.Q * self._D[:, c:c + 1].astype(self.dtype), self.V)
+                                        for c in range(N_CHANNELS)])
+            self._estimate = estimate_errors(self.achieved_error, self._sigma)
+            bad = ~np.isfinite(self._estimate.bound)
+            if bad.any():
+                warnings.warn(f"sigma_max + error >= 1 for channels {np.flatnonzero(bad).tolist()} "
+                              f"(sigma estimates {(self._sigma + self.achieved_error).round(4).tolist()}); "
+                              "eq. 5 gives no bound", AccuracyWarning, stacklevel=2)
+        return self._estimate
+
     @property
     def sigma_max(self) -> np.ndarray:
-        """(3,) float: sigma_max(Q_c V^T) per channel, power iteration on the factors (cached)."""
-        if self._sigma is None:
-            self._sigma = np.array([power_sigma_max(self.Q * self._D[:, c:c + 1].astype(self.dtype), self.V)
-                                    for c in range(N_CHANNELS)])
-        return self._sigma
+        """(3,) float: sigma_max(Q_c V^T) per channel (stored by :meth:`error_estimate`)."""
+        return self.error_estimate().sigma_max
 
     @property
     def error_bound(self) -> np.ndarray:
-        """(3,) float: eq. 5 bound on ``||B~_c - B_c|| / ||B_c||`` per channel.
+        """(3,) float: the relative radiosity error bound per channel (see :meth:`error_estimate`)."""
+        return self.error_estimate().bound
 
-        ``eps_abs / (1 - sigma)`` with ``eps_abs`` the achieved absolute
-        Frobenius error (>= the 2-norm error of every channel) and, to stay
-        conservative, ``sigma = sigma_max(Q_c V^T) + eps_abs`` (Weyl: an upper
-        bound on sigma_max(R_c F) when the power estimate has converged).
-        ``inf`` with an AccuracyWarning where ``sigma >= 1``.
-        """
-        e = self.achieved_error
-        sigma = self.sigma_max + e
-        bound = eq5_bound(e, sigma)
-        ok = np.isfinite(bound)
-        if not ok.all():
-            warnings.warn(f"sigma_max + error >= 1 for channels {np.flatnonzero(~ok).tolist()} "
-                          f"(sigma estimates {sigma.round(4).tolist()}); eq. 5 gives no bound",
-                          AccuracyWarning, stacklevel=2)
-        return bound
+    @property
+    def eq5_bound(self) -> np.ndarray:
+        """(3,) float: the paper's eq. 5 figure per channel (see :meth:`error_estimate`)."""
+        return self.error_estimate().eq5_bound
 
     # -- solving -------------------------------------------------------------
-    def _validate(self, exitance, transpose: bool) -> np.ndarray:
+    def _validate(self, exitance, adjoint: bool) -> np.ndarray:
         E = np.asarray(exitance, dtype=np.float64)
         n = self.n_patches
         if E.ndim not in (1, 2, 3) or E.shape[0] != n or (E.ndim >= 2 and E.shape[1] != N_CHANNELS):
-            raise ValueError(f"exitance must have shape ({n},), ({n}, 3) or ({n}, 3, m) "
+            raise InputError(f"exitance must have shape ({n},), ({n}, 3) or ({n}, 3, m) "
                              f"(patches in the scene's order); got {E.shape}")
         if not np.isfinite(E).all():
             bad = int(np.flatnonzero(~np.isfinite(E.reshape(n, -1)).all(axis=1))[0])
-            raise ValueError(f"exitance has a NaN or infinite value at patch {bad}")
-        if not transpose and (E < 0).any():
+            raise InputError(f"exitance has a NaN or infinite value at patch {bad}")
+        if not adjoint and (E < 0).any():
             bad = int(np.flatnonzero((E.reshape(n, -1) < 0).any(axis=1))[0])
-            raise ValueError(f"exitance must be >= 0 (W/m^2); patch {bad} has a negative value")
+            raise InputError(f"exitance must be >= 0 (W/m^2); patch {bad} has a negative value")
         return E
 
-    def solve(self, exitance, *, transpose: bool = False) -> np.ndarray:
+    def solve(self, exitance, trans: str = "N", *, transpose: bool | None = None) -> np.ndarray:
         """Radiosity ``B_c = (I - R_c F)^{-1} E_c`` for every channel (eq. 4).
 
         Parameters
@@ -196,10 +219,13 @@ class HFactorization:
         exitance : (n,), (n, 3) or (n, 3, m) float >= 0, W/m^2, user patch order
             (n,) is a grey emission (the same for the three channels); (n, 3, m)
             is a batch of m emissions, solved together as matrix products.
-        transpose : bool
-            Solve the adjoint ``(I - R_c F)^T x = e`` instead (inverse design):
+        trans : {"N", "T"}
+            "T" solves the adjoint ``(I - R_c F)^T x = e`` instead (inverse
+            design), as in :func:`scipy.linalg.lu_solve`:
             ``(I - V Q_c^T)^{-1} = I - V Y_c^T``, so ``x = e - V (Y_c^T e)``.
             Negative entries are allowed then.
+        transpose : bool, optional
+            Deprecated spelling of ``trans="T"``.
 
         Returns
         -------
@@ -207,14 +233,20 @@ class HFactorization:
 
         Raises
         ------
-        ValueError
-            Wrong shape (expected and got are named), NaN/inf, or negative exitance.
+        InputError (a ValueError)
+            Wrong shape (expected and got are named), NaN/inf, negative
+            exitance, or an unknown ``trans``.
 
         Notes
         -----
         O(n k) per right-hand side and channel.
         """
-        E = self._validate(exitance, transpose)
+        if transpose is not None:
+            warnings.warn("solve(E, transpose=True) is deprecated; use solve(E, trans='T')",
+                          DeprecationWarning, stacklevel=2)
+            trans = "T" if transpose else "N"
+        adjoint = check_trans(trans)
+        E = self._validate(exitance, adjoint)
         if E.ndim == 1:
             E = np.repeat(E[:, None], N_CHANNELS, axis=1)
         batched = E.ndim == 3
@@ -223,7 +255,7 @@ class HFactorization:
         # One pass over the shared factor for all channels and emissions at once,
         # then one pass over each channel's own factor: the solve is bandwidth bound.
         E2 = Ei.reshape(len(Ei), N_CHANNELS * m).astype(self.dtype)
-        if transpose:
+        if adjoint:
             # (I - V Q_c^T)^{-1} = I - V Y_c^T:  x = e - V (Y_c^T e)
             W = np.concatenate([self.Y[c].T @ E2[:, c * m:(c + 1) * m] for c in range(N_CHANNELS)], axis=1)
             B = Ei - (self.V @ W).reshape(Ei.shape)
@@ -234,6 +266,82 @@ class HFactorization:
                 B[:, c, :] -= self.Y[c] @ W[:, c * m:(c + 1) * m]           # eq. (4)
         out = B[self.inv_perm]
         return out if batched else out[:, :, 0]
+
+    def as_linear_operator(self, channel: int):
+        """``(I - R_c F)^{-1}`` of one channel as a :class:`scipy.sparse.linalg.LinearOperator`.
+
+        ``matvec`` is the O(nk) Woodbury solve, ``rmatvec`` the adjoint one;
+        vectors are in the user's patch order. Use it as a preconditioner
+        ``M`` of an iterative solver of the exact system (e.g.
+        ``scipy.sparse.linalg.gmres(I - R_c F, e, M=fac.as_linear_operator(c))``).
+
+        Parameters
+        ----------
+        channel : int in {0, 1, 2}
+            R, G or B.
+        """
+        from scipy.sparse.linalg import LinearOperator
+
+        if channel not in range(N_CHANNELS):
+            raise InputError(f"channel must be 0, 1 or 2 (R, G, B); got {channel!r}")
+        n = self.n_patches
+
+        def apply(x, adjoint: bool):
+            x = np.asarray(x, dtype=np.float64).reshape(n, -1)
+            xi = x[self.perm].astype(self.dtype)
+            if adjoint:
+                y = xi - self.V @ (self.Y[channel].T @ xi)
+            else:
+                y = xi - self.Y[channel] @ (self.V.T @ xi)
+            return y[self.inv_perm].astype(np.float64)
+
+        return LinearOperator((n, n), matvec=lambda x: apply(x, False), rmatvec=lambda x: apply(x, True),
+                              matmat=lambda X: apply(X, False), rmatmat=lambda X: apply(X, True),
+                              dtype=np.float64)
+
+    def residual(self, exitance, radiosity, *, form_factors=None, progress=None) -> np.ndarray:
+        """A-posteriori ``||(I - R_c F) B_c - E_c|| / ||E_c||`` per channel, with the exact F.
+
+        Uses this factorization's reflectance (which may differ from its
+        scene's after :meth:`with_reflectance`).
+
+        Parameters
+        ----------
+        exitance, radiosity : (n, 3) float, W/m^2, user patch order
+        form_factors : (n, n) float, optional
+            The exact F (user order). Without it F is streamed again from the
+            factorization's scene (as slow as the precompute's form factors).
+        progress : callable (done, total), optional
+
+        Returns
+        -------
+        (3,) float: relative residual per channel (2-norm).
+        """
+        E = self._validate(exitance, False)
+        B = np.asarray(radiosity, dtype=np.float64)
+        if E.shape != (self.n_patches, N_CHANNELS) or B.shape != E.shape:
+            raise InputError(f"exitance and radiosity must both have shape ({self.n_patches}, 3); "
+                             f"got {E.shape} and {B.shape}")
+        if form_factors is not None:
+            F = np.asarray(form_factors)
+            if F.shape != (self.n_patches, self.n_patches):
+                raise InputError(f"form_factors must have shape ({self.n_patches}, {self.n_patches}); got {F.shape}")
+            blocks = [(0, self.n_patches, F)]
+            return residual_norm(blocks, self.reflectance, E, B)
+        if self.scene is None:
+            raise InputError("this factorization has no scene to recompute F from; pass form_factors=F")
+        from ..formfactors.blocks import iter_column_blocks
+
+        samples = self.params.get("samples")
+        kwargs = {} if samples is None else {"samples": samples}
+        blocks = iter_column_blocks(self.scene, order=self.perm, progress=progress, **kwargs)
+        return residual_norm(blocks, self.reflectance, E, B, perm=self.perm)
+
+    def save(self, path) -> "Path":
+        """Write this factorization (with its scene's patches) to an ``.hfr`` file, atomically."""
+        from .hfr import save_hfr
+
+        return save_hfr(self, path)
 
     def with_reflectance(self, reflectance) -> "HFactorization":
         """The same factorization with new reflectances, without refactoring.
@@ -252,7 +360,7 @@ class HFactorization:
         over = rho.max(axis=1) > self.rho_max * (1 + 1e-12)
         if over.any():
             i = int(np.flatnonzero(over)[0])
-            raise ValueError(f"patch {i} reflectance {rho[i].tolist()} exceeds rho_max "
+            raise InputError(f"patch {i} reflectance {rho[i].tolist()} exceeds rho_max "
                              f"{self.rho_max[i]:.6g} of this factorization; refactorize with the "
                              "new reflectance (factorize again)")
         return HFactorization(self.perm, self.Q, self.V, self.rho_max, rho, self.lowrank,

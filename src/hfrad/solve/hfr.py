@@ -30,7 +30,8 @@ from .._version import __version__
 from ..atomic import atomic_path
 from ..errors import FileFormatError
 from ..factorize.lowrank import LowRank
-from ..solve.woodbury import HFactorization
+from ..validation import object_first
+from .woodbury import HFactorization
 
 FORMAT = "hfrad-factorization"
 FORMAT_VERSION = 1
@@ -58,13 +59,13 @@ def _write_scene(g: h5py.Group, scene) -> None:
     g.attrs["name"] = str(scene.name)
 
 
-def save_hfr(path, factorization: HFactorization, *, scene=None, timings: dict | None = None) -> Path:
+def save_hfr(factorization: HFactorization, path, *, scene=None, timings: dict | None = None) -> Path:
     """Write ``factorization`` (and optionally its scene's patches) to an .hfr file.
 
     Parameters
     ----------
-    path : str or Path
     factorization : HFactorization
+    path : str or Path
     scene : Scene, optional
         Defaults to ``factorization.scene``.
     timings : dict, optional
@@ -74,9 +75,11 @@ def save_hfr(path, factorization: HFactorization, *, scene=None, timings: dict |
     -------
     Path of the written file. Written atomically (temporary file + rename).
     """
+    factorization, path = object_first(factorization, path, "save_hfr(factorization, path)")
     path = Path(path)
     fac = factorization
     scene = fac.scene if scene is None else scene
+    estimate = fac.error_estimate()
     with atomic_path(path) as tmp:
         with h5py.File(tmp, "w") as f:
             lr = fac.lowrank
@@ -91,8 +94,8 @@ def save_hfr(path, factorization: HFactorization, *, scene=None, timings: dict |
             a["achieved_error"] = lr.achieved_error
             a["norm"] = lr.norm
             a["method"] = lr.method
-            a["sigma_max"] = fac.sigma_max
-            a["error_bound"] = fac.error_bound
+            a["sigma_max"] = estimate.sigma_max
+            a["error_bound"] = estimate.bound
             a["parameters"] = json.dumps(fac.params, default=_json_default)
             a["timings"] = json.dumps(timings or {}, default=_json_default)
             a["lowrank_info"] = json.dumps({k: v for k, v in lr.info.items() if k != "leaf_ranks"},
