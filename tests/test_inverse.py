@@ -144,6 +144,12 @@ def test_infeasible_names_the_conflicting_goals(case):
     weak = light_spec(min=300.0)
     weak["emitters"][0]["max"] = 0.01
     assert sorted(design(fac, weak).report["conflicts"]) == ["floor.min", "light.max"]
+    # a goal the fixed background light alone breaks conflicts with nothing else
+    dark = light_spec(min=1.0)
+    dark["emitters"][0] = {"name": "short", "group": "short_block", "max": 10.0}
+    dark["targets"].append({"name": "ceiling", "group": "ceiling", "quantity": "irradiance", "max": 1e-6})
+    r = design(fac, dark)
+    assert r.report["conflicts"] == ["ceiling.max"] and "on its own" in r.report["message"]
 
 
 @pytest.mark.parametrize("change, field", [
@@ -167,6 +173,23 @@ def test_malformed_spec_names_the_field(case, change, field):
     assert f"{field}:" in str(err.value)
 
 
+def test_emission_file_reproduces_the_design(case):
+    from hfrad.inverse.emission import emission_settings
+    from hfrad.io.emission import emission_overrides
+    from hfrad.scene.load import set_emission
+
+    scene, fac, F = case
+    spec = light_spec(min=100.0)
+    spec["emitters"].append({"name": "blue_block", "group": "short_block", "max": 5.0, "color": [0.1, 0.2, 1.0]})
+    spec["background"] = "none"
+    r = design(fac, spec)
+    settings = emission_settings(r, scene)
+    assert np.array_equal(set_emission(scene, emission_overrides(settings)).emission, r.exitance)
+    spec["emitters"][1] = {"name": "two", "patches": [0, 1], "max": 5.0}
+    with pytest.raises(ValueError, match="one material or group name"):
+        emission_settings(design(fac, spec), scene)
+
+
 def test_overlapping_emitters_are_refused(case):
     spec = light_spec(min=1.0)
     spec["emitters"].append({"name": "again", "material": "light"})
@@ -186,10 +209,16 @@ def test_cli_exit_codes(case, tmp_path):
         return runner.invoke(app, ["design", str(path), str(hfr), *map(str, extra)])
 
     out, png = tmp_path / "result.json", tmp_path / "design.png"
-    ok = run(light_spec(min=300.0), "-o", out, "--render", png, "--width", 48, "--height", 32, "--quiet")
+    em = tmp_path / "emission.json"
+    ok = run(light_spec(min=300.0), "-o", out, "--render", png, "--width", 48, "--height", 32, "--quiet",
+             "--emission-out", em, "--falsecolor", "--show", "irradiance")
     assert ok.exit_code == 0, ok.output
     result = json.loads(out.read_text())
     assert result["feasible"] and result["verified"]["goals_met"] and png.stat().st_size > 0
+    lamp = json.loads(em.read_text())["emitters"][0]
+    assert lamp["name"] == "light" and lamp["exitance"][0] == pytest.approx(result["emitters"][0]["intensity"])
+    relit = runner.invoke(app, ["solve", str(hfr), "-o", str(tmp_path / "b.npz"), "--emission-file", str(em)])
+    assert relit.exit_code == 0, relit.output
     for key in ("emitters", "targets", "evaluations", "time_s", "objective"):
         assert key in result
     bad = light_spec(min=300.0)
@@ -202,4 +231,97 @@ def test_cli_exit_codes(case, tmp_path):
     err = run(malformed, "-o", tmp_path / "r3.json")
     assert err.exit_code == 2 and "targets[0].quantity" in err.output and "Traceback" not in err.output
     assert not (tmp_path / "r3.json").exists()
-    assert run(light_spec(min=1.0), "-o", tmp_path / "r.txt").exit_code == 2
+    for bad_option in (["-o", tmp_path / "r.txt"], ["-o", out, "--emission-out", tmp_path / "e.txt"],
+                       ["-o", out, "--render", png, "--show", "luminance"],
+                       ["-o", out, "--render", png, "--camera", "nowhere"]):
+        bad_run = run(light_spec(min=1.0), *bad_option)
+        assert bad_run.exit_code == 2 and "Traceback" not in bad_run.output, bad_option
+    by_patches = light_spec(min=1.0)
+    by_patches["emitters"][0] = {"name": "two", "patches": [0, 1], "max": 100.0}
+    refused = run(by_patches, "-o", tmp_path / "r4.json", "--emission-out", em)
+    assert refused.exit_code == 2 and "emitters[0]" in refused.output and not (tmp_path / "r4.json").exists()
+
+
+def test_batches_of_emitters_give_the_same_response(case):
+    """Many emitters are solved in several batches (bounded memory) with the same result."""
+    from hfrad.inverse.transfer import response
+
+    scene, fac, F = case
+    spec = parse_spec({"emitters": [{"name": f"p{i}", "patches": [int(i)]} for i in range(0, 40, 3)],
+                       "targets": [{"name": "floor", "group": "floor", "quantity": "irradiance", "min": 0.1}]},
+                      scene)
+    whole = response(fac, spec)
+    done = []
+    pieces = response(fac, spec, batch_bytes=2 * scene.n_patches * 3 * 8 * 4, progress=lambda d, t: done.append(d))
+    # 14 emitters and the background (the scene's own light): 15 right-hand sides, 4 per batch
+    assert done == [4, 8, 12, 15] and whole.evaluations == pieces.evaluations == 15
+    np.testing.assert_allclose(pieces.matrix[0], whole.matrix[0], rtol=1e-12, atol=0)
+    np.testing.assert_allclose(pieces.offset[0], whole.offset[0], rtol=1e-12, atol=0)
+
+
+def test_toml_spec_and_the_office_example(tmp_path):
+    from pathlib import Path
+
+    office = Path(__file__).resolve().parent.parent / "examples" / "office"
+    scene = hfrad.load_scene(str(office / "office.obj"))
+    spec = parse_spec(office / "spec.json", scene)
+    assert [e.name for e in spec.emitters] == [f"lum_{k}" for k in range(1, 7)]
+    desk = spec.targets[0]
+    assert (scene.material[desk.patches] == scene.material_names.index("desk")).all()
+    assert (scene.group[desk.patches] == scene.groups.index("desk_1")).all()
+    toml = tmp_path / "spec.toml"
+    toml.write_text('objective = "min_power"\n[[emitters]]\nmaterial = "luminaire"\nmax = 60\n'
+                    '[[targets]]\nmaterial = "desk"\nquantity = "irradiance_lux"\nmin = 500\n')
+    parsed = parse_spec(toml, scene)
+    assert parsed.emitters[0].max == 60.0 and parsed.targets[0].min == 500.0
+    toml.write_text('[[emitters]]\nmaterial = "luminaire"\nmax = -60\n[[targets]]\nmaterial = "desk"\n')
+    with pytest.raises(SpecError, match=r"spec.toml: emitters\[0\].max"):
+        parse_spec(toml, scene)
+
+
+def test_adjoint_rows_equal_the_forward_response(case):
+    """Transposed solves give the same rows as forward solves (radiosity, irradiance, black patches, means)."""
+    from hfrad.inverse.transfer import adjoint_response, response
+
+    scene, fac, F = case
+    floor = np.flatnonzero(scene.group == scene.groups.index("floor"))
+    rho = fac.reflectance.copy()
+    rho[floor[:5]] = 0.0                                       # some black patches: H = F B rows
+    black = fac.with_reflectance(rho)
+    spec = parse_spec({
+        "emitters": [{"name": "light", "material": "light"}, {"name": "tall", "group": "tall_block"},
+                     {"name": "left", "group": "left", "color": [0.9, 0.1, 0.1]}],
+        "targets": [{"name": "floor", "group": "floor", "quantity": "irradiance_lux", "min": 1.0},
+                    {"name": "back", "group": "back", "quantity": "radiosity", "max": 9.0},
+                    {"name": "short", "group": "short_block", "quantity": "irradiance", "mean": 1.0},
+                    {"name": "ceiling", "group": "ceiling", "quantity": "radiosity"}]}, scene)
+    fwd, adj = response(black, spec), adjoint_response(black, spec)
+    assert adj.rows == ["patches", "patches", "mean", "none"] and adj.method == "adjoint"
+    assert adj.evaluations == len(floor) + int((scene.group == scene.groups.index("back")).sum()) + 1
+    for j in (0, 1):
+        np.testing.assert_allclose(adj.matrix[j], fwd.matrix[j], rtol=1e-9, atol=1e-12 * np.abs(fwd.matrix[j]).max())
+        np.testing.assert_allclose(adj.offset[j], fwd.offset[j], rtol=1e-9, atol=1e-12 * np.abs(fwd.offset[j]).max())
+    w = fwd.weight[2]
+    np.testing.assert_allclose(adj.matrix[2][0], w @ fwd.matrix[2], rtol=1e-9)
+    np.testing.assert_allclose(adj.offset[2][0], w @ fwd.offset[2], rtol=1e-9)
+    assert adj.matrix[3].shape == (0, 3)
+
+
+def test_many_emitters_few_goals_take_the_adjoint(case):
+    """'Painting with light': every ceiling patch an emitter, two mean goals: 2 + 1 solves, not 30+."""
+    scene, fac, F = case
+    ceiling = np.flatnonzero(scene.group == scene.groups.index("ceiling"))
+    spec = {"emitters": [{"name": f"c{i}", "patches": [int(i)], "max": 50.0} for i in ceiling],
+            "targets": [{"name": "floor", "group": "floor", "quantity": "irradiance_lux", "mean": 300.0},
+                        {"name": "tall", "group": "tall_block", "quantity": "irradiance_lux", "mean": 150.0}],
+            "background": "none"}
+    auto = design(fac, spec)
+    forward = design(fac, spec, method="forward")
+    assert auto.report["method"] == "adjoint" and auto.report["evaluations"] == 3
+    assert forward.report["evaluations"] == len(ceiling)
+    assert auto.feasible and auto.report["verified"]["goals_met"]
+    assert auto.report["verified"]["max_relative_deviation"] < 1e-9
+    assert auto.report["total_power_W"] == pytest.approx(forward.report["total_power_W"], rel=1e-7)
+    B = dense_solve(F, fac.reflectance, auto.exitance)
+    floor = np.flatnonzero(scene.group == scene.groups.index("floor"))
+    assert scene.areas[floor] @ lux(F, B, floor) / scene.areas[floor].sum() >= 300.0 * (1 - 1e-6)

@@ -28,14 +28,14 @@ from .progress import ProgressCallback, report
 from .scene.scene import Scene
 from .scene.zorder import patch_order
 from .solve.woodbury import HFactorization
-from .validation import check_permutation, check_reflectance
+from .validation import check_factorize_options, check_permutation, check_reflectance
 StatusCallback = Callable[[dict], None] | None
 
 
 def _scene_key(scene: Scene, params: dict) -> str:
     """A hash of everything the factorization depends on: geometry, reflectance, parameters."""
     h = hashlib.sha256()
-    for a in (scene.vertices, scene.faces, scene.occluder_vertices, scene.occluder_faces,
+    for a in (scene.vertices, scene.faces, scene.occluder_vertices, scene.occluder_faces, scene.patch_of_triangle,
               scene.reflectance.max(axis=1)):
         h.update(np.ascontiguousarray(a).tobytes())
     h.update(json.dumps(params, sort_keys=True).encode())
@@ -48,23 +48,15 @@ def check_factorize_args(scene: Scene, eps: float, block_size: int, dtype, relat
         raise TypeError(f"scene must be a hfrad Scene (see hfrad.load_scene); got {type(scene).__name__}")
     if scene.n_patches == 0:
         raise SceneError(f"{scene.name}: the scene has no patches")
-    if relative and not (0.0 < eps < 1.0):
-        raise InputError(f"eps must be in (0, 1) (a relative Frobenius error, e.g. 0.02); got {eps}")
-    if not relative and not (eps > 0.0 and math.isfinite(eps)):
-        raise InputError(f"an absolute eps must be a positive number; got {eps}")
-    if not (1 <= block_size <= scene.n_patches):
-        raise InputError(f"block size must be between 1 and the patch count {scene.n_patches}; got {block_size}")
-    dt = np.dtype(dtype)
-    if dt not in (np.float32, np.float64):
-        raise InputError(f"dtype must be float32 or float64; got {dt}")
-    return dt
+    return check_factorize_options(scene.n_patches, eps, block_size, dtype, relative)
 
 
 def factorize(scene_or_matrix, reflectance=None, *, eps: float = 0.02, relative: bool = True,
               block_size: int | None = None, dtype="float32", order=None, method: str = "hf",
               samples: int | None = None, leaf_share: float = 0.5,
               checkpoint: str | Path | None = None, checkpoint_interval: float = 30.0,
-              blas_threads: int | None = 1, rng=None,
+              blas_threads: int | None = 1, processes: int | None = None, one_ray_tol: float | None = None,
+              rng=None,
               progress: ProgressCallback = None, status: StatusCallback = None) -> HFactorization:
     """Factor a radiosity system once: ``diag(rho_max) F ~= Q V^T``, then solve it for any light in O(nk).
 
@@ -103,6 +95,14 @@ def factorize(scene_or_matrix, reflectance=None, *, eps: float = 0.02, relative:
     blas_threads : int or None
         Scene only: BLAS threads while the form-factor engine runs (None:
         leave as is). One is fastest while the engine uses the other cores.
+    processes : int or None
+        Scene only: form-factor worker processes (None: one per core from
+        4,000 patches on); the result does not depend on it.
+    one_ray_tol : float or None
+        Scene only: pairs that together hold at most this share of ``||F||_F``
+        get one visibility ray instead of several
+        (:func:`hfrad.formfactors.parallel.one_ray_threshold`); None: ``eps / 4``
+        for a relative eps, 0 (off) for an absolute one.
     rng : None, int or numpy Generator
         Seed of the randomized baselines ("rsvd", "sketch").
     progress : callable (done, total), optional
@@ -147,13 +147,14 @@ def factorize(scene_or_matrix, reflectance=None, *, eps: float = 0.02, relative:
                                 samples=samples, order="zorder" if order is None else order,
                                 leaf_share=leaf_share, checkpoint=checkpoint,
                                 checkpoint_interval=checkpoint_interval, blas_threads=blas_threads,
-                                progress=progress, status=status)
+                                processes=processes, one_ray_tol=one_ray_tol, progress=progress, status=status)
     if isinstance(scene_or_matrix, (str, Path)):
         raise InputError(f"factorize takes a Scene or a matrix; load the file first: "
                          f"hfrad.load_scene({str(scene_or_matrix)!r})")
     if reflectance is None:
         raise InputError("factorize(F, reflectance): a form-factor matrix needs the (n, 3) reflectance")
-    for name, value in (("samples", samples), ("checkpoint", checkpoint), ("status", status)):
+    for name, value in (("samples", samples), ("checkpoint", checkpoint), ("status", status),
+                        ("processes", processes), ("one_ray_tol", one_ray_tol)):
         if value is not None:
             raise InputError(f"{name} applies to a Scene only, not to a form-factor matrix")
     return _factorize_matrix(scene_or_matrix, reflectance, eps=eps, relative=relative,
@@ -163,7 +164,7 @@ def factorize(scene_or_matrix, reflectance=None, *, eps: float = 0.02, relative:
 
 def _factorize_scene(scene: Scene, *, eps: float, relative: bool, block_size: int | None, dtype, samples,
                      order, leaf_share: float, checkpoint, checkpoint_interval: float, blas_threads,
-                     progress: ProgressCallback, status: StatusCallback) -> HFactorization:
+                     processes, one_ray_tol, progress: ProgressCallback, status: StatusCallback) -> HFactorization:
     """The scene branch of :func:`factorize` (arguments as there): streamed form factors into HF."""
     if block_size is None:
         block_size = min(DEFAULT_BLOCK_SIZE, max(scene.n_patches, 1))
@@ -178,14 +179,20 @@ def _factorize_scene(scene: Scene, *, eps: float, relative: bool, block_size: in
         order = "custom"
     rho_max = scene.reflectance.max(axis=1)
     n_blocks = math.ceil(n / block_size)
+    if one_ray_tol is None:
+        one_ray_tol = 0.25 * eps if relative else 0.0
     params = {"eps": eps, "relative": relative, "block_size": block_size, "dtype": dt.name,
-              "samples": samples, "order": order, "leaf_share": leaf_share}
+              "samples": samples, "order": order, "leaf_share": leaf_share, "one_ray_tol": one_ray_tol}
     key = _scene_key(scene, params)
     stream = _open_stream(checkpoint, key, n, n_blocks, eps, relative, dt, leaf_share)
     t0 = time.perf_counter()
     ff_kwargs = {} if samples is None else {"samples": samples}
-    blocks = iter_column_blocks(scene, block_size, order=perm, first_block=stream.blocks_done, **ff_kwargs)
-    rows_rho = rho_max[perm][:, None]
+    if samples != 0:
+        from .formfactors.parallel import one_ray_threshold
+        ff_kwargs["one_ray_below"] = one_ray_threshold(scene, one_ray_tol)
+    blocks = iter_column_blocks(scene, block_size, order=perm, first_block=stream.blocks_done,
+                                processes=processes, dtype=dt, **ff_kwargs)
+    rows_rho = rho_max[perm][:, None].astype(dt)
     with _blas_threads(blas_threads):
         lowrank, time_ff = _stream_blocks(blocks, stream, rows_rho, n_blocks, checkpoint, checkpoint_interval,
                                           key, progress, status, t0)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 import warnings
 
@@ -9,7 +10,8 @@ import numpy as np
 
 from .errors import InputError
 
-__all__ = ["check_permutation", "check_reflectance", "check_trans", "check_finite", "object_first"]
+__all__ = ["check_permutation", "check_reflectance", "check_trans", "check_finite", "object_first",
+           "check_factorize_options"]
 
 
 def check_permutation(order, n: int, name: str = "order") -> np.ndarray:
@@ -77,3 +79,24 @@ def object_first(obj, path, call: str):
         warnings.warn(f"the object comes first, then the path: {call}", DeprecationWarning, stacklevel=3)
         return path, obj
     return obj, path
+
+
+def check_factorize_options(n: int, eps: float, block_size: int, dtype, relative: bool = True) -> np.dtype:
+    """The precompute's options for an n-patch scene (every backend's); returns the factor dtype.
+
+    Raises
+    ------
+    InputError (a ValueError)
+        eps outside (0, 1) (relative) or not positive (absolute), a block size
+        outside [1, n], or a dtype other than float32/float64.
+    """
+    if relative and not (0.0 < eps < 1.0):
+        raise InputError(f"eps must be in (0, 1) (a relative Frobenius error, e.g. 0.02); got {eps}")
+    if not relative and not (eps > 0.0 and math.isfinite(eps)):
+        raise InputError(f"an absolute eps must be a positive number; got {eps}")
+    if not (1 <= block_size <= n):
+        raise InputError(f"block size must be between 1 and the patch count {n}; got {block_size}")
+    dt = np.dtype(dtype)
+    if dt not in (np.float32, np.float64):
+        raise InputError(f"dtype must be float32 or float64; got {dt}")
+    return dt

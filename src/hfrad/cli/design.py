@@ -21,12 +21,19 @@ def register(app: typer.Typer) -> None:
         factorization: Path = typer.Argument(..., help="Factorization file from `hfrad precompute` (.hfr)."),
         output: Path = typer.Option(..., "-o", "--output", help="Result to write (.json)."),
         render: Optional[Path] = typer.Option(None, "--render", help="Also draw the designed lighting (.png)."),
+        emission_out: Optional[Path] = typer.Option(
+            None, "--emission-out", help="Also write the designed emission as an emission file (.json) for "
+                                         "`hfrad render/solve --emission-file` and `hfrad view`."),
         camera: str = typer.Option("auto", "--camera", help="Camera of --render: auto, front or "
                                                             "x,y,z:tx,ty,tz[:fov_degrees]."),
         falsecolor: bool = typer.Option(False, "--falsecolor", help="--render in false colour with a colour bar."),
         unit: str = typer.Option("lux", "--unit", help="False-colour unit of --render: W/m2 or lux."),
+        show: str = typer.Option("radiosity", "--show", help="What --render draws: radiosity (what the eye "
+                                 "sees), or irradiance (light arriving; with --falsecolor --unit lux: illuminance)."),
         width: int = typer.Option(640, "--width", min=1, help="--render width, pixels."),
         height: int = typer.Option(480, "--height", min=1, help="--render height, pixels."),
+        method: str = typer.Option("auto", "--method", help="auto (fewer solves), forward (one solve per "
+                                   "emitter) or adjoint (one transposed solve per target row the goals need)."),
         quiet: bool = common.QuietOption,
     ) -> None:
         """Find the least-power (or best-fitting) emitter intensities that meet the spec's goals.
@@ -46,6 +53,8 @@ def register(app: typer.Typer) -> None:
         with common.user_errors():
             if output.suffix.lower() != ".json":
                 raise InputError(f"output must be a .json file, got '{output}'")
+            if emission_out is not None and emission_out.suffix.lower() != ".json":
+                raise InputError(f"--emission-out must be a .json file, got '{emission_out}'")
             if render is not None:
                 from ..render import Camera
                 if render.suffix.lower() != ".png":
@@ -53,16 +62,28 @@ def register(app: typer.Typer) -> None:
                 if falsecolor:
                     from ..render.falsecolor import check_unit
                     check_unit(unit)
+                if show not in ("radiosity", "irradiance"):
+                    raise InputError(f"--show must be radiosity or irradiance, got {show!r}")
                 Camera.parse(camera, np.array([[0.0, 0, 0], [1, 1, 1]]))  # fail on a bad camera before solving
             fac = common.load_factorization(factorization)
             parsed = parse_spec(spec, fac.scene)
+            if emission_out is not None:
+                from ..inverse.emission import check_nameable
+                check_nameable(parsed)
             with common.progress_bar("design", quiet) as bar:
-                result = run_design(fac, parsed, progress=bar)
+                result = run_design(fac, parsed, method=method, progress=bar)
             with atomic_path(output) as tmp:
                 tmp.write_text(result.to_json() + "\n", encoding="utf-8")
+            if emission_out is not None and result.feasible:
+                from ..inverse.emission import emission_settings
+                from ..io.emission import write_emission
+                write_emission(emission_out, emission_settings(result, fac.scene))
             if render is not None and result.radiosity is not None:
+                from ..inverse.transfer import irradiance_field
                 from ..render import render_image, save_png
-                image = render_image(fac.scene.replace(emission=result.exitance), result.radiosity,
+                drawn = result.radiosity if show == "radiosity" else \
+                    irradiance_field(fac, result.radiosity, result.exitance)
+                image = render_image(fac.scene.replace(emission=result.exitance), drawn,
                                      camera=camera, width=width, height=height, falsecolor=falsecolor, unit=unit)
                 save_png(image, render)
         _summary(result.report, output, render)

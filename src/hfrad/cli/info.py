@@ -94,6 +94,13 @@ def _print_summary(summary: dict) -> None:
     out = Console()
     out.print(f"[bold]{summary['scene']}[/]: {summary['patches']:,} patches from {summary['input_faces']:,} faces, "
               f"{summary['vertices']:,} vertices, area {summary['total_area_m2']:.4g} m^2")
+    c = summary["clustering"]
+    if c["clustered"]:
+        per = c["triangles_per_patch"]
+        out.print(f"clustered: {summary['patches']:,} patches of {c['triangles']:,} triangles "
+                  f"({per['mean']:.1f} per patch on average, median {per['median']:g}, at most {per['max']:,}); "
+                  f"patch area spread (std/mean) {c['area_cv']:.2f}; worst non-flatness {c['worst_non_flatness']:.3f} "
+                  "(1 - |mean normal|; 0 = flat)", highlight=False)
     lo, hi = summary["bounds_min"], summary["bounds_max"]
     out.print("bounds: min (" + ", ".join(f"{x:.4g}" for x in lo) + ")  max (" + ", ".join(f"{x:.4g}" for x in hi) + ")")
     table = Table("material", "reflectance (R,G,B)", "emission W/m^2", "patches", "area m^2")

@@ -32,6 +32,11 @@ def register(app: typer.Typer) -> None:
         default_reflectance: float = common.DefaultReflectanceOption,
         allow_missing_materials: bool = common.AllowMissingMaterialsOption,
         keep_duplicates: bool = common.KeepDuplicatesOption,
+        scheduler: Optional[str] = typer.Option(
+            None, "--scheduler", help="Run on a Dask cluster: tcp://HOST:PORT of a running `dask scheduler` "
+            "(docs/cluster.md)."),
+        workers: Optional[int] = typer.Option(
+            None, "--workers", help="Run on a local Dask cluster of N worker processes (one thread each)."),
         quiet: bool = common.QuietOption,
     ) -> None:
         """Precompute a scene once: form factors with visibility, HF, Woodbury factors.
@@ -40,7 +45,10 @@ def register(app: typer.Typer) -> None:
         factors, about 5 n k x 4 bytes in float32 (k = rank; k ~ 1,500 at 10K
         patches and eps 0.02 -> ~0.3 GB). The n x n matrix is never stored.
         A checkpoint (OUTPUT.partial) is written every 30 s; rerun the same
-        command to resume after an interruption.
+        command to resume after an interruption. With --scheduler or --workers
+        the work runs as Dask tasks (no checkpoint: Dask re-runs the tasks of a
+        lost worker); each worker needs about 25 n BLOCK bytes plus, for the
+        root merge, ~16 n k x 4 bytes (docs/cluster.md).
         """
         from ..solve.hfr import save_hfr
         from ..pipeline import factorize
@@ -55,6 +63,13 @@ def register(app: typer.Typer) -> None:
                                         allow_missing_materials=allow_missing_materials,
                                         max_edge=max_edge, patches=patches, keep_duplicates=keep_duplicates)
             common.check_memory_for_precompute(s.n_patches, block or DEFAULT_BLOCK_SIZE, dtype)
+            if scheduler is not None or workers is not None:
+                t_load = time.perf_counter() - t0
+                fac = _on_cluster(s, scheduler, workers, quiet, eps=eps, block_size=block, dtype=dtype,
+                                  samples=samples, order=order)
+                save_hfr(fac, output, timings={"load": t_load, **_stage_times(fac)})
+                _report(fac, output, time.perf_counter() - t0)
+                return
             checkpoint = output.with_name(output.name + ".partial")
             if checkpoint.exists():
                 common.console.print(f"resuming from checkpoint {checkpoint}")
@@ -63,9 +78,36 @@ def register(app: typer.Typer) -> None:
                 status = None if bar is None else (lambda info: bar.note(f"rank {info['rank']:,}"))
                 fac = factorize(s, eps=eps, block_size=block, dtype=dtype, samples=samples, order=order,
                                 checkpoint=checkpoint, progress=bar, status=status)
-            timings = {"load": t_load, **{k: v for k, v in fac.lowrank.info.items() if k.startswith("time")}}
-            save_hfr(fac, output, timings=timings)
+            save_hfr(fac, output, timings={"load": t_load, **_stage_times(fac)})
         _report(fac, output, time.perf_counter() - t0)
+
+
+def _stage_times(fac) -> dict:
+    return {k: v for k, v in fac.lowrank.info.items() if k.startswith("time")}
+
+
+def _on_cluster(scene, scheduler: Optional[str], workers: Optional[int], quiet: bool, **options):
+    """The precompute as Dask tasks; a scheduler that cannot be reached exits 2 naming its address."""
+    from ..distributed import SchedulerUnreachableError, connect, factorize_distributed, rank_guess, worker_bytes
+    from ..memory import human
+
+    if scheduler is not None and workers is not None:
+        raise ValueError("give --scheduler or --workers, not both")
+    n, block = scene.n_patches, min(options["block_size"] or DEFAULT_BLOCK_SIZE, scene.n_patches)
+    k = rank_guess(n, options["eps"])
+    try:
+        with connect(scheduler, workers=workers) as cluster:
+            where = f"{cluster.n_workers} local worker processes" if cluster.kind == "local" else \
+                f"the Dask scheduler at {cluster.address} ({cluster.n_workers} workers)"
+            common.console.print(
+                f"running on {where}; each worker needs up to ~{human(worker_bytes(n, block, k))} "
+                f"(n {n:,}, block {block}, rank ~{k:,} guessed)"
+                + (f"\nDask dashboard: {cluster.dashboard}" if cluster.dashboard else ""), highlight=False)
+            with common.progress_bar(f"precompute {n:,} patches on Dask", quiet) as bar:
+                status = None if bar is None else (lambda info: bar.note(f"rank {info['rank']:,}"))
+                return factorize_distributed(scene, scheduler=cluster, progress=bar, status=status, **options)
+    except SchedulerUnreachableError as exc:
+        common.fail(str(exc))
 
 
 def _report(fac, output: Path, seconds: float) -> None:
@@ -77,4 +119,6 @@ def _report(fac, output: Path, seconds: float) -> None:
         f"achieved error {fac.relative_error:.4f} (target {fac.eps}), sigma_max {sigma}, "
         f"eq. 5 bound on the relative radiosity error (R,G,B) {bound}\n"
         f"time {seconds:.1f} s (form factors {info.get('time_formfactors', 0):.1f} s, "
-        f"factorization {info.get('time_total', 0):.1f} s)", highlight=False)
+        f"factorization {info.get('time_total', 0):.1f} s"
+        + (f"; summed over {info['workers']} Dask workers" if info.get("backend") == "dask" else "") + ")",
+        highlight=False)

@@ -133,7 +133,7 @@ def _merge(a: _Node, b: _Node, share2: float, where: str) -> _Node:
     return _Node(level, U, s, V, norm2, a.discarded2 + b.discarded2 + d2, budget2 - d2)
 
 
-class _Budget:
+class ErrorBudget:
     """Squared-Frobenius budget of each truncation (see module docstring).
 
     Relative mode: a leaf may discard ``leaf_share eps^2 ||A_j||^2`` and a merge
@@ -151,11 +151,13 @@ class _Budget:
         self.leaf_share = 1.0 if self.levels == 0 else leaf_share
 
     def leaf(self, norm2: float) -> float:
+        """Squared Frobenius error a leaf of squared norm ``norm2`` may discard."""
         if self.relative:
             return self.leaf_share * self.eps2 * norm2
         return self.eps2 / (2 * self.m - 1)
 
     def merge(self, norm2: float) -> float:
+        """Squared Frobenius error a merge node of squared norm ``norm2`` may discard (plus its children's slack)."""
         if self.relative:
             return (1.0 - self.leaf_share) / self.levels * self.eps2 * norm2
         return self.eps2 / (2 * self.m - 1)
@@ -183,7 +185,7 @@ class HFStream:
         self.n, self.n_blocks = int(n), int(n_blocks)
         self.eps, self.relative, self.leaf_share = float(eps), bool(relative), float(leaf_share)
         self.dtype = np.dtype(dtype)
-        self._budget = _Budget(self.eps, self.relative, max(self.n_blocks, 1), self.leaf_share)
+        self._budget = ErrorBudget(self.eps, self.relative, max(self.n_blocks, 1), self.leaf_share)
         self.stack: list[_Node] = []
         self.blocks_done = 0
         self.columns_done = 0
@@ -204,14 +206,12 @@ class HFStream:
         if j >= self.n_blocks:
             raise ValueError(f"more than the announced n_blocks={self.n_blocks} column blocks were pushed")
         t = time.perf_counter()
-        norm2 = float(np.sum(np.square(A, dtype=np.float64)))
-        node = _leaf(A, norm2, self._budget.leaf(norm2), j)
+        node = compress_leaf(A, self._budget, j)
         self.leaf_ranks.append(node.s.size)
         self.time_leaf += time.perf_counter() - t
         t = time.perf_counter()
         while self.stack and self.stack[-1].level == node.level:  # binary counter
-            left = self.stack.pop()
-            node = _merge(left, node, self._budget.merge(left.norm2 + node.norm2), f"merge ending at block {j}")
+            node = merge_nodes(self.stack.pop(), node, self._budget, f"merge ending at block {j}")
         self.stack.append(node)
         self.time_merge += time.perf_counter() - t
         self.blocks_done += 1
@@ -228,19 +228,72 @@ class HFStream:
                                np.zeros((0, 0), self.dtype), 0.0, 0.0, 0.0))
         while len(stack) > 1:  # remaining nodes, top (smallest) down
             right, left = stack.pop(), stack.pop()
-            stack.append(_merge(left, right, self._budget.merge(left.norm2 + right.norm2), "final merge"))
-        root = stack[0]
-        # Spend what the tree left unused on the root: its discard is orthogonal to all others.
-        eye = np.eye(root.s.size, dtype=self.dtype)
-        Ur, s, Wt, d2 = _truncate(eye, root.s, eye, root.slack2)
-        U, V = root.U @ Ur, root.V @ Wt.T
+            stack.append(merge_nodes(left, right, self._budget, "final merge"))
+        lowrank = root_lowrank(stack[0], self.eps, self.relative)
         self.time_merge += time.perf_counter() - t
-        info = {"time_total": self.time_leaf + self.time_merge, "time_leaf": self.time_leaf,
-                "time_merge": self.time_merge, "n_blocks": self.blocks_done, "leaf_ranks": self.leaf_ranks,
-                "dtype": self.dtype.name, "leaf_share": self.leaf_share}
-        return LowRank(Q=U * s, V=V, achieved_error=math.sqrt(max(root.discarded2 + d2, 0.0)),
-                       norm=math.sqrt(root.norm2), eps=self.eps, relative=self.relative,
-                       method="hf", info=info)
+        lowrank.info.update({"time_total": self.time_leaf + self.time_merge, "time_leaf": self.time_leaf,
+                             "time_merge": self.time_merge, "n_blocks": self.blocks_done,
+                             "leaf_ranks": self.leaf_ranks, "dtype": self.dtype.name,
+                             "leaf_share": self.leaf_share})
+        return lowrank
+
+
+# -- The same tree, one piece at a time ---------------------------------------------
+# HFStream runs these pieces in a loop; hfrad.distributed runs them as tasks on a
+# cluster. Sharing them keeps both backends' truncations, budgets and results equal.
+
+def compress_leaf(A: np.ndarray, budget: ErrorBudget, j: int) -> _Node:
+    """Leaf ``j`` of the tree: the truncated SVD of one column block ``A`` (n x b), within its share.
+
+    ``A`` must already be in the working dtype; its norm accumulates in float64.
+    """
+    norm2 = float(np.sum(np.square(A, dtype=np.float64)))
+    return _leaf(A, norm2, budget.leaf(norm2), j)
+
+
+def merge_nodes(left: _Node, right: _Node, budget: ErrorBudget, where: str) -> _Node:
+    """Merge two adjacent nodes (``left`` covers the columns before ``right``'s) within the node's share."""
+    return _merge(left, right, budget.merge(left.norm2 + right.norm2), where)
+
+
+def root_lowrank(root: _Node, eps: float, relative: bool) -> LowRank:
+    """``Q V^T`` of the root node, spending the budget the tree left unused (its discard is
+    orthogonal to all others), with the achieved error; ``info`` is left for the caller."""
+    eye = np.eye(root.s.size, dtype=root.U.dtype)
+    Ur, s, Wt, d2 = _truncate(eye, root.s, eye, root.slack2)
+    U, V = root.U @ Ur, root.V @ Wt.T
+    return LowRank(Q=U * s, V=V, achieved_error=math.sqrt(max(root.discarded2 + d2, 0.0)),
+                   norm=math.sqrt(root.norm2), eps=eps, relative=relative, method="hf", info={})
+
+
+def counter_tree(m: int) -> list[tuple[int, int]]:
+    """The merges :class:`HFStream` performs for ``m`` blocks, as a tree.
+
+    Nodes ``0 .. m-1`` are the leaves (column blocks, left to right); merge
+    ``i`` of the returned list creates node ``m + i`` from ``(left, right)``.
+    The last node created (node ``m - 1`` when m == 1) is the root. Merges
+    whose children are both done may run at the same time: the tree has
+    depth ``ceil(log2 m)``.
+
+    Examples
+    --------
+    >>> counter_tree(3)
+    [(0, 1), (3, 2)]
+    """
+    merges: list[tuple[int, int]] = []
+    stack: list[tuple[int, int]] = []  # (level, node)
+    for j in range(m):
+        level, node = 0, j
+        while stack and stack[-1][0] == level:  # binary counter, as in HFStream.push
+            left_level, left = stack.pop()
+            merges.append((left, node))
+            level, node = max(left_level, level) + 1, m + len(merges) - 1
+        stack.append((level, node))
+    while len(stack) > 1:  # as in HFStream.finish
+        (_, right), (_, left) = stack.pop(), stack.pop()
+        merges.append((left, right))
+        stack.append((0, m + len(merges) - 1))
+    return merges
 
 
 def _count_blocks(blocks, n_blocks: int | None) -> int:

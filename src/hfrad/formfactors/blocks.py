@@ -26,7 +26,8 @@ from ..memory import available_bytes as available_memory
 from ..progress import ProgressCallback, report
 from ..validation import check_permutation
 from .cache import BlockCache, array_hash, scene_hash
-from .kernel import KERNEL_VERSION, NEAR, NEAR_SPLITS, PatchGeometry, unoccluded_block
+from .clustered import kernel_for
+from .kernel import KERNEL_VERSION, NEAR, NEAR_SPLITS
 from .visibility import DEFAULT_SAMPLES, RayBuffers, Visibility, check_samples
 
 __all__ = ["FormFactorEngine", "iter_column_blocks", "form_factor_matrix", "row_sums",
@@ -48,6 +49,9 @@ class FormFactorEngine:
     samples : int
         Visibility rays per pair (1, 4, 9, ...); 0 disables visibility (F unoccluded).
     near, near_splits : see :mod:`hfrad.formfactors.kernel`.
+    one_ray_below : float
+        Pairs with ``A_i F_ij`` below this get one visibility ray instead of
+        ``samples`` (see :func:`hfrad.formfactors.parallel.one_ray_threshold`); 0 = off.
 
     Notes
     -----
@@ -58,10 +62,13 @@ class FormFactorEngine:
     """
 
     def __init__(self, scene, *, samples: int = DEFAULT_SAMPLES, near: float = NEAR,
-                 near_splits: int = NEAR_SPLITS) -> None:
-        self.geometry = PatchGeometry(scene, near=near, near_splits=near_splits)
+                 near_splits: int = NEAR_SPLITS, one_ray_below: float = 0.0) -> None:
+        # patches that are clusters of triangles (hfrad.scene.cluster) have their own kernel
+        self.geometry, self._unoccluded = kernel_for(scene, near=near, near_splits=near_splits)
         self.samples = int(samples)
         self.visibility = Visibility(scene, samples=samples) if samples else None
+        if self.visibility is not None:
+            self.visibility.one_ray_below = float(one_ray_below)
         self.kernel_seconds = 0.0
         self.pairs = 0
         self._executor = None
@@ -77,7 +84,7 @@ class FormFactorEngine:
 
     def _kernel(self, rows, cols) -> np.ndarray:
         t0 = time.perf_counter()
-        F = unoccluded_block(self.geometry, rows, cols)
+        F = self._unoccluded(self.geometry, rows, cols)
         self.kernel_seconds += time.perf_counter() - t0
         self.pairs += F.size
         return F
@@ -148,9 +155,11 @@ def _check_common(scene, samples, block_size) -> None:
                          "remove degenerate patches first (hfrad.scene.patches.drop_degenerate)")
 
 
-def cache_key(scene, *, samples: int, block_size: int, order: np.ndarray, dtype) -> dict:
+def cache_key(scene, *, samples: int, block_size: int, order: np.ndarray, dtype,
+              one_ray_below: float = 0.0) -> dict:
     """What a cached block depends on (see :mod:`hfrad.formfactors.cache`)."""
-    return {"scene_sha256": scene_hash(scene), "samples": int(samples), "block_size": int(block_size),
+    extra = {"one_ray_below": float(one_ray_below)} if one_ray_below else {}
+    return extra | {"scene_sha256": scene_hash(scene), "samples": int(samples), "block_size": int(block_size),
             "order_sha256": array_hash(order.astype(np.int64)), "dtype": np.dtype(dtype).str,
             "kernel_version": KERNEL_VERSION, "near": NEAR, "near_splits": NEAR_SPLITS,
             "n": int(scene.n_patches)}
@@ -160,7 +169,8 @@ def iter_column_blocks(scene, block_size: int = DEFAULT_BLOCK_SIZE, *, order=Non
                        samples: int = DEFAULT_SAMPLES, dtype=np.float64,
                        progress: ProgressCallback = None, cache=None,
                        engine: FormFactorEngine | None = None,
-                       first_block: int = 0) -> Iterator[tuple[int, int, np.ndarray]]:
+                       first_block: int = 0, processes: int | None = 1,
+                       one_ray_below: float = 0.0) -> Iterator[tuple[int, int, np.ndarray]]:
     """Stream F in column blocks, rows and columns in the internal ``order``.
 
     Yields ``(start, stop, block)`` with
@@ -190,6 +200,14 @@ def iter_column_blocks(scene, block_size: int = DEFAULT_BLOCK_SIZE, *, order=Non
         Reuse per-scene state (and read its timing counters).
     first_block : int
         Start at this block (resuming an interrupted pass); earlier blocks are not computed.
+    processes : int or None
+        Processes computing blocks (:class:`~hfrad.formfactors.parallel.ProcessEngine`);
+        1 = this process (numba threads + one Embree thread); None = one per core
+        when the scene has at least ``MIN_PARALLEL_PATCHES`` patches. The blocks
+        are the same whatever the count.
+    one_ray_below : float
+        Pairs with ``A_i F_ij`` below this get one visibility ray (see
+        :func:`hfrad.formfactors.parallel.one_ray_threshold`); 0 = off.
 
     Raises
     ------
@@ -210,7 +228,8 @@ def iter_column_blocks(scene, block_size: int = DEFAULT_BLOCK_SIZE, *, order=Non
     store = None
     if cache is not None:
         store = cache if isinstance(cache, BlockCache) else BlockCache(cache)
-        store.open(cache_key(scene, samples=samples, block_size=block_size, order=order, dtype=dtype),
+        store.open(cache_key(scene, samples=samples, block_size=block_size, order=order, dtype=dtype,
+                             one_ray_below=one_ray_below),
                    n, block_size, dtype)
     starts = list(range(0, n, block_size))[first_block:]
     # Only flags are read up front: a cached block is read when its turn comes,
@@ -218,7 +237,8 @@ def iter_column_blocks(scene, block_size: int = DEFAULT_BLOCK_SIZE, *, order=Non
     todo = [k for k in range(first_block, first_block + len(starts)) if store is None or not store.has(k)]
     own_engine = engine is None
     if todo and engine is None:
-        engine = FormFactorEngine(scene, samples=samples)
+        engine = make_engine(scene, samples=samples, processes=processes, one_ray_below=one_ray_below,
+                             block_size=block_size, dtype=dtype)
     computed = engine.iter_blocks(order, (order[k * block_size:(k + 1) * block_size] for k in todo)) \
         if todo else _empty()
     try:
@@ -241,6 +261,25 @@ def iter_column_blocks(scene, block_size: int = DEFAULT_BLOCK_SIZE, *, order=Non
             store.close()
         if own_engine and engine is not None:
             engine.close()
+
+
+def make_engine(scene, *, samples: int = DEFAULT_SAMPLES, processes: int | None = 1, one_ray_below: float = 0.0,
+                block_size: int = DEFAULT_BLOCK_SIZE, dtype=np.float64):
+    """A FormFactorEngine (this process), or a ProcessEngine when ``processes`` > 1.
+
+    ``processes=None`` picks one per core for scenes of at least
+    ``MIN_PARALLEL_PATCHES`` patches and this process otherwise.
+    """
+    from .parallel import MIN_PARALLEL_PATCHES, ProcessEngine, default_workers
+
+    if processes is None:
+        processes = default_workers() if scene.n_patches >= MIN_PARALLEL_PATCHES else 1
+    if int(processes) != processes or int(processes) < 1:
+        raise ValueError(f"processes must be a positive integer (or None for one per core), got {processes}")
+    if int(processes) > 1:
+        return ProcessEngine(scene, workers=int(processes), samples=samples, one_ray_below=one_ray_below,
+                             block_size=block_size, dtype=dtype)
+    return FormFactorEngine(scene, samples=samples, one_ray_below=one_ray_below)
 
 
 def _empty() -> Iterator[np.ndarray]:

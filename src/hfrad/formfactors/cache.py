@@ -40,7 +40,7 @@ class CacheMismatchError(FileFormatError):
 def scene_hash(scene) -> str:
     """SHA-256 (hex) of the patch geometry and the occluder mesh."""
     h = hashlib.sha256()
-    for a in (scene.vertices, scene.faces, scene.occluder_vertices, scene.occluder_faces):
+    for a in (scene.vertices, scene.faces, scene.occluder_vertices, scene.occluder_faces, scene.patch_of_triangle):
         a = np.ascontiguousarray(a)
         h.update(str((a.dtype.str, a.shape)).encode())
         h.update(a.tobytes())

@@ -81,17 +81,23 @@ class Visibility:
         size = float(np.ptp(scene.bounds, axis=0).max()) if len(tri) else 1.0
         self.scale = size if size > 0 else 1.0
         self.offset = _OFFSET * self.scale
-        pts = points_on_triangles(tri, split_centroids(m))
+        pts, pts_normals = sample_points(scene, m)
         nrm = np.asarray(scene.normals, np.float64)
-        self.points = np.ascontiguousarray(pts + self.offset * nrm[:, None, :])
-        # patch planes n . x = n . v0 (sample points are `offset` in front of their own)
-        self.plane = np.ascontiguousarray(np.column_stack([nrm, np.einsum("nd,nd->n", nrm, tri[:, 0])
+        self.points = np.ascontiguousarray(pts - self.centre + self.offset * pts_normals)
+        # patch planes n . x = n . v0, or through the centroid of a clustered patch
+        # (sample points are `offset` in front of their own triangles)
+        on_plane = scene.centroids - self.centre if scene.is_clustered else tri[:, 0]
+        self.plane = np.ascontiguousarray(np.column_stack([nrm, np.einsum("nd,nd->n", nrm, on_plane)
                                                            if len(tri) else np.zeros(0)]))
         self.partner = np.ascontiguousarray((np.arange(self.samples) + self.samples // 2) % self.samples,
                                             dtype=np.int64)
         self.caster = RayCaster(np.asarray(scene.occluder_vertices, np.float64) - self.centre,
                                 scene.occluder_faces, threads=1)
         self._setup_culling(scene, tri, cull)
+        self.areas = np.ascontiguousarray(scene.areas, dtype=np.float64)
+        #: Pairs with A_i F_ij (symmetric, so V_ij == V_ji still) below this get one ray, not
+        #: ``samples`` (see hfrad.formfactors.parallel.one_ray_threshold); 0 = off.
+        self.one_ray_below = 0.0
         self.rays_cast = 0
         self.embree_seconds = 0.0
 
@@ -99,7 +105,7 @@ class Visibility:
         occ = (np.asarray(scene.occluder_vertices, np.float64) - self.centre)[np.asarray(scene.occluder_faces)]
         m = len(occ)
         self.n_occluders = m
-        n = len(tri)
+        n = scene.n_patches
         self.cull = bool(cull) and 0 < m <= MAX_CULL_OCCLUDERS
         if not self.cull:
             self.front_bits = np.zeros((n, 1), np.uint64)
@@ -117,12 +123,19 @@ class Visibility:
         front = np.zeros((n, words), np.uint64)
         back = np.zeros((n, words), np.uint64)
         step = max(1, (1 << 22) // max(1, 3 * m))
-        for s in range(0, n, step):
+        if scene.is_clustered:  # per triangle first, then all of a patch's triangles must agree
+            front = np.zeros((len(tri), words), np.uint64)
+            back = np.zeros((len(tri), words), np.uint64)
+        for s in range(0, len(tri), step):
             d = np.einsum("pkd,td->ptk", tri[s:s + step], nrm) - d0[None, :, None]  # (p, m, 3)
             f = (d >= -tol).all(axis=2) | ~live[None]
             b = (d <= tol).all(axis=2) | ~live[None]
             front[s:s + step] = _pack_bits(f, words)
             back[s:s + step] = _pack_bits(b, words)
+        if scene.is_clustered:
+            start, index = scene.patch_triangles
+            front = np.bitwise_and.reduceat(front[index], start[:-1], axis=0)
+            back = np.bitwise_and.reduceat(back[index], start[:-1], axis=0)
         self.front_bits, self.back_bits = front, back
         # Box overlap of the pair's box (union of the two patch boxes) with an
         # occluder box, per axis: occ.lo <= max(hi_i, hi_j) and occ.hi >= min(lo_i, lo_j),
@@ -130,6 +143,10 @@ class Visibility:
         pad = 2 * self.offset
         lo = tri.min(axis=1) - pad
         hi = tri.max(axis=1) + pad
+        if scene.is_clustered:
+            start, index = scene.patch_triangles
+            lo = np.minimum.reduceat(lo[index], start[:-1], axis=0)
+            hi = np.maximum.reduceat(hi[index], start[:-1], axis=0)
         olo, ohi = occ.min(axis=1), occ.max(axis=1)
         below = np.zeros((n, 3, words), np.uint64)
         above = np.zeros((n, 3, words), np.uint64)
@@ -168,6 +185,12 @@ class Visibility:
             valid = np.empty((len(pairs), s), np.bool_)
             counts = np.empty(len(pairs), np.int64)
             _valid_rays(self.points, self.plane, self.partner, r_idx, c_idx, valid, counts)
+            if self.one_ray_below > 0.0 and s > 1:
+                weak = np.flatnonzero(self.areas[r_idx] * F.ravel()[pairs] < self.one_ray_below)
+                first_valid = valid[weak].argmax(axis=1)
+                valid[weak] = False
+                valid[weak, first_valid] = True
+                counts[weak] = 1
             first = np.zeros(len(pairs) + 1, np.int64)
             np.cumsum(counts, out=first[1:])
             r = int(first[-1])
@@ -217,6 +240,39 @@ class RayBuffers:
 
     def put(self, buf) -> None:
         self._free.append(buf)
+
+
+def sample_points(scene, m: int) -> tuple[np.ndarray, np.ndarray]:
+    """Visibility sample points of each patch and the normals of the triangles they lie on.
+
+    A one-triangle patch gets the centroids of an m x m split. A clustered
+    patch gets m^2 points spread over its area: point k lies in the triangle
+    where the patch's cumulative area reaches (k + 1/2) / m^2 of the total,
+    at one of the 4 centroids of a 2 x 2 split of it (which one follows the
+    position within that triangle), so points in one triangle do not coincide.
+
+    Returns
+    -------
+    points, normals : (n, m^2, 3) float
+    """
+    tri = np.asarray(scene.triangles, dtype=np.float64)
+    s = m * m
+    if not scene.is_clustered:
+        nrm = np.asarray(scene.normals, np.float64)
+        return points_on_triangles(tri, split_centroids(m)), np.repeat(nrm[:, None, :], s, axis=1)
+    start, index = scene.patch_triangles
+    ta = scene.triangle_areas[index]
+    cum = np.cumsum(ta)
+    before = np.r_[0.0, cum][start[:-1]]  # cumulative area before each patch
+    target = before[:, None] + (np.arange(s) + 0.5)[None, :] / s * scene.areas[:, None]  # (n, s)
+    k = np.searchsorted(cum, target, side="right")
+    k = np.clip(k, start[:-1, None], start[1:, None] - 1)  # stay inside the patch (rounding)
+    within = (target - (cum[k] - ta[k])) / ta[k]
+    quarter = np.clip((within * 4).astype(np.int64), 0, 3)
+    corners = tri[index[k]]  # (n, s, 3, 3)
+    w = split_centroids(2)[quarter]  # (n, s, 3)
+    pts = np.einsum("nsk,nskd->nsd", w, corners)
+    return pts, scene.triangle_normals[index[k]]
 
 
 def _pack_bits(flags: np.ndarray, words: int) -> np.ndarray:

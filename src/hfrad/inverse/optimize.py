@@ -126,8 +126,12 @@ def optimise(spec: DesignSpec, resp: Response, cost: np.ndarray) -> Solution:
         return Solution("optimal", str(res.message), np.maximum(res.x, 0.0), float(cost @ res.x), [], 1)
     if res.status == 2:
         labels = conflicting(items, upper)
-        return Solution("infeasible", "no intensities meet all goals; these conflict: " + ", ".join(labels),
-                        None, None, labels, 1 + len(items))
+        if len(labels) == 1:
+            why = (f"{labels[0]} cannot be met by any intensities on its own (the fixed background light "
+                   "alone breaks it, or the emitters cannot reach it)")
+        else:
+            why = "no intensities meet all goals; these conflict: " + ", ".join(labels)
+        return Solution("infeasible", why, None, None, labels, 1 + len(items))
     return Solution("failed", f"linprog (HiGHS) stopped: {res.message}", None, None, [], 1)
 
 

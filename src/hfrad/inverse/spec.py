@@ -72,12 +72,16 @@ class Emitter:
     patches : (p,) int, user patch order
     color : (3,) float >= 0, exitance per unit intensity, W/m^2 per channel
     max : float, upper bound of the intensity (inf when absent)
+    scene_name : str or None
+        The material or group name that selects exactly these patches (when
+        the emitter was given by one name), for emission files.
     """
 
     name: str
     patches: np.ndarray
     color: np.ndarray
     max: float
+    scene_name: str | None = None
 
 
 @dataclass(frozen=True)
@@ -274,12 +278,16 @@ def _name(obj: Mapping, where: str, field: str) -> str:
     return name
 
 
-def _emitter(obj: Any, scene, where: str, field: str) -> Emitter:
+def _entry(obj: Any, allowed: set, scene, where: str, field: str) -> tuple[str, np.ndarray]:
+    """Name and patches of an emitter or target, after checking it is an object with known keys."""
     if not isinstance(obj, Mapping):
         raise SpecError(f"{where}: {field}: expected an object, got {obj!r}")
-    _unknown_keys(obj, _EMITTER_KEYS, where, field)
-    name = _name(obj, where, field)
-    patches = _select(obj, scene, where, field)
+    _unknown_keys(obj, allowed, where, field)
+    return _name(obj, where, field), _select(obj, scene, where, field)
+
+
+def _emitter(obj: Any, scene, where: str, field: str) -> Emitter:
+    name, patches = _entry(obj, _EMITTER_KEYS, scene, where, field)
     upper = _number(obj, "max", where, field)
     color = obj.get("color", [1.0, 1.0, 1.0])
     if (not isinstance(color, list) or len(color) != 3
@@ -288,15 +296,14 @@ def _emitter(obj: Any, scene, where: str, field: str) -> Emitter:
         raise SpecError(f"{where}: {field}.color: expected three finite numbers >= 0 (R, G, B), got {color!r}")
     if not photometric(np.asarray(color, float)) > 0:
         raise SpecError(f"{where}: {field}.color: {color!r} has zero luminance; it cannot light anything visible")
-    return Emitter(name, patches, np.asarray(color, dtype=np.float64), math.inf if upper is None else upper)
+    given = [k for k in _SELECTORS if k in obj]
+    scene_name = obj[given[0]] if given in (["material"], ["group"]) and isinstance(obj[given[0]], str) else None
+    return Emitter(name, patches, np.asarray(color, dtype=np.float64), math.inf if upper is None else upper,
+                   scene_name)
 
 
 def _target(obj: Any, scene, where: str, field: str) -> Target:
-    if not isinstance(obj, Mapping):
-        raise SpecError(f"{where}: {field}: expected an object, got {obj!r}")
-    _unknown_keys(obj, _TARGET_KEYS, where, field)
-    name = _name(obj, where, field)
-    patches = _select(obj, scene, where, field)
+    name, patches = _entry(obj, _TARGET_KEYS, scene, where, field)
     quantity = obj.get("quantity", "irradiance_lux")
     if quantity not in QUANTITIES:
         raise SpecError(f"{where}: {field}.quantity: unknown quantity {quantity!r}; expected one of "

@@ -71,7 +71,7 @@ def vertex_colors(scene, radiosity: np.ndarray, *, colors: str = "linear", expos
     Returns
     -------
     vertices : (v, 3) float, metres
-    faces : (n, 3) int, in patch order
+    faces : (t, 3) int, the detail triangles in ``scene.faces`` order
     rgb : (v, 3) uint8
     """
     if colors not in ("linear", "srgb"):
@@ -119,9 +119,11 @@ def export_mesh(scene, radiosity: np.ndarray, path: "str | os.PathLike", *, colo
 
     Notes
     -----
-    The mesh has one face per patch in patch order; its vertices are split
-    where patches meet at a crease or a material border, so it has more
-    vertices than ``scene.vertices``.
+    The mesh has one face per detail triangle (one per patch unless the scene
+    is clustered; the PLY ``patch`` face property says which), colours
+    interpolated smoothly from the patches; its vertices are split where
+    triangles meet at a crease or a material border, so it has more vertices
+    than ``scene.vertices``.
     """
     if isinstance(scene, (str, os.PathLike)):  # the old order: (path, scene, radiosity)
         warnings.warn("the object comes first, then the path: export_mesh(scene, radiosity, path)",
@@ -153,20 +155,24 @@ def _write_ply(path, scene, vertices, faces, rgb, B, E) -> None:
     vdtype = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
                        ("red", "u1"), ("green", "u1"), ("blue", "u1")])
     fprops = ["radiosity_r", "radiosity_g", "radiosity_b", "emission_r", "emission_g", "emission_b", "area"]
-    fdtype = np.dtype([("count", "u1"), ("vertex_indices", "<i4", (3,))] + [(p, "<f4") for p in fprops])
+    fdtype = np.dtype([("count", "u1"), ("vertex_indices", "<i4", (3,))] + [(p, "<f4") for p in fprops]
+                      + [("patch", "<i4")])
     v = np.empty(len(vertices), vdtype)
     v["x"], v["y"], v["z"] = vertices.T
     v["red"], v["green"], v["blue"] = rgb.T
     f = np.empty(n, fdtype)
     f["count"] = 3
     f["vertex_indices"] = faces
+    patch = scene.patch_of_triangle
     for k, c in enumerate("rgb"):
-        f[f"radiosity_{c}"] = B[:, k]
-        f[f"emission_{c}"] = E[:, k]
-    f["area"] = scene.areas
+        f[f"radiosity_{c}"] = B[patch, k]
+        f[f"emission_{c}"] = E[patch, k]
+    f["area"] = scene.triangle_areas
+    f["patch"] = patch
     header = "\n".join([
         "ply", "format binary_little_endian 1.0",
-        "comment hfrad radiosity: face radiosity_* and emission_* in W/m^2, area in m^2",
+        "comment hfrad radiosity: face radiosity_* and emission_* in W/m^2 (of the face's patch), "
+        "area in m^2 (of the face), patch = index of the patch the face belongs to",
         "comment vertex colours: sRGB-encoded exposed radiance B/pi",
         f"element vertex {len(v)}",
         "property float x", "property float y", "property float z",
@@ -174,6 +180,7 @@ def _write_ply(path, scene, vertices, faces, rgb, B, E) -> None:
         f"element face {n}",
         "property list uchar int vertex_indices",
         *[f"property float {p}" for p in fprops],
+        "property int patch",
         "end_header",
     ]) + "\n"
     with atomic_path(path) as tmp, open(tmp, "wb") as fh:

@@ -74,14 +74,16 @@ def render_radiance(scene, radiosity, camera: "Camera | str" = "auto", *, width:
     B = _check_radiosity(scene, radiosity)
     _check_size(width, height)
     cam = Camera.parse(camera, scene.bounds, aspect=width / height)
-    face, _, uv = trace_camera(scene, cam, width, height, caster=caster)
+    tri, _, uv = trace_camera(scene, cam, width, height, caster=caster)
     radiance = np.zeros((height, width, 3))
-    hit = face >= 0
+    hit = tri >= 0
+    face = np.full_like(tri, -1)
+    face[hit] = scene.patch_of_triangle[tri[hit]]
     if hit.any():
         if flat:
             radiance[hit] = B[face[hit]]
         else:
-            radiance[hit] = interpolate(smooth_corners(scene, B, crease_angle=crease_angle), face[hit], uv[hit])
+            radiance[hit] = interpolate(smooth_corners(scene, B, crease_angle=crease_angle), tri[hit], uv[hit])
     radiance /= np.pi
     return radiance, face
 

@@ -1,7 +1,8 @@
 """Primary rays against the patch mesh, seeing only the front of each patch.
 
-The rays are cast on the patches themselves (``scene.vertices``/``faces``,
-not the occluder mesh) so that the face id of a hit is the patch id. Embree
+The rays are cast on the detail triangles (``scene.vertices``/``faces``,
+not the occluder mesh), so the face id of a hit is a triangle id; its patch is
+``scene.patch_of_triangle[face]`` (the same id unless the scene is clustered). Embree
 does not cull back faces, so a hit on a patch whose normal points away from the
 ray is treated as transparent: the ray is re-cast from just past it, until it
 hits a front face or escapes. This is what lets a camera outside the closed
@@ -20,7 +21,7 @@ MAX_LAYERS = 64
 
 
 def patch_caster(scene, threads: int | None = None) -> RayCaster:
-    """A :class:`RayCaster` over the scene's patches (face id = patch id)."""
+    """A :class:`RayCaster` over the scene's detail triangles (face id = triangle id)."""
     return RayCaster(scene.vertices, scene.faces, threads=threads)
 
 
@@ -41,9 +42,9 @@ def trace_front(scene, origins: np.ndarray, directions: np.ndarray, *,
 
     Returns
     -------
-    face : (r,) int, patch id or -1 where the ray escapes
+    face : (r,) int, triangle id (row of ``scene.faces``) or -1 where the ray escapes
     distance : (r,) float, ray parameter of the hit (inf where none)
-    uv : (r, 2) float, barycentric weights of corners 1 and 2 of the patch
+    uv : (r, 2) float, barycentric weights of corners 1 and 2 of the triangle
     """
     caster = caster or patch_caster(scene)
     origins = np.asarray(origins, dtype=np.float64)
@@ -52,14 +53,14 @@ def trace_front(scene, origins: np.ndarray, directions: np.ndarray, *,
     face = np.full(r, -1, np.int64)
     dist = np.full(r, np.inf)
     uv = np.zeros((r, 2))
-    if r == 0 or scene.n_patches == 0:
+    if r == 0 or scene.n_triangles == 0:
         return face, dist, uv
     # Step past a back face by a length that float32 (Embree's precision)
     # resolves at these coordinates, yet far below any patch size.
     lo, hi = scene.bounds
     size = max(float(np.abs(np.r_[lo, hi]).max()), float(np.abs(origins).max()), float(np.linalg.norm(hi - lo)))
     step = 1e-5 * (size or 1.0)
-    normals = scene.normals
+    normals = scene.triangle_normals
     travelled = np.zeros(r)
     active = np.arange(r)
     for _ in range(max_layers):

@@ -14,6 +14,13 @@ corner between the red wall and the floor, nor from a light onto the ceiling.
 Vertices are welded by position first, so triangle soups (every face with its
 own three vertices) are smoothed as well as meshes that share vertices.
 
+Everything works on the detail triangles (``scene.faces``). When patches are
+clusters of many triangles, per-corner averaging alone would only blend one
+triangle wide at patch borders and the patches would look blocky, so the
+triangle values are first diffused within their smoothing sets: ``k`` Jacobi
+steps (triangle value <- mean of its corner values), ``k`` ~ the mean number of
+triangles per patch, blur the radiosity over about one patch width.
+
 Units: radiosity B is an exitance in W/m^2. A Lambertian surface of radiosity B
 has radiance L = B / pi in W/(m^2 sr) in every direction; that is what a pixel
 of a rendered image measures (see :func:`hfrad.render.render_radiance`).
@@ -25,23 +32,10 @@ import math
 
 import numpy as np
 
+from ..scene.cluster import weld
+
 #: Default largest angle between patch normals that are still smoothed together, degrees.
 CREASE_ANGLE = 30.0
-
-
-def weld(vertices: np.ndarray, faces: np.ndarray, *, rel_tol: float = 1e-9) -> np.ndarray:
-    """(n, 3) int: face corners renumbered so coincident vertices share one id.
-
-    Positions are rounded to ``rel_tol`` times the largest coordinate.
-    """
-    vertices = np.asarray(vertices, dtype=np.float64)
-    faces = np.asarray(faces, dtype=np.int64)
-    if not len(faces):
-        return faces.reshape(0, 3)
-    scale = float(np.abs(vertices).max(initial=0.0)) or 1.0
-    key = np.rint(vertices / (scale * rel_tol)).astype(np.int64)
-    _, inverse = np.unique(key, axis=0, return_inverse=True)
-    return inverse.reshape(-1)[faces]
 
 
 def _corner_pairs(scene, crease_angle: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -51,7 +45,7 @@ def _corner_pairs(scene, crease_angle: float) -> tuple[np.ndarray, np.ndarray, n
     (each corner's partners are contiguous), ``b``, and the (3n + 1,) start of
     each corner's block in them. Cost O(sum over vertices of degree^2).
     """
-    n = scene.n_patches
+    n = scene.n_triangles
     vid = weld(scene.vertices, scene.faces).reshape(-1)
     order = np.argsort(vid, kind="stable")
     sv = vid[order]
@@ -66,8 +60,9 @@ def _corner_pairs(scene, crease_angle: float) -> tuple[np.ndarray, np.ndarray, n
     b = order[np.repeat(group_start[g], d) + k]
     fa, fb = a // 3, b // 3
     cos_min = math.cos(math.radians(crease_angle))
-    normals = scene.normals
-    keep = (scene.material[fa] == scene.material[fb]) & (
+    normals = scene.triangle_normals
+    material = scene.material[scene.patch_of_triangle]
+    keep = (material[fa] == material[fb]) & (
         np.einsum("ij,ij->i", normals[fa], normals[fb]) >= cos_min)
     keep |= a == b
     a, b = a[keep], b[keep]
@@ -78,20 +73,26 @@ def _corner_pairs(scene, crease_angle: float) -> tuple[np.ndarray, np.ndarray, n
     return a, b, start
 
 
-def smooth_corners(scene, radiosity: np.ndarray, *, crease_angle: float = CREASE_ANGLE) -> np.ndarray:
-    """(n, 3, 3) float: radiosity at each patch corner (patch, corner, channel).
+def smooth_corners(scene, radiosity: np.ndarray, *, crease_angle: float = CREASE_ANGLE,
+                   steps: int | None = None) -> np.ndarray:
+    """(t, 3, 3) float: radiosity at each detail triangle's corners (triangle, corner, channel).
 
     Parameters
     ----------
     scene : Scene
     radiosity : (n, 3) float, W/m^2
+        Per patch.
     crease_angle : float, degrees
-        Patches whose normals differ by more than this are not averaged.
+        Triangles whose normals differ by more than this are not averaged.
+    steps : int, optional
+        Diffusion steps before the corner averaging (see the module
+        docstring); default 0 for an unclustered scene, else the mean number
+        of triangles per patch (at most 48).
 
     Notes
     -----
-    Cost O(sum of vertex degree^2), about 20 n for subdivided meshes.
-    A corner whose smoothing set has zero total area keeps its patch's value.
+    Cost O(sum of vertex degree^2) per step, about 20 t for subdivided meshes.
+    A corner whose smoothing set has zero total area keeps its triangle's value.
 
     Examples
     --------
@@ -103,19 +104,28 @@ def smooth_corners(scene, radiosity: np.ndarray, *, crease_angle: float = CREASE
     True
     """
     B = np.asarray(radiosity, dtype=np.float64).reshape(scene.n_patches, 3)
-    n = scene.n_patches
-    if n == 0:
+    t = scene.n_triangles
+    if t == 0:
         return np.zeros((0, 3, 3))
+    if steps is None:
+        steps = 0 if not scene.is_clustered else int(min(48, round(t / max(scene.n_patches, 1))))
     a, b, _ = _corner_pairs(scene, crease_angle)
     fb = b // 3
-    w = scene.areas[fb]
-    total = np.bincount(a, weights=w, minlength=3 * n)
-    out = np.repeat(B, 3, axis=0)  # fallback: the patch's own value
+    w = scene.triangle_areas[fb]
+    total = np.bincount(a, weights=w, minlength=3 * t)
     ok = total > 0
-    for ch in range(3):
-        s = np.bincount(a, weights=w * B[fb, ch], minlength=3 * n)
-        out[ok, ch] = s[ok] / total[ok]
-    return out.reshape(n, 3, 3)
+    values = B[scene.patch_of_triangle]
+
+    def corners(v: np.ndarray) -> np.ndarray:
+        out = np.repeat(v, 3, axis=0)  # fallback: the triangle's own value
+        for ch in range(3):
+            s = np.bincount(a, weights=w * v[fb, ch], minlength=3 * t)
+            out[ok, ch] = s[ok] / total[ok]
+        return out.reshape(t, 3, 3)
+
+    for _ in range(steps):
+        values = corners(values).mean(axis=1)
+    return corners(values)
 
 
 def corner_vertices(scene, *, crease_angle: float = CREASE_ANGLE) -> tuple[np.ndarray, np.ndarray]:
@@ -129,10 +139,10 @@ def corner_vertices(scene, *, crease_angle: float = CREASE_ANGLE) -> tuple[np.nd
     Returns
     -------
     vertices : (v, 3) float, metres
-    faces : (n, 3) int
-        Same patch order as ``scene.faces``.
+    faces : (t, 3) int
+        Same triangle order as ``scene.faces``.
     """
-    n = scene.n_patches
+    n = scene.n_triangles
     if n == 0:
         return np.zeros((0, 3)), np.zeros((0, 3), np.int64)
     a, b, start = _corner_pairs(scene, crease_angle)
@@ -153,9 +163,9 @@ def interpolate(corners: np.ndarray, face: np.ndarray, uv: np.ndarray) -> np.nda
 
     Parameters
     ----------
-    corners : (n, 3, 3) float
-        Values at the corners of each patch.
-    face : (r,) int, patch hit (>= 0)
+    corners : (t, 3, 3) float
+        Values at the corners of each triangle.
+    face : (r,) int, triangle hit (>= 0)
     uv : (r, 2) float
         Barycentric weights of corners 1 and 2 (corner 0 gets 1 - u - v).
     """

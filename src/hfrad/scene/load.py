@@ -18,6 +18,7 @@ import numpy as np
 from ..errors import SceneError
 from .builtin import BUILTIN_SCENES, builtin_scene
 from .cleanup import merge_duplicates
+from .cluster import cluster
 from .patches import drop_degenerate, subdivide
 from .scene import Material, Scene
 
@@ -67,7 +68,11 @@ def load_scene(
         Give faces whose material (or .mtl file) is missing the default
         reflectance instead of raising.
     max_edge, patches : optional
-        Subdivision into patches (see :func:`hfrad.scene.patches.subdivide`).
+        Patch size or count. Faces larger than the target are split
+        (:func:`hfrad.scene.patches.subdivide`); when ``patches`` is below the
+        face count, or ``max_edge`` is more than twice some faces' longest
+        edge, small faces are grown into clustered patches instead
+        (:func:`hfrad.scene.cluster.cluster`; ``Scene.triangle_patch``).
     keep_duplicates : bool
         Keep faces that duplicate another face (same corners) instead of merging
         them; either way duplicates, coplanar overlaps and faces touching face to
@@ -96,6 +101,13 @@ def load_scene(
         scene = add_area_light(scene, area_light)
     scene = drop_degenerate(scene)
     scene = merge_duplicates(scene, keep_duplicates=keep_duplicates)
+    if patches is not None and 1 <= patches < scene.n_patches:
+        return cluster(scene, patches=patches)
+    if max_edge is not None and max_edge > 0 and np.isfinite(max_edge) and scene.n_patches:
+        tri = scene.triangles
+        longest = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max(axis=1)
+        if (longest < 0.5 * max_edge).sum() > 1:
+            return cluster(scene, max_edge=max_edge)
     return subdivide(scene, max_edge=max_edge, patches=patches)
 
 

@@ -93,6 +93,15 @@ def subdivide(scene: Scene, *, max_edge: float | None = None, patches: int | Non
     splits = splits_for_edge(scene, max_edge)
     if (splits == 1).all():
         return scene
+    return split_faces(scene, splits)[0]
+
+
+def split_faces(scene: Scene, splits: np.ndarray) -> tuple[Scene, np.ndarray]:
+    """Split face f of an unclustered scene into ``splits[f]**2`` congruent triangles.
+
+    Returns the new scene (patches of one face kept together, in face order)
+    and ``owner`` (t,): the index in ``scene.faces`` each new patch was cut from.
+    """
     tri = scene.triangles
     points, faces, owner = [], [], []
     offset = 0
@@ -122,7 +131,7 @@ def subdivide(scene: Scene, *, max_edge: float | None = None, patches: int | Non
         parent=scene.parent[owner_all],
         occluder_vertices=scene.occluder_vertices, occluder_faces=scene.occluder_faces,
         name=scene.name, warnings=scene.warnings,
-    )
+    ), owner_all
 
 
 def _merge_vertices(points: np.ndarray, faces: np.ndarray, scene: Scene) -> tuple[np.ndarray, np.ndarray]:

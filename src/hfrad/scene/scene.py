@@ -46,14 +46,21 @@ def _readonly(a: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True, eq=False)
 class Scene:
-    """Triangular patches with materials, in the user's patch order.
+    """Patches with materials, in the user's patch order.
+
+    A patch is one triangle, or (after :func:`hfrad.scene.cluster.cluster`) a
+    set of triangles of one material: ``faces`` are then the *detail*
+    triangles, ``triangle_patch`` says which patch each belongs to, and every
+    per-patch quantity (``areas``, ``normals``, ``centroids``, ``material``,
+    ``reflectance``, ``emission``, ``n_patches``) describes the whole set.
 
     Parameters
     ----------
     vertices : (v, 3) float, metres
-    faces : (n, 3) int
-        Vertex indices of each patch, counter-clockwise seen from the front
+    faces : (t, 3) int
+        Vertex indices of each triangle, counter-clockwise seen from the front
         (the side the normal points to, the side that emits and reflects).
+        One triangle per patch unless ``triangle_patch`` is given.
     material : (n,) int
         Index into ``materials`` for each patch.
     materials : tuple of Material
@@ -62,8 +69,11 @@ class Scene:
     groups : tuple of str, optional
     reflectance, emission : (n, 3) float, optional
         Per-patch overrides; default to the patch's material values.
-    parent : (n,) int, optional
-        Index of the input face each patch was cut from (identity if absent).
+    parent : (t,) int, optional
+        Index of the input face each triangle was cut from (identity if absent).
+    triangle_patch : (t,) int, optional
+        The patch (0..n-1) each triangle belongs to; every patch has at least
+        one triangle. Identity (one triangle per patch) if absent.
     occluder_vertices, occluder_faces : optional
         The un-subdivided mesh used for ray casting. Patches lie on its faces,
         so visibility is exact with it and much cheaper than with the patches.
@@ -86,12 +96,21 @@ class Scene:
     occluder_faces: np.ndarray | None = None
     name: str = "scene"
     warnings: tuple[str, ...] = field(default_factory=tuple)
+    triangle_patch: np.ndarray | None = None
 
     def __post_init__(self) -> None:
-        n = len(self.faces)
         set_ = object.__setattr__
         set_(self, "vertices", _readonly(np.asarray(self.vertices, dtype=np.float64).reshape(-1, 3)))
         set_(self, "faces", _readonly(np.asarray(self.faces, dtype=np.int64).reshape(-1, 3)))
+        t = len(self.faces)
+        if self.triangle_patch is not None:
+            tp = np.asarray(self.triangle_patch, dtype=np.int64).reshape(-1)
+            if tp.shape != (t,):
+                raise SceneError(f"{self.name}: triangle_patch has {tp.size} entries for {t} triangles")
+            if np.array_equal(tp, np.arange(t)):
+                tp = None  # one triangle per patch: store nothing
+            set_(self, "triangle_patch", None if tp is None else _readonly(tp))
+        n = t if self.triangle_patch is None else int(self.triangle_patch.max(initial=-1)) + 1
         set_(self, "material", _readonly(np.asarray(self.material, dtype=np.int64).reshape(n)))
         group = np.zeros(n, np.int64) if self.group is None else self.group
         set_(self, "group", _readonly(np.asarray(group, dtype=np.int64).reshape(n)))
@@ -104,8 +123,8 @@ class Scene:
             set_(self, "emission", em[self.material] if n else np.zeros((0, 3)))
         set_(self, "reflectance", _readonly(np.asarray(self.reflectance, np.float64).reshape(n, 3)))
         set_(self, "emission", _readonly(np.asarray(self.emission, np.float64).reshape(n, 3)))
-        parent = np.arange(n) if self.parent is None else self.parent
-        set_(self, "parent", _readonly(np.asarray(parent, dtype=np.int64).reshape(n)))
+        parent = np.arange(t) if self.parent is None else self.parent
+        set_(self, "parent", _readonly(np.asarray(parent, dtype=np.int64).reshape(t)))
         if self.occluder_faces is None:
             set_(self, "occluder_vertices", self.vertices)
             set_(self, "occluder_faces", self.faces)
@@ -123,6 +142,14 @@ class Scene:
             raise SceneError(f"{self.name}: face vertex index out of range 0..{len(self.vertices) - 1}")
         if len(self.material) and (self.material.min() < 0 or self.material.max() >= len(self.materials)):
             raise SceneError(f"{self.name}: material index out of range")
+        if self.triangle_patch is not None:
+            tp = self.triangle_patch
+            if tp.min() < 0:
+                raise SceneError(f"{self.name}: triangle {int(np.argmin(tp))} has a negative patch index")
+            empty = np.flatnonzero(np.bincount(tp, minlength=self.n_patches) == 0)
+            if len(empty):
+                raise SceneError(f"{self.name}: patch {int(empty[0])} has no triangle "
+                                 "(triangle_patch must use every patch index 0..n-1)")
         for m in self.materials:
             rho, em = np.asarray(m.reflectance), np.asarray(m.emission)
             if not (np.isfinite(rho).all() and (rho >= 0).all() and (rho < 1).all()):
@@ -144,15 +171,45 @@ class Scene:
     # -- sizes -------------------------------------------------------------
     @property
     def n_patches(self) -> int:
+        return len(self.material)
+
+    @property
+    def n_triangles(self) -> int:
+        """Detail triangles (``len(faces)``); equals ``n_patches`` unless clustered."""
         return len(self.faces)
+
+    @property
+    def is_clustered(self) -> bool:
+        """True when some patch has more than one triangle."""
+        return self.triangle_patch is not None
 
     def __len__(self) -> int:
         return self.n_patches
 
     # -- cached geometry ---------------------------------------------------
     @cached_property
+    def patch_of_triangle(self) -> np.ndarray:
+        """(t,) int: the patch of each detail triangle (``arange(n)`` unless clustered)."""
+        if self.triangle_patch is None:
+            return _readonly(np.arange(self.n_triangles))
+        return self.triangle_patch
+
+    @cached_property
+    def patch_triangles(self) -> tuple[np.ndarray, np.ndarray]:
+        """CSR lists of each patch's triangles: ``(start (n + 1,), index (t,))``.
+
+        The triangles of patch p are ``index[start[p]:start[p + 1]]``, in
+        their order in ``faces``.
+        """
+        tp = self.patch_of_triangle
+        index = np.argsort(tp, kind="stable")
+        start = np.zeros(self.n_patches + 1, np.int64)
+        np.cumsum(np.bincount(tp, minlength=self.n_patches), out=start[1:])
+        return _readonly(start), _readonly(index)
+
+    @cached_property
     def triangles(self) -> np.ndarray:
-        """(n, 3, 3) float: corner coordinates of each patch."""
+        """(t, 3, 3) float: corner coordinates of each detail triangle (of each patch unless clustered)."""
         return _readonly(self.vertices[self.faces])
 
     @cached_property
@@ -161,20 +218,67 @@ class Scene:
         return np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
 
     @cached_property
-    def areas(self) -> np.ndarray:
-        """(n,) float, m^2: patch areas."""
+    def triangle_areas(self) -> np.ndarray:
+        """(t,) float, m^2: areas of the detail triangles."""
         return _readonly(0.5 * np.linalg.norm(self._cross, axis=1))
 
     @cached_property
-    def normals(self) -> np.ndarray:
-        """(n, 3) float: unit normals (zero for a degenerate patch)."""
+    def triangle_normals(self) -> np.ndarray:
+        """(t, 3) float: unit normals of the detail triangles (zero if degenerate)."""
         length = np.linalg.norm(self._cross, axis=1, keepdims=True)
         return _readonly(np.divide(self._cross, length, out=np.zeros_like(self._cross), where=length > 0))
 
+    def _per_patch(self, values: np.ndarray) -> np.ndarray:
+        """Sum per-triangle ``values`` (t, ...) over each patch's triangles."""
+        if self.triangle_patch is None:
+            return values
+        out = np.zeros((self.n_patches,) + values.shape[1:])
+        np.add.at(out, self.triangle_patch, values)
+        return out
+
+    @cached_property
+    def areas(self) -> np.ndarray:
+        """(n,) float, m^2: patch areas (sum over a patch's triangles)."""
+        return _readonly(self._per_patch(self.triangle_areas))
+
+    @cached_property
+    def area_vectors(self) -> np.ndarray:
+        """(n, 3) float, m^2: sum of area x unit normal over each patch's triangles.
+
+        Its length is the patch's area projected on its mean plane (= the area
+        for a flat patch); projected on a direction d it is the patch's
+        projected area seen from d when all its triangles face d.
+        """
+        return _readonly(self._per_patch(0.5 * self._cross))
+
+    @cached_property
+    def normals(self) -> np.ndarray:
+        """(n, 3) float: unit area-weighted mean normals (zero for a degenerate patch)."""
+        v = self.area_vectors
+        length = np.linalg.norm(v, axis=1, keepdims=True)
+        return _readonly(np.divide(v, length, out=np.zeros_like(v), where=length > 0))
+
+    @cached_property
+    def non_flatness(self) -> np.ndarray:
+        """(n,) float in [0, 1]: 1 - |area vector| / area; 0 for a flat patch.
+
+        For two halves folded by an angle a it is 1 - cos(a / 2); a patch
+        whose triangles all lie within 30 degrees of its mean normal has at
+        most 1 - cos(30 deg) = 0.134.
+        """
+        a = self.areas
+        flat = np.divide(np.linalg.norm(self.area_vectors, axis=1), a, out=np.ones_like(a), where=a > 0)
+        return _readonly(np.clip(1.0 - flat, 0.0, 1.0))
+
     @cached_property
     def centroids(self) -> np.ndarray:
-        """(n, 3) float, metres."""
-        return _readonly(self.triangles.mean(axis=1))
+        """(n, 3) float, metres: area-weighted centroids of the patches."""
+        c = self.triangles.mean(axis=1)
+        if self.triangle_patch is None:
+            return _readonly(c)
+        a = self.areas
+        s = self._per_patch(c * self.triangle_areas[:, None])
+        return _readonly(np.divide(s, a[:, None], out=np.zeros_like(s), where=a[:, None] > 0))
 
     @cached_property
     def bounds(self) -> np.ndarray:

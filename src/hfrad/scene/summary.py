@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .cluster import cluster_summary
 from .scene import Scene
 
 
@@ -30,6 +31,7 @@ def scene_summary(scene: Scene) -> dict:
         "patches": scene.n_patches,
         "vertices": int(len(scene.vertices)),
         "input_faces": int(len(scene.occluder_faces)),
+        "clustering": cluster_summary(scene),
         "total_area_m2": scene.total_area,
         "bounds_min": scene.bounds[0].tolist(),
         "bounds_max": scene.bounds[1].tolist(),

@@ -11,7 +11,9 @@ Layout (format version 1)::
     /factors/Y         (3, n, k), eq. 4 per channel
     /factors/rho_max   (n,) float64, user order
     /patches/...       vertices, faces, material, reflectance, emission,
-                       areas, normals, centroids, group; attrs
+                       areas, normals, centroids, group, triangle_patch
+                       (only for clustered patches: the patch of each
+                       triangle of ``faces``); attrs
                        material_names, group_names, materials (JSON)
 
 The file is written under a temporary name in the same folder and renamed
@@ -51,6 +53,8 @@ def _write_scene(g: h5py.Group, scene) -> None:
     for name in ("vertices", "faces", "material", "reflectance", "emission", "areas", "normals",
                  "centroids", "group", "parent", "occluder_vertices", "occluder_faces"):
         g.create_dataset(name, data=np.asarray(getattr(scene, name)))
+    if scene.is_clustered:  # patches that are clusters of the detail triangles `faces`
+        g.create_dataset("triangle_patch", data=np.asarray(scene.triangle_patch))
     g.attrs["material_names"] = json.dumps(list(scene.material_names))
     g.attrs["group_names"] = json.dumps(list(scene.groups))
     g.attrs["materials"] = json.dumps([{"name": m.name, "reflectance": list(m.reflectance),
@@ -170,7 +174,7 @@ def _read_scene(g: h5py.Group):
     return Scene(vertices=g["vertices"][()], faces=g["faces"][()], material=g["material"][()],
                  materials=mats, group=g["group"][()], groups=tuple(json.loads(g.attrs["group_names"])),
                  reflectance=g["reflectance"][()], emission=g["emission"][()], name=str(g.attrs["name"]),
-                 **{k: g[k][()] for k in ("parent", "occluder_vertices", "occluder_faces") if k in g})
+                 **{k: g[k][()] for k in ("parent", "occluder_vertices", "occluder_faces", "triangle_patch") if k in g})
 
 
 def load_hfr(path) -> HFactorization:

@@ -1,0 +1,264 @@
+"""Form-factor column blocks in worker processes, and fewer rays where they cannot matter.
+
+``embreex`` holds the GIL while it casts, so threads cannot run two Embree
+batches at once. Here each worker *process* receives the scene once (pickled
+at start-up), builds its own kernel geometry and Embree scene, and computes
+whole column blocks ``F[order][:, cols]`` into a slot of shared memory; the
+parent yields them in block order. A block depends only on (scene, engine
+parameters, its column indices), never on which process computed it or in
+which order, so multi-process blocks equal single-process ones bit for bit
+(``tests/test_parallel.py``).
+
+:func:`column_block` is the same computation as a plain function for any
+process (the Dask backend calls it from its workers): it keeps one engine per
+process and scene, so a worker pays the per-scene set-up once.
+
+Fewer rays: a pair whose area-weighted form factor ``A_i F_ij`` is so small
+that even a wrong visibility could not move ``||F||_F`` by more than a share of
+the error budget gets one ray instead of ``samples`` (:func:`one_ray_threshold`).
+The threshold is a single number per scene, chosen from a fixed sample of
+columns, so it is the same in every block and every process, and it is applied
+to the symmetric quantity ``A_i F_ij = A_j F_ji``, so reciprocity survives.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from concurrent.futures import ProcessPoolExecutor
+from multiprocessing import get_context
+from multiprocessing.shared_memory import SharedMemory
+from typing import Iterator
+
+import numpy as np
+
+from .clustered import block_function, kernel_for
+from .kernel import PatchGeometry
+from .visibility import DEFAULT_SAMPLES
+
+__all__ = ["ProcessEngine", "column_block", "one_ray_threshold", "default_workers",
+           "MIN_PARALLEL_PATCHES"]
+
+#: Below this many patches the workers' start-up (~2 s) costs more than it saves.
+MIN_PARALLEL_PATCHES = 4000
+
+#: Columns sampled (spread over the scene) to pick the one-ray threshold.
+THRESHOLD_SAMPLE_COLUMNS = 128
+
+# Environment of worker processes: one BLAS and one numba thread each, so that
+# ``workers`` processes fill ``workers`` cores without oversubscription.
+_WORKER_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
+               "NUMBA_NUM_THREADS": "1"}
+
+
+def default_workers() -> int:
+    """Worker processes by default: the cores this process may use."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - non-Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def one_ray_threshold(scene, tol: float, *, geometry: PatchGeometry | None = None,
+                      sample_columns: int = THRESHOLD_SAMPLE_COLUMNS) -> float:
+    """Largest ``tau`` such that pairs with ``A_i F_ij < tau`` hold at most ``tol^2`` of ``||F||_F^2``.
+
+    Estimated on the unoccluded kernel of ``sample_columns`` columns evenly
+    spread over the user's patch order (deterministic). Giving those pairs one
+    ray instead of several changes each of their entries by at most
+    ``F_ij`` (visibility is a fraction in [0, 1]), so the change of F is at most
+    about ``tol ||F_unoccluded||_F`` in the Frobenius norm, and far less in
+    practice (one ray still sees a wall).
+
+    Parameters
+    ----------
+    scene : Scene
+    tol : float >= 0
+        Relative Frobenius share, e.g. a quarter of the factorization's eps.
+
+    Returns
+    -------
+    float
+        Threshold on ``A_i F_ij`` (m^2); 0 when ``tol`` is 0.
+    """
+    if tol <= 0 or scene.n_patches == 0:
+        return 0.0
+    geom, block = (geometry, block_function(geometry)) if geometry is not None else kernel_for(scene)
+    n = scene.n_patches
+    cols = np.unique(np.linspace(0, n - 1, min(n, sample_columns)).astype(np.int64))
+    F = block(geom, np.arange(n), cols)
+    a = (geom.areas[:, None] * F).ravel()
+    f2 = np.square(F).ravel()
+    total = f2.sum()
+    if total <= 0:
+        return 0.0
+    order = np.argsort(a, kind="stable")
+    cum = np.cumsum(f2[order])
+    k = int(np.searchsorted(cum, tol * tol * total, side="right"))
+    return float(a[order[k]]) if k < len(a) else float(a.max())
+
+
+# -- one engine per process (workers, Dask) ---------------------------------------------
+
+_ENGINES: dict = {}
+
+
+def _engine_for(scene, samples: int, one_ray_below: float):
+    from .blocks import FormFactorEngine
+    from .cache import scene_hash
+
+    key = (scene_hash(scene), int(samples), float(one_ray_below))
+    engine = _ENGINES.get(key)
+    if engine is None:
+        for old in _ENGINES.values():
+            old.close()
+        _ENGINES.clear()
+        engine = FormFactorEngine(scene, samples=samples, one_ray_below=one_ray_below)
+        _ENGINES[key] = engine
+    return engine
+
+
+def column_block(scene, cols, *, order=None, samples: int = DEFAULT_SAMPLES, one_ray_below: float = 0.0,
+                 dtype=np.float32) -> np.ndarray:
+    """``F[order][:, cols]`` (n x len(cols)) computed in this process, visibility included.
+
+    A pure function of its arguments: the same call gives the same array in
+    any process. The per-scene state (kernel geometry, Embree scene, culling
+    masks) is built on the first call in a process and reused while ``scene``
+    and the parameters stay the same, so a long-lived worker (a Dask worker,
+    a pool process) pays for it once.
+
+    Parameters
+    ----------
+    scene : Scene
+    cols : (b,) int
+        Column patch indices in the scene's (user) order, e.g. ``order[start:stop]``.
+    order : (n,) int permutation, optional
+        Row order (default: the scene's order).
+    samples : int
+        Visibility rays per pair (perfect square; 0 = no visibility).
+    one_ray_below : float
+        Threshold from :func:`one_ray_threshold` (0 = every pair gets ``samples`` rays).
+    dtype : numpy dtype
+        Of the returned block (computed in float64).
+
+    Returns
+    -------
+    (n, b) ndarray of ``dtype``
+    """
+    engine = _engine_for(scene, samples, one_ray_below)
+    rows = np.arange(scene.n_patches) if order is None else np.asarray(order, np.int64)
+    return engine.block(rows, np.asarray(cols, np.int64)).astype(dtype, copy=False)
+
+
+# -- the process pool ------------------------------------------------------------------
+
+_W: dict = {}  # per worker process: scene, order, engine, shared-memory view
+
+
+def _init_worker(scene, order, samples, one_ray_below, shm_name, shape, dtype) -> None:
+    try:
+        import numba
+        numba.set_num_threads(1)
+    except Exception:  # noqa: BLE001 - only a performance setting
+        pass
+    shm = SharedMemory(name=shm_name)
+    _W.update(scene=scene, order=order, samples=samples, one_ray_below=one_ray_below, shm=shm,
+              out=np.ndarray(shape, dtype=dtype, buffer=shm.buf))
+
+
+def _work(slot: int, cols: np.ndarray) -> dict:
+    engine = _engine_for(_W["scene"], _W["samples"], _W["one_ray_below"])
+    k0, e0, p0, r0 = engine.kernel_seconds, engine.embree_seconds, engine.pairs, engine.rays
+    t0 = time.perf_counter()
+    block = engine.block(_W["order"], cols)
+    _W["out"][slot, :, :len(cols)] = block
+    return {"kernel_seconds": engine.kernel_seconds - k0, "embree_seconds": engine.embree_seconds - e0,
+            "pairs": engine.pairs - p0, "rays": engine.rays - r0, "seconds": time.perf_counter() - t0}
+
+
+class ProcessEngine:
+    """Column blocks of one scene computed by ``workers`` processes (see module docstring).
+
+    Same interface as :class:`~hfrad.formfactors.blocks.FormFactorEngine`'s
+    ``iter_blocks`` and counters (``kernel_seconds``, ``embree_seconds`` summed
+    over workers, ``pairs``, ``rays``).
+
+    Parameters
+    ----------
+    scene : Scene
+    workers : int
+        Processes (each uses one core: one numba and one BLAS thread).
+    samples, one_ray_below : see :func:`column_block`
+    block_size : int
+        Widest column block that will be asked for (sizes the shared slots).
+    dtype : numpy dtype
+        Of the blocks handed back (float32 halves the shared memory).
+    """
+
+    def __init__(self, scene, *, workers: int, samples: int = DEFAULT_SAMPLES, one_ray_below: float = 0.0,
+                 block_size: int = 256, dtype=np.float64) -> None:
+        self.scene, self.workers = scene, max(1, int(workers))
+        self.samples, self.one_ray_below = int(samples), float(one_ray_below)
+        self.block_size, self.dtype = int(block_size), np.dtype(dtype)
+        self.kernel_seconds = self.embree_seconds = 0.0
+        self.pairs = self.rays = 0
+        self.worker_seconds = 0.0
+
+    def iter_blocks(self, rows: np.ndarray, col_sets) -> Iterator[np.ndarray]:
+        """F[rows][:, cols] for each ``cols`` of ``col_sets``, in order (copies, ``dtype``)."""
+        n = len(rows)
+        slots = self.workers + 2
+        shape = (slots, n, self.block_size)
+        shm = SharedMemory(create=True, size=max(1, int(np.prod(shape)) * self.dtype.itemsize))
+        view = np.ndarray(shape, dtype=self.dtype, buffer=shm.buf)
+        saved = {k: os.environ.get(k) for k in _WORKER_ENV}
+        os.environ.update(_WORKER_ENV)  # inherited by the spawned workers only
+        try:
+            pool = ProcessPoolExecutor(self.workers, mp_context=get_context("spawn"), initializer=_init_worker,
+                                       initargs=(self.scene, np.asarray(rows, np.int64), self.samples,
+                                                 self.one_ray_below, shm.name, shape, self.dtype))
+        finally:
+            for k, v in saved.items():
+                if v is None:
+                    os.environ.pop(k, None)
+                else:
+                    os.environ[k] = v
+        free = list(range(slots))
+        pending: list = []  # (slot, width, future) in block order
+        col_iter = iter(col_sets)
+        try:
+            exhausted = False
+            while True:
+                while not exhausted and len(pending) < self.workers + 1 and free:
+                    cols = next(col_iter, None)
+                    if cols is None:
+                        exhausted = True
+                        break
+                    cols = np.asarray(cols, np.int64)
+                    if len(cols) > self.block_size:
+                        raise ValueError(f"column block of {len(cols)} > block_size {self.block_size}")
+                    slot = free.pop(0)
+                    pending.append((slot, len(cols), pool.submit(_work, slot, cols)))
+                if not pending:
+                    break
+                slot, width, fut = pending.pop(0)
+                stats = fut.result()
+                self.kernel_seconds += stats["kernel_seconds"]
+                self.embree_seconds += stats["embree_seconds"]
+                self.pairs += stats["pairs"]
+                self.rays += stats["rays"]
+                self.worker_seconds += stats["seconds"]
+                block = view[slot, :, :width].copy()
+                free.append(slot)
+                yield block
+        finally:
+            for _, _, fut in pending:
+                fut.cancel()
+            pool.shutdown(wait=True, cancel_futures=True)
+            del view
+            shm.close()
+            shm.unlink()
+
+    def close(self) -> None:
+        """Nothing to release between runs: the pool lives only while ``iter_blocks`` runs."""

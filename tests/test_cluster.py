@@ -1,0 +1,167 @@
+"""Patches that are clusters of triangles: the map, area, form factors, radiosity, files."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from hfrad.formfactors.analytic import parallel_rectangles
+from hfrad.formfactors.blocks import form_factor_matrix
+from hfrad.scene.builtin import cornell_box, parallel_plates
+from hfrad.scene.cluster import cluster, cluster_summary
+from hfrad.scene.load import load_scene
+from hfrad.scene.patches import subdivide
+
+
+def _sorted_corners(scene) -> np.ndarray:
+    """Each triangle as its 9 corner coordinates, corners sorted, rows sorted (order-free identity)."""
+    t = np.round(scene.triangles, 12)
+    t = np.sort(t.view([("x", float), ("y", float), ("z", float)]).reshape(len(t), 3), axis=1)
+    rows = t.view(float).reshape(len(t), 9)
+    return rows[np.lexsort(rows.T[::-1])]
+
+
+@pytest.fixture(scope="module")
+def fine_cornell():
+    return subdivide(cornell_box(), patches=4000)
+
+
+def test_every_triangle_in_one_patch_and_area_conserved_per_material(fine_cornell):
+    c = cluster(fine_cornell, patches=1000)
+    assert 0.9 * 1000 <= c.n_patches <= 1.1 * 1000
+    assert c.is_clustered and c.n_triangles == fine_cornell.n_patches
+    # the detail triangles are exactly the input ones, each once, each in one patch 0..n-1
+    np.testing.assert_array_equal(_sorted_corners(c), _sorted_corners(fine_cornell))
+    tp = c.triangle_patch
+    assert tp.shape == (c.n_triangles,) and tp.min() == 0 and tp.max() == c.n_patches - 1
+    assert (np.bincount(tp) >= 1).all()
+    start, index = c.patch_triangles
+    np.testing.assert_array_equal(np.sort(index), np.arange(c.n_triangles))
+    assert (c.patch_of_triangle[index] == np.repeat(np.arange(c.n_patches), np.diff(start))).all()
+    # area per material: exact up to rounding; a patch's area is the sum of its triangles'
+    for k in range(len(c.materials)):
+        a0 = fine_cornell.areas[fine_cornell.material == k].sum()
+        assert abs(c.areas[c.material == k].sum() - a0) <= 1e-12 * a0
+    np.testing.assert_allclose(np.bincount(tp, weights=c.triangle_areas), c.areas, rtol=1e-12)
+    # one material, one parent face's material, per patch; flat walls give flat patches
+    assert (cornell_box().material[c.parent] == c.material[tp]).all()
+    assert c.non_flatness.max() < 1e-9
+    # roughly equal areas: most patches within a factor 2 of the mean
+    ratio = c.areas / c.areas.mean()
+    assert ((ratio > 0.5) & (ratio < 2.0)).mean() > 0.9
+
+
+def test_split_and_grow_in_one_scene():
+    """Large faces are split, small ones grown: a coarse box with a finely meshed block."""
+    s = load_scene("cornell")
+    fine_block = subdivide(s, max_edge=0.05)
+    # fewer patches than the fine mesh has faces: the block's tiny faces are clustered,
+    c = cluster(fine_block, patches=600)
+    summary = cluster_summary(c)
+    assert summary["clustered"] and summary["triangles_per_patch"]["max"] > 1
+    assert abs(c.total_area - s.total_area) <= 1e-12 * s.total_area
+
+
+def test_request_that_cannot_be_met_warns():
+    c = load_scene("cornell", patches=3)
+    assert any("cannot be met" in w for w in c.warnings)
+    result = CliRunner().invoke(_app(), ["info", "cornell", "--patches", "3"])
+    assert result.exit_code == 0
+    assert "clustered" in result.output and "cannot be met" in result.output
+
+
+def _app():
+    from hfrad.cli import app
+
+    return app
+
+
+def test_clustered_flat_plates_match_unclustered_form_factors():
+    """Two opposed unit plates of 1,600 triangles, clustered to ~60 patches, against the fine
+    matrix summed over each cluster (A_I F_IJ = sum A_i F_ij) and the closed form."""
+    fine = subdivide(parallel_plates(1, 1, 1), patches=1600)
+    c = cluster(fine, patches=60)
+    Ff = form_factor_matrix(fine, samples=0)
+    Fc = form_factor_matrix(c, samples=0)
+    # the fine triangle behind each detail triangle of c (same triangles, other order)
+    key = {tuple(np.round(t, 9).ravel()): i for i, t in enumerate(fine.triangles)}
+    fine_of = np.array([key[tuple(np.round(t, 9).ravel())] for t in c.triangles])
+    member = np.zeros((c.n_patches, fine.n_patches))
+    member[c.triangle_patch, fine_of] = 1.0
+    AF_fine = member @ (fine.areas[:, None] * Ff) @ member.T
+    AF = c.areas[:, None] * Fc
+    np.testing.assert_allclose(AF, AF.T, rtol=1e-12, atol=1e-15)  # reciprocity survives clustering
+    p1, p2 = c.material == 0, c.material == 1
+    a1 = c.areas[p1].sum()
+    total, total_fine = AF[np.ix_(p1, p2)].sum() / a1, AF_fine[np.ix_(p1, p2)].sum() / a1
+    assert total == pytest.approx(total_fine, rel=5e-3)  # observed 0.05%
+    assert total == pytest.approx(parallel_rectangles(1, 1, 1), rel=5e-3)
+    rows, rows_fine = AF[np.ix_(p1, p2)].sum(axis=1), AF_fine[np.ix_(p1, p2)].sum(axis=1)
+    assert np.abs(rows / rows_fine - 1).max() < 0.01  # per patch, observed 0.36%
+
+
+def _dense_radiosity(scene):
+    F = form_factor_matrix(scene)
+    n = scene.n_patches
+    return np.stack([np.linalg.solve(np.eye(n) - scene.reflectance[:, ch, None] * F, scene.emission[:, ch])
+                     for ch in range(3)], axis=1)
+
+
+def _compare_refined_clustered(n: int, tol: float):
+    plain = subdivide(cornell_box(), patches=n)
+    clustered = cluster(subdivide(cornell_box(), patches=4 * n), patches=n)
+    assert abs(clustered.n_patches - n) <= 0.1 * n
+    results = []
+    for s in (plain, clustered):
+        B = _dense_radiosity(s)
+        # energy: emitted power = absorbed power (closed box), irradiance H = (B - E) / rho
+        A, E, rho = s.areas[:, None], s.emission, s.reflectance
+        np.testing.assert_allclose((A * (1 - rho) * (B - E) / rho).sum(axis=0), (A * E).sum(axis=0), rtol=0.01)
+        results.append([(A[s.material == k] * B[s.material == k]).sum(axis=0) for k in range(len(s.materials))])
+    for k, (p, q) in enumerate(zip(*results)):
+        # power per material (area is conserved exactly, so this is the mean radiosity too)
+        np.testing.assert_allclose(q, p, rtol=tol, err_msg=plain.materials[k].name)
+
+
+def test_refined_then_clustered_cornell_matches_plain_box():
+    _compare_refined_clustered(800, 0.01)  # observed at 3K: < 0.1% per material
+
+
+@pytest.mark.slow
+def test_refined_then_clustered_cornell_3k_matches_plain_3k():
+    _compare_refined_clustered(3000, 0.02)  # observed 0.07% per material
+
+
+def test_clustered_scene_renders_exports_and_round_trips(tmp_path, fine_cornell):
+    from hfrad.io.export import export_mesh
+    from hfrad.solve.hfr import _read_scene, _write_scene
+    from hfrad.render import render_radiance, smooth_corners
+
+    import h5py
+
+    c = cluster(fine_cornell, patches=500)
+    # a radiosity that varies linearly in x: the smoothed detail mesh stays within the patch values
+    B = np.repeat(c.centroids[:, :1] + 2.0, 3, axis=1)
+    corners = smooth_corners(c, B)
+    assert corners.shape == (c.n_triangles, 3, 3)
+    assert corners.min() >= B.min() - 1e-12 and corners.max() <= B.max() + 1e-12
+    # smooth, not blocky: values vary across the triangles inside most multi-triangle patches
+    start, index = c.patch_triangles
+    value = corners[:, :, 0].mean(axis=1)[index]
+    spread = np.maximum.reduceat(value, start[:-1]) - np.minimum.reduceat(value, start[:-1])
+    multi = np.diff(start) > 1
+    assert (spread[multi] > 1e-6).mean() > 0.5
+    radiance, face = render_radiance(c, B, "front", width=48, height=48)
+    hit = face >= 0
+    assert hit.mean() > 0.5 and face.max() < c.n_patches
+    assert np.abs(radiance[hit, 0] * np.pi - B[face[hit], 0]).max() < 0.3
+    export_mesh(c, B, tmp_path / "c.ply")
+    header = (tmp_path / "c.ply").read_bytes()[:2000].decode("ascii", "replace")
+    assert f"element face {c.n_triangles}" in header and "property int patch" in header
+    with h5py.File(tmp_path / "s.h5", "w") as f:
+        _write_scene(f.create_group("patches"), c)
+    with h5py.File(tmp_path / "s.h5", "r") as f:
+        back = _read_scene(f["patches"])
+    np.testing.assert_array_equal(back.triangle_patch, c.triangle_patch)
+    np.testing.assert_allclose(back.areas, c.areas)

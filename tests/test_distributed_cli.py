@@ -1,0 +1,121 @@
+"""``hfrad precompute --scheduler/--workers``: a cluster started by hand, an unreachable one, Ctrl-C."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+import hfrad
+from hfrad.cli import app
+from hfrad.solve.hfr import load_hfr, read_hfr_metadata
+from hfrad.pipeline import factorize
+from hfrad.scene.load import load_scene
+
+SRC = str(Path(hfrad.__file__).resolve().parents[1])
+ENV = {**os.environ, "PYTHONPATH": SRC + os.pathsep + os.environ.get("PYTHONPATH", "")}
+runner = CliRunner()
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _wait_for(path: Path, text: str, proc: subprocess.Popen, seconds: float) -> None:
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        if path.exists() and text in path.read_text(errors="replace"):
+            return
+        if proc.poll() is not None:
+            raise AssertionError(f"{proc.args} exited early:\n{path.read_text(errors='replace')}")
+        time.sleep(0.2)
+    raise AssertionError(f"{text!r} did not appear in {path} within {seconds} s:\n{path.read_text(errors='replace')}")
+
+
+@pytest.fixture
+def hand_made_cluster(tmp_path):
+    """`dask scheduler` and two `dask worker` processes started from the command line, as in docs/cluster.md."""
+    address = f"tcp://127.0.0.1:{_free_port()}"
+    procs = []
+    try:
+        log = tmp_path / "scheduler.log"
+        procs.append(subprocess.Popen(["dask", "scheduler", "--host", "127.0.0.1", "--port", address.rsplit(":", 1)[1],
+                                       "--no-dashboard"], stdout=subprocess.DEVNULL, stderr=log.open("w"), env=ENV))
+        _wait_for(log, "Scheduler at", procs[0], 30)
+        for i in range(2):
+            wlog = tmp_path / f"worker{i}.log"
+            procs.append(subprocess.Popen(["dask", "worker", address, "--nthreads", "1", "--no-dashboard",
+                                           "--name", f"w{i}"], stdout=subprocess.DEVNULL, stderr=wlog.open("w"),
+                                          env=ENV))
+        for i in range(2):
+            _wait_for(tmp_path / f"worker{i}.log", "Registered to", procs[1 + i], 30)
+        yield address
+    finally:
+        for p in reversed(procs):  # test processes: no graceful shutdown needed
+            p.kill()
+            p.wait(10)
+
+
+def test_precompute_on_a_scheduler_started_by_hand(hand_made_cluster, tmp_path):
+    out = tmp_path / "cornell.hfr"
+    result = runner.invoke(app, ["precompute", "cornell", "--patches", "600", "--block", "64", "-o", str(out),
+                                 "--scheduler", hand_made_cluster])
+    assert result.exit_code == 0, result.output
+    assert f"the Dask scheduler at {hand_made_cluster} (2 workers)" in result.output
+    meta = read_hfr_metadata(out)
+    assert meta["parameters"]["backend"] == "dask" and meta["parameters"]["workers"] == 2
+    assert meta["timings"]["time_formfactors"] > 0 and meta["achieved_error"] <= 0.02 * meta["norm"]
+    fac = load_hfr(out)
+    scene = load_scene("cornell", patches=600)
+    local = factorize(scene, eps=0.02, block_size=64)
+    B, B_local = fac.solve(scene.emission), local.solve(scene.emission)
+    assert fac.rank == local.rank
+    assert np.allclose(B, B_local, rtol=1e-4, atol=1e-6 * np.abs(B_local).max())
+
+
+def test_unreachable_scheduler_exits_2(tmp_path):
+    import dask
+
+    address = f"tcp://127.0.0.1:{_free_port()}"
+    out = tmp_path / "x.hfr"
+    with dask.config.set({"distributed.comm.timeouts.connect": "1s"}):
+        result = runner.invoke(app, ["precompute", "furnace", "-o", str(out), "--scheduler", address])
+    assert result.exit_code == 2
+    assert f"cannot reach the Dask scheduler at {address}" in result.output
+    assert "Traceback" not in result.output and not out.exists()
+
+
+def test_both_scheduler_and_workers_is_an_error(tmp_path):
+    result = runner.invoke(app, ["precompute", "furnace", "-o", str(tmp_path / "x.hfr"),
+                                 "--scheduler", "tcp://127.0.0.1:1", "--workers", "2"])
+    assert result.exit_code == 2 and "not both" in result.output
+
+
+@pytest.mark.slow
+def test_ctrl_c_leaves_no_output(tmp_path):
+    """SIGINT while the LocalCluster works: the command stops and no .hfr (nor a temporary file) is left."""
+    out = tmp_path / "big.hfr"
+    log = tmp_path / "stderr.log"
+    proc = subprocess.Popen([sys.executable, "-m", "hfrad", "precompute", "cornell", "--patches", "3000",
+                             "--block", "32", "--workers", "1", "-o", str(out)],
+                            stdout=subprocess.DEVNULL, stderr=log.open("w"), env={**ENV, "COLUMNS": "200"})
+    try:
+        _wait_for(log, "running on 1 local worker", proc, 60)
+        time.sleep(4.0)  # the cluster is up and the blocks are being computed
+        proc.send_signal(signal.SIGINT)
+        rc = proc.wait(30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert rc != 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["stderr.log"], list(tmp_path.iterdir())
