@@ -35,15 +35,21 @@ def test_furnace_through_the_pipeline():
 
 
 @pytest.mark.parametrize("dtype", ["float32", "float64"])
-def test_cornell_error_within_eq5_bound(cornell, dtype):
+def test_cornell_error_and_its_figures(cornell, dtype):
     scene, F, exact = cornell
     fac = factorize(scene, eps=0.02, block_size=128, dtype=dtype)
     assert fac.relative_error <= 0.02
-    err = _relative_error(fac.solve(scene.emission), exact)
+    B = fac.solve(scene.emission)
+    err = _relative_error(B, exact)
+    w = np.sqrt(scene.areas)[:, None]
+    err_a = np.linalg.norm(w * (B - exact), axis=0) / np.linalg.norm(w * exact, axis=0)
+    figure = fac.residual(scene.emission, B, form_factors=F)
     print(f"\n{dtype}: n={fac.n_patches} rank={fac.rank} achieved={fac.relative_error:.4f} "
-          f"radiosity error={err} bound={fac.error_bound}")
-    assert (err <= fac.error_bound).all()
-    assert (err < 0.02).all()  # in practice far below the bound (paper, section 2.3)
+          f"radiosity error={err} area-norm error={err_a} residual bound={figure.bound} "
+          f"a-priori bound={fac.error_bound}")
+    assert (err < 6e-3).all(), err                                     # observed 1.7-1.9e-3
+    assert (err_a <= fac.error_bound).all()                            # guaranteed, loose
+    assert (err_a <= figure.bound).all() and (figure.bound < 10 * err_a).all()   # guaranteed, ~5x
 
 
 def test_out_of_core_equals_in_core(cornell):
@@ -62,7 +68,7 @@ def test_order_changes_speed_not_answer(cornell):
     for order in ("random", "hilbert"):
         fac = factorize(scene, eps=0.02, block_size=128, order=order)
         err = _relative_error(fac.solve(scene.emission), exact)
-        assert (err <= fac.error_bound).all() and (err < 0.02).all()
+        assert (err < 6e-3).all(), (order, err)                        # observed 1.6-2.0e-3
 
 
 def test_checkpoint_resumes_without_redoing_blocks(tmp_path):

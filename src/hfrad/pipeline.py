@@ -23,12 +23,15 @@ from .defaults import DEFAULT_BLOCK_SIZE
 from .errors import InputError, SceneError
 from .factorize.api import check_method, lowrank_from_blocks, lowrank_from_matrix
 from .factorize.hf import HFStream
-from .factorize.streaming import load_checkpoint, save_checkpoint
+from .factorize.streaming import load_checkpoint, read_checkpoint_extras, save_checkpoint
+from .formfactors.energy import warn_energy
+from .formfactors.kernel import KERNEL_VERSION
 from .progress import ProgressCallback, report
 from .scene.scene import Scene
 from .scene.zorder import patch_order
+from .solve.stats import PassStatistics
 from .solve.woodbury import HFactorization
-from .validation import check_factorize_options, check_permutation, check_reflectance
+from .validation import check_areas, check_factorize_options, check_permutation, check_reflectance
 StatusCallback = Callable[[dict], None] | None
 
 
@@ -38,7 +41,8 @@ def _scene_key(scene: Scene, params: dict) -> str:
     for a in (scene.vertices, scene.faces, scene.occluder_vertices, scene.occluder_faces, scene.patch_of_triangle,
               scene.reflectance.max(axis=1)):
         h.update(np.ascontiguousarray(a).tobytes())
-    h.update(json.dumps(params, sort_keys=True).encode())
+    # the kernel version too: a checkpoint from an older form-factor kernel must not be resumed
+    h.update(json.dumps({**params, "kernel_version": KERNEL_VERSION}, sort_keys=True).encode())
     return h.hexdigest()
 
 
@@ -51,7 +55,7 @@ def check_factorize_args(scene: Scene, eps: float, block_size: int, dtype, relat
     return check_factorize_options(scene.n_patches, eps, block_size, dtype, relative)
 
 
-def factorize(scene_or_matrix, reflectance=None, *, eps: float = 0.02, relative: bool = True,
+def factorize(scene_or_matrix, reflectance=None, *, areas=None, eps: float = 0.02, relative: bool = True,
               block_size: int | None = None, dtype="float32", order=None, method: str = "hf",
               samples: int | None = None, leaf_share: float = 0.5,
               checkpoint: str | Path | None = None, checkpoint_interval: float = 30.0,
@@ -69,6 +73,10 @@ def factorize(scene_or_matrix, reflectance=None, *, eps: float = 0.02, relative:
         fraction of the energy leaving i that reaches j).
     reflectance : (n, 3) float in [0, 1), optional
         Needed with a matrix; a scene carries its own.
+    areas : (n,) float > 0, m^2, optional
+        Patch areas of a matrix (a scene carries its own): the error bound is
+        then in the area-weighted norm, where reciprocity gives the tight
+        contraction bound; without them the plain 2-norm.
     eps : float in (0, 1)
         Target ``||G - Q V^T||_F`` relative to ``||G||_F`` (absolute with
         ``relative=False``), ``G = diag(rho_max) F``.
@@ -137,8 +145,8 @@ def factorize(scene_or_matrix, reflectance=None, *, eps: float = 0.02, relative:
     True
     """
     if isinstance(scene_or_matrix, Scene):
-        if reflectance is not None:
-            raise InputError("a Scene carries its reflectance: pass reflectance only with a matrix "
+        if reflectance is not None or areas is not None:
+            raise InputError("a Scene carries its reflectance and areas: pass them only with a matrix "
                              "(or use scene.replace(reflectance=...))")
         if method != "hf":
             raise InputError(f"a scene is factored by streaming HF; method {method!r} needs the dense "
@@ -159,7 +167,8 @@ def factorize(scene_or_matrix, reflectance=None, *, eps: float = 0.02, relative:
             raise InputError(f"{name} applies to a Scene only, not to a form-factor matrix")
     return _factorize_matrix(scene_or_matrix, reflectance, eps=eps, relative=relative,
                              block_size=DEFAULT_BLOCK_SIZE if block_size is None else block_size, dtype=dtype,
-                             order=order, method=method, leaf_share=leaf_share, rng=rng, progress=progress)
+                             order=order, method=method, leaf_share=leaf_share, rng=rng, areas=areas,
+                             progress=progress)
 
 
 def _factorize_scene(scene: Scene, *, eps: float, relative: bool, block_size: int | None, dtype, samples,
@@ -185,6 +194,7 @@ def _factorize_scene(scene: Scene, *, eps: float, relative: bool, block_size: in
               "samples": samples, "order": order, "leaf_share": leaf_share, "one_ray_tol": one_ray_tol}
     key = _scene_key(scene, params)
     stream = _open_stream(checkpoint, key, n, n_blocks, eps, relative, dt, leaf_share)
+    stats = _open_stats(checkpoint, n, scene.areas[perm])
     t0 = time.perf_counter()
     ff_kwargs = {} if samples is None else {"samples": samples}
     if samples != 0:
@@ -194,14 +204,25 @@ def _factorize_scene(scene: Scene, *, eps: float, relative: bool, block_size: in
                                 processes=processes, dtype=dt, **ff_kwargs)
     rows_rho = rho_max[perm][:, None].astype(dt)
     with _blas_threads(blas_threads):
-        lowrank, time_ff = _stream_blocks(blocks, stream, rows_rho, n_blocks, checkpoint, checkpoint_interval,
-                                          key, progress, status, t0)
+        lowrank, time_ff = _stream_blocks(blocks, stream, stats, rows_rho, n_blocks, checkpoint,
+                                          checkpoint_interval, key, progress, status, t0)
     lowrank.info.update({"time_formfactors": time_ff, "time_precompute": time.perf_counter() - t0})
+    warn_energy(scene, stats.row_sums[np.argsort(perm)])
     fac = HFactorization(perm, lowrank.Q, lowrank.V, rho_max, scene.reflectance, lowrank,
-                         params=params, scene=scene)
+                         params=params, scene=scene, stats=stats)
     if checkpoint is not None and Path(checkpoint).exists():
         Path(checkpoint).unlink()
     return fac
+
+
+def _open_stats(checkpoint, n: int, weights) -> PassStatistics:
+    """The pass statistics, resumed from a checkpoint's extras when there is one."""
+    if checkpoint is not None and Path(checkpoint).exists():
+        extras = read_checkpoint_extras(checkpoint)
+        if extras:
+            return PassStatistics.from_state(extras)
+        raise InputError(f"{checkpoint}: checkpoint of an older hfrad (no pass statistics); delete it to start over")
+    return PassStatistics(n, weights)
 
 
 def _open_stream(checkpoint, key, n, n_blocks, eps, relative, dt, leaf_share) -> HFStream:
@@ -226,29 +247,33 @@ def _blas_threads(count: int | None):
         yield
 
 
-def _stream_blocks(blocks, stream: HFStream, rows_rho, n_blocks, checkpoint, checkpoint_interval, key,
-                   progress, status, t0):
-    """Push every column block into the stream (checkpointing); returns (LowRank, form-factor seconds)."""
+def _stream_blocks(blocks, stream: HFStream, stats: PassStatistics, rows_rho, n_blocks, checkpoint,
+                   checkpoint_interval, key, progress, status, t0):
+    """Push every column block into the stream and the statistics (checkpointing both).
+
+    Returns (LowRank, form-factor seconds).
+    """
     last_save = time.perf_counter()
     time_ff = 0.0
     t_ff = time.perf_counter()
     for start, stop, block in blocks:
         time_ff += time.perf_counter() - t_ff
         stream.push(rows_rho * block)  # G = diag(rho_max) F, rows in internal order
+        stats.add(start, stop, block, rows_rho)
         del block
         report(progress, stream.blocks_done, n_blocks)
         if status is not None:
             status({"blocks": stream.blocks_done, "rank": stream.current_rank, "elapsed": time.perf_counter() - t0})
         if checkpoint is not None and time.perf_counter() - last_save > checkpoint_interval \
                 and stream.blocks_done < n_blocks:
-            save_checkpoint(stream, checkpoint, key)
+            save_checkpoint(stream, checkpoint, key, extras=stats.state())
             last_save = time.perf_counter()
         t_ff = time.perf_counter()
     return stream.finish(), time_ff
 
 
 def _factorize_matrix(F, reflectance, *, eps: float, relative: bool, block_size: int, dtype, order,
-                      method: str, leaf_share: float, rng, progress: ProgressCallback) -> HFactorization:
+                      method: str, leaf_share: float, rng, areas, progress: ProgressCallback) -> HFactorization:
     """The matrix branch of :func:`factorize` (arguments as there): validation, then the factorizer."""
     F = np.asarray(F)
     if F.ndim != 2 or F.shape[0] != F.shape[1]:
@@ -275,11 +300,13 @@ def _factorize_matrix(F, reflectance, *, eps: float, relative: bool, block_size:
         raise InputError(f"form factors have a NaN or infinite value at F[{i}, {j}]")
     lr = lowrank_from_matrix(F, rho_max, perm, eps=eps, relative=relative, block_size=block_size, dtype=dt,
                              method=method, rng=rng, leaf_share=leaf_share, progress=progress)
+    stats = PassStatistics(n, None if areas is None else check_areas(areas, n)[perm])
+    stats.add(0, n, F[np.ix_(perm, perm)], rho_max[perm][:, None])
     params = {"method": method, "block_size": block_size, "dtype": dt.name,
               "time_factor": lr.info["time_factor"]}
     if method == "hf":
         params["leaf_share"] = leaf_share
-    return HFactorization(perm, lr.Q, lr.V, rho_max, rho, lr, params=params)
+    return HFactorization(perm, lr.Q, lr.V, rho_max, rho, lr, params=params, stats=stats)
 
 
 def factorize_blocks(blocks, n: int, reflectance, perm, *, eps: float = 0.02, relative: bool = True,
@@ -315,8 +342,16 @@ def factorize_blocks(blocks, n: int, reflectance, perm, *, eps: float = 0.02, re
             n_blocks = len(blocks)
         except TypeError:
             raise InputError("pass n_blocks (or block_size) when blocks is a generator") from None
-    lr = lowrank_from_blocks(blocks, n, rho_max, perm, eps=eps, relative=relative, dtype=dtype,
+    stats = PassStatistics(n)
+    rows_rho = rho_max[perm][:, None]
+
+    def recorded():
+        for start, stop, Fb in blocks:
+            yield start, stop, Fb
+            stats.add(start, stop, Fb, rows_rho)   # after the factorizer has checked the block
+
+    lr = lowrank_from_blocks(recorded(), n, rho_max, perm, eps=eps, relative=relative, dtype=dtype,
                              n_blocks=n_blocks, leaf_share=leaf_share, progress=progress)
     params = {"method": "hf", "block_size": block_size, "dtype": np.dtype(dtype).name,
               "leaf_share": leaf_share, "time_factor": lr.info["time_factor"]}
-    return HFactorization(perm, lr.Q, lr.V, rho_max, rho, lr, params=params)
+    return HFactorization(perm, lr.Q, lr.V, rho_max, rho, lr, params=params, stats=stats)

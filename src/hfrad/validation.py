@@ -10,7 +10,7 @@ import numpy as np
 
 from .errors import InputError
 
-__all__ = ["check_permutation", "check_reflectance", "check_trans", "check_finite", "object_first",
+__all__ = ["check_permutation", "check_reflectance", "check_areas", "check_trans", "check_finite", "object_first",
            "check_factorize_options"]
 
 
@@ -50,6 +50,18 @@ def check_reflectance(reflectance, n: int, name: str = "reflectance") -> np.ndar
         raise InputError(f"{name} must be finite and in [0, 1) (a reflectance of 1 or more creates energy); "
                          f"patch {i} has {rho[i].tolist()}")
     return rho
+
+
+def check_areas(areas, n: int, name: str = "areas") -> np.ndarray:
+    """``areas`` as an (n,) float64 array of finite positive values (m^2)."""
+    a = np.asarray(areas, dtype=np.float64)
+    if a.shape != (n,):
+        raise InputError(f"{name} must have shape ({n},); got {a.shape}")
+    bad = ~(np.isfinite(a) & (a > 0))
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise InputError(f"{name} must be finite and > 0; patch {i} has {a[i]}")
+    return a
 
 
 def check_trans(trans) -> bool:

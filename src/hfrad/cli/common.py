@@ -116,6 +116,26 @@ def check_memory_for_precompute(n: int, block: int, dtype: str) -> None:
             f"{rank_guess(n):,}: {RANK_ASSUMPTION})")
 
 
+def error_figures_line(fac) -> str:
+    """The factorization's error figures in words (docs/method.md, section 7)."""
+    import warnings
+
+    from ..errors import AccuracyWarning
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", AccuracyWarning)   # said in words below
+        est = fac.error_estimate()
+    def figs(values):
+        return ", ".join(f"{v:.3g}" if v == v and v != float("inf") else "none" for v in values)
+    if est.kind == "probes":
+        head = (f"guaranteed bound on the relative radiosity error of any solve (R,G,B; {est.norm} norm, failure "
+                f"probability {est.failure_probability:g}): {figs(est.bound)}")
+    else:
+        head = "no pass statistics: only the eq. 5 figure"
+    return (f"{head}; eq. 5 bound {figs(est.eq5_bound)} (sigma_max {figs(est.sigma_max)}); "
+            "`hfrad solve --residual` gives the tight figure of one solution")
+
+
 def show_warnings_plainly() -> None:
     """Print library warnings as one 'warning:' line each, without file and line of the source."""
     import warnings

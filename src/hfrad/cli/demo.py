@@ -46,12 +46,14 @@ def register(app: typer.Typer) -> None:
             out(f"precompute {t_pre:.1f} s (form factors {info['time_formfactors']:.1f} s, "
                 f"HF {info['time_total']:.1f} s): rank {fac.rank:,} of {fac.n_patches:,}, "
                 f"achieved error {fac.relative_error:.4f} (target {eps})")
-            out("eq. 5 bound on the relative radiosity error (R,G,B): "
-                + ", ".join(f"{b:.3g}" for b in fac.error_bound)
-                + "  (sigma_max " + ", ".join(f"{s:.3f}" for s in fac.sigma_max) + ")")
+            out(common.error_figures_line(fac))
             t1 = time.perf_counter()
             B = fac.solve(scene.emission)
             t_solve = time.perf_counter() - t1
+            with common.progress_bar("residual of the solution (form factors again)", quiet) as bar:
+                r = fac.residual(scene.emission, B, progress=bar)
+            out("guaranteed bound on the relative radiosity error of this solution (R,G,B; "
+                f"{r.norm} norm, from its residual): " + ", ".join(f"{b:.3g}" for b in r.bound))
             save_png(render_image(scene, B, camera="front"), output / "cornell.png")
             write_radiosity(scene, B, output / "cornell.glb", scene.emission)
             blue = scene.emission * np.array([0.1, 0.3, 1.0]) / 0.4  # relight: same lamp, blue

@@ -92,7 +92,7 @@ def _on_cluster(scene, scheduler: Optional[str], workers: Optional[int], quiet: 
     from ..memory import human
 
     if scheduler is not None and workers is not None:
-        raise ValueError("give --scheduler or --workers, not both")
+        raise InputError("give --scheduler or --workers, not both")
     n, block = scene.n_patches, min(options["block_size"] or DEFAULT_BLOCK_SIZE, scene.n_patches)
     k = rank_guess(n, options["eps"])
     try:
@@ -112,12 +112,9 @@ def _on_cluster(scene, scheduler: Optional[str], workers: Optional[int], quiet: 
 
 def _report(fac, output: Path, seconds: float) -> None:
     info = fac.lowrank.info
-    bound = ", ".join(f"{b:.3g}" for b in fac.error_bound)
-    sigma = ", ".join(f"{x:.4f}" for x in fac.sigma_max)
     common.console.print(
         f"wrote {output}: {fac.n_patches:,} patches, rank {fac.rank:,}, "
-        f"achieved error {fac.relative_error:.4f} (target {fac.eps}), sigma_max {sigma}, "
-        f"eq. 5 bound on the relative radiosity error (R,G,B) {bound}\n"
+        f"achieved error {fac.relative_error:.4f} (target {fac.eps})\n{common.error_figures_line(fac)}\n"
         f"time {seconds:.1f} s (form factors {info.get('time_formfactors', 0):.1f} s, "
         f"factorization {info.get('time_total', 0):.1f} s"
         + (f"; summed over {info['workers']} Dask workers" if info.get("backend") == "dask" else "") + ")",

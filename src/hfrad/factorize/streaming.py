@@ -24,11 +24,13 @@ def _params(stream: HFStream) -> dict:
             "dtype": stream.dtype.name, "leaf_share": stream.leaf_share}
 
 
-def save_checkpoint(stream: HFStream, path: str | os.PathLike, key: str = "") -> None:
+def save_checkpoint(stream: HFStream, path: str | os.PathLike, key: str = "", extras: dict | None = None) -> None:
     """Write the stream state to ``path`` atomically (temporary name, then rename).
 
-    ``key`` identifies the input (scene and parameters hash); :func:`load_checkpoint`
-    refuses a checkpoint whose key differs.
+    ``key`` identifies the input (scene, parameters and form-factor kernel
+    version); :func:`load_checkpoint` refuses a checkpoint whose key differs.
+    ``extras`` (name -> array or number) is what else the pass accumulates
+    (row sums, probes), read back by :func:`read_checkpoint_extras`.
     """
     import h5py
 
@@ -48,6 +50,9 @@ def save_checkpoint(stream: HFStream, path: str | os.PathLike, key: str = "") ->
             g.create_dataset("s", data=node.s)
             g.create_dataset("V", data=node.V)
         f.attrs["nodes"] = len(stream.stack)
+        g = f.create_group("extras")
+        for name, value in (extras or {}).items():
+            g.create_dataset(name, data=np.asarray(value))
 
 
 def load_checkpoint(path: str | os.PathLike, key: str = "") -> HFStream:
@@ -72,3 +77,12 @@ def load_checkpoint(path: str | os.PathLike, key: str = "") -> HFStream:
                                       float(g.attrs["norm2"]), float(g.attrs["discarded2"]),
                                       float(g.attrs["slack2"])))
     return stream
+
+
+def read_checkpoint_extras(path: str | os.PathLike) -> dict:
+    """The ``extras`` saved with a checkpoint (empty for one written without them)."""
+    import h5py
+
+    with h5py.File(path, "r") as f:
+        g = f.get("extras")
+        return {} if g is None else {name: g[name][()] for name in g}

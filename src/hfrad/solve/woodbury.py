@@ -14,8 +14,9 @@ import scipy.linalg as sla
 
 from ..errors import AccuracyWarning, FactorizationError, InputError
 from ..factorize.lowrank import LowRank
-from ..validation import check_reflectance, check_trans
-from .bounds import ErrorEstimate, estimate_errors, power_sigma_max, residual_norm
+from ..validation import check_finite, check_reflectance, check_trans
+from .bounds import ErrorEstimate, ResidualEstimate, estimate_errors, power_sigma_max, residual_estimate
+from .stats import FAILURE_PROBABILITY, PassStatistics
 
 N_CHANNELS = 3
 _RCOND_MIN = 1e-12   # below this the k x k system has no meaningful solution
@@ -89,6 +90,9 @@ class HFactorization:
         Precomputed Woodbury factors (as stored in an .hfr file).
     sigma_max : (3,) float, optional
         Cached power-iteration estimates of sigma_max(Q_c V^T).
+    stats : PassStatistics, optional
+        Row/column sums of F and the probe sketch recorded during the pass
+        (internal order): what the guaranteed error bound is computed from.
     params : dict, optional
         Parameters of the run (block size, order, method...), for the record.
 
@@ -99,7 +103,7 @@ class HFactorization:
     """
 
     def __init__(self, perm, Q, V, rho_max, reflectance, lowrank: LowRank, *, Y=None,
-                 sigma_max=None, params: dict | None = None, scene=None):
+                 sigma_max=None, params: dict | None = None, scene=None, stats: PassStatistics | None = None):
         self.perm = np.asarray(perm, dtype=np.int64)
         n = self.perm.size
         self.inv_perm = np.empty(n, np.int64)
@@ -117,6 +121,7 @@ class HFactorization:
         self._D = D
         self._sigma = None if sigma_max is None else np.asarray(sigma_max, np.float64)
         self._estimate: ErrorEstimate | None = None
+        self.stats = stats
 
     # -- sizes and accuracy ------------------------------------------------
     @property
@@ -152,33 +157,42 @@ class HFactorization:
         Returns
         -------
         ErrorEstimate
-            ``bound`` (the figure to quote, see its ``norm``), ``eq5_bound``
-            (Aguerre & Fernández 2016, eq. 5, a secondary figure) and the
-            quantities they are made of.
+            ``bound``: an upper bound on the relative radiosity error of any
+            solve, in the area-weighted norm, failing with probability
+            ``failure_probability`` (1e-6); ``eq5_bound``: the paper's eq. 5,
+            a secondary figure; and the quantities they are made of
+            (docs/method.md, section 7).
 
         Warns
         -----
         AccuracyWarning
-            Where a channel has no finite bound (its operator may have an
-            eigenvalue near 1).
+            Where a channel has no finite bound (``||R_c F||`` may reach 1, or
+            the factorization error is too large).
 
         Notes
         -----
-        Power iteration on the factors, O(nk) per step, a few hundred steps at
-        most; :func:`hfrad.factorize` and :func:`hfrad.load` call it once so
-        that the attributes ``error_bound``, ``eq5_bound`` and ``sigma_max``
-        are stored values.
+        O(n k p) for the probes and a power iteration on the factors for eq. 5
+        (O(nk) per step, a few hundred steps at most).
         """
         if self._estimate is None:
             if self._sigma is None:
                 self._sigma = np.array([power_sigma_max(self.Q * self._D[:, c:c + 1].astype(self.dtype), self.V)
                                         for c in range(N_CHANNELS)])
-            self._estimate = estimate_errors(self.achieved_error, self._sigma)
-            bad = ~np.isfinite(self._estimate.bound)
+            if self.stats is None:
+                est = estimate_errors(self.achieved_error, self._sigma)
+            else:
+                est = estimate_errors(self.achieved_error, self._sigma,
+                                      operator_error=self.stats.operator_error(self.Q, self.V, self._D),
+                                      contraction=self.stats.contraction(self.reflectance[self.perm]),
+                                      norm=self.stats.norm, failure_probability=FAILURE_PROBABILITY)
+            bad = ~np.isfinite(est.bound)
             if bad.any():
-                warnings.warn(f"sigma_max + error >= 1 for channels {np.flatnonzero(bad).tolist()} "
-                              f"(sigma estimates {(self._sigma + self.achieved_error).round(4).tolist()}); "
-                              "eq. 5 gives no bound", AccuracyWarning, stacklevel=2)
+                why = ("sigma_max + error >= 1, eq. 5 gives no bound" if est.kind == "eq5" else
+                       f"contraction bound {np.round(est.contraction, 4).tolist()} and operator error "
+                       f"{np.round(est.operator_error, 4).tolist()} give no bound")
+                warnings.warn(f"no error bound for channels {np.flatnonzero(bad).tolist()}: {why}; "
+                              "fac.residual(E, B) gives the per-solution figure", AccuracyWarning, stacklevel=2)
+            self._estimate = est
         return self._estimate
 
     @property
@@ -299,11 +313,13 @@ class HFactorization:
                               matmat=lambda X: apply(X, False), rmatmat=lambda X: apply(X, True),
                               dtype=np.float64)
 
-    def residual(self, exitance, radiosity, *, form_factors=None, progress=None) -> np.ndarray:
-        """A-posteriori ``||(I - R_c F) B_c - E_c|| / ||E_c||`` per channel, with the exact F.
+    def residual(self, exitance, radiosity, *, form_factors=None, progress=None) -> ResidualEstimate:
+        """The guaranteed figure of one solution: its residual with the exact F, and the error bound it gives.
 
-        Uses this factorization's reflectance (which may differ from its
-        scene's after :meth:`with_reflectance`).
+        ``r = E - (I - R_c F) B~`` and ``||B~ - B|| <= ||r|| / (1 - ||R_c F||)``
+        (docs/method.md, section 7), in the area-weighted norm when the patch
+        areas are known. Uses this factorization's reflectance (which may
+        differ from its scene's after :meth:`with_reflectance`).
 
         Parameters
         ----------
@@ -315,19 +331,21 @@ class HFactorization:
 
         Returns
         -------
-        (3,) float: relative residual per channel (2-norm).
+        ResidualEstimate
+            ``residual`` (relative, per channel) and ``bound`` (guaranteed
+            relative radiosity error of ``radiosity``, per channel).
         """
         E = self._validate(exitance, False)
-        B = np.asarray(radiosity, dtype=np.float64)
+        B = check_finite(radiosity, "radiosity")
         if E.shape != (self.n_patches, N_CHANNELS) or B.shape != E.shape:
             raise InputError(f"exitance and radiosity must both have shape ({self.n_patches}, 3); "
                              f"got {E.shape} and {B.shape}")
+        areas = self.areas
         if form_factors is not None:
-            F = np.asarray(form_factors)
+            F = check_finite(form_factors, "form_factors")
             if F.shape != (self.n_patches, self.n_patches):
                 raise InputError(f"form_factors must have shape ({self.n_patches}, {self.n_patches}); got {F.shape}")
-            blocks = [(0, self.n_patches, F)]
-            return residual_norm(blocks, self.reflectance, E, B)
+            return residual_estimate([(0, self.n_patches, F)], self.reflectance, E, B, areas=areas)
         if self.scene is None:
             raise InputError("this factorization has no scene to recompute F from; pass form_factors=F")
         from ..formfactors.blocks import iter_column_blocks
@@ -335,7 +353,16 @@ class HFactorization:
         samples = self.params.get("samples")
         kwargs = {} if samples is None else {"samples": samples}
         blocks = iter_column_blocks(self.scene, order=self.perm, progress=progress, **kwargs)
-        return residual_norm(blocks, self.reflectance, E, B, perm=self.perm)
+        return residual_estimate(blocks, self.reflectance, E, B, perm=self.perm, areas=areas)
+
+    @property
+    def areas(self) -> np.ndarray | None:
+        """(n,) patch areas (m^2, user order) weighting the error norm, or None (plain 2-norm)."""
+        if self.scene is not None:
+            return np.asarray(self.scene.areas)
+        if self.stats is not None and self.stats.weights is not None:
+            return self.stats.weights[self.inv_perm]
+        return None
 
     def save(self, path) -> "Path":
         """Write this factorization (with its scene's patches) to an ``.hfr`` file, atomically."""
@@ -364,7 +391,7 @@ class HFactorization:
                              f"{self.rho_max[i]:.6g} of this factorization; refactorize with the "
                              "new reflectance (factorize again)")
         return HFactorization(self.perm, self.Q, self.V, self.rho_max, rho, self.lowrank,
-                              params=self.params, scene=self.scene)
+                              params=self.params, scene=self.scene, stats=self.stats)
 
     def __repr__(self) -> str:
         return (f"HFactorization(n_patches={self.n_patches}, rank={self.rank}, "
