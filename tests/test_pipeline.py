@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import Interrupt, interrupt_at
 
 from hfrad import factorize
 from hfrad.formfactors import form_factor_matrix
@@ -75,13 +76,7 @@ def test_checkpoint_resumes_without_redoing_blocks(tmp_path):
     scene = load_scene("cornell", patches=600)
     full = factorize(scene, eps=0.02, block_size=64, dtype="float64")
     ckpt = tmp_path / "run.partial"
-
-    class Interrupt(Exception):
-        pass
-
-    def stop_after_four(info):
-        if info["blocks"] == 4:
-            raise Interrupt
+    stop_after_four = interrupt_at(4)
 
     with pytest.raises(Interrupt):
         factorize(scene, eps=0.02, block_size=64, dtype="float64", checkpoint=ckpt,

@@ -11,6 +11,7 @@ import warnings
 import h5py
 import numpy as np
 import pytest
+from conftest import Interrupt, interrupt_at
 
 import hfrad
 from hfrad.errors import AccuracyWarning, FileFormatError
@@ -122,16 +123,9 @@ def test_checkpoint_of_another_kernel_is_not_resumed(tmp_path, monkeypatch):
 
     scene = hfrad.load_scene("cornell", patches=300)
     ckpt = tmp_path / "run.partial"
-
-    class Interrupt(Exception):
-        pass
-
-    def stop(info):
-        if info["blocks"] == 3:
-            raise Interrupt
-
     with pytest.raises(Interrupt):
-        hfrad.factorize(scene, eps=0.05, block_size=32, checkpoint=ckpt, checkpoint_interval=0.0, status=stop)
+        hfrad.factorize(scene, eps=0.05, block_size=32, checkpoint=ckpt, checkpoint_interval=0.0,
+                        status=interrupt_at(3))
     assert ckpt.exists()
     monkeypatch.setattr(pipeline, "KERNEL_VERSION", "a newer kernel")
     with pytest.raises(ValueError, match="another scene or other parameters"):
@@ -141,20 +135,23 @@ def test_checkpoint_of_another_kernel_is_not_resumed(tmp_path, monkeypatch):
 def test_resumed_statistics_equal_a_straight_run(tmp_path):
     scene = hfrad.load_scene("cornell", patches=300)
     ckpt = tmp_path / "run.partial"
-
-    class Interrupt(Exception):
-        pass
-
-    def stop(info):
-        if info["blocks"] == 5:
-            raise Interrupt
-
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", AccuracyWarning)
         straight = hfrad.factorize(scene, eps=0.05, block_size=32, dtype="float64")
         with pytest.raises(Interrupt):
             hfrad.factorize(scene, eps=0.05, block_size=32, dtype="float64", checkpoint=ckpt,
-                            checkpoint_interval=0.0, status=stop)
+                            checkpoint_interval=0.0, status=interrupt_at(5))
         resumed = hfrad.factorize(scene, eps=0.05, block_size=32, dtype="float64", checkpoint=ckpt)
     np.testing.assert_allclose(resumed.stats.row_sums, straight.stats.row_sums, rtol=1e-12)
     np.testing.assert_allclose(resumed.stats.sketch, straight.stats.sketch, rtol=1e-10, atol=1e-14)
+
+
+def test_a_nan_in_a_column_block_is_refused_before_lapack():
+    from conftest import closed_system
+    from hfrad.pipeline import factorize_blocks
+
+    F, _, rho = closed_system(64)
+    F[10, 40] = np.nan
+    blocks = ((s, s + 16, F[:, s:s + 16]) for s in range(0, 64, 16))
+    with pytest.raises(hfrad.InputError, match="column block 32:48 has a NaN.*row 10, column 40"):
+        factorize_blocks(blocks, 64, rho, np.arange(64), eps=0.05, n_blocks=4)

@@ -12,6 +12,7 @@ from typing import Iterable
 
 import numpy as np
 
+from ..errors import InputError
 from ..progress import ProgressCallback
 from .baselines import randomized_factorization, sketch_factorization, svd_factorization
 from .hf import hierarchical_factorization
@@ -84,6 +85,10 @@ def lowrank_from_blocks(blocks: Iterable[tuple[int, int, np.ndarray]], n: int, r
             Fb = np.asarray(Fb, dtype=dtype)
             if Fb.shape != (n, stop - start):
                 raise ValueError(f"block {start}:{stop} must have shape ({n}, {stop - start}); got {Fb.shape}")
+            if not np.isfinite(Fb).all():   # LAPACK runs unchecked: a NaN would give a silent rank-0 node
+                i, j = np.argwhere(~np.isfinite(Fb))[0]
+                raise InputError(f"column block {start}:{stop} has a NaN or infinite value at row {i}, "
+                                 f"column {start + j}")
             expected[0] = stop
             yield scale * Fb                       # rows of G = diag(rho_max) F
 

@@ -264,12 +264,4 @@ def residual_norm(blocks: Iterable[tuple[int, int, np.ndarray]], reflectance, ex
     -----
     One pass over F, O(n^2) time, O(n b) memory.
     """
-    rho = np.asarray(reflectance, np.float64)
-    E = np.asarray(exitance, np.float64)
-    B = np.asarray(radiosity, np.float64)
-    if perm is not None:
-        rho, E, B = rho[perm], E[perm], B[perm]
-    FB = _stream_FB(blocks, B)[0]
-    r = B - rho * FB - E
-    nr, ne = np.linalg.norm(r, axis=0), np.linalg.norm(E, axis=0)
-    return np.divide(nr, ne, out=np.where(nr > 0, np.inf, 0.0), where=ne > 0)
+    return residual_estimate(blocks, reflectance, exitance, radiosity, perm=perm).residual
