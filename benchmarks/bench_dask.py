@@ -100,21 +100,27 @@ def _task_overhead(client, workers: int, count: int = 400) -> float:
 
 # -- the model --------------------------------------------------------------------------------
 def fit_costs(records: list[dict], wall: float, workers: int, overhead: float) -> dict:
-    """Per-unit costs from the measured tasks (least squares through the origin)."""
+    """Per-unit costs from the measured tasks' CPU seconds (least squares through the origin).
+
+    CPU seconds of the worker process (one task at a time, one core) are what
+    the task costs on a dedicated core; wall seconds on a shared machine also
+    count the time other processes held the core.
+    """
     leaves = [r for r in records if r["kind"] == "leaf"]
     merges = [r for r in records if r["kind"] == "merge"]
     pairs = np.array([r["rows"] * r["columns"] for r in leaves], float)
-    ff = np.array([r["formfactors"] for r in leaves])
+    ff = np.array([r["cpu_formfactors"] for r in leaves])
     svd_units = np.array([r["rows"] * r["columns"] ** 2 for r in leaves], float)
-    svd = np.array([r["svd"] for r in leaves])
+    svd = np.array([r["cpu"] - r["cpu_formfactors"] for r in leaves])
     merge_units = np.array([r["rows"] * sum(r["ranks_in"]) ** 2 for r in merges], float)
-    merge_s = np.array([r["seconds"] for r in merges])
+    merge_s = np.array([r["cpu"] for r in merges])
     c_merge = float(merge_units @ merge_s / (merge_units @ merge_units))
+    ratio = merge_s / (c_merge * merge_units)
     busy = sum(r["seconds"] for r in records)
     return {"s_per_pair": float(ff.sum() / pairs.sum()), "s_per_svd_unit": float(svd.sum() / svd_units.sum()),
             "s_per_merge_unit": c_merge,
-            "merge_fit_spread": float(np.percentile(merge_s / (c_merge * merge_units), 90)
-                                      / max(np.percentile(merge_s / (c_merge * merge_units), 10), 1e-12)),
+            "merge_fit_spread": float(np.percentile(ratio, 90) / max(np.percentile(ratio, 10), 1e-12)),
+            "cpu_over_wall": float(sum(r["cpu"] for r in records) / busy),
             "overhead_s_per_task": overhead, "idle_fraction": max(0.0, 1 - busy / (wall * workers))}
 
 
@@ -227,6 +233,11 @@ def main() -> None:
     records = runs[2]["records"]
     costs = fit_costs(records, t2, 2, runs[2]["task_overhead_s"])
     profile = fit_rank_profile(records, runs[2]["patches"])
+    here = [simulate(runs[2]["patches"], args.block, w, costs, profile) for w in (1, 2)]
+    model_efficiency = here[0]["wall_s"] / (2 * here[1]["wall_s"])
+    print(f"model of this scene on dedicated cores (measured CPU costs): 1 worker {here[0]['wall_s']:.1f} s, "
+          f"2 workers {here[1]['wall_s']:.1f} s, efficiency {model_efficiency:.2f}; tasks' CPU seconds summed: "
+          + ", ".join(f"{r['config']} {sum(x['cpu'] for x in r['records']):.1f} s" for r in runs[1:]))
     sizes = [int(x) for x in args.model_sizes.split(",")]
     counts = [int(x) for x in args.model_workers.split(",")]
     model = []
@@ -243,7 +254,8 @@ def main() -> None:
                  ("critical_path_s", "critical path s"), ("wall_h", "wall h"), ("efficiency", "efficiency"),
                  ("worker_memory_gb", "GB/worker (root)")])
     assumptions = [
-        f"per-task costs measured in the 2-worker run: {costs['s_per_pair']:.3g} s per form-factor pair, "
+        f"per-task costs: CPU seconds measured in the 2-worker run (CPU/wall of its tasks "
+        f"{costs['cpu_over_wall']:.2f} on this shared machine): {costs['s_per_pair']:.3g} s per form-factor pair, "
         f"{costs['s_per_svd_unit']:.3g} s per n b^2 (leaf SVD), {costs['s_per_merge_unit']:.3g} s per "
         f"n (k1+k2)^2 (merge; 90th/10th percentile of measured/fitted {costs['merge_fit_spread']:.1f}), "
         f"{costs['overhead_s_per_task']:.3g} s Dask overhead per task (no-op tasks on the same cluster; the "
@@ -259,9 +271,11 @@ def main() -> None:
     ]
     print("\nassumptions:\n" + "\n".join(f"- {a}" for a in assumptions))
     for r in runs:
+        r["tasks_cpu_s"] = sum(x["cpu"] for x in r["records"])
         r.pop("records")
     write_json("dask", {"machine": m, "patches": runs[0]["patches"], "n_patches": runs[0]["patches"],
                         "eps": args.eps, "block": args.block, "runs": runs, "parallel_efficiency": efficiency,
+                        "model_this_scene": here, "model_parallel_efficiency": model_efficiency,
                         "costs": costs, "rank_profile": profile, "model": model, "assumptions": assumptions,
                         "task_records_2_workers": records})
 

@@ -1,6 +1,6 @@
 """Benchmark: inverse lighting design (``hfrad.design``) through HF vs through a dense LU.
 
-The office of ``examples/office`` (``--patches`` patches), two specs:
+The office of ``examples/office`` (``--patches`` patches), three specs:
 
 * ``office``: ``examples/office/spec.json``, the six luminaires as six emitters;
 * ``every-patch``: the same targets, but every patch of the ceiling (luminaires
@@ -11,8 +11,8 @@ The office of ``examples/office`` (``--patches`` patches), two specs:
 For each, the same :func:`hfrad.design` call runs twice, once on the HF factorization
 (``fac.solve``, Woodbury, O(nk) per right-hand side) and once on an exact dense solver
 (``scipy.linalg.lu_factor`` of ``I - R_c F`` for the three channels, then ``lu_solve``
-per evaluation; :class:`hfrad.solve.direct.LUFactorization`). The table gives the
-radiosity solves (evaluations) the optimiser used, the design's wall time, and the
+per evaluation). The table gives the radiosity solves (evaluations) the optimiser used,
+the design's wall time, and the
 one-off costs (form factors, HF / LU), plus what refactoring the dense matrix at every
 evaluation would cost (3 LU factorizations per evaluation, measured once and multiplied).
 Accuracy: the HF design's least power against the exact (dense) design's, and the HF
@@ -22,7 +22,7 @@ least-power LP has near-degenerate optima, and a 0.1% change of the model can tr
 luminaire against another at the same power.
 
 Run:  python benchmarks/bench_design.py [--patches 3000] [--eps 0.01]
-Writes benchmarks/results/design.json.
+Writes benchmarks/results/design.json (or --name).
 """
 
 from __future__ import annotations
@@ -34,6 +34,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import scipy.linalg as sla
 
 import common
 import hfrad
@@ -42,24 +43,30 @@ from hfrad.inverse import design, parse_spec
 from hfrad.inverse.optimize import goal_items
 from hfrad.inverse.transfer import adjoint_response, response
 from hfrad.pipeline import factorize
-from hfrad.solve.direct import LUFactorization
 
 OFFICE = Path(__file__).resolve().parent.parent / "examples" / "office"
 
 
 class DenseSolver:
-    """An exact dense solver with the factorization attributes :func:`hfrad.design` reads."""
+    """Exact dense solves, ``lu_factor(I - R_c F)`` per channel, with the attributes :func:`hfrad.design` reads."""
 
     def __init__(self, scene, F, reflectance):
-        self.scene, self.reflectance, self.params = scene, reflectance, {}
+        self.scene, self.reflectance, self.params = scene, np.asarray(reflectance, np.float64), {}
         self.n_patches, self.rank, self.eps, self.relative_error = scene.n_patches, scene.n_patches, 0.0, 0.0
-        self._lu = LUFactorization(F, reflectance)
+        n = scene.n_patches
+        self._lu = [sla.lu_factor(np.eye(n) - self.reflectance[:, c:c + 1] * F, check_finite=False)
+                    for c in range(3)]
         self.solves = 0
 
     def solve(self, exitance, trans: str = "N", *, transpose: bool = False):
-        E = np.asarray(exitance)
+        """(n, 3[, m]) radiosity (or the adjoint solution with ``trans='T'``) for (n, 3[, m]) exitance."""
+        E = np.asarray(exitance, np.float64)
         self.solves += E.shape[2] if E.ndim == 3 else 1
-        return self._lu.solve(E, trans="T" if transpose or trans == "T" else "N")
+        t = 1 if (transpose or trans == "T") else 0
+        out = np.empty_like(E)
+        for c in range(3):
+            out[:, c] = sla.lu_solve(self._lu[c], E[:, c], trans=t, check_finite=False)
+        return out
 
 
 def every_patch_spec(spec: dict, scene, *, means_only: bool = False) -> dict:
@@ -80,6 +87,7 @@ def main() -> None:
     p.add_argument("--patches", type=int, default=3000)
     p.add_argument("--eps", type=float, default=0.01)
     p.add_argument("--repeat", type=int, default=3, help="design runs per case (best is reported)")
+    p.add_argument("--name", default="design", help="results/NAME.json")
     common.add_blas_arg(p)
     args = p.parse_args()
     m = common.header("inverse design: HF vs dense LU", args.blas_threads)
@@ -136,7 +144,7 @@ def main() -> None:
                        f"{t_ff:.1f} s, HF precompute {t_hf:.1f} s, 3 dense LU {t_lu:.1f} s",
                        rows, list(rows[0]))
     print(f"load average before {load_before[0]:.2f}, after {load_after[0]:.2f}")
-    path = common.write_json("design", {
+    path = common.write_json(args.name, {
         "machine": m, "n_patches": n, "eps": args.eps, "rank": fac.rank,
         "one_off_s": {"form_factors_dense": t_ff, "hf_precompute": t_hf, "dense_lu_3_channels": t_lu},
         "loadavg_before": load_before, "loadavg_after": load_after, "cases": cases})

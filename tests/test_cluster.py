@@ -95,10 +95,10 @@ def test_clustered_flat_plates_match_unclustered_form_factors():
     p1, p2 = c.material == 0, c.material == 1
     a1 = c.areas[p1].sum()
     total, total_fine = AF[np.ix_(p1, p2)].sum() / a1, AF_fine[np.ix_(p1, p2)].sum() / a1
-    assert total == pytest.approx(total_fine, rel=5e-3)  # observed 0.05%
+    assert total == pytest.approx(total_fine, rel=5e-3)  # observed 0.3%
     assert total == pytest.approx(parallel_rectangles(1, 1, 1), rel=5e-3)
     rows, rows_fine = AF[np.ix_(p1, p2)].sum(axis=1), AF_fine[np.ix_(p1, p2)].sum(axis=1)
-    assert np.abs(rows / rows_fine - 1).max() < 0.01  # per patch, observed 0.36%
+    assert np.abs(rows / rows_fine - 1).max() < 0.01  # per patch, observed 0.4%
 
 
 def _dense_radiosity(scene):
@@ -125,12 +125,12 @@ def _compare_refined_clustered(n: int, tol: float):
 
 
 def test_refined_then_clustered_cornell_matches_plain_box():
-    _compare_refined_clustered(800, 0.01)  # observed at 3K: < 0.1% per material
+    _compare_refined_clustered(800, 0.01)  # observed at 3K: 0.23% per material
 
 
 @pytest.mark.slow
 def test_refined_then_clustered_cornell_3k_matches_plain_3k():
-    _compare_refined_clustered(3000, 0.02)  # observed 0.07% per material
+    _compare_refined_clustered(3000, 0.02)  # observed 0.23% per material
 
 
 def test_clustered_scene_renders_exports_and_round_trips(tmp_path, fine_cornell):

@@ -95,10 +95,14 @@ def test_unreachable_scheduler_exits_2(tmp_path):
     assert "Traceback" not in result.output and not out.exists()
 
 
-def test_both_scheduler_and_workers_is_an_error(tmp_path):
-    result = runner.invoke(app, ["precompute", "furnace", "-o", str(tmp_path / "x.hfr"),
-                                 "--scheduler", "tcp://127.0.0.1:1", "--workers", "2"])
-    assert result.exit_code == 2 and "not both" in result.output
+@pytest.mark.parametrize("args, message", [
+    (["--scheduler", "tcp://127.0.0.1:1", "--workers", "2"], "not both"),
+    (["--workers", "2", "--near-field", "64"], "--near-field and --processes are for the in-process path"),
+])
+def test_conflicting_options_are_refused(tmp_path, args, message):
+    result = runner.invoke(app, ["precompute", "furnace", "-o", str(tmp_path / "x.hfr"), *args])
+    assert result.exit_code == 2 and message in result.output
+    assert not (tmp_path / "x.hfr").exists()
 
 
 @pytest.mark.slow

@@ -11,10 +11,10 @@ from hfrad.scene.builtin import coaxial_disks, cornell_box, parallel_plates, per
 from hfrad.scene.patches import subdivide
 
 
-def plate_view_factor(scene, F) -> float:
-    """Area-weighted F from group plate1 to group plate2."""
-    p1 = scene.group == scene.groups.index("plate1")
-    p2 = scene.group == scene.groups.index("plate2")
+def plate_view_factor(scene, F, src="plate1", dst="plate2") -> float:
+    """Area-weighted F from group ``src`` to group ``dst``."""
+    p1 = scene.group == scene.groups.index(src)
+    p2 = scene.group == scene.groups.index(dst)
     a = scene.areas
     return float((a[p1, None] * F[np.ix_(p1, p2)]).sum() / a[p1].sum())
 
@@ -30,39 +30,69 @@ def polygon_disks(r1, r2, distance, segments):
     return analytic.coaxial_disks(r1 * shrink, r2 * shrink, distance)
 
 
+def parallel_unequal(rect1, rect2, distance):
+    """Two parallel, aligned rectangles: plate1 = rect1 at z = 0 facing +z, plate2 = rect2 at z = distance."""
+    from hfrad.scene.builtin import _Builder, _plate_materials
+
+    b = _Builder()
+    (x1, x2, y1, y2), (u1, u2, v1, v2) = rect1, rect2
+    b.quad((x1, y1, 0), (x2, y1, 0), (x2, y2, 0), (x1, y2, 0), "plate1", "plate1")
+    b.quad((u1, v1, distance), (u1, v2, distance), (u2, v2, distance), (u2, v1, distance), "plate2", "plate2")
+    return b.build(_plate_materials(), "parallel_unequal")
+
+
+# (name, scene factory, exact F_1->2, exact F_2->1): the view-factor catalogue [Howell]
 CASES = [
-    ("parallel 1x1 d1", lambda: parallel_plates(1, 1, 1), analytic.parallel_rectangles(1, 1, 1)),
-    ("parallel 2x1 d0.5", lambda: parallel_plates(2, 1, 0.5), analytic.parallel_rectangles(2, 1, 0.5)),
-    ("parallel 1x1 d3", lambda: parallel_plates(1, 1, 3), analytic.parallel_rectangles(1, 1, 3)),
-    ("perpendicular 1,1,1", lambda: perpendicular_plates(1, 1, 1), analytic.perpendicular_rectangles(1, 1, 1)),
-    ("perpendicular 2,0.5,1", lambda: perpendicular_plates(2, 0.5, 1), analytic.perpendicular_rectangles(2, 0.5, 1)),
-    ("perpendicular 1,2,0.5", lambda: perpendicular_plates(1, 2, 0.5), analytic.perpendicular_rectangles(1, 2, 0.5)),
-    ("disks 1,1,1", lambda: coaxial_disks(1, 1, 1, segments=48), polygon_disks(1, 1, 1, 48)),
-    ("disks 1,0.5,0.5", lambda: coaxial_disks(1, 0.5, 0.5, segments=48), polygon_disks(1, 0.5, 0.5, 48)),
-    ("disks 0.5,1,2", lambda: coaxial_disks(0.5, 1, 2, segments=48), polygon_disks(0.5, 1, 2, 48)),
+    ("C-11 parallel 1x1 d1", lambda: parallel_plates(1, 1, 1), analytic.parallel_rectangles(1, 1, 1)),
+    ("C-11 parallel 2x1 d0.5", lambda: parallel_plates(2, 1, 0.5), analytic.parallel_rectangles(2, 1, 0.5)),
+    ("C-11 parallel 1x1 d0.1", lambda: parallel_plates(1, 1, 0.1), analytic.parallel_rectangles(1, 1, 0.1)),
+    ("C-11 parallel 1x1 d3", lambda: parallel_plates(1, 1, 3), analytic.parallel_rectangles(1, 1, 3)),
+    ("C-13 unequal concentric", lambda: parallel_unequal((0, 2, 0, 1), (0.5, 1.5, 0.25, 0.75), 0.7),
+     analytic.parallel_rectangles_offset((0, 2, 0, 1), (0.5, 1.5, 0.25, 0.75), 0.7)),
+    ("C-13 offset", lambda: parallel_unequal((0, 1, 0, 1), (0.5, 2, 0.2, 1.5), 0.3),
+     analytic.parallel_rectangles_offset((0, 1, 0, 1), (0.5, 2, 0.2, 1.5), 0.3)),
+    ("C-14 perpendicular 1,1,1", lambda: perpendicular_plates(1, 1, 1), analytic.perpendicular_rectangles(1, 1, 1)),
+    ("C-14 perpendicular 2,0.5,1", lambda: perpendicular_plates(2, 0.5, 1), analytic.perpendicular_rectangles(2, 0.5, 1)),
+    ("C-14 perpendicular 1,2,0.5", lambda: perpendicular_plates(1, 2, 0.5), analytic.perpendicular_rectangles(1, 2, 0.5)),
+    ("C-41 disks 1,1,1", lambda: coaxial_disks(1, 1, 1, segments=48), polygon_disks(1, 1, 1, 48)),
+    ("C-41 disks 1,0.5,0.5", lambda: coaxial_disks(1, 0.5, 0.5, segments=48), polygon_disks(1, 0.5, 0.5, 48)),
+    ("C-41 disks 0.5,1,2", lambda: coaxial_disks(0.5, 1, 2, segments=48), polygon_disks(0.5, 1, 2, 48)),
 ]
+SPLITS = (1, 4, 12)  # edge splits of the longest side: from 2 triangles per plate to hundreds
 
 
+def _both_directions(scene, F, exact_12):
+    """Relative errors of F_1->2 and of F_2->1 (exact: A1 F12 / A2, reciprocity)."""
+    a1 = scene.areas[scene.group == scene.groups.index("plate1")].sum()
+    a2 = scene.areas[scene.group == scene.groups.index("plate2")].sum()
+    f12 = plate_view_factor(scene, F)
+    f21 = plate_view_factor(scene, F, "plate2", "plate1")
+    return f12 / exact_12 - 1, f21 / (exact_12 * a1 / a2) - 1
+
+
+@pytest.mark.parametrize("splits", SPLITS, ids=[f"split{m}" for m in SPLITS])
 @pytest.mark.parametrize("name,make,exact", CASES, ids=[c[0] for c in CASES])
-def test_catalogue_within_half_percent(name, make, exact):
+def test_catalogue_within_a_tenth_of_a_percent(name, make, exact, splits):
     base = make()
     size = float(np.ptp(base.bounds, axis=0).max())
-    scene = subdivide(base, max_edge=size / 12 if "disks" not in name else size / 8)
+    scene = subdivide(base, max_edge=size / splits) if splits > 1 else base
     F = form_factor_matrix(scene)  # with visibility: nothing blocks, so V must be exactly 1
-    assert plate_view_factor(scene, F) == pytest.approx(exact, rel=5e-3)
+    e12, e21 = _both_directions(scene, F, exact)
+    assert max(abs(e12), abs(e21)) < 1e-3, f"{name}, {scene.n_patches} patches: F12 error {e12:+.2e}, F21 {e21:+.2e}"
     np.testing.assert_array_equal(F, unoccluded(scene))
 
 
-@pytest.mark.parametrize("make,exact", [
-    (lambda: perpendicular_plates(1, 1, 1), analytic.perpendicular_rectangles(1, 1, 1)),
-    (lambda: parallel_plates(1, 1, 1), analytic.parallel_rectangles(1, 1, 1)),
-    (lambda: coaxial_disks(1, 0.5, 0.5, segments=24), polygon_disks(1, 0.5, 0.5, 24)),
-])
-def test_error_decreases_with_subdivision(make, exact):
-    errors = [abs(plate_view_factor(s, unoccluded(s)) / exact - 1)
-              for s in (subdivide(make(), max_edge=e) for e in (0.5, 0.2, 0.1))]
-    assert errors[2] < errors[0]
-    assert errors[2] < 2e-3
+def test_adaptive_path_converges_with_the_tolerance():
+    # every pair on the adaptive path (near = adaptive = huge): the error follows the tolerance
+    scene = perpendicular_plates(1, 1, 1)  # two triangles per plate, all pairs share an edge or vertex
+    exact = analytic.perpendicular_rectangles(1, 1, 1)
+    errors = []
+    for tol in (1e-2, 1e-3, 1e-4, 1e-5):
+        g = PatchGeometry(scene, near=1e9, adaptive=1e9, tolerance=tol)
+        F = unoccluded_block(g, np.arange(g.n), np.arange(g.n))
+        errors.append(abs(plate_view_factor(scene, F) / exact - 1))
+    assert errors[-1] < 1e-5, errors
+    assert all(e < tol for e, tol in zip(errors, (1e-2, 1e-3, 1e-4, 1e-5))), errors
 
 
 def test_unequal_offset_parallel_rectangles_closed_form():
@@ -99,8 +129,9 @@ def cornell_F():
 def test_cornell_rows_sum_to_one(cornell_F):
     scene, F = cornell_F
     err = np.abs(F.sum(axis=1) - 1)
-    assert err.mean() < 0.01
-    assert err.max() < 0.03
+    # observed: mean 8.5e-4, max 8.4e-3 (visibility of floor patches between the blocks)
+    assert err.mean() < 2e-3, f"mean |row sum - 1| = {err.mean():.2e}"
+    assert err.max() < 0.015, f"max |row sum - 1| = {err.max():.2e} (patch {err.argmax()})"
 
 
 def test_cornell_reciprocity_and_sign(cornell_F):
@@ -110,6 +141,34 @@ def test_cornell_reciprocity_and_sign(cornell_F):
     AF = scene.areas[:, None] * F
     np.testing.assert_allclose(AF, AF.T, rtol=1e-13, atol=1e-300)
     assert (np.diag(F) == 0).all()
+
+
+ASPECTS = [(1, 1, 1), (1, 0.1, 1), (1, 1, 0.05), (0.1, 1, 1), (4, 0.2, 0.2), (0.05, 0.5, 0.05)]
+
+
+@pytest.mark.parametrize("edge,w1,w2", ASPECTS, ids=[f"C-14 {e}x{a}x{b}" for e, a, b in ASPECTS])
+def test_adjacent_plates_at_several_aspect_ratios(edge, w1, w2):
+    # one quad each (two triangles), sharing an edge: all pairs on the adaptive path
+    scene = perpendicular_plates(edge, w1, w2)
+    exact = analytic.perpendicular_rectangles(edge, w1, w2)
+    e12, e21 = _both_directions(scene, unoccluded(scene), exact)
+    assert max(abs(e12), abs(e21)) < 1e-3, f"aspect {edge}:{w1}:{w2}: F12 error {e12:+.2e}, F21 {e21:+.2e}"
+
+
+def test_differential_element_to_rectangle_both_sides():
+    # catalogue B-3 (dA below a corner of a rectangle) integrated over a small plate:
+    # the plate-to-rectangle factor tends to B-3 as the plate shrinks, seen from both sides
+    a, b, c = 1.0, 2.0, 0.5
+    A, B = a / c, b / c
+    exact = (A / np.sqrt(1 + A * A) * np.arctan(B / np.sqrt(1 + A * A))
+             + B / np.sqrt(1 + B * B) * np.arctan(A / np.sqrt(1 + B * B))) / (2 * np.pi)
+    small = 1e-3
+    scene = parallel_unequal((0, small, 0, small), (0, a, 0, b), c)
+    F = unoccluded(scene)
+    f12 = plate_view_factor(scene, F)
+    assert f12 == pytest.approx(exact, rel=5e-3)  # 5e-3: the plate is not a point (size 2e-3 c)
+    e12, e21 = _both_directions(scene, F, f12)
+    assert abs(e21) < 1e-12  # reciprocity, exact
 
 
 def test_adjacent_patches_are_finite_and_positive():
@@ -142,3 +201,15 @@ def test_scene_far_from_origin_gives_the_same_form_factors():
     err = np.abs(F - G).max()
     assert err < 1e-4, f"max |F - F_translated| = {err:.2e}"
     assert np.abs(F.sum(axis=1) - G.sum(axis=1)).max() < 1e-4
+
+
+def test_kernel_settings_are_recorded_in_the_hfr(tmp_path):
+    import hfrad
+    from hfrad.formfactors.kernel import KERNEL_VERSION, TOLERANCE
+    from hfrad.scene.builtin import furnace
+
+    fac = hfrad.factorize(subdivide(furnace(), max_edge=0.5), eps=0.05)
+    hfrad.save(fac, tmp_path / "f.hfr")
+    recorded = hfrad.load(tmp_path / "f.hfr").params["form_factors"]
+    assert recorded["tolerance"] == TOLERANCE and recorded["kernel_version"] == KERNEL_VERSION
+    assert recorded["refine_samples"] == 16

@@ -325,3 +325,16 @@ def test_many_emitters_few_goals_take_the_adjoint(case):
     B = dense_solve(F, fac.reflectance, auto.exitance)
     floor = np.flatnonzero(scene.group == scene.groups.index("floor"))
     assert scene.areas[floor] @ lux(F, B, floor) / scene.areas[floor].sum() >= 300.0 * (1 - 1e-6)
+
+
+@pytest.mark.slow
+def test_office_example_reproduces_its_result():
+    """examples/office: the committed result.json is what the README's commands give (to 1%)."""
+    from pathlib import Path
+
+    office = Path(__file__).resolve().parent.parent / "examples" / "office"
+    fac = hfrad.factorize(hfrad.load_scene(str(office / "office.obj"), patches=3000), eps=0.01)
+    r = design(fac, office / "spec.json")
+    committed = json.loads((office / "result.json").read_text())
+    assert r.feasible and r.report["verified"]["goals_met"] and r.report["evaluations"] == 7
+    assert r.report["total_power_W"] == pytest.approx(committed["total_power_W"], rel=0.01)

@@ -119,7 +119,7 @@ def test_duplicate_faces_are_reported_as_an_energy_error():
 
 
 def test_checkpoint_of_another_kernel_is_not_resumed(tmp_path, monkeypatch):
-    import hfrad.pipeline as pipeline
+    import hfrad.formfactors.kernel as kernel
 
     scene = hfrad.load_scene("cornell", patches=300)
     ckpt = tmp_path / "run.partial"
@@ -127,7 +127,7 @@ def test_checkpoint_of_another_kernel_is_not_resumed(tmp_path, monkeypatch):
         hfrad.factorize(scene, eps=0.05, block_size=32, checkpoint=ckpt, checkpoint_interval=0.0,
                         status=interrupt_at(3))
     assert ckpt.exists()
-    monkeypatch.setattr(pipeline, "KERNEL_VERSION", "a newer kernel")
+    monkeypatch.setattr(kernel, "KERNEL_VERSION", "a newer kernel")
     with pytest.raises(ValueError, match="another scene or other parameters"):
         hfrad.factorize(scene, eps=0.05, block_size=32, checkpoint=ckpt)
 

@@ -23,15 +23,22 @@ from .defaults import DEFAULT_BLOCK_SIZE
 from .errors import InputError, SceneError
 from .factorize.api import check_method, lowrank_from_blocks, lowrank_from_matrix
 from .factorize.hf import HFStream
-from .factorize.streaming import load_checkpoint, read_checkpoint_extras, save_checkpoint
+from .factorize.nearfield import DEFAULT_NEAR_ENTRIES, NearFieldSplit, near_radius
+from .factorize.streaming import load_checkpoint, save_checkpoint
 from .formfactors.energy import warn_energy
-from .formfactors.kernel import KERNEL_VERSION
 from .progress import ProgressCallback, report
 from .scene.scene import Scene
 from .scene.zorder import patch_order
+from .solve.nearfield import NearFieldFactorization
 from .solve.stats import PassStatistics
 from .solve.woodbury import HFactorization
 from .validation import check_areas, check_factorize_options, check_permutation, check_reflectance
+
+#: ``near_field="auto"`` splits the near field from this many patches on (below, it does not pay).
+NEAR_FIELD_MIN_PATCHES = 3000
+#: Prefix of the pass statistics among a checkpoint's extra arrays.
+_STATS = "stats_"
+
 StatusCallback = Callable[[dict], None] | None
 
 
@@ -41,8 +48,8 @@ def _scene_key(scene: Scene, params: dict) -> str:
     for a in (scene.vertices, scene.faces, scene.occluder_vertices, scene.occluder_faces, scene.patch_of_triangle,
               scene.reflectance.max(axis=1)):
         h.update(np.ascontiguousarray(a).tobytes())
-    # the kernel version too: a checkpoint from an older form-factor kernel must not be resumed
-    h.update(json.dumps({**params, "kernel_version": KERNEL_VERSION}, sort_keys=True).encode())
+    # params hold the form-factor kernel's version and settings: a checkpoint from another kernel is refused
+    h.update(json.dumps(params, sort_keys=True).encode())
     return h.hexdigest()
 
 
@@ -60,7 +67,7 @@ def factorize(scene_or_matrix, reflectance=None, *, areas=None, eps: float = 0.0
               samples: int | None = None, leaf_share: float = 0.5,
               checkpoint: str | Path | None = None, checkpoint_interval: float = 30.0,
               blas_threads: int | None = 1, processes: int | None = None, one_ray_tol: float | None = None,
-              rng=None,
+              near_field: int | str | None = None, rng=None,
               progress: ProgressCallback = None, status: StatusCallback = None) -> HFactorization:
     """Factor a radiosity system once: ``diag(rho_max) F ~= Q V^T``, then solve it for any light in O(nk).
 
@@ -111,6 +118,16 @@ def factorize(scene_or_matrix, reflectance=None, *, areas=None, eps: float = 0.0
         get one visibility ray instead of several
         (:func:`hfrad.formfactors.parallel.one_ray_threshold`); None: ``eps / 4``
         for a relative eps, 0 (off) for an absolute one.
+    near_field : "auto", int or None
+        Scene only: the near-field split (docs/method.md; :mod:`hfrad.factorize.nearfield`):
+        pairs within a radius holding about this many neighbours per row go into
+        a sparse N, HF factors only ``G - N``, and the solver is Woodbury around a
+        sparse LU of ``I - D_c N`` (:class:`~hfrad.solve.nearfield.NearFieldFactorization`).
+        "auto": ``DEFAULT_NEAR_ENTRIES`` from ``NEAR_FIELD_MIN_PATCHES`` patches on,
+        off below; None or 0 (default): off (plain Woodbury). Off by default because,
+        measured on the Cornell box at 3K-6K patches and eps 0.02, HF's rank at equal
+        eps does not drop (it rises ~15% at 6K) and at equal radiosity error it drops
+        only ~17% while the sparse LU set-up costs k sparse solves per channel.
     rng : None, int or numpy Generator
         Seed of the randomized baselines ("rsvd", "sketch").
     progress : callable (done, total), optional
@@ -155,14 +172,15 @@ def factorize(scene_or_matrix, reflectance=None, *, areas=None, eps: float = 0.0
                                 samples=samples, order="zorder" if order is None else order,
                                 leaf_share=leaf_share, checkpoint=checkpoint,
                                 checkpoint_interval=checkpoint_interval, blas_threads=blas_threads,
-                                processes=processes, one_ray_tol=one_ray_tol, progress=progress, status=status)
+                                processes=processes, one_ray_tol=one_ray_tol, near_field=near_field,
+                                progress=progress, status=status)
     if isinstance(scene_or_matrix, (str, Path)):
         raise InputError(f"factorize takes a Scene or a matrix; load the file first: "
                          f"hfrad.load_scene({str(scene_or_matrix)!r})")
     if reflectance is None:
         raise InputError("factorize(F, reflectance): a form-factor matrix needs the (n, 3) reflectance")
     for name, value in (("samples", samples), ("checkpoint", checkpoint), ("status", status),
-                        ("processes", processes), ("one_ray_tol", one_ray_tol)):
+                        ("processes", processes), ("one_ray_tol", one_ray_tol), ("near_field", near_field)):
         if value is not None:
             raise InputError(f"{name} applies to a Scene only, not to a form-factor matrix")
     return _factorize_matrix(scene_or_matrix, reflectance, eps=eps, relative=relative,
@@ -173,12 +191,15 @@ def factorize(scene_or_matrix, reflectance=None, *, areas=None, eps: float = 0.0
 
 def _factorize_scene(scene: Scene, *, eps: float, relative: bool, block_size: int | None, dtype, samples,
                      order, leaf_share: float, checkpoint, checkpoint_interval: float, blas_threads,
-                     processes, one_ray_tol, progress: ProgressCallback, status: StatusCallback) -> HFactorization:
+                     processes, one_ray_tol, near_field, progress: ProgressCallback,
+                     status: StatusCallback) -> HFactorization:
     """The scene branch of :func:`factorize` (arguments as there): streamed form factors into HF."""
     if block_size is None:
         block_size = min(DEFAULT_BLOCK_SIZE, max(scene.n_patches, 1))
     dt = check_factorize_args(scene, eps, block_size, dtype, relative)
     from .formfactors.blocks import iter_column_blocks
+    from .formfactors.kernel import settings as kernel_settings
+    from .formfactors.visibility import settings as visibility_settings
 
     n = scene.n_patches
     if isinstance(order, str):
@@ -191,10 +212,13 @@ def _factorize_scene(scene: Scene, *, eps: float, relative: bool, block_size: in
     if one_ray_tol is None:
         one_ray_tol = 0.25 * eps if relative else 0.0
     params = {"eps": eps, "relative": relative, "block_size": block_size, "dtype": dt.name,
-              "samples": samples, "order": order, "leaf_share": leaf_share, "one_ray_tol": one_ray_tol}
+              "samples": samples, "order": order, "leaf_share": leaf_share, "one_ray_tol": one_ray_tol,
+              "near_field": near_entries(near_field, n),
+              # kernel version and tolerance: recorded in the .hfr, part of the checkpoint key
+              "form_factors": {**kernel_settings(), **visibility_settings()}}
     key = _scene_key(scene, params)
     stream = _open_stream(checkpoint, key, n, n_blocks, eps, relative, dt, leaf_share)
-    stats = _open_stats(checkpoint, n, scene.areas[perm])
+    stats = _open_stats(stream, n, scene.areas[perm])
     t0 = time.perf_counter()
     ff_kwargs = {} if samples is None else {"samples": samples}
     if samples != 0:
@@ -203,26 +227,52 @@ def _factorize_scene(scene: Scene, *, eps: float, relative: bool, block_size: in
     blocks = iter_column_blocks(scene, block_size, order=perm, first_block=stream.blocks_done,
                                 processes=processes, dtype=dt, **ff_kwargs)
     rows_rho = rho_max[perm][:, None].astype(dt)
+    split = None
+    if params["near_field"]:
+        split = NearFieldSplit(scene.centroids[perm], near_radius(scene.centroids, params["near_field"]))
+        if stream.blocks_done:
+            split.restore(stream.extra)
     with _blas_threads(blas_threads):
         lowrank, time_ff = _stream_blocks(blocks, stream, stats, rows_rho, n_blocks, checkpoint,
-                                          checkpoint_interval, key, progress, status, t0)
+                                          checkpoint_interval, key, progress, status, t0, split)
     lowrank.info.update({"time_formfactors": time_ff, "time_precompute": time.perf_counter() - t0})
     warn_energy(scene, stats.row_sums[np.argsort(perm)])
-    fac = HFactorization(perm, lowrank.Q, lowrank.V, rho_max, scene.reflectance, lowrank,
-                         params=params, scene=scene, stats=stats)
+    if split is None:
+        fac = HFactorization(perm, lowrank.Q, lowrank.V, rho_max, scene.reflectance, lowrank,
+                             params={**params, "backend": "local"}, scene=scene, stats=stats)
+    else:
+        t1 = time.perf_counter()
+        N = split.matrix()
+        lowrank.info.update({"near_radius": split.radius, "near_nnz": int(N.nnz)})
+        fac = NearFieldFactorization(perm, lowrank.Q, lowrank.V, N, rho_max, scene.reflectance, lowrank,
+                                     params={**params, "backend": "local"}, scene=scene, stats=stats)
+        lowrank.info["time_nearfield_setup"] = time.perf_counter() - t1
+    lowrank.info["solver"] = fac.solver
     if checkpoint is not None and Path(checkpoint).exists():
         Path(checkpoint).unlink()
     return fac
 
 
-def _open_stats(checkpoint, n: int, weights) -> PassStatistics:
-    """The pass statistics, resumed from a checkpoint's extras when there is one."""
-    if checkpoint is not None and Path(checkpoint).exists():
-        extras = read_checkpoint_extras(checkpoint)
-        if extras:
-            return PassStatistics.from_state(extras)
-        raise InputError(f"{checkpoint}: checkpoint of an older hfrad (no pass statistics); delete it to start over")
-    return PassStatistics(n, weights)
+def _open_stats(stream: HFStream, n: int, weights) -> PassStatistics:
+    """The pass statistics, resumed from the stream's checkpointed extras when it was resumed."""
+    if stream.blocks_done == 0:
+        return PassStatistics(n, weights)
+    state = {k[len(_STATS):]: v for k, v in stream.extra.items() if k.startswith(_STATS)}
+    if not state:
+        raise InputError("the checkpoint comes from an older hfrad (no pass statistics); delete it to start over")
+    return PassStatistics.from_state(state)
+
+
+def near_entries(near_field, n: int) -> int:
+    """Neighbours per row of the near field for ``factorize(near_field=...)`` (0 = no split)."""
+    if near_field == "auto":
+        return DEFAULT_NEAR_ENTRIES if n >= NEAR_FIELD_MIN_PATCHES else 0
+    if near_field is None or near_field is False:
+        return 0
+    if isinstance(near_field, str) or int(near_field) != near_field or near_field < 0:
+        raise InputError(f"near_field must be 'auto', None or a number of neighbours per row (e.g. 64); "
+                         f"got {near_field!r}")
+    return int(near_field)
 
 
 def _open_stream(checkpoint, key, n, n_blocks, eps, relative, dt, leaf_share) -> HFStream:
@@ -248,25 +298,35 @@ def _blas_threads(count: int | None):
 
 
 def _stream_blocks(blocks, stream: HFStream, stats: PassStatistics, rows_rho, n_blocks, checkpoint,
-                   checkpoint_interval, key, progress, status, t0):
+                   checkpoint_interval, key, progress, status, t0, split=None):
     """Push every column block into the stream and the statistics (checkpointing both).
 
-    Returns (LowRank, form-factor seconds).
+    Returns (LowRank, form-factor seconds). With a near-field ``split``, each
+    block's near entries are moved out before HF sees it, and the error budget
+    stays relative to the block's full norm.
     """
     last_save = time.perf_counter()
     time_ff = 0.0
     t_ff = time.perf_counter()
     for start, stop, block in blocks:
         time_ff += time.perf_counter() - t_ff
-        stream.push(rows_rho * block)  # G = diag(rho_max) F, rows in internal order
+        G = rows_rho * block  # G = diag(rho_max) F, rows in internal order
         stats.add(start, stop, block, rows_rho)
         del block
+        if split is None:
+            stream.push(G)
+        else:
+            norm2 = float(np.sum(np.square(G, dtype=np.float64)))
+            stream.push(split.split(G, start), norm2=norm2)
+        del G
         report(progress, stream.blocks_done, n_blocks)
         if status is not None:
             status({"blocks": stream.blocks_done, "rank": stream.current_rank, "elapsed": time.perf_counter() - t0})
         if checkpoint is not None and time.perf_counter() - last_save > checkpoint_interval \
                 and stream.blocks_done < n_blocks:
-            save_checkpoint(stream, checkpoint, key, extras=stats.state())
+            stream.extra = {**({} if split is None else split.state()),
+                            **{_STATS + k: np.asarray(v) for k, v in stats.state().items()}}
+            save_checkpoint(stream, checkpoint, key)
             last_save = time.perf_counter()
         t_ff = time.perf_counter()
     return stream.finish(), time_ff

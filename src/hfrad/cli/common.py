@@ -15,8 +15,8 @@ from ..errors import InputError
 console = Console(stderr=True, soft_wrap=True)
 
 # Shared option declarations so every command spells them the same way.
-MaxEdgeOption = typer.Option(None, "--max-edge", help="Split faces into patches no longer than this (metres).")
-PatchesOption = typer.Option(None, "--patches", help="Split faces to roughly this many patches.")
+MaxEdgeOption = typer.Option(None, "--max-edge", help="Patches no longer than this (metres): long faces are split, faces under half of it grouped into clusters.")
+PatchesOption = typer.Option(None, "--patches", help="Roughly this many patches: faces are split, or grouped into clusters of triangles when fewer patches than faces are asked for.")
 UnitScaleOption = typer.Option(1.0, "--unit-scale", help="Multiply coordinates by this to get metres.")
 # --emission is the one spelling; --emit (its old name on info and precompute) is accepted too.
 EmissionOption = typer.Option(None, "--emission", "--emit",

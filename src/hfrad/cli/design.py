@@ -39,8 +39,10 @@ def register(app: typer.Typer) -> None:
         """Find the least-power (or best-fitting) emitter intensities that meet the spec's goals.
 
         One batched solve gives every target's response to every emitter
-        (O(m n k) for m emitters), then SciPy solves an LP (HiGHS) or a bounded
-        least-squares problem; the answer is checked with an independent solve.
+        (O(m n k) for m emitters; or one transposed solve per goal row, when
+        fewer), then SciPy solves an LP (HiGHS) or a bounded least-squares
+        problem; the answer is checked with an independent solve. Spec format:
+        docs/design.md.
         Exit codes: 0 designed, 1 no design meets the spec (RESULT.json names the
         conflicting goals), 2 bad input (the message names the file or field).
         """

@@ -26,6 +26,8 @@ def register(app: typer.Typer) -> None:
         dtype: str = common.dtype_option("float32"),
         samples: Optional[int] = typer.Option(None, "--samples", help="Visibility rays per patch pair."),
         order: str = typer.Option("zorder", "--order", help="Internal patch order: zorder, hilbert, random, input."),
+        processes: Optional[int] = typer.Option(None, "--processes", help="Form-factor worker processes (default: one per core from 4,000 patches on)."),
+        near_field: Optional[int] = typer.Option(None, "--near-field", help="Split pairs within ~this many neighbours per row into a sparse N (e.g. 64); solver: Woodbury around a sparse LU. Default: off."),
         unit_scale: float = common.UnitScaleOption,
         emission: Optional[List[str]] = common.EmissionOption,
         area_light: Optional[str] = common.AreaLightOption,
@@ -63,7 +65,17 @@ def register(app: typer.Typer) -> None:
                                         allow_missing_materials=allow_missing_materials,
                                         max_edge=max_edge, patches=patches, keep_duplicates=keep_duplicates)
             common.check_memory_for_precompute(s.n_patches, block or DEFAULT_BLOCK_SIZE, dtype)
+            if not quiet:
+                from ..memory import human, precompute_bytes
+                estimate = precompute_bytes(s.n_patches, block or DEFAULT_BLOCK_SIZE,
+                                            itemsize=common.check_dtype(dtype).itemsize)
+                common.console.print(f"memory estimate: about {human(estimate)} for {s.n_patches:,} patches "
+                                     "(rank guessed; refused above 80% of the available memory)", highlight=False)
             if scheduler is not None or workers is not None:
+                if near_field or processes is not None:
+                    raise InputError("--near-field and --processes are for the in-process path; with --scheduler "
+                                     "or --workers the Dask workers compute the blocks and HF has no near-field "
+                                     "split yet")
                 t_load = time.perf_counter() - t0
                 fac = _on_cluster(s, scheduler, workers, quiet, eps=eps, block_size=block, dtype=dtype,
                                   samples=samples, order=order)
@@ -77,7 +89,8 @@ def register(app: typer.Typer) -> None:
             with common.progress_bar(f"precompute {s.n_patches:,} patches", quiet) as bar:
                 status = None if bar is None else (lambda info: bar.note(f"rank {info['rank']:,}"))
                 fac = factorize(s, eps=eps, block_size=block, dtype=dtype, samples=samples, order=order,
-                                checkpoint=checkpoint, progress=bar, status=status)
+                                checkpoint=checkpoint, progress=bar, status=status, processes=processes,
+                                near_field=near_field or None)
             save_hfr(fac, output, timings={"load": t_load, **_stage_times(fac)})
         _report(fac, output, time.perf_counter() - t0)
 
@@ -88,7 +101,8 @@ def _stage_times(fac) -> dict:
 
 def _on_cluster(scene, scheduler: Optional[str], workers: Optional[int], quiet: bool, **options):
     """The precompute as Dask tasks; a scheduler that cannot be reached exits 2 naming its address."""
-    from ..distributed import SchedulerUnreachableError, connect, factorize_distributed, rank_guess, worker_bytes
+    from ..distributed import (SchedulerUnreachableError, WorkerLostError, connect, factorize_distributed,
+                               rank_guess, worker_bytes)
     from ..memory import human
 
     if scheduler is not None and workers is not None:
@@ -106,7 +120,7 @@ def _on_cluster(scene, scheduler: Optional[str], workers: Optional[int], quiet: 
             with common.progress_bar(f"precompute {n:,} patches on Dask", quiet) as bar:
                 status = None if bar is None else (lambda info: bar.note(f"rank {info['rank']:,}"))
                 return factorize_distributed(scene, scheduler=cluster, progress=bar, status=status, **options)
-    except SchedulerUnreachableError as exc:
+    except (SchedulerUnreachableError, WorkerLostError) as exc:
         common.fail(str(exc))
 
 
@@ -115,7 +129,7 @@ def _report(fac, output: Path, seconds: float) -> None:
     common.console.print(
         f"wrote {output}: {fac.n_patches:,} patches, rank {fac.rank:,}, "
         f"achieved error {fac.relative_error:.4f} (target {fac.eps})\n{common.error_figures_line(fac)}\n"
-        f"time {seconds:.1f} s (form factors {info.get('time_formfactors', 0):.1f} s, "
+        f"solver {fac.solver}, time {seconds:.1f} s (form factors {info.get('time_formfactors', 0):.1f} s, "
         f"factorization {info.get('time_total', 0):.1f} s"
         + (f"; summed over {info['workers']} Dask workers" if info.get("backend") == "dask" else "") + ")",
         highlight=False)

@@ -11,9 +11,9 @@ solve/, and only the CLI and the top-level API import it::
 See docs/cluster.md for running it on a real cluster and the memory each worker needs.
 """
 
-from .cluster import Cluster, SchedulerUnreachableError, connect
+from .cluster import Cluster, SchedulerUnreachableError, WorkerLostError, connect
 from .run import factorize_distributed
 from .sizing import rank_guess, worker_bytes
 
-__all__ = ["Cluster", "SchedulerUnreachableError", "connect", "factorize_distributed", "rank_guess",
+__all__ = ["Cluster", "SchedulerUnreachableError", "WorkerLostError", "connect", "factorize_distributed", "rank_guess",
            "worker_bytes"]

@@ -25,6 +25,10 @@ class SchedulerUnreachableError(ConnectionError):
     """The Dask scheduler could not be reached, or has no workers; the message names the address."""
 
 
+class WorkerLostError(RuntimeError):
+    """A task kept killing its workers (Dask's ``KilledWorker``), usually for lack of memory."""
+
+
 @dataclass
 class Cluster:
     """A connected Dask client and what the precompute needs to know about its cluster.
@@ -134,8 +138,9 @@ def connect(scheduler=None, *, workers: int | None = None, timeout: float | None
         workers = int(workers)
         bokeh = importlib.util.find_spec("bokeh") is not None  # the dashboard needs it
         cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+        # ":0": any free port for the scheduler's HTTP server (8787 may belong to another cluster)
         with LocalCluster(n_workers=workers, threads_per_worker=1, processes=processes,
-                          dashboard_address=":0" if bokeh else None, silence_logs=logging.ERROR) as lc, \
+                          dashboard_address=":0", silence_logs=logging.ERROR) as lc, \
                 Client(lc) as client, _one_blas_thread(not processes):
             # Worker processes share this machine's cores; threads of this process share its BLAS pool.
             yield Cluster(client, lc.scheduler_address, workers, _dashboard(client, bokeh), "local",

@@ -15,7 +15,9 @@ import math
 import time
 import uuid
 
+import dask
 import numpy as np
+from distributed.scheduler import KilledWorker
 
 from ..defaults import DEFAULT_BLOCK_SIZE
 from ..errors import MemoryLimitError, SceneError
@@ -27,7 +29,7 @@ from ..scene.zorder import patch_order
 from ..solve.woodbury import HFactorization
 from ..validation import check_factorize_options
 from . import sizing
-from .cluster import Cluster, connect
+from .cluster import Cluster, WorkerLostError, connect
 from .tasks import Job, leaf_task, merge_task, root_task
 
 _POLL_SECONDS = 0.2
@@ -79,6 +81,8 @@ def factorize_distributed(scene, *, scheduler=None, workers: int | None = None, 
         The scheduler cannot be reached (names the address).
     MemoryLimitError
         A worker's memory limit is below what one leaf needs.
+    WorkerLostError
+        A task took down ``distributed.scheduler.allowed-failures`` workers in a row.
     ValueError
         Bad options (as :func:`hfrad.factorize`), or neither/both of scheduler and workers.
 
@@ -140,8 +144,8 @@ def _submit(client, job_future, m: int, token: str):
 class _Tracker:
     """Blocks done and the current rank, from the tasks' progress events (duplicates from retries ignored)."""
 
-    def __init__(self, m: int, parents: dict) -> None:
-        self.m, self.parents = m, parents
+    def __init__(self, m: int) -> None:
+        self.m, self.parents = m, {}
         self.events: collections.deque = collections.deque()
         self.rank_of: dict[int, int] = {}
         self.executions = 0
@@ -187,10 +191,10 @@ def _run(cluster: Cluster, scene, options: dict, task_threads, progress, status,
     t0 = time.perf_counter()
     [job_future] = client.scatter([job], broadcast=True, hash=False)  # the scene travels once per worker
     time_scatter = time.perf_counter() - t0
-    root, parents = _submit(client, job_future, m, token)
-    tracker = _Tracker(m, parents)
-    client.subscribe_topic(job.topic, tracker.handler)
+    tracker = _Tracker(m)
+    client.subscribe_topic(job.topic, tracker.handler)  # before the first task can report
     try:
+        root, tracker.parents = _submit(client, job_future, m, token)
         report(progress, 0, m)
         while not root.done():
             time.sleep(_POLL_SECONDS)
@@ -202,8 +206,15 @@ def _run(cluster: Cluster, scene, options: dict, task_threads, progress, status,
         lowrank, records = root.result()
         time_gather = time.perf_counter() - t_gather
         tracker.drain()
+    except KilledWorker as exc:
+        client.cancel([job_future])
+        raise WorkerLostError(
+            f"{exc}: a task took down {dask.config.get('distributed.scheduler.allowed-failures')} workers in a "
+            f"row, usually a worker out of memory; each worker needs about "
+            f"{human(sizing.worker_bytes(n, block_size, sizing.rank_guess(n, job.eps)))} here "
+            "(docs/cluster.md, 'Memory per worker')") from None
     except BaseException:
-        client.cancel([root, job_future])  # Ctrl-C or a failure: stop the cluster's work on this run
+        client.cancel([job_future])  # Ctrl-C or a failure: stop the cluster's work on this run
         raise
     finally:
         client.unsubscribe_topic(job.topic)

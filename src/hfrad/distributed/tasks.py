@@ -79,8 +79,11 @@ class Part:
     """A factored column range and the records of the tasks that made it.
 
     ``records`` has one dict per task in the subtree: ``kind`` ("leaf" or
-    "merge"), ``node``, ``rank``, ``columns``, ``seconds`` (task wall time),
-    ``formfactors`` and ``svd`` seconds (leaves), ``ranks_in`` (merges), ``rows``, ``worker``.
+    "merge"), ``node``, ``rank``, ``columns``, ``rows``, ``seconds`` (task wall time),
+    ``cpu`` (CPU seconds of the worker process during the task: with one task at a
+    time, the task's own, and not inflated by other processes competing for the
+    cores), ``formfactors``, ``svd`` and ``cpu_formfactors`` seconds (leaves),
+    ``ranks_in`` (merges), ``worker``.
     """
 
     node: object
@@ -135,12 +138,12 @@ def leaf_task(job: Job, j: int) -> Part:
     dtype). Peak memory: the float64 block (8 n b bytes), its ``dtype`` copies
     and the SVD's workspace, about 25 n b bytes with float32 factors.
     """
-    t0 = time.perf_counter()
+    t0, cpu0 = time.perf_counter(), time.process_time()
     cols = job.perm[j * job.block_size:(j + 1) * job.block_size]
     with _threads(job.task_threads):
         A = job.rows_rho * column_block(job.scene, cols, order=job.perm, samples=job.samples,
                                         one_ray_below=job.one_ray_below, dtype=job.dtype)
-    t1 = time.perf_counter()
+    t1, cpu1 = time.perf_counter(), time.process_time()
     node = compress_leaf(A, job.budget, j)
     del A
     t2 = time.perf_counter()
@@ -148,7 +151,8 @@ def leaf_task(job: Job, j: int) -> Part:
     _announce(job, {"node": j, "kind": "leaf", "rank": rank})
     return Part(node, [{"kind": "leaf", "node": j, "rank": rank, "columns": int(len(cols)),
                         "rows": int(job.perm.size), "seconds": t2 - t0, "formfactors": t1 - t0,
-                        "svd": t2 - t1, "worker": _worker_name()}])
+                        "svd": t2 - t1, "cpu": time.process_time() - cpu0, "cpu_formfactors": cpu1 - cpu0,
+                        "worker": _worker_name()}])
 
 
 def merge_task(job: Job, node_id: int, left: Part, right: Part) -> Part:
@@ -157,14 +161,14 @@ def merge_task(job: Job, node_id: int, left: Part, right: Part) -> Part:
     Peak memory about ``7 n (k_left + k_right)`` words: both children's U, the
     orthogonalised block, and the merged U with its two products.
     """
-    t0 = time.perf_counter()
+    t0, cpu0 = time.perf_counter(), time.process_time()
     node = merge_nodes(left.node, right.node, job.budget, f"merge node {node_id}")
     seconds = time.perf_counter() - t0
     rank = int(node.s.size)
     _announce(job, {"node": node_id, "kind": "merge", "rank": rank})
     own = {"kind": "merge", "node": node_id, "rank": rank, "rows": int(job.perm.size),
            "columns": int(node.V.shape[0]), "ranks_in": [int(left.node.s.size), int(right.node.s.size)],
-           "seconds": seconds, "worker": _worker_name()}
+           "seconds": seconds, "cpu": time.process_time() - cpu0, "worker": _worker_name()}
     return Part(node, left.records + right.records + [own])
 
 

@@ -191,14 +191,21 @@ class HFStream:
         self.columns_done = 0
         self.leaf_ranks: list[int] = []
         self.time_leaf = self.time_merge = 0.0
+        #: Arrays a caller keeps with the stream's checkpoints (e.g. the near field so far).
+        self.extra: dict[str, np.ndarray] = {}
 
     @property
     def current_rank(self) -> int:
         """Sum of the ranks on the stack: the width of what is held now."""
         return int(sum(node.s.size for node in self.stack))
 
-    def push(self, block: np.ndarray) -> None:
-        """Compress the next column block (n x b) and merge along the binary counter."""
+    def push(self, block: np.ndarray, norm2: float | None = None) -> None:
+        """Compress the next column block (n x b) and merge along the binary counter.
+
+        ``norm2`` overrides ``||block||_F^2`` as the measure the relative error
+        budget is taken from (the near-field split passes the norm of the block
+        before its near entries were moved out, so eps stays relative to ``||G||_F``).
+        """
         A = np.asarray(block, dtype=self.dtype)
         j = self.blocks_done
         if A.ndim != 2 or A.shape[0] != self.n:
@@ -206,7 +213,7 @@ class HFStream:
         if j >= self.n_blocks:
             raise ValueError(f"more than the announced n_blocks={self.n_blocks} column blocks were pushed")
         t = time.perf_counter()
-        node = compress_leaf(A, self._budget, j)
+        node = compress_leaf(A, self._budget, j, norm2)
         self.leaf_ranks.append(node.s.size)
         self.time_leaf += time.perf_counter() - t
         t = time.perf_counter()
@@ -242,12 +249,14 @@ class HFStream:
 # HFStream runs these pieces in a loop; hfrad.distributed runs them as tasks on a
 # cluster. Sharing them keeps both backends' truncations, budgets and results equal.
 
-def compress_leaf(A: np.ndarray, budget: ErrorBudget, j: int) -> _Node:
+def compress_leaf(A: np.ndarray, budget: ErrorBudget, j: int, norm2: float | None = None) -> _Node:
     """Leaf ``j`` of the tree: the truncated SVD of one column block ``A`` (n x b), within its share.
 
-    ``A`` must already be in the working dtype; its norm accumulates in float64.
+    ``A`` must already be in the working dtype; its norm accumulates in float64. ``norm2``
+    overrides the norm the relative budget is taken from (see ``HFStream.push``).
     """
-    norm2 = float(np.sum(np.square(A, dtype=np.float64)))
+    if norm2 is None:
+        norm2 = float(np.sum(np.square(A, dtype=np.float64)))
     return _leaf(A, norm2, budget.leaf(norm2), j)
 
 

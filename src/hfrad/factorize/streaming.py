@@ -24,13 +24,13 @@ def _params(stream: HFStream) -> dict:
             "dtype": stream.dtype.name, "leaf_share": stream.leaf_share}
 
 
-def save_checkpoint(stream: HFStream, path: str | os.PathLike, key: str = "", extras: dict | None = None) -> None:
+def save_checkpoint(stream: HFStream, path: str | os.PathLike, key: str = "") -> None:
     """Write the stream state to ``path`` atomically (temporary name, then rename).
 
     ``key`` identifies the input (scene, parameters and form-factor kernel
     version); :func:`load_checkpoint` refuses a checkpoint whose key differs.
-    ``extras`` (name -> array or number) is what else the pass accumulates
-    (row sums, probes), read back by :func:`read_checkpoint_extras`.
+    ``stream.extra`` (name -> array) is what else the pass accumulates (row
+    sums, probes, the near field) and comes back with the stream.
     """
     import h5py
 
@@ -50,9 +50,8 @@ def save_checkpoint(stream: HFStream, path: str | os.PathLike, key: str = "", ex
             g.create_dataset("s", data=node.s)
             g.create_dataset("V", data=node.V)
         f.attrs["nodes"] = len(stream.stack)
-        g = f.create_group("extras")
-        for name, value in (extras or {}).items():
-            g.create_dataset(name, data=np.asarray(value))
+        for name, arr in stream.extra.items():
+            f.create_dataset(f"extra/{name}", data=arr)
 
 
 def load_checkpoint(path: str | os.PathLike, key: str = "") -> HFStream:
@@ -76,13 +75,7 @@ def load_checkpoint(path: str | os.PathLike, key: str = "") -> HFStream:
             stream.stack.append(_Node(int(g.attrs["level"]), g["U"][()], g["s"][()], g["V"][()],
                                       float(g.attrs["norm2"]), float(g.attrs["discarded2"]),
                                       float(g.attrs["slack2"])))
+        if "extra" in f:
+            stream.extra = {name: ds[()] for name, ds in f["extra"].items()}
     return stream
 
-
-def read_checkpoint_extras(path: str | os.PathLike) -> dict:
-    """The ``extras`` saved with a checkpoint (empty for one written without them)."""
-    import h5py
-
-    with h5py.File(path, "r") as f:
-        g = f.get("extras")
-        return {} if g is None else {name: g[name][()] for name in g}

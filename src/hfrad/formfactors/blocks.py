@@ -27,7 +27,7 @@ from ..progress import ProgressCallback, report
 from ..validation import check_permutation
 from .cache import BlockCache, array_hash, scene_hash
 from .clustered import kernel_for
-from .kernel import KERNEL_VERSION, NEAR, NEAR_SPLITS
+from .kernel import ADAPTIVE, KERNEL_VERSION, NEAR, TOLERANCE
 from .visibility import DEFAULT_SAMPLES, RayBuffers, Visibility, check_samples
 
 __all__ = ["FormFactorEngine", "iter_column_blocks", "form_factor_matrix", "row_sums",
@@ -48,7 +48,8 @@ class FormFactorEngine:
     scene : Scene
     samples : int
         Visibility rays per pair (1, 4, 9, ...); 0 disables visibility (F unoccluded).
-    near, near_splits : see :mod:`hfrad.formfactors.kernel`.
+    near, tolerance : see :mod:`hfrad.formfactors.kernel` (adaptive-path threshold and its
+        relative tolerance).
     one_ray_below : float
         Pairs with ``A_i F_ij`` below this get one visibility ray instead of
         ``samples`` (see :func:`hfrad.formfactors.parallel.one_ray_threshold`); 0 = off.
@@ -62,9 +63,9 @@ class FormFactorEngine:
     """
 
     def __init__(self, scene, *, samples: int = DEFAULT_SAMPLES, near: float = NEAR,
-                 near_splits: int = NEAR_SPLITS, one_ray_below: float = 0.0) -> None:
+                 tolerance: float = TOLERANCE, one_ray_below: float = 0.0) -> None:
         # patches that are clusters of triangles (hfrad.scene.cluster) have their own kernel
-        self.geometry, self._unoccluded = kernel_for(scene, near=near, near_splits=near_splits)
+        self.geometry, self._unoccluded = kernel_for(scene, near=near, tolerance=tolerance)
         self.samples = int(samples)
         self.visibility = Visibility(scene, samples=samples) if samples else None
         if self.visibility is not None:
@@ -161,7 +162,7 @@ def cache_key(scene, *, samples: int, block_size: int, order: np.ndarray, dtype,
     extra = {"one_ray_below": float(one_ray_below)} if one_ray_below else {}
     return extra | {"scene_sha256": scene_hash(scene), "samples": int(samples), "block_size": int(block_size),
             "order_sha256": array_hash(order.astype(np.int64)), "dtype": np.dtype(dtype).str,
-            "kernel_version": KERNEL_VERSION, "near": NEAR, "near_splits": NEAR_SPLITS,
+            "kernel_version": KERNEL_VERSION, "near": NEAR, "adaptive": ADAPTIVE, "tolerance": TOLERANCE,
             "n": int(scene.n_patches)}
 
 

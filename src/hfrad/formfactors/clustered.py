@@ -16,8 +16,14 @@ eq. 2), with a rule chosen by the centroid distance d:
   both patches as points with their area vectors,
   A_P F_PQ = max(0, S_P . r) max(0, -S_Q . r) / (pi d^4), r = c_Q - c_P;
   one evaluation whatever the triangle counts, relative error O((D/d)^2);
-- *middle*, NEAR (D_P + D_Q) <= d: 1/2 (A_P F_{c_P->Q} + A_Q F_{c_Q->P}) with
-  eq. (3) from each centroid (mean normal), |P| + |Q| contour integrals;
+- *quadrants*, FAR / 2 <= d / (D_P + D_Q) < FAR, a cluster involved: the same
+  with each patch split into (up to) 4 groups of triangles by the quadrant of
+  their centroid around the patch centroid (in its mean plane): 16 point
+  pairs, a quarter of the error;
+- *middle*, NEAR (D_P + D_Q) <= d: 1/2 (A_P F_{P->Q} + A_Q F_{Q->P}), where
+  F_{P->Q} is the area-weighted mean of eq. (3) over the quadrant groups'
+  centroids (with their mean normals; a one-triangle patch: its centroid
+  alone), at most 4 (|P| + |Q|) contour integrals;
 - *near*: up to 32 weighted quadrature points spread over each patch's
   triangles (a triangle gets the centroids of an m x m split, m ~ sqrt(16
   A_t / A_P), or, for patches of more than 16 triangles, 16 triangles are
@@ -43,7 +49,8 @@ from .kernel import PatchGeometry, _point_to_patch, split_centroids, unoccluded_
 FAR = 3.0
 
 #: Pairs closer than NEAR * (D_P + D_Q) take the near-field quadrature.
-NEAR = 2.0
+NEAR = 1.0
+
 
 #: Quadrature points per patch in the near field (at most 2 x this with padding).
 NEAR_POINTS = 16
@@ -78,6 +85,8 @@ class ClusterGeometry:
                                                                     np.diff(start))][:, None], axis=2).max(axis=1)
         self.diameters = np.ascontiguousarray(2.0 * np.maximum.reduceat(corner_dist, start[:-1])
                                               if len(tri) else np.zeros(0))
+        self.mid_points, self.mid_normals, self.mid_vectors, self.mid_weights = quadrant_points(
+            self.triangles, self.tri_normals, self.tri_areas, self.start, self.centroids, self.normals)
         self.points, self.point_normals, self.weights = near_points(self.triangles, self.tri_normals,
                                                                    self.tri_areas, self.start)
         size = float(np.ptp(scene.bounds, axis=0).max()) if len(tri) else 1.0
@@ -89,6 +98,38 @@ class ClusterGeometry:
     @property
     def n(self) -> int:
         return len(self.areas)
+
+
+def quadrant_points(T: np.ndarray, TN: np.ndarray, TA: np.ndarray, start: np.ndarray, C: np.ndarray,
+                    PN: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Middle-field points: a patch's triangles in 4 groups by the quadrant of their centroid
+    (axes in the patch's mean plane, origin at its centroid); each group gives its
+    area-weighted centroid, mean normal and area fraction (a one-triangle patch: its
+    centroid, weight 1).
+
+    Returns points (n, 4, 3), unit normals (n, 4, 3), area vectors (n, 4, 3), weights (n, 4).
+    """
+    n = len(start) - 1
+    patch = np.repeat(np.arange(n), np.diff(start))
+    # tangent axes of each patch plane: e1 = normal x (an axis far from the normal), e2 = normal x e1
+    helper = np.eye(3)[np.argmin(np.abs(PN), axis=1)]
+    e1 = np.cross(PN, helper)
+    e1 /= np.maximum(np.linalg.norm(e1, axis=1, keepdims=True), 1e-300)
+    e2 = np.cross(PN, e1)
+    rel = T.mean(axis=1) - C[patch]
+    quadrant = 2 * (np.einsum("td,td->t", rel, e1[patch]) > 0) + (np.einsum("td,td->t", rel, e2[patch]) > 0)
+    group = 4 * patch + quadrant
+    area = np.bincount(group, weights=TA, minlength=4 * n)
+    pts = np.stack([np.bincount(group, weights=TA * T.mean(axis=1)[:, k], minlength=4 * n) for k in range(3)], 1)
+    nrm = np.stack([np.bincount(group, weights=TA * TN[:, k], minlength=4 * n) for k in range(3)], 1)
+    pts = np.divide(pts, area[:, None], out=np.zeros_like(pts), where=area[:, None] > 0)
+    vectors = nrm.copy()
+    length = np.linalg.norm(nrm, axis=1, keepdims=True)
+    nrm = np.divide(nrm, length, out=np.zeros_like(nrm), where=length > 0)
+    total = np.add.reduceat(TA, start[:-1]) if len(TA) else np.zeros(0)
+    w = area.reshape(n, 4) / np.maximum(total, 1e-300)[:, None]
+    return (np.ascontiguousarray(pts.reshape(n, 4, 3)), np.ascontiguousarray(nrm.reshape(n, 4, 3)),
+            np.ascontiguousarray(vectors.reshape(n, 4, 3)), np.ascontiguousarray(w))
 
 
 def near_points(T: np.ndarray, TN: np.ndarray, TA: np.ndarray, start: np.ndarray
@@ -136,7 +177,21 @@ def _point_to_cluster(x, y, z, nx, ny, nz, T, N, s0, s1, eps):
 
 
 @njit(cache=True, fastmath=False)
-def _cluster_pair_area_ff(i, j, T, N, start, A, S, PN, C, D, Q, QN, W, far, near, eps):
+def _points_area_ff(xi, yi, zi, Si, xj, yj, zj, Sj):
+    """A_i F_ij of two small patches as points with area vectors S (projected areas)."""
+    rx = xj - xi
+    ry = yj - yi
+    rz = zj - zi
+    d2 = rx * rx + ry * ry + rz * rz
+    ci = Si[0] * rx + Si[1] * ry + Si[2] * rz
+    cj = -(Sj[0] * rx + Sj[1] * ry + Sj[2] * rz)
+    if ci <= 0.0 or cj <= 0.0 or d2 <= 0.0:
+        return 0.0
+    return ci * cj * _INV_PI / (d2 * d2)
+
+
+@njit(cache=True, fastmath=False)
+def _cluster_pair_area_ff(i, j, T, N, start, A, S, C, D, M, MN, MS, MW, Q, QN, W, far, near, eps):
     """A_i F_ij (unoccluded) between two patches, symmetric in (i, j)."""
     if i == j or A[i] <= 0.0 or A[j] <= 0.0:
         return 0.0
@@ -147,16 +202,28 @@ def _cluster_pair_area_ff(i, j, T, N, start, A, S, PN, C, D, Q, QN, W, far, near
     reach = D[i] + D[j]
     single = start[i + 1] - start[i] == 1 and start[j + 1] - start[j] == 1
     if not single and d2 >= (far * reach) ** 2:
-        ci = S[i, 0] * rx + S[i, 1] * ry + S[i, 2] * rz
-        cj = -(S[j, 0] * rx + S[j, 1] * ry + S[j, 2] * rz)
-        if ci <= 0.0 or cj <= 0.0:
-            return 0.0
-        return ci * cj * _INV_PI / (d2 * d2)
+        return _points_area_ff(C[i, 0], C[i, 1], C[i, 2], S[i], C[j, 0], C[j, 1], C[j, 2], S[j])
+    if not single and d2 >= (0.5 * far * reach) ** 2:
+        # each patch as its (up to) 4 quadrant groups: halves the size, quarters the error
+        total = 0.0
+        for k in range(4):
+            if MW[i, k] <= 0.0:
+                continue
+            for m in range(4):
+                if MW[j, m] > 0.0:
+                    total += _points_area_ff(M[i, k, 0], M[i, k, 1], M[i, k, 2], MS[i, k],
+                                             M[j, m, 0], M[j, m, 1], M[j, m, 2], MS[j, m])
+        return total
     if d2 >= (near * reach) ** 2:
-        g_ij = _point_to_cluster(C[i, 0], C[i, 1], C[i, 2], PN[i, 0], PN[i, 1], PN[i, 2], T, N,
-                                 start[j], start[j + 1], eps)
-        g_ji = _point_to_cluster(C[j, 0], C[j, 1], C[j, 2], PN[j, 0], PN[j, 1], PN[j, 2], T, N,
-                                 start[i], start[i + 1], eps)
+        g_ij = 0.0
+        g_ji = 0.0
+        for k in range(M.shape[1]):
+            if MW[i, k] > 0.0:
+                g_ij += MW[i, k] * _point_to_cluster(M[i, k, 0], M[i, k, 1], M[i, k, 2], MN[i, k, 0], MN[i, k, 1],
+                                                     MN[i, k, 2], T, N, start[j], start[j + 1], eps)
+            if MW[j, k] > 0.0:
+                g_ji += MW[j, k] * _point_to_cluster(M[j, k, 0], M[j, k, 1], M[j, k, 2], MN[j, k, 0], MN[j, k, 1],
+                                                     MN[j, k, 2], T, N, start[i], start[i + 1], eps)
         return 0.5 * (A[i] * g_ij + A[j] * g_ji)
     g_ij = 0.0
     g_ji = 0.0
@@ -174,11 +241,11 @@ def _cluster_pair_area_ff(i, j, T, N, start, A, S, PN, C, D, Q, QN, W, far, near
 
 
 @njit(parallel=True, cache=True, fastmath=False, nogil=True)
-def _clustered_block(T, N, start, A, S, PN, C, D, Q, QN, W, rows, cols, far, near, eps, out):
+def _clustered_block(T, N, start, A, S, C, D, M, MN, MS, MW, Q, QN, W, rows, cols, far, near, eps, out):
     for r in prange(rows.shape[0]):
         i = rows[r]
         for c in range(cols.shape[0]):
-            af = _cluster_pair_area_ff(i, cols[c], T, N, start, A, S, PN, C, D, Q, QN, W, far, near, eps)
+            af = _cluster_pair_area_ff(i, cols[c], T, N, start, A, S, C, D, M, MN, MS, MW, Q, QN, W, far, near, eps)
             out[r, c] = af / A[i] if af > 0.0 else 0.0
 
 
@@ -189,8 +256,9 @@ def clustered_block(geom: ClusterGeometry, rows: np.ndarray, cols: np.ndarray) -
     out = np.empty((len(rows), len(cols)))
     if out.size:
         _clustered_block(geom.triangles, geom.tri_normals, geom.start, geom.areas, geom.area_vectors,
-                         geom.normals, geom.centroids, geom.diameters, geom.points, geom.point_normals,
-                         geom.weights, rows, cols, geom.far, geom.near, geom.eps, out)
+                         geom.centroids, geom.diameters, geom.mid_points, geom.mid_normals, geom.mid_vectors, geom.mid_weights,
+                         geom.points, geom.point_normals, geom.weights, rows, cols, geom.far, geom.near,
+                         geom.eps, out)
     return out
 
 

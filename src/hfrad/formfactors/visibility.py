@@ -8,6 +8,13 @@ shift, so that parallel patches are not probed only by parallel rays). The
 pair is put in canonical order (lower patch index first) and always cast in
 that direction, so V_ij == V_ji bit for bit and reciprocity survives.
 
+Where the first rays disagree (a partly visible pair) or the patches are close
+(centroid distance below 2 (D_i + D_j), where four rays can all agree and still
+be wrong), and the pair matters (F_ij or F_ji above ``refine_above``), a second
+round casts ``refine_samples`` rays between a finer stratified set (4 x 4
+split) and replaces the estimate: partial visibility between near patches is
+where a coarse estimate's error is largest, and such pairs are few.
+
 There is no random jitter on purpose: Monte Carlo noise in F is full rank and
 destroys the low rank the hierarchical factorization relies on (docs/method.md, section 2).
 
@@ -41,6 +48,14 @@ from .raycast import RayCaster
 #: Rays per patch pair by default (a 2 x 2 split of each triangle).
 DEFAULT_SAMPLES = 4
 
+#: Rays of the second round for partially visible pairs (a 4 x 4 split of each triangle).
+REFINE_SAMPLES = 16
+
+#: Pairs whose first rays disagree, or closer than REFINE_NEAR * (D_i + D_j) (centroid
+#: distance, longest edges), get the second round if F_ij or F_ji exceeds REFINE_ABOVE.
+REFINE_ABOVE = 1e-4
+REFINE_NEAR = 2.0
+
 #: Above this many occluder triangles the per-pair culling test costs more than it saves.
 MAX_CULL_OCCLUDERS = 2048
 
@@ -48,6 +63,11 @@ MAX_CULL_OCCLUDERS = 2048
 RAY_BATCH = 1 << 21
 
 _OFFSET = 1e-5  # end point offset, times the scene size
+
+
+def settings() -> dict:
+    """The second-round visibility parameters, as recorded with results (.hfr files)."""
+    return {"refine_samples": REFINE_SAMPLES, "refine_above": REFINE_ABOVE, "refine_near": REFINE_NEAR}
 
 
 def check_samples(samples: int) -> int:
@@ -72,7 +92,8 @@ class Visibility:
         Skip pairs that no occluder can block (exact test, see module docstring).
     """
 
-    def __init__(self, scene, *, samples: int = DEFAULT_SAMPLES, cull: bool = True) -> None:
+    def __init__(self, scene, *, samples: int = DEFAULT_SAMPLES, cull: bool = True,
+                 refine_samples: int = REFINE_SAMPLES, refine_above: float = REFINE_ABOVE) -> None:
         m = check_samples(samples)
         self.samples = int(samples)
         # everything below is relative to the scene's centre (float32 rays, see module docstring)
@@ -91,6 +112,19 @@ class Visibility:
                                                            if len(tri) else np.zeros(0)]))
         self.partner = np.ascontiguousarray((np.arange(self.samples) + self.samples // 2) % self.samples,
                                             dtype=np.int64)
+        # second round: a finer stratified set, only for pairs the first rays disagree on
+        self.refine_samples = int(refine_samples) if refine_samples > samples else 0
+        self.refine_above = float(refine_above)
+        if self.refine_samples:
+            fine, fine_normals = sample_points(scene, check_samples(self.refine_samples))
+            self.fine_points = np.ascontiguousarray(fine - self.centre + self.offset * fine_normals)
+            self.fine_partner = np.ascontiguousarray(
+                (np.arange(self.refine_samples) + self.refine_samples // 2) % self.refine_samples, dtype=np.int64)
+        self.rays_refined = 0
+        self.refine_near = REFINE_NEAR
+        self.centroids = np.ascontiguousarray(np.asarray(scene.centroids, np.float64) - self.centre)
+        edges = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max(axis=1) if len(tri) else np.zeros(0)
+        self.diameters = np.ascontiguousarray(edges)
         self.caster = RayCaster(np.asarray(scene.occluder_vertices, np.float64) - self.centre,
                                 scene.occluder_faces, threads=1)
         self._setup_culling(scene, tri, cull)
@@ -197,7 +231,7 @@ class Visibility:
             buf = pool.get(r)
             o, d, t = buf[0][:r], buf[1][:r], buf[2][:r]
             _fill_rays(self.points, self.partner, r_idx, c_idx, valid, first, o, d, t)
-            yield RayJob(pairs, first, o, d, t, buf, pool)
+            yield RayJob(pairs, first, o, d, t, buf, pool, r_idx, c_idx)
 
     def cast(self, job: "RayJob") -> np.ndarray:
         """(r,) bool: blocked segments of a job (Embree; holds the GIL, so one call at a time)."""
@@ -207,10 +241,46 @@ class Visibility:
         return hit
 
     def finish(self, F: np.ndarray, job: "RayJob", hit: np.ndarray) -> None:
-        """Scale F's pairs by their visible fractions and hand the buffers back."""
-        _scale_by_visibility(F.reshape(-1), job.pairs, job.first, hit)
+        """Scale F's pairs by their visible fractions and hand the buffers back.
+
+        Pairs whose rays disagree (partly visible) and whose F_ij or F_ji exceeds
+        ``refine_above`` are re-cast with ``refine_samples`` rays between a finer
+        stratified set of points, and that fraction is used instead: the
+        deterministic analogue of "more samples where the first ones disagree".
+        """
+        flat = F.reshape(-1)
+        again = np.zeros(len(job.pairs), np.bool_)
+        if self.refine_samples:
+            _partial_and_large(flat, job.pairs, job.first, hit, job.r_idx, job.c_idx, self.areas,
+                               self.centroids, self.diameters, self.refine_near, self.refine_above, again)
+        _scale_by_visibility(flat, job.pairs, job.first, hit, again)
         self.rays_cast += len(job.t)
         job.pool.put(job.buf)
+        if again.any():
+            self._refine(flat, job.pairs[again], job.r_idx[again], job.c_idx[again])
+
+    def _refine(self, flat: np.ndarray, pairs: np.ndarray, r_idx: np.ndarray, c_idx: np.ndarray) -> None:
+        """Second round of rays for ``pairs`` (flat indices into F), cast here and applied."""
+        s = self.refine_samples
+        per = max(1, RAY_BATCH // s)
+        for start in range(0, len(pairs), per):
+            sl = slice(start, start + per)
+            valid = np.empty((len(pairs[sl]), s), np.bool_)
+            counts = np.empty(len(pairs[sl]), np.int64)
+            _valid_rays(self.fine_points, self.plane, self.fine_partner, r_idx[sl], c_idx[sl], valid, counts)
+            first = np.zeros(len(counts) + 1, np.int64)
+            np.cumsum(counts, out=first[1:])
+            r = int(first[-1])
+            o = np.empty((r, 3), np.float32)
+            d = np.empty((r, 3), np.float32)
+            t = np.empty(r, np.float32)
+            _fill_rays(self.fine_points, self.fine_partner, r_idx[sl], c_idx[sl], valid, first, o, d, t)
+            t0 = time.perf_counter()
+            hit = self.caster.occluded(o, d, t)
+            self.embree_seconds += time.perf_counter() - t0
+            _scale_by_visibility(flat, pairs[sl], first, hit, np.zeros(len(counts), np.bool_))
+            self.rays_cast += r
+            self.rays_refined += r
 
     def close(self) -> None:
         self.caster.close()
@@ -219,10 +289,11 @@ class Visibility:
 class RayJob:
     """One batch of segments: origins o, unit directions d, lengths t (float32)."""
 
-    __slots__ = ("pairs", "first", "o", "d", "t", "buf", "pool")
+    __slots__ = ("pairs", "first", "o", "d", "t", "buf", "pool", "r_idx", "c_idx")
 
-    def __init__(self, pairs, first, o, d, t, buf, pool) -> None:
+    def __init__(self, pairs, first, o, d, t, buf, pool, r_idx, c_idx) -> None:
         self.pairs, self.first, self.o, self.d, self.t, self.buf, self.pool = pairs, first, o, d, t, buf, pool
+        self.r_idx, self.c_idx = r_idx, c_idx  # patch indices of each pair
 
 
 class RayBuffers:
@@ -337,9 +408,37 @@ def _valid_rays(P, plane, partner, r_idx, c_idx, valid, counts):
 
 
 @njit(parallel=True, cache=True)
-def _scale_by_visibility(F, pairs, first, hit):
-    """F[pairs[p]] *= fraction of the rays first[p]:first[p+1] that are not blocked."""
+def _partial_and_large(F, pairs, first, hit, r_idx, c_idx, areas, C, D, near, above, out):
+    """out[p]: the rays of pair p disagree, or the patches are close, and max(F_ij, F_ji) > above.
+
+    Close: centroid distance below near * (D_i + D_j); four rays between near
+    patches can all agree and still be wrong. Every test is symmetric in (i, j).
+
+    A_i F_ij is the same number for (i, j) and (j, i), so max(F_ij, F_ji) =
+    A_i F_ij / min(A_i, A_j) decides alike from either side: V_ij == V_ji holds.
+    """
     for p in prange(pairs.shape[0]):
+        blocked = 0
+        for k in range(first[p], first[p + 1]):
+            if hit[k]:
+                blocked += 1
+        total = first[p + 1] - first[p]
+        i = r_idx[p]
+        j = c_idx[p]
+        dx = C[i, 0] - C[j, 0]
+        dy = C[i, 1] - C[j, 1]
+        dz = C[i, 2] - C[j, 2]
+        close = dx * dx + dy * dy + dz * dz < (near * (D[i] + D[j])) ** 2
+        if (0 < blocked < total) or close:
+            out[p] = F[pairs[p]] * areas[i] > above * min(areas[i], areas[j])
+
+
+@njit(parallel=True, cache=True)
+def _scale_by_visibility(F, pairs, first, hit, skip):
+    """F[pairs[p]] *= fraction of the rays first[p]:first[p+1] that are not blocked (unless skip[p])."""
+    for p in prange(pairs.shape[0]):
+        if skip[p]:
+            continue
         blocked = 0
         for k in range(first[p], first[p + 1]):
             if hit[k]:

@@ -15,7 +15,7 @@ from ..errors import InputError
 from ..progress import ProgressCallback, report
 from .optimize import GOAL_RTOL, optimise, power_per_intensity
 from .spec import DesignSpec, Target, parse_spec
-from .transfer import adjoint_response, adjoint_solves, background_exitance, design_exitance, response
+from .transfer import adjoint_response, adjoint_rows, adjoint_solves, background_exitance, design_exitance, response
 
 __all__ = ["design", "DesignResult"]
 
@@ -157,12 +157,13 @@ def design(fac, spec: "Mapping[str, Any] | DesignSpec | str", *, method: str = "
     if not isinstance(spec, DesignSpec):
         spec = parse_spec(spec, scene)
     forward_solves = len(spec.emitters) + int(bool(background_exitance(spec, scene).any()))
+    # the adjoint method needs one more forward solve for the report when some target has no per-patch rows
+    adjoint_total = adjoint_solves(spec) + int(any(r != "patches" for r in adjoint_rows(spec)))
     if method == "auto":
-        # the adjoint method also needs one forward solve for the report (every patch's value)
-        method = "adjoint" if adjoint_solves(spec) + 1 < forward_solves else "forward"
+        method = "adjoint" if adjoint_total < forward_solves else "forward"
     if method not in ("forward", "adjoint"):
         raise ValueError(f"method must be 'auto', 'forward' or 'adjoint', got {method!r}")
-    total = (forward_solves if method == "forward" else adjoint_solves(spec) + 1) + 1
+    total = (forward_solves if method == "forward" else adjoint_total) + 1
     bar = None if progress is None else (lambda d, t: progress(d, total))
     resp = (response if method == "forward" else adjoint_response)(fac, spec, progress=bar)
     t1 = time.perf_counter()

@@ -152,12 +152,17 @@ def read_emission(path: "str | os.PathLike") -> list[EmitterSetting]:
         raise FileNotFoundError(f"{path}: no such emission file") from None
     except UnicodeDecodeError:
         raise FileFormatError(f"{path}: not a UTF-8 JSON emission file") from None
+    return loads_emission(text, path)
+
+
+def loads_emission(text: str, source: "str | os.PathLike" = "<emission>") -> list[EmitterSetting]:
+    """Parse the text of an emission file; ``source`` is named in errors (see :func:`read_emission`)."""
     try:
         data = json.loads(text)
     except json.JSONDecodeError as exc:
-        raise FileFormatError(f"{path}: not valid JSON: {exc.msg} at line {exc.lineno}, "
+        raise FileFormatError(f"{source}: not valid JSON: {exc.msg} at line {exc.lineno}, "
                               f"column {exc.colno}") from None
-    return parse_emission(data, path)
+    return parse_emission(data, source)
 
 
 def emission_overrides(settings: Sequence[EmitterSetting]) -> dict[str, tuple[float, float, float]]:

@@ -12,8 +12,8 @@ radiosity B in W/m^2), exposed in EV and sRGB-encoded for 8-bit PNG.
 
 from .camera import Camera
 from .image import render_image, render_radiance, save_png
-from .shading import corner_vertices, smooth_corners
+from .shading import corner_smoother, corner_vertices, corner_weights, smooth_corners
 from .tonemap import auto_exposure, srgb_decode, srgb_encode, tonemap
 
 __all__ = ["Camera", "render_image", "render_radiance", "save_png", "smooth_corners",
-           "corner_vertices", "tonemap", "auto_exposure", "srgb_encode", "srgb_decode"]
+           "corner_weights", "corner_smoother", "corner_vertices", "tonemap", "auto_exposure", "srgb_encode", "srgb_decode"]

@@ -29,6 +29,7 @@ of a rendered image measures (see :func:`hfrad.render.render_radiance`).
 from __future__ import annotations
 
 import math
+from typing import Callable
 
 import numpy as np
 
@@ -73,6 +74,59 @@ def _corner_pairs(scene, crease_angle: float) -> tuple[np.ndarray, np.ndarray, n
     return a, b, start
 
 
+def corner_weights(scene, *, crease_angle: float = CREASE_ANGLE):
+    """(3t, t) sparse matrix W: corner values are ``W @ v`` for per-triangle values v.
+
+    Row ``3 f + k`` (corner k of triangle f) holds the area weights
+    ``A_q / sum A`` of the triangles q in that corner's smoothing set (see the
+    module docstring); a corner whose set has zero total area takes its own
+    triangle's value.
+
+    Returns
+    -------
+    scipy.sparse.csr_matrix, shape (3t, t)
+    """
+    from scipy import sparse
+
+    t = scene.n_triangles
+    if t == 0:
+        return sparse.csr_matrix((0, 0))
+    a, b, _ = _corner_pairs(scene, crease_angle)
+    fb = b // 3
+    w = scene.triangle_areas[fb]
+    total = np.bincount(a, weights=w, minlength=3 * t)
+    ok = total[a] > 0
+    lonely = np.flatnonzero(total <= 0)  # fallback: the triangle's own value
+    rows = np.concatenate([a[ok], lonely])
+    cols = np.concatenate([fb[ok], lonely // 3])
+    vals = np.concatenate([w[ok] / total[a[ok]], np.ones(len(lonely))])
+    return sparse.csr_matrix((vals, (rows, cols)), shape=(3 * t, t))
+
+
+def corner_smoother(scene, *, crease_angle: float = CREASE_ANGLE,
+                    steps: int | None = None) -> Callable[[np.ndarray], np.ndarray]:
+    """``smooth(radiosity) -> (t, 3, 3)``: :func:`smooth_corners` with its sparse weights built once.
+
+    For smoothing many radiosities of one scene (the viewer does, per slider
+    move): each call costs ``steps + 1`` sparse products, O(20 t) each.
+    """
+    t = scene.n_triangles
+    if steps is None:
+        steps = 0 if not scene.is_clustered else int(min(48, round(t / max(scene.n_patches, 1))))
+    W = corner_weights(scene, crease_angle=crease_angle)
+    patch = scene.patch_of_triangle
+
+    def smooth(radiosity: np.ndarray) -> np.ndarray:
+        values = np.asarray(radiosity, dtype=np.float64).reshape(scene.n_patches, 3)[patch]
+        if t == 0:
+            return np.zeros((0, 3, 3))
+        for _ in range(steps):
+            values = np.asarray(W @ values).reshape(t, 3, 3).mean(axis=1)
+        return np.asarray(W @ values).reshape(t, 3, 3)
+
+    return smooth
+
+
 def smooth_corners(scene, radiosity: np.ndarray, *, crease_angle: float = CREASE_ANGLE,
                    steps: int | None = None) -> np.ndarray:
     """(t, 3, 3) float: radiosity at each detail triangle's corners (triangle, corner, channel).
@@ -93,6 +147,7 @@ def smooth_corners(scene, radiosity: np.ndarray, *, crease_angle: float = CREASE
     -----
     Cost O(sum of vertex degree^2) per step, about 20 t for subdivided meshes.
     A corner whose smoothing set has zero total area keeps its triangle's value.
+    To smooth many radiosities of one scene, build :func:`corner_smoother` once.
 
     Examples
     --------
@@ -103,29 +158,7 @@ def smooth_corners(scene, radiosity: np.ndarray, *, crease_angle: float = CREASE
     >>> bool(np.allclose(c, 2.0))
     True
     """
-    B = np.asarray(radiosity, dtype=np.float64).reshape(scene.n_patches, 3)
-    t = scene.n_triangles
-    if t == 0:
-        return np.zeros((0, 3, 3))
-    if steps is None:
-        steps = 0 if not scene.is_clustered else int(min(48, round(t / max(scene.n_patches, 1))))
-    a, b, _ = _corner_pairs(scene, crease_angle)
-    fb = b // 3
-    w = scene.triangle_areas[fb]
-    total = np.bincount(a, weights=w, minlength=3 * t)
-    ok = total > 0
-    values = B[scene.patch_of_triangle]
-
-    def corners(v: np.ndarray) -> np.ndarray:
-        out = np.repeat(v, 3, axis=0)  # fallback: the triangle's own value
-        for ch in range(3):
-            s = np.bincount(a, weights=w * v[fb, ch], minlength=3 * t)
-            out[ok, ch] = s[ok] / total[ok]
-        return out.reshape(t, 3, 3)
-
-    for _ in range(steps):
-        values = corners(values).mean(axis=1)
-    return corners(values)
+    return corner_smoother(scene, crease_angle=crease_angle, steps=steps)(radiosity)
 
 
 def corner_vertices(scene, *, crease_angle: float = CREASE_ANGLE) -> tuple[np.ndarray, np.ndarray]:

@@ -25,6 +25,9 @@ RED = (0.63, 0.065, 0.05)
 GREEN = (0.14, 0.45, 0.091)
 LIGHT_EMISSION = (17.0, 12.0, 4.0)
 
+#: Point spacing (m) of the floor and ceiling triangulations around the blocks and the light.
+FLOOR_SPACING = 0.25
+
 
 class _Builder:
     """Collects quads and triangles with their material and group names."""
@@ -88,6 +91,56 @@ def _strip_decomposition(x0, x1, z0, z1, holes: list[np.ndarray]) -> list[np.nda
     return quads
 
 
+def _delaunay_with_holes(x0, x1, z0, z1, holes: list[np.ndarray], spacing: float) -> list[np.ndarray]:
+    """Well-shaped triangles covering [x0,x1] x [z0,z1] minus convex holes.
+
+    A Delaunay triangulation of: the rectangle's boundary and every hole edge
+    sampled at about ``spacing``, and a grid of interior points at least
+    0.6 x spacing away from any of them. Each hole edge piece is then an edge of
+    the triangulation (its diametral circle holds no other point), so dropping
+    the triangles inside the holes leaves exactly the free area, without the
+    slivers that cutting strips through every hole corner makes.
+    Returns (3, 2) corner arrays (x, z), counter-clockwise in (x, z).
+    """
+    from scipy.spatial import Delaunay
+
+    def ring(poly):
+        pts = []
+        for k in range(len(poly)):
+            a, b = poly[k], poly[(k + 1) % len(poly)]
+            m = max(1, int(np.ceil(np.linalg.norm(b - a) / spacing)))
+            pts += [a + (b - a) * t for t in np.arange(m) / m]
+        return np.array(pts)
+
+    outer = np.array([[x0, z0], [x1, z0], [x1, z1], [x0, z1]], dtype=float)
+    rings = [ring(outer)] + [ring(np.asarray(h, float)) for h in holes]
+    boundary = np.vstack(rings)
+    gx = np.arange(x0 + spacing, x1 - 0.5 * spacing, spacing)
+    gz = np.arange(z0 + spacing, z1 - 0.5 * spacing, spacing)
+    grid = np.array([(x, z) for x in gx for z in gz])
+    keep = np.min(np.linalg.norm(grid[:, None] - boundary[None], axis=2), axis=1) > 0.6 * spacing
+    keep &= ~np.array([any(_inside(h, p) for h in holes) for p in grid])
+    points = np.vstack([boundary, grid[keep]])
+    tris = points[Delaunay(points).simplices]
+    centre = tris.mean(axis=1)
+    free = ~np.array([any(_inside(h, c) for h in holes) for c in centre])
+    out = []
+    for t in tris[free]:
+        ccw = (t[1, 0] - t[0, 0]) * (t[2, 1] - t[0, 1]) - (t[1, 1] - t[0, 1]) * (t[2, 0] - t[0, 0]) > 0
+        out.append(t if ccw else t[::-1])
+    return out
+
+
+def _inside(poly: np.ndarray, p) -> bool:
+    """Whether point p is strictly inside the convex polygon ``poly`` (either orientation)."""
+    signs = []
+    for k in range(len(poly)):
+        a, b = poly[k], poly[(k + 1) % len(poly)]
+        signs.append((b[0] - a[0]) * (p[1] - a[1]) - (b[1] - a[1]) * (p[0] - a[0]))
+    signs = np.array(signs)
+    return bool((signs > 1e-12).all() or (signs < -1e-12).all())
+
+
 def _hole_z_range(hole: np.ndarray, x: float):
     """(z_min, z_max) of a convex polygon's cross-section at ``x``, or None."""
     zs = []
@@ -122,11 +175,11 @@ def cornell_box() -> Scene:
     lo, hi = -1.0, 1.0
 
     def floor_or_ceiling(y: float, holes, material: str, group: str, up: bool) -> None:
-        for q in _strip_decomposition(lo, hi, lo, hi, holes):
-            p = [(x, y, z) for x, z in q]  # strips run clockwise in (x, z) -> normal +y
-            if not up:
+        for t in _delaunay_with_holes(lo, hi, lo, hi, holes, FLOOR_SPACING):
+            p = [(x, y, z) for x, z in t]  # counter-clockwise in (x, z) -> normal -y
+            if up:
                 p = p[::-1]
-            b.quad(*p, material, group)
+            b.triangle(*p, material, group)
 
     short = _footprint(0.33, 0.30, 0.6, -17.0)
     tall = _footprint(-0.33, -0.30, 0.6, 17.0)

@@ -17,7 +17,8 @@ radiosity systems):
    is below A*, if the neighbour has the same material, group, reflectance
    and emission, its normal is within ``normal_tolerance`` of the cluster's
    mean normal, and it lies within ``1.5 sqrt(A*)`` of the seed (compact
-   patches). Leftover slivers smaller than A*/4 are merged into a compatible
+   patches); a patch holds at most MAX_TRIANGLES triangles (this bounds the
+   form-factor cost of a pair of patches). Leftover slivers smaller than A*/4 are merged into a compatible
    neighbouring cluster.
 
 With ``max_edge=L`` faces longer than L are split as before and faces shorter
@@ -48,8 +49,14 @@ NORMAL_TOLERANCE = 30.0
 #: A cluster may reach this far from its seed, in units of sqrt(target area).
 REACH = 1.5
 
+#: Most triangles in one patch (bounds the form-factor cost of a patch pair).
+MAX_TRIANGLES = 128
+
 #: Clusters smaller than this fraction of the target area are merged into a neighbour.
 MERGE_BELOW = 0.25
+
+#: Most triangles in one patch (bounds the form-factor cost of a patch pair).
+MAX_TRIANGLES = 128
 
 #: Clusters smaller than this fraction of the target area look for a nearby (not adjacent) partner.
 NEARBY_BELOW = 0.5
@@ -98,7 +105,8 @@ def _vertex_stars(welded: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.n
 
 
 @njit(cache=True)
-def _grow(seeds, eligible, key, welded, vstart, vtris, cent, nrm, area, reach, cos_tol, a_max, r_max, label):
+def _grow(seeds, eligible, key, welded, vstart, vtris, cent, nrm, area, reach, cos_tol, a_max, r_max,
+          max_triangles, label):
     """Greedy region growing from seeds in order; returns the number of clusters.
 
     A cluster takes the unassigned compatible neighbour nearest to its seed
@@ -113,6 +121,7 @@ def _grow(seeds, eligible, key, welded, vstart, vtris, cent, nrm, area, reach, c
         n_clusters += 1
         label[s] = c
         acc = area[s]
+        count = 1
         sx, sy, sz = nrm[s, 0] * area[s], nrm[s, 1] * area[s], nrm[s, 2] * area[s]
         heap = [(0.0, s)]
         heap.pop()
@@ -133,9 +142,10 @@ def _grow(seeds, eligible, key, welded, vstart, vtris, cent, nrm, area, reach, c
                     continue
                 if (nrm[s, 0] * ax + nrm[s, 1] * ay + nrm[s, 2] * az) < cos_tol * ln:
                     continue
-                if d + reach[t] > r_max or acc + area[t] > 1.25 * a_max:
+                if d + reach[t] > r_max or acc + area[t] > 1.25 * a_max or count >= max_triangles:
                     continue
                 label[t] = c
+                count += 1
                 acc += area[t]
                 sx += nrm[t, 0] * area[t]
                 sy += nrm[t, 1] * area[t]
@@ -155,7 +165,7 @@ def _grow(seeds, eligible, key, welded, vstart, vtris, cent, nrm, area, reach, c
 
 
 @njit(cache=True)
-def _merge_small(label, n_clusters, key, welded, vstart, vtris, nrm, area, cos_tol, a_small, a_max):
+def _merge_small(label, n_clusters, key, welded, vstart, vtris, nrm, area, cos_tol, a_small, a_max, max_triangles):
     """Merge clusters smaller than ``a_small`` into a compatible neighbour; relabels in place."""
     t_count = label.shape[0]
     c_area = np.zeros(n_clusters)
@@ -180,6 +190,7 @@ def _merge_small(label, n_clusters, key, welded, vstart, vtris, nrm, area, cos_t
         if label[t] >= 0:
             members[fill[label[t]]] = t
             fill[label[t]] += 1
+    c_count = start[1:] - start[:-1]
     parent = np.arange(n_clusters)
     order = np.argsort(c_area)
     for c in order:
@@ -200,6 +211,8 @@ def _merge_small(label, n_clusters, key, welded, vstart, vtris, nrm, area, cos_t
                         o = parent[o]
                     if o == c or c_area[o] >= best_area or c_area[o] + c_area[c] > 1.5 * a_max:
                         continue
+                    if c_count[o] + c_count[c] > max_triangles:
+                        continue
                     lo = math.sqrt(c_vec[o, 0] ** 2 + c_vec[o, 1] ** 2 + c_vec[o, 2] ** 2)
                     lc = math.sqrt(c_vec[c, 0] ** 2 + c_vec[c, 1] ** 2 + c_vec[c, 2] ** 2)
                     dot = c_vec[o, 0] * c_vec[c, 0] + c_vec[o, 1] * c_vec[c, 1] + c_vec[o, 2] * c_vec[c, 2]
@@ -209,6 +222,7 @@ def _merge_small(label, n_clusters, key, welded, vstart, vtris, nrm, area, cos_t
         if best >= 0:
             parent[c] = best
             c_area[best] += c_area[c]
+            c_count[best] += c_count[c]
             for k in range(3):
                 c_vec[best, k] += c_vec[c, k]
     for t in range(t_count):
@@ -221,7 +235,7 @@ def _merge_small(label, n_clusters, key, welded, vstart, vtris, nrm, area, cos_t
 
 
 @njit(cache=True)
-def _merge_nearby(label, c_area, c_vec, c_key, cand, a_small, a_max, cos_tol, cos_pair):
+def _merge_nearby(label, c_area, c_vec, c_key, c_count, cand, a_small, a_max, cos_tol, cos_pair, max_triangles):
     """Merge small clusters into a nearby compatible one (gaps, T-junctions, separate small parts).
 
     ``cand[c]`` lists cluster c's nearest clusters (by centroid, -1 = none).
@@ -243,6 +257,8 @@ def _merge_nearby(label, c_area, c_vec, c_key, cand, a_small, a_max, cos_tol, co
                 o = parent[o]
             if o == c or c_key[o] != c_key[c] or c_area[o] + c_area[c] > a_max:
                 continue
+            if c_count[o] + c_count[c] > max_triangles:
+                continue
             sx = c_vec[o, 0] + c_vec[c, 0]
             sy = c_vec[o, 1] + c_vec[c, 1]
             sz = c_vec[o, 2] + c_vec[c, 2]
@@ -255,6 +271,7 @@ def _merge_nearby(label, c_area, c_vec, c_key, cand, a_small, a_max, cos_tol, co
                 continue
             parent[c] = o
             c_area[o] += c_area[c]
+            c_count[o] += c_count[c]
             c_vec[o, 0], c_vec[o, 1], c_vec[o, 2] = sx, sy, sz
             merged += 1
             break
@@ -292,21 +309,23 @@ class _Mesh:
         self.seeds = zorder_permutation(self.centroids)
 
     def grow(self, eligible: np.ndarray, cos_tol: float, a_max: float, r_max: float,
-             merge: bool) -> tuple[np.ndarray, int]:
+             merge: bool, max_triangles: int = 0) -> tuple[np.ndarray, int]:
+        max_triangles = max_triangles or MAX_TRIANGLES
         label = np.full(len(self.areas), -1, np.int64)
         count = _grow(self.seeds, eligible, self.key, self.welded, self.vstart, self.vtris, self.centroids,
-                      self.normals, self.areas, self.reach, cos_tol, a_max, r_max, label)
+                      self.normals, self.areas, self.reach, cos_tol, a_max, r_max, max_triangles, label)
         if merge:
             _merge_small(label, count, self.key, self.welded, self.vstart, self.vtris, self.normals,
-                         self.areas, cos_tol, MERGE_BELOW * a_max, a_max)
+                         self.areas, cos_tol, MERGE_BELOW * a_max, a_max, max_triangles)
             count = _relabel(label)
             for _ in range(NEARBY_ROUNDS):
-                if not self._nearby(label, count, cos_tol, a_max, r_max):
+                if not self._nearby(label, count, cos_tol, a_max, r_max, max_triangles):
                     break
                 count = _relabel(label)
         return label, count
 
-    def _nearby(self, label: np.ndarray, count: int, cos_tol: float, a_max: float, r_max: float) -> int:
+    def _nearby(self, label: np.ndarray, count: int, cos_tol: float, a_max: float, r_max: float,
+                max_triangles: int) -> int:
         from scipy.spatial import cKDTree
 
         ok = label >= 0
@@ -324,8 +343,9 @@ class _Mesh:
         dist, cand = cKDTree(c_cen).query(c_cen, k=k, distance_upper_bound=r_max)
         cand = np.where(np.isfinite(dist), cand, -1)[:, 1:].astype(np.int64)
         cos_pair = math.cos(2 * math.acos(cos_tol))
-        return _merge_nearby(label, c_area, c_vec, c_key, np.ascontiguousarray(cand), NEARBY_BELOW * a_max,
-                             a_max, cos_tol, cos_pair)
+        c_count = np.bincount(lab, minlength=count).astype(np.int64)
+        return _merge_nearby(label, c_area, c_vec, c_key, c_count, np.ascontiguousarray(cand), NEARBY_BELOW * a_max,
+                             a_max, cos_tol, cos_pair, max_triangles)
 
 
 def cluster(scene: Scene, *, patches: int | None = None, max_edge: float | None = None,
@@ -394,8 +414,9 @@ def cluster(scene: Scene, *, patches: int | None = None, max_edge: float | None 
     note = None
     if total > (1 + COUNT_TOLERANCE) * patches:
         floor = _fewest(mesh, cos_tol)
-        why = (f"clusters cannot cross materials or groups, bend more than {normal_tolerance:g} degrees "
-               f"or bridge gaps wider than {REACH:g} sqrt(patch area), so this mesh needs at least about {floor:,}")
+        why = (f"clusters cannot cross materials or groups, bend more than {normal_tolerance:g} degrees, "
+               f"bridge gaps wider than {REACH:g} sqrt(patch area) or hold more than {MAX_TRIANGLES} triangles, "
+               f"so this mesh needs at least about {max(floor, -(-mesh.areas.size // MAX_TRIANGLES)):,}")
         note = (f"--patches {patches:,} cannot be met: got {total:,} patches; " + why if floor > patches else
                 f"--patches {patches:,} was met only to {total:,} patches (small separate parts limit the merging; "
                 + why + ")")
@@ -426,7 +447,8 @@ def _fewest(mesh: _Mesh, cos_tol: float) -> int:
     """Patches left when clusters may grow without limit (materials, groups, creases, gaps)."""
     eligible = np.ones(len(mesh.areas), bool)
     total = float(mesh.areas.sum())
-    return mesh.grow(eligible, cos_tol, total, float(np.ptp(mesh.centroids, axis=0).max()), merge=True)[1]
+    return mesh.grow(eligible, cos_tol, total, float(np.ptp(mesh.centroids, axis=0).max()), merge=True,
+                     max_triangles=len(mesh.areas))[1]
 
 
 def _build(scene: Scene, splits: np.ndarray, label: np.ndarray, count: int, note: str | None) -> Scene:

@@ -189,16 +189,25 @@ def set_emission(scene: Scene, emit: Mapping[str, RGB]) -> Scene:
     emission = scene.emission.copy()
     for name, value in emit.items():
         rgb = _rgb(value, f"emission of '{name}'")
-        if name in scene.material_names:
-            mask = scene.material == scene.material_names.index(name)
-        elif name in scene.groups:
-            mask = scene.group == scene.groups.index(name)
-        else:
-            raise SceneError(f"{scene.name}: no material or group named '{name}'. Materials: "
-                             f"{', '.join(scene.material_names)}; groups: {', '.join(scene.groups[:20])}"
-                             + (" ..." if len(scene.groups) > 20 else ""))
-        emission[mask] = rgb
+        emission[patches_named(scene, name)] = rgb
     return scene.replace(emission=emission)
+
+
+def patches_named(scene: Scene, name: str) -> np.ndarray:
+    """(n,) bool: the patches of the material ``name``, else of the group ``name``.
+
+    Raises
+    ------
+    SceneError
+        No material or group of that name (the message lists the names).
+    """
+    if name in scene.material_names:
+        return scene.material == scene.material_names.index(name)
+    if name in scene.groups:
+        return scene.group == scene.groups.index(name)
+    raise SceneError(f"{scene.name}: no material or group named '{name}'. Materials: "
+                     f"{', '.join(scene.material_names)}; groups: {', '.join(scene.groups[:20])}"
+                     + (" ..." if len(scene.groups) > 20 else ""))
 
 
 def add_area_light(scene: Scene, exitance: RGB, *, reflectance: float = 0.78) -> Scene:

@@ -9,7 +9,10 @@ statistics, are still read)::
                        parameters (JSON), timings (JSON)
     /factors/perm      (n,) int64, internal order
     /factors/Q, V      (n, k) float32/64, internal order
-    /factors/Y         (3, n, k), eq. 4 per channel
+    /factors/Y         (3, n, k), eq. 4 per channel (plain solver only)
+    /factors/near_data, near_indices, near_indptr
+                       the near field N (CSR, internal order) instead of Y when
+                       the near-field split was used (attr solver says which)
     /factors/rho_max   (n,) float64, user order
     /factors/reflectance (n, 3) float64, user order
     /stats/...         row_sums, col_sums, sketch (n, p), weights: what the
@@ -35,12 +38,14 @@ from pathlib import Path
 
 import h5py
 import numpy as np
+import scipy.sparse as sp
 
 from .._version import __version__
 from ..atomic import atomic_path
 from ..errors import FileFormatError
 from ..factorize.lowrank import LowRank
 from ..validation import object_first
+from .nearfield import NearFieldFactorization
 from .stats import PassStatistics
 from .woodbury import HFactorization
 
@@ -115,8 +120,16 @@ def save_hfr(factorization: HFactorization, path, *, scene=None, timings: dict |
             a["lowrank_info"] = json.dumps({k: v for k, v in lr.info.items() if k != "leaf_ranks"},
                                            default=_json_default)
             g = f.create_group("factors")
-            for name in ("perm", "Q", "V", "Y", "rho_max", "reflectance"):
+            for name in ("perm", "Q", "V", "rho_max", "reflectance"):
                 _dataset(g, name, getattr(fac, name))
+            a["solver"] = getattr(fac, "solver", "woodbury")
+            N = getattr(fac, "N", None)
+            if N is None:
+                _dataset(g, "Y", fac.Y)
+            else:  # near-field split: sparse N (CSR, internal order) instead of the Y_c
+                _dataset(g, "near_data", N.data)
+                _dataset(g, "near_indices", N.indices)
+                _dataset(g, "near_indptr", N.indptr)
             if fac.stats is not None:
                 _write_stats(f.create_group("stats"), fac.stats)
             if scene is not None:
@@ -201,7 +214,8 @@ def _metadata(f: h5py.File) -> dict:
             "sigma_max": np.asarray(a["sigma_max"], np.float64),
             "error_bound": np.asarray(a["error_bound"], np.float64),
             "parameters": json.loads(a["parameters"]), "timings": json.loads(a["timings"]),
-            "lowrank_info": json.loads(a["lowrank_info"]), "has_patches": "patches" in f}
+            "lowrank_info": json.loads(a["lowrank_info"]), "has_patches": "patches" in f,
+            "solver": str(a.get("solver", "woodbury"))}
 
 
 def read_hfr_metadata(path) -> dict:
@@ -259,8 +273,10 @@ def load_hfr(path) -> HFactorization:
                                       "does not match)")
             meta = _metadata(f)
             g = f["factors"]
-            perm, Q, V, Y, rho_max, rho = (_read(g, k, path) for k in ("perm", "Q", "V", "Y", "rho_max",
-                                                                          "reflectance"))
+            perm, Q, V, rho_max, rho = (_read(g, k, path) for k in ("perm", "Q", "V", "rho_max", "reflectance"))
+            Y = _read(g, "Y", path) if "Y" in g else None
+            near = tuple(_read(g, k, path) for k in ("near_data", "near_indices", "near_indptr")) \
+                if "near_data" in g else None
             scene = _read_scene(f["patches"], path) if "patches" in f else None
             stats = _read_stats(f["stats"], path) if "stats" in f else None
         except FileFormatError:
@@ -268,11 +284,18 @@ def load_hfr(path) -> HFactorization:
         except Exception as exc:  # h5py raises KeyError/OSError/ValueError on damaged data
             raise FileFormatError(f"{path}: truncated or corrupted .hfr file: {exc}") from exc
     n, k = meta["n_patches"], meta["rank"]
-    if Q.shape != (n, k) or V.shape != (n, k) or Y.shape != (3, n, k) or perm.shape != (n,):
-        raise FileFormatError(f"{path}: inconsistent array shapes (Q {Q.shape}, V {V.shape}, Y {Y.shape})")
+    if Q.shape != (n, k) or V.shape != (n, k) or perm.shape != (n,) or (near is None) == (Y is None) \
+            or (Y is not None and Y.shape != (3, n, k)):
+        raise FileFormatError(f"{path}: inconsistent arrays (Q {Q.shape}, V {V.shape}, "
+                              f"Y {None if Y is None else Y.shape}, near field {near is not None})")
     lr = LowRank(Q=Q, V=V, achieved_error=meta["achieved_error"], norm=meta["norm"], eps=meta["eps"],
                  relative=meta["relative"], method=meta["method"], info=meta["lowrank_info"])
-    fac = HFactorization(perm, Q, V, rho_max, rho, lr, Y=Y, sigma_max=meta["sigma_max"],
-                         params=meta["parameters"], scene=scene, stats=stats)
+    if near is None:
+        fac = HFactorization(perm, Q, V, rho_max, rho, lr, Y=Y, sigma_max=meta["sigma_max"],
+                             params=meta["parameters"], scene=scene, stats=stats)
+    else:
+        N = sp.csr_matrix(near, shape=(n, n))
+        fac = NearFieldFactorization(perm, Q, V, N, rho_max, rho, lr, sigma_max=meta["sigma_max"],
+                                     params=meta["parameters"], scene=scene, stats=stats)
     fac.timings = meta["timings"]
     return fac

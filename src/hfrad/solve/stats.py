@@ -84,14 +84,17 @@ class PassStatistics:
         stats.sketch = sketch
         return stats
 
-    def operator_error(self, Q: np.ndarray, V: np.ndarray, D: np.ndarray) -> np.ndarray:
+    def operator_error(self, Q: np.ndarray, V: np.ndarray, D: np.ndarray, *, near=None) -> np.ndarray:
         """(3,) upper bound on ``||R_c F - Q_c V^T||`` per channel, failing with probability FAILURE_PROBABILITY.
 
-        ``(G - Q V^T) Omega' = sketch - Q (V^T Omega')``; channel c scales rows
+        ``(G - Q V^T) Omega' = sketch - Q (V^T Omega')`` (minus ``near Omega'`` for the
+        near-field split's sparse N, internal order); channel c scales rows
         by ``D_c = rho_c / rho_max``, and ``||M|| <= alpha sqrt(2/pi) max_i ||M omega_i||``
         (Halko, Martinsson & Tropp 2011, Lemma 4.1) with ``M`` the weighted error.
         """
         R = self.sketch - Q.astype(np.float64) @ (V.astype(np.float64).T @ self._omega)
+        if near is not None:           # the near-field split: G~ = N + Q V^T
+            R = R - near @ self._omega
         if self.weights is not None:
             R = np.sqrt(self.weights)[:, None] * R
         scale = probe_alpha(self.probes) * math.sqrt(2.0 / math.pi)

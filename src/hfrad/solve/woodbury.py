@@ -98,9 +98,12 @@ class HFactorization:
 
     Notes
     -----
+    ``solver`` names the method ("woodbury"; the near-field split's subclass says its own).
     Memory O(nk) (Q, V and three Y_c in the factor dtype). Each right-hand side
     costs O(nk). Aguerre & Fernández 2016, eq. 2-5.
     """
+
+    solver = "woodbury"
 
     def __init__(self, perm, Q, V, rho_max, reflectance, lowrank: LowRank, *, Y=None,
                  sigma_max=None, params: dict | None = None, scene=None, stats: PassStatistics | None = None):
@@ -176,13 +179,13 @@ class HFactorization:
         """
         if self._estimate is None:
             if self._sigma is None:
-                self._sigma = np.array([power_sigma_max(self.Q * self._D[:, c:c + 1].astype(self.dtype), self.V)
-                                        for c in range(N_CHANNELS)])
+                self._sigma = self._sigma_estimates()
             if self.stats is None:
                 est = estimate_errors(self.achieved_error, self._sigma)
             else:
                 est = estimate_errors(self.achieved_error, self._sigma,
-                                      operator_error=self.stats.operator_error(self.Q, self.V, self._D),
+                                      operator_error=self.stats.operator_error(self.Q, self.V, self._D,
+                                                                               near=getattr(self, "N", None)),
                                       contraction=self.stats.contraction(self.reflectance[self.perm]),
                                       norm=self.stats.norm, failure_probability=FAILURE_PROBABILITY)
             bad = ~np.isfinite(est.bound)
@@ -194,6 +197,11 @@ class HFactorization:
                               "fac.residual(E, B) gives the per-solution figure", AccuracyWarning, stacklevel=2)
             self._estimate = est
         return self._estimate
+
+    def _sigma_estimates(self) -> np.ndarray:
+        """(3,) power-iteration estimates of sigma_max(Q_c V^T), for eq. 5."""
+        return np.array([power_sigma_max(self.Q * self._D[:, c:c + 1].astype(self.dtype), self.V)
+                         for c in range(N_CHANNELS)])
 
     @property
     def sigma_max(self) -> np.ndarray:
@@ -264,7 +272,12 @@ class HFactorization:
         if E.ndim == 1:
             E = np.repeat(E[:, None], N_CHANNELS, axis=1)
         batched = E.ndim == 3
-        Ei = E[self.perm] if batched else E[self.perm][:, :, None]   # (n, 3, m), internal order
+        out = self._solve(E if batched else E[:, :, None], adjoint)
+        return out if batched else out[:, :, 0]
+
+    def _solve(self, E: np.ndarray, adjoint: bool) -> np.ndarray:
+        """The solve of validated (n, 3, m) exitance in the user's order (the body of :meth:`solve`)."""
+        Ei = E[self.perm]                                                 # (n, 3, m), internal order
         m = Ei.shape[2]
         # One pass over the shared factor for all channels and emissions at once,
         # then one pass over each channel's own factor: the solve is bandwidth bound.
@@ -278,8 +291,7 @@ class HFactorization:
             B = Ei.copy()
             for c in range(N_CHANNELS):
                 B[:, c, :] -= self.Y[c] @ W[:, c * m:(c + 1) * m]           # eq. (4)
-        out = B[self.inv_perm]
-        return out if batched else out[:, :, 0]
+        return B[self.inv_perm]
 
     def as_linear_operator(self, channel: int):
         """``(I - R_c F)^{-1}`` of one channel as a :class:`scipy.sparse.linalg.LinearOperator`.
@@ -302,12 +314,9 @@ class HFactorization:
 
         def apply(x, adjoint: bool):
             x = np.asarray(x, dtype=np.float64).reshape(n, -1)
-            xi = x[self.perm].astype(self.dtype)
-            if adjoint:
-                y = xi - self.V @ (self.Y[channel].T @ xi)
-            else:
-                y = xi - self.Y[channel] @ (self.V.T @ xi)
-            return y[self.inv_perm].astype(np.float64)
+            E = np.zeros((n, N_CHANNELS, x.shape[1]))
+            E[:, channel] = x                      # the other channels stay zero: their solves cost O(nk) only
+            return self._solve(E, adjoint)[:, channel]
 
         return LinearOperator((n, n), matvec=lambda x: apply(x, False), rmatvec=lambda x: apply(x, True),
                               matmat=lambda X: apply(X, False), rmatmat=lambda X: apply(X, True),
@@ -370,6 +379,17 @@ class HFactorization:
 
         return save_hfr(self, path)
 
+    def _checked_reflectance(self, reflectance) -> np.ndarray:
+        """(n, 3) float64 reflectance, validated and <= rho_max (InputError naming the patch)."""
+        rho = check_reflectance(reflectance, self.n_patches)
+        over = rho.max(axis=1) > self.rho_max * (1 + 1e-12)
+        if over.any():
+            i = int(np.flatnonzero(over)[0])
+            raise InputError(f"patch {i} reflectance {rho[i].tolist()} exceeds rho_max "
+                             f"{self.rho_max[i]:.6g} of this factorization; refactorize with the "
+                             "new reflectance (factorize again)")
+        return rho
+
     def with_reflectance(self, reflectance) -> "HFactorization":
         """The same factorization with new reflectances, without refactoring.
 
@@ -383,13 +403,7 @@ class HFactorization:
             exceeds the rho_max the factorization was built for (a new
             factorization is needed then).
         """
-        rho = check_reflectance(reflectance, self.n_patches)
-        over = rho.max(axis=1) > self.rho_max * (1 + 1e-12)
-        if over.any():
-            i = int(np.flatnonzero(over)[0])
-            raise InputError(f"patch {i} reflectance {rho[i].tolist()} exceeds rho_max "
-                             f"{self.rho_max[i]:.6g} of this factorization; refactorize with the "
-                             "new reflectance (factorize again)")
+        rho = self._checked_reflectance(reflectance)
         return HFactorization(self.perm, self.Q, self.V, self.rho_max, rho, self.lowrank,
                               params=self.params, scene=self.scene, stats=self.stats)
 

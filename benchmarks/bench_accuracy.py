@@ -1,0 +1,153 @@
+"""Benchmark: form-factor accuracy against the closed forms, closure, and what it costs.
+
+Run:  PYTHONPATH=src python benchmarks/bench_accuracy.py [--patches 3000,10000] [--repeat 2]
+      [--baseline-ref 083c557]
+
+1. Convergence: error of F_1->2 against the catalogue's closed forms for the
+   kernel tolerance 1e-2 ... 1e-5, with every pair forced onto the adaptive path
+   (near = adaptive = inf: the pure convergence of the adaptive rule) and with
+   the default rules (what a user gets), with the kernel time.
+2. Closure: row sums of F (visibility included) of the built-in Cornell box at
+   each patch count: mean and worst |sum - 1|, patches off by more than 0.2%.
+3. Cost: the full F at the largest patch count, streamed in Z-order column
+   blocks, with today's kernel (``--baseline-ref``, extracted with git archive)
+   and this one, alternating in subprocesses of the same run; the load average
+   is recorded with every timing.
+
+Writes benchmarks/results/accuracy.json. Not collected by pytest.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import header, print_table, write_json  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def convergence() -> list[dict]:
+    from hfrad.formfactors import analytic
+    from hfrad.formfactors.kernel import PatchGeometry, unoccluded_block
+    from hfrad.scene.builtin import parallel_plates, perpendicular_plates
+    from hfrad.scene.patches import subdivide
+
+    cases = [("C-14 perpendicular 1,1,1 (shared edge)", perpendicular_plates(1, 1, 1),
+              analytic.perpendicular_rectangles(1, 1, 1)),
+             ("C-11 parallel 1x1 d0.1", parallel_plates(1, 1, 0.1), analytic.parallel_rectangles(1, 1, 0.1)),
+             ("C-14 perpendicular 2,0.5,1", perpendicular_plates(2, 0.5, 1),
+              analytic.perpendicular_rectangles(2, 0.5, 1))]
+    rows = []
+    for name, base, exact in cases:
+        for splits in (1, 8):
+            size = float(np.ptp(base.bounds, axis=0).max())
+            scene = subdivide(base, max_edge=size / splits) if splits > 1 else base
+            p1 = scene.group == scene.groups.index("plate1")
+            p2 = scene.group == scene.groups.index("plate2")
+            for mode, kw in (("adaptive only", {"near": 1e9, "adaptive": 1e9}), ("default rules", {})):
+                for tol in (1e-2, 1e-3, 1e-4, 1e-5):
+                    g = PatchGeometry(scene, tolerance=tol, **kw)
+                    unoccluded_block(g, np.arange(2), np.arange(2))  # compile outside the timing
+                    t = time.perf_counter()
+                    F = unoccluded_block(g, np.arange(g.n), np.arange(g.n))
+                    seconds = time.perf_counter() - t
+                    f12 = float((scene.areas[p1, None] * F[np.ix_(p1, p2)]).sum() / scene.areas[p1].sum())
+                    rows.append({"case": name, "patches": scene.n_patches, "rules": mode, "tolerance": tol,
+                                 "rel_error": f12 / exact - 1, "kernel_s": seconds})
+    return rows
+
+
+def _worker(patches: int) -> dict:
+    """One full F of the Cornell box in this interpreter's hfrad (run in a subprocess)."""
+    from hfrad.formfactors.blocks import FormFactorEngine, iter_column_blocks
+    from hfrad.scene.builtin import cornell_box
+    from hfrad.scene.patches import subdivide
+    from hfrad.scene.zorder import zorder_permutation
+
+    warm = subdivide(cornell_box(), patches=200)  # load the numba cache outside the timing
+    e = FormFactorEngine(warm)
+    for _ in iter_column_blocks(warm, 64, engine=e):
+        pass
+    e.close()
+    scene = subdivide(cornell_box(), patches=patches)
+    order = zorder_permutation(scene.centroids)
+    load0 = os.getloadavg()[0]
+    t = time.perf_counter()
+    engine = FormFactorEngine(scene)
+    sums = np.zeros(scene.n_patches)
+    for _, _, block in iter_column_blocks(scene, 256, order=order, engine=engine):
+        sums += block.sum(axis=1)
+    seconds = time.perf_counter() - t
+    err = np.abs(sums - 1)
+    out = {"patches": scene.n_patches, "seconds": seconds, "kernel_s": engine.kernel_seconds,
+           "embree_s": engine.embree_seconds, "rays": engine.rays, "load_before": load0,
+           "load_after": os.getloadavg()[0], "row_sum_mean_err": float(err.mean()),
+           "row_sum_max_err": float(err.max()), "rows_off_by_0.2%": int((err > 2e-3).sum()),
+           "hfrad": __import__("hfrad").__file__}
+    engine.close()
+    return out
+
+
+def _run_worker(src: Path, patches: int) -> dict:
+    env = dict(os.environ, PYTHONPATH=str(src))
+    res = subprocess.run([sys.executable, __file__, "--worker", str(patches)], env=env, cwd=str(src.parent),
+                         capture_output=True, text=True, check=True)
+    return json.loads(res.stdout.strip().splitlines()[-1])
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--patches", default="3000,10000")
+    p.add_argument("--repeat", type=int, default=2)
+    p.add_argument("--baseline-ref", default="083c557", help="git commit with today's kernel (v2)")
+    p.add_argument("--worker", type=int, help=argparse.SUPPRESS)
+    p.add_argument("--skip-convergence", action="store_true")
+    args = p.parse_args()
+    if args.worker:
+        print(json.dumps(_worker(args.worker)))
+        return
+    m = header("form-factor accuracy and its cost")
+    out = {"machine": m}
+    if not args.skip_convergence:
+        out["convergence"] = convergence()
+        print_table("error against the closed form vs kernel tolerance", out["convergence"],
+                    ["case", "patches", "rules", "tolerance", "rel_error", "kernel_s"])
+    sizes = [int(x) for x in args.patches.split(",")]
+    with tempfile.TemporaryDirectory() as tmp:
+        archive = subprocess.run(["git", "archive", args.baseline_ref, "src"], cwd=ROOT, capture_output=True,
+                                 check=True).stdout
+        subprocess.run(["tar", "-x", "-C", tmp], input=archive, check=True)
+        runs = []
+        for n in sizes:
+            for k in range(args.repeat if n == max(sizes) else 1):
+                for label, src in (("baseline " + args.baseline_ref, Path(tmp) / "src"), ("this kernel", ROOT / "src")):
+                    r = _run_worker(src, n)
+                    r["kernel"] = label
+                    runs.append(r)
+                    print(f"{label:20s} n={r['patches']} total {r['seconds']:.1f} s (kernel {r['kernel_s']:.1f} s, "
+                          f"embree {r['embree_s']:.1f} s), row sums mean {r['row_sum_mean_err']:.2e} max "
+                          f"{r['row_sum_max_err']:.2e}, load {r['load_before']:.1f}->{r['load_after']:.1f}", flush=True)
+    out["runs"] = runs
+    print_table("full F of the Cornell box, baseline and this kernel alternating", runs,
+                ["kernel", "patches", "seconds", "kernel_s", "embree_s", "row_sum_mean_err", "row_sum_max_err",
+                 "rows_off_by_0.2%", "load_before", "load_after"])
+    big = [r for r in runs if r["patches"] == max(r2["patches"] for r2 in runs)]
+    base = min(r["seconds"] for r in big if r["kernel"].startswith("baseline"))
+    new = min(r["seconds"] for r in big if r["kernel"] == "this kernel")
+    out["time_ratio_largest"] = new / base
+    print(f"time ratio at {big[0]['patches']} patches (best of {args.repeat}): {new / base:.2f}x")
+    print("wrote", write_json("accuracy", out))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,53 @@
+"""``hfrad view FILE.hfr``: relight a factorization interactively in the browser."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import typer
+
+from . import common
+
+
+def register(app: typer.Typer) -> None:
+    @app.command()
+    def view(
+        factorization: Path = typer.Argument(..., help="Factorization file from `hfrad precompute` (.hfr)."),
+        host: str = typer.Option("127.0.0.1", "--host", help="Address to bind. The default serves this machine "
+                                                             "only; 0.0.0.0 shares the page on the network."),
+        port: int = typer.Option(8080, "--port", min=1, max=65535,
+                                 help="Port (the next free one is taken if it is busy)."),
+        save_dir: Path = typer.Option(Path("."), "--save-dir", help="Folder for the page's saved PNGs and "
+                                                                   "emission files (also sent to the browser)."),
+        direct: bool = typer.Option(False, "--direct", help="Re-solve fac.solve(E) on every change instead of "
+                                                            "summing batched unit solutions (for comparison)."),
+    ) -> None:
+        """Serve a web page to relight FILE.hfr: per-emitter on/off, intensity and colour, exposure,
+        false colour, live solve timings; save PNG and emission JSON.
+
+        Memory: the factors (about 5 n k x 4 bytes) plus one radiosity per emitter.
+        """
+        from ..viewer import ViewerApp
+
+        with common.user_errors():
+            if factorization.suffix.lower() != ".hfr":
+                raise ValueError(f"{factorization}: not a factorization file (.hfr); make one with "
+                                 "`hfrad precompute SCENE -o FILE.hfr`")
+            if not factorization.is_file():
+                raise FileNotFoundError(f"{factorization}: no such file")
+            if not save_dir.is_dir():
+                raise ValueError(f"--save-dir {save_dir}: no such folder")
+            fac = common.load_factorization(factorization)
+            viewer = ViewerApp(fac, host=host, port=port, save_dir=save_dir, direct=direct)
+        where = ("this machine only; --host 0.0.0.0 shares it on the network" if host in ("127.0.0.1", "localhost")
+                 else f"reachable from the network at {host}")
+        common.console.print(f"hfrad view: {viewer.url}  (bound to {host}: {where}); "
+                             f"{fac.n_patches:,} patches, rank {fac.rank:,}. Ctrl+C stops.", highlight=False)
+        try:
+            while True:
+                time.sleep(3600)
+        except KeyboardInterrupt:
+            pass
+        finally:
+            viewer.close()

@@ -1,0 +1,400 @@
+"""The ``hfrad view`` web app: interactive relighting of a factorization in the browser.
+
+One :class:`ViewerApp` serves any number of browser tabs (viser's own client:
+no CDN, nothing downloaded at run time). The lights and display controls are
+shared by all tabs; each tab has its own camera. Every control change hands
+the newest state to one worker (:class:`~hfrad.viewer.coalesce.LatestWins`),
+which computes the radiosity (:class:`~hfrad.viewer.lighting.Lighting`), the
+vertex colours (:mod:`hfrad.viewer.display`) and pushes them to every tab.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime
+import logging
+import math
+import threading
+import time
+import warnings
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from ..errors import AccuracyWarning
+from ..io.emission import emission_json, loads_emission, write_emission
+from ..render.camera import Camera
+from ..render.falsecolor import UNITS
+from .coalesce import LatestWins
+from .display import MeshColors, MeshGLB, colorbar, precompensate_aces
+from .lighting import DEFAULT_INTENSITY, Emitter, Lighting, scene_emitters
+
+log = logging.getLogger(__name__)
+
+#: Address the server binds unless told otherwise: this machine only.
+DEFAULT_HOST = "127.0.0.1"
+DEFAULT_PORT = 8080
+#: Height in pixels of pictures saved from the page (width follows the tab's aspect ratio).
+PNG_HEIGHT = 720
+_EV_RANGE = (-12.0, 12.0)
+
+
+def _import_viser():
+    try:
+        import viser
+    except ImportError as exc:
+        raise ImportError(f"hfrad view needs viser ({exc}); install it with `pip install viser`") from None
+    return viser
+
+
+def _error_estimate(fac) -> np.ndarray:
+    """(3,) float: the factorization's a-priori relative radiosity error per channel (inf: none)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", AccuracyWarning)   # shown on the page as "none" instead
+        return np.asarray(fac.error_bound, dtype=np.float64)
+
+
+@dataclasses.dataclass
+class ViewState:
+    """What the controls say; shared by all tabs."""
+
+    emitters: list[Emitter]
+    auto_exposure: bool = True
+    exposure: float = 0.0
+    falsecolor: bool = False
+    unit: str = "W/m2"
+
+
+@dataclasses.dataclass(frozen=True)
+class UpdateStats:
+    """Timings of one update, seconds (``changed`` on the ``time.perf_counter`` clock)."""
+
+    changed: float
+    solve: float
+    colors: float
+    sent: float
+    bytes: int
+
+
+class ViewerApp:
+    """A viser server showing a factorization's radiosity under live lights.
+
+    Parameters
+    ----------
+    fac : HFactorization
+        With its scene (``hfrad.load`` of a file from ``hfrad precompute``).
+    host : str
+        Address to bind; the default serves this machine only.
+    port : int
+    save_dir : path
+        Where the page's "save" buttons write files (they are also sent to the browser).
+    direct : bool
+        Re-solve ``fac.solve(E)`` on every change instead of combining unit solutions.
+    verbose : bool
+        Let viser print its banner and connection log.
+
+    Attributes
+    ----------
+    server : viser.ViserServer
+    last : UpdateStats or None
+        The latest update.
+    """
+
+    def __init__(self, fac, *, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, save_dir: "str | Path" = ".",
+                 direct: bool = False, verbose: bool = False) -> None:
+        if fac.scene is None:
+            raise ValueError("the factorization has no patches stored; re-run `hfrad precompute` (it stores them)")
+        viser = _import_viser()
+        self.fac, self.scene = fac, fac.scene
+        self.save_dir = Path(save_dir)
+        self.direct = direct
+        emitters, self.warnings = scene_emitters(self.scene)
+        self.state = ViewState(emitters=emitters)
+        self._lock = threading.RLock()
+        self.lighting = Lighting(fac)
+        self.colors = MeshColors(self.scene)
+        self.glb = MeshGLB(self.colors.vertices, self.colors.faces)
+        self.last: UpdateStats | None = None
+        self._shown: tuple | None = None           # (B, E, exposure, falsecolor, unit) on screen now
+        self._colorbar_key: tuple | None = None
+        self._listeners: list[Callable[[UpdateStats], None]] = []
+        self._error = None
+        self._mesh = None
+
+        self.server = viser.ViserServer(host=host, port=port, verbose=verbose)
+        self.host, self.port = host, self.server.get_port()
+        self._frame_camera()
+        self._build_gui()
+        self._worker: LatestWins[float] = LatestWins(self._update, self._update_failed, name="hfrad-view")
+        self._update(time.perf_counter())          # first picture before anyone connects
+        threading.Thread(target=self._estimate_error, daemon=True).start()
+
+    # -- public ----------------------------------------------------------------
+    @property
+    def url(self) -> str:
+        return f"http://{self.host}:{self.port}"
+
+    def submit(self) -> float:
+        """Schedule an update for the current state; returns its change time (perf_counter)."""
+        t = time.perf_counter()
+        self._worker.submit(t)
+        return t
+
+    def set_emitter(self, name: str, **changes) -> float:
+        """Change an emitter (``on``, ``intensity``, ``color``) and schedule an update, as a control does."""
+        with self._lock:
+            i = self._index(name)
+            self.state.emitters[i] = dataclasses.replace(self.state.emitters[i], **changes)
+        return self.submit()
+
+    def add_emitter(self, name: str, intensity: float = DEFAULT_INTENSITY) -> float:
+        """Make a material or group an emitter (white) and schedule an update."""
+        with self._lock:
+            if any(e.name == name for e in self.state.emitters):
+                raise ValueError(f"'{name}' is already an emitter")
+            self.lighting.masks((name,))           # unknown names fail here, with the list of names
+            self.state.emitters.append(Emitter(name, intensity))
+        self._build_lights()
+        return self.submit()
+
+    def load_emission(self, text: str, source: str = "<upload>") -> float:
+        """Set the emitters an emission file's text lists (others keep theirs); schedule an update."""
+        emitters = [Emitter.from_setting(s) for s in loads_emission(text, source)]
+        self.lighting.masks(tuple(e.name for e in emitters))   # names must exist
+        with self._lock:
+            # names the file does not list keep their light, as `--emission-file` keeps the scene's
+            listed = {e.name for e in emitters}
+            self.state.emitters = [e for e in self.state.emitters if e.name not in listed] + emitters
+        self._build_lights()
+        return self.submit()
+
+    def emission_text(self) -> str:
+        """The current emitters as an emission file (JSON text)."""
+        with self._lock:
+            return emission_json([e.setting() for e in self.state.emitters])
+
+    def add_listener(self, fn: Callable[[UpdateStats], None]) -> None:
+        """Call ``fn(stats)`` from the worker after every update (tests, benchmarks)."""
+        self._listeners.append(fn)
+
+    def wait_idle(self, timeout: float | None = None) -> bool:
+        return self._worker.wait_idle(timeout)
+
+    def close(self) -> None:
+        self._worker.close()
+        self.server.stop()
+
+    # -- the update path -----------------------------------------------------------
+    def _update(self, changed: float) -> None:
+        with self._lock:
+            emitters = list(self.state.emitters)
+            state = dataclasses.replace(self.state, emitters=emitters)
+        t0 = time.perf_counter()
+        B = self.lighting.radiosity(emitters, direct=self.direct)
+        E = self.lighting.exitance(emitters)
+        t1 = time.perf_counter()
+        if state.falsecolor:
+            display, top = self.colors.falsecolor(B, E, state.unit)
+            exposure = None
+        else:
+            display, exposure = self.colors.shaded(B, E, None if state.auto_exposure else state.exposure)
+        glb = self.glb.encode(precompensate_aces(display))
+        t2 = time.perf_counter()
+        if self._mesh is None:
+            self._mesh = self.server.scene.add_glb("/radiosity", glb, cast_shadow=False, receive_shadow=False)
+        else:
+            self._mesh.glb_data = glb
+        self.server.flush()
+        t3 = time.perf_counter()
+        stats = UpdateStats(changed, t1 - t0, t2 - t1, t3 - changed, len(glb))
+        with self._lock:
+            self.last = stats
+            self._shown = (B, E, exposure, state.falsecolor, state.unit)
+        if state.falsecolor:
+            self._show_colorbar(state.unit, top)
+        elif self._colorbar_key is not None:
+            self._colorbar.visible = False
+            self._colorbar_key = None
+        self._show_readout(stats, exposure)
+        for fn in list(self._listeners):
+            fn(stats)
+
+    def _update_failed(self, changed: float, exc: BaseException) -> None:
+        self._readout.content = f"**update failed:** {exc}"
+
+    def _estimate_error(self) -> None:
+        try:
+            self._error = _error_estimate(self.fac)
+        except Exception as exc:  # an estimate that fails must not take the page down
+            log.warning("error estimate failed: %s", exc)
+            self._error = exc
+        if self.last is not None:
+            self._show_readout(self.last, self._shown[2] if self._shown else None)
+
+    def _show_readout(self, stats: UpdateStats, exposure: float | None) -> None:
+        if self._error is None:
+            err = "computing..."
+        elif isinstance(self._error, Exception):
+            err = "unavailable"
+        else:
+            err = " / ".join(f"{100 * e:.3g}%" if np.isfinite(e) else "none (eq. 5 needs sigma < 1)"
+                             for e in self._error)
+        mode = "direct solve" if self.direct else \
+            f"sum of {len(self.lighting.names)} batched unit solves ({1e3 * self.lighting.basis_seconds:.0f} ms)"
+        shown = "false colour" if exposure is None else f"exposure {exposure:+.2f} EV"
+        self._readout.content = (
+            f"**solve** {1e3 * stats.solve:.1f} ms ({mode})  \n"
+            f"**colours sent** {1e3 * stats.sent:.1f} ms after the change ({stats.bytes / 1e6:.2f} MB)  \n"
+            f"**rank** {self.fac.rank:,} · **patches** {self.scene.n_patches:,}  \n"
+            f"**error estimate** (R / G / B) {err}  \n"
+            f"{shown} · updates {self._worker.handled + 1}, coalesced {self._worker.replaced}")
+
+    def _show_colorbar(self, unit: str, top: float) -> None:
+        key = (unit, top)
+        if key != self._colorbar_key:
+            self._colorbar.image = colorbar(unit, top)
+            self._colorbar_key = key
+        self._colorbar.visible = True
+
+    # -- page ----------------------------------------------------------------------
+    def _frame_camera(self) -> None:
+        self.server.scene.set_up_direction("+y")
+        # black behind the scene, as in rendered pictures
+        self.server.scene.set_background_image(np.zeros((8, 8, 3), np.uint8), format="png")
+        cam = Camera.auto(self.scene.bounds, aspect=4 / 3)
+        self.server.initial_camera.position = cam.position
+        self.server.initial_camera.look_at = cam.target
+        self.server.initial_camera.fov = math.radians(cam.fov)
+
+    def _guard(self, fn: Callable) -> Callable:
+        """Wrap a control's callback: a failure is shown to its tab, never raised into the server."""
+        def run(event) -> None:
+            try:
+                fn(event)
+            except Exception as exc:
+                log.info("control callback failed: %s", exc)
+                self._notify(getattr(event, "client", None), "Not done", str(exc), error=True)
+        return run
+
+    def _notify(self, client, title: str, body: str, *, error: bool = False) -> None:
+        if client is None:
+            return
+        try:
+            client.add_notification(title, body, color="red" if error else None, auto_close_seconds=8.0)
+        except Exception:  # the tab may have gone
+            log.info("could not notify a client: %s: %s", title, body)
+
+    def _build_gui(self) -> None:
+        gui = self.server.gui
+        gui.configure_theme(control_width="large")
+        gui.add_markdown(f"**hfrad view** · {self.scene.name}")
+        self._readout = gui.add_markdown("starting...")
+        self._lights_folder = gui.add_folder("Lights")
+        self._light_handles: list = []
+        self._build_lights()
+        with gui.add_folder("Add an emitter"):
+            names = [m for m in self.scene.material_names] + \
+                [g for g in self.scene.groups if g not in self.scene.material_names]
+            self._new_emitter = gui.add_dropdown("material", names, initial_value=names[0])
+            gui.add_button("make emitter").on_click(
+                self._guard(lambda ev: self.add_emitter(self._new_emitter.value)))
+        with gui.add_folder("Display"):
+            auto = gui.add_checkbox("auto exposure", initial_value=True)
+            ev = gui.add_slider("exposure (EV)", min=_EV_RANGE[0], max=_EV_RANGE[1], step=0.1, initial_value=0.0)
+            fc = gui.add_checkbox("false colour", initial_value=False)
+            unit = gui.add_dropdown("unit", list(UNITS), initial_value="W/m2")
+            self._colorbar = gui.add_image(colorbar("W/m2", 1.0), label="scale", format="png", visible=False)
+
+            def set_display(**changes):
+                def cb(event) -> None:
+                    with self._lock:
+                        for k, f in changes.items():
+                            setattr(self.state, k, f())
+                    self.submit()
+                return self._guard(cb)
+
+            auto.on_update(set_display(auto_exposure=lambda: bool(auto.value)))
+            ev.on_update(set_display(exposure=lambda: float(ev.value), auto_exposure=lambda: False))
+            ev.on_update(lambda _: setattr(auto, "value", False) if auto.value else None)
+            fc.on_update(set_display(falsecolor=lambda: bool(fc.value)))
+            unit.on_update(set_display(unit=lambda: str(unit.value)))
+        with gui.add_folder("Files"):
+            gui.add_button("save PNG").on_click(self._guard(self._save_png))
+            gui.add_button("save emission").on_click(self._guard(self._save_emission))
+            gui.add_upload_button("load emission", mime_type="application/json").on_upload(
+                self._guard(self._load_upload))
+        if self.warnings:
+            gui.add_markdown("  \n".join(f"warning: {w}" for w in self.warnings))
+
+    def _build_lights(self) -> None:
+        gui = self.server.gui
+        with self._lock:
+            emitters = list(self.state.emitters)
+            for h in self._light_handles:
+                h.remove()
+            self._light_handles = []
+            with self._lights_folder:
+                for e in emitters:
+                    folder = gui.add_folder(e.name)
+                    with folder:
+                        on = gui.add_checkbox("on", initial_value=e.on)
+                        top = max(4 * e.intensity, DEFAULT_INTENSITY)
+                        step = 10.0 ** math.floor(math.log10(top / 100))
+                        intensity = gui.add_slider("intensity W/m2", min=0.0, max=top, step=step,
+                                                   initial_value=e.intensity)
+                        color = gui.add_rgb("colour", initial_value=tuple(int(round(255 * c)) for c in e.color))
+                    on.on_update(self._guard(lambda ev, n=e.name, h=on: self.set_emitter(n, on=bool(h.value))))
+                    intensity.on_update(self._guard(
+                        lambda ev, n=e.name, h=intensity: self.set_emitter(n, intensity=float(h.value))))
+                    color.on_update(self._guard(
+                        lambda ev, n=e.name, h=color: self.set_emitter(n, color=tuple(c / 255 for c in h.value))))
+                    self._light_handles.append(folder)
+
+    def _index(self, name: str) -> int:
+        for i, e in enumerate(self.state.emitters):
+            if e.name == name:
+                return i
+        raise ValueError(f"no emitter named '{name}'")
+
+    # -- files -----------------------------------------------------------------------
+    def _stamp(self) -> str:
+        return datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
+
+    def save_png(self, camera: Camera, path: "str | Path", *, height: int = PNG_HEIGHT,
+                 aspect: float = 4 / 3) -> Path:
+        """Render what the page shows through ``hfrad render``'s renderer, from ``camera``."""
+        from ..render import render_image, save_png
+
+        with self._lock:
+            B, E, exposure, falsecolor, unit = self._shown
+        width = max(1, int(round(height * aspect)))
+        image = render_image(self.scene.replace(emission=E), B, camera=camera, width=width, height=height,
+                             exposure=exposure, falsecolor=falsecolor, unit=unit)
+        return save_png(image, path)
+
+    def _client_camera(self, client) -> tuple[Camera, float]:
+        cam = client.camera
+        up = cam.up_direction if cam.up_direction is not None else (0.0, 1.0, 0.0)
+        camera = Camera(tuple(map(float, cam.position)), tuple(map(float, cam.look_at)),
+                        tuple(map(float, up)), math.degrees(float(cam.fov)))
+        return camera, float(cam.aspect)
+
+    def _save_png(self, event) -> None:
+        client = event.client
+        camera, aspect = self._client_camera(client)
+        path = self.save_png(camera, self.save_dir / f"hfrad-view-{self._stamp()}.png", aspect=aspect)
+        client.send_file_download(path.name, path.read_bytes())
+        self._notify(client, "Saved picture", str(path.resolve()))
+
+    def _save_emission(self, event) -> None:
+        with self._lock:
+            settings = [e.setting() for e in self.state.emitters]
+        path = write_emission(self.save_dir / f"hfrad-emission-{self._stamp()}.json", settings)
+        event.client.send_file_download(path.name, path.read_bytes())
+        self._notify(event.client, "Saved emission", f"{path.resolve()} (use with --emission-file)")
+
+    def _load_upload(self, event) -> None:
+        upload = event.target.value
+        self.load_emission(upload.content.decode("utf-8", errors="replace"), upload.name)
+        self._notify(event.client, "Loaded emission", upload.name)

@@ -1,0 +1,119 @@
+"""The near-field / far-field split (METHOD.md s. 8) against the exact dense solve and the plain path."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hfrad.factorize.nearfield import NearFieldSplit, near_radius
+from hfrad.formfactors import form_factor_matrix
+from hfrad.solve.hfr import load_hfr, read_hfr_metadata, save_hfr
+from hfrad.pipeline import factorize, near_entries
+from hfrad.scene.load import load_scene
+from hfrad.solve.nearfield import NearFieldFactorization
+
+
+@pytest.fixture(scope="module")
+def cornell():
+    """A ~2,000-patch Cornell box, its dense F and the exact radiosity (LAPACK, per channel)."""
+    scene = load_scene("cornell", patches=2000)
+    F = form_factor_matrix(scene)
+    n = scene.n_patches
+    systems = [np.eye(n) - scene.reflectance[:, c, None] * F for c in range(3)]
+    exact = np.stack([np.linalg.solve(A, scene.emission[:, c]) for c, A in enumerate(systems)], axis=1)
+    return scene, systems, exact
+
+
+@pytest.fixture(scope="module")
+def pair(cornell):
+    scene = cornell[0]
+    kw = dict(eps=0.03, block_size=128, dtype="float64", one_ray_tol=0, processes=1)
+    return factorize(scene, near_field=None, **kw), factorize(scene, near_field=96, **kw)
+
+
+def _err(B, exact):
+    return np.linalg.norm(B - exact, axis=0) / np.linalg.norm(exact, axis=0)
+
+
+def test_same_radiosity_as_plain_path_within_reported_error(cornell, pair):
+    scene, _, exact = cornell
+    plain, near = pair
+    assert plain.solver == "woodbury" and isinstance(near, NearFieldFactorization)
+    assert near.N.nnz > 10 * scene.n_patches  # tens of entries per row moved out
+    assert near.relative_error <= 0.03  # still relative to the full ||G||_F
+    B_plain, B_near = plain.solve(scene.emission), near.solve(scene.emission)
+    e_plain, e_near = _err(B_plain, exact), _err(B_near, exact)
+    print(f"\nrank plain {plain.rank} near {near.rank} (nnz/row {near.N.nnz / scene.n_patches:.0f}); "
+          f"error plain {e_plain} near {e_near}; bound near {near.error_bound}")
+    assert (e_near <= near.error_bound).all()
+    assert (e_near <= e_plain).all()  # the split never costs accuracy at equal eps
+    assert near.rank < plain.rank
+    # the two paths agree within the error each reports
+    assert (_err(B_near, B_plain) <= plain.error_bound + near.error_bound).all()
+
+
+def test_transpose_and_batched_solves(cornell, pair):
+    scene, systems, _ = cornell
+    near = pair[1]
+    rng = np.random.default_rng(0)
+    g = rng.standard_normal((scene.n_patches, 3))
+    x = near.solve(g, trans="T")
+    exact = np.stack([np.linalg.solve(A.T, g[:, c]) for c, A in enumerate(systems)], axis=1)
+    assert (_err(x, exact) < 0.01).all()
+    E = np.abs(rng.standard_normal((scene.n_patches, 3, 2)))
+    Bm = near.solve(E)
+    np.testing.assert_allclose(Bm[:, :, 1], near.solve(E[:, :, 1]), rtol=1e-10, atol=1e-12)
+
+
+def test_with_reflectance_and_hfr_round_trip(cornell, pair, tmp_path):
+    scene, _, _ = cornell
+    near = pair[1]
+    darker = near.with_reflectance(0.5 * scene.reflectance)
+    assert isinstance(darker, NearFieldFactorization)
+    assert darker.solve(scene.emission).sum() < near.solve(scene.emission).sum()
+    path = save_hfr(near, tmp_path / "near.hfr")
+    assert read_hfr_metadata(path)["solver"] == near.solver
+    back = load_hfr(path)
+    assert isinstance(back, NearFieldFactorization) and back.N.nnz == near.N.nnz
+    np.testing.assert_allclose(back.solve(scene.emission), near.solve(scene.emission), rtol=1e-12)
+
+
+def test_split_moves_exactly_the_near_pairs():
+    rng = np.random.default_rng(1)
+    c = rng.random((300, 3))
+    r = near_radius(c, 20)
+    G = rng.random((300, 300)) + 0.1
+    split = NearFieldSplit(c, r)
+    rest = np.concatenate([split.split(G[:, s:s + 64].copy(), s) for s in range(0, 300, 64)], axis=1)
+    N = split.matrix().toarray()
+    near = np.linalg.norm(c[:, None] - c[None], axis=2) <= r
+    np.testing.assert_array_equal(N != 0, near)
+    np.testing.assert_allclose(N + rest, G)
+    assert 15 <= near.sum(axis=1).mean() <= 25
+
+
+def test_checkpoint_resume_keeps_the_near_field(tmp_path):
+    scene = load_scene("cornell", patches=600)
+    kw = dict(eps=0.03, block_size=64, dtype="float64", near_field=48, processes=1)
+    full = factorize(scene, **kw)
+    ckpt = tmp_path / "run.partial"
+
+    class Interrupt(Exception):
+        pass
+
+    def stop(info):
+        if info["blocks"] == 5:
+            raise Interrupt
+
+    with pytest.raises(Interrupt):
+        factorize(scene, checkpoint=ckpt, checkpoint_interval=0.0, status=stop, **kw)
+    resumed = factorize(scene, checkpoint=ckpt, **kw)
+    assert resumed.N.nnz == full.N.nnz and resumed.rank == full.rank
+    np.testing.assert_allclose(resumed.solve(scene.emission), full.solve(scene.emission), rtol=1e-10)
+
+
+def test_near_field_option():
+    assert near_entries(None, 10 ** 6) == 0 and near_entries(32, 10) == 32
+    assert near_entries("auto", 100) == 0 and near_entries("auto", 10 ** 6) > 0
+    with pytest.raises(ValueError, match="near_field"):
+        near_entries("big", 100)
