@@ -2,7 +2,10 @@
 
 The snippets of one file run in order in one namespace (a later snippet may use
 an earlier one's names), in a temporary working folder. A file whose snippets
-need ../shared/scenes is skipped with that reason when it is absent.
+need ../shared/scenes is skipped with that reason when it is absent. A snippet
+that needs what a test cannot have (a Dask cluster, a user's building) starts
+with a line ``# doc-only: REASON``: it is compiled (its syntax is checked) but
+not run.
 """
 
 from __future__ import annotations
@@ -34,7 +37,10 @@ def test_snippets_run(path, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     namespace: dict = {"__name__": f"docs_{path.stem}"}
     for i, c in enumerate(code):
+        code_object = compile(c, f"{path.name}[snippet {i + 1}]", "exec")
+        if c.startswith("# doc-only:"):
+            continue
         try:
-            exec(compile(c, f"{path.name}[snippet {i + 1}]", "exec"), namespace)
+            exec(code_object, namespace)
         except Exception as exc:  # name the snippet, keep the traceback
             raise AssertionError(f"{path.name}, python snippet {i + 1} failed: {exc!r}") from exc
