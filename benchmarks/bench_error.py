@@ -14,7 +14,7 @@ sqrt(sum A_i e_i^2) / sqrt(sum A_i B_i^2); the table shows the worst channel:
   (one more pass over F);
 - eq5: the paper's eq. 5 (2-norm, sigma_max estimated; no bound where >= 1).
 
-Not a test and not timed: prints a table and writes results/error_figures.json.
+Not a test and not timed: prints a table and writes results/error_figures-CASES.json.
 Run: ``PYTHONPATH=src python3 benchmarks/bench_error.py [--cases cornell3k,...] [--eps 0.05,0.02,0.01]``.
 """
 
@@ -122,7 +122,7 @@ def main(argv=None) -> None:
     common.print_table("true error vs the figures hfrad reports", rows, [
         "case", "n", "eps", "rank", ("true_max", "true"), ("bound_max", "bound"), "bound/true",
         ("residual_max", "residual bound"), "residual/true", ("eq5_max", "eq. 5"), "eq5/true"])
-    common.write_json("error_figures", {"machine": m, "rows": rows})
+    common.write_json("error_figures-" + "-".join(common.parse_list(args.cases)), {"machine": m, "rows": rows})
 
 
 if __name__ == "__main__":
