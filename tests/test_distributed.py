@@ -76,6 +76,8 @@ def test_in_process_cluster_matches_local(cornell):
     m = -(-scene.n_patches // 64)
     assert seen[-1] == (m, m)
     assert dist.params["backend"] == "dask" and dist.params["workers"] == 2
+    assert dist.params["form_factors"] == local.params["form_factors"]
+    assert local.params["backend"] == "local"
     info = dist.lowrank.info
     assert info["n_blocks"] == m and info["tasks"] == 2 * m - 1 == len(records)
     assert info["time_formfactors"] > 0 and info["time_precompute"] > 0
@@ -146,3 +148,15 @@ def test_worker_processes_match_local_despite_a_killed_worker(cornell, process_c
     assert killed and killed[0] < -(-scene.n_patches // 64), "the worker must die while blocks remain"
     _assert_same_factorization(dist, local, scene)
     assert victim[0] not in client.run(os.getpid)  # that worker really is gone (its nanny started a new one)
+
+
+def test_refuses_workers_too_small_for_one_leaf(cornell, monkeypatch):
+    from hfrad.distributed.cluster import Cluster
+    from hfrad.distributed.sizing import leaf_bytes
+    from hfrad.errors import MemoryLimitError
+
+    scene, _ = cornell
+    monkeypatch.setattr(Cluster, "worker_memory_limits", lambda self: [leaf_bytes(scene.n_patches, 64)])
+    with connect(workers=1, processes=False) as cluster:
+        with pytest.raises(MemoryLimitError, match="one leaf task needs about"):
+            factorize_distributed(scene, scheduler=cluster, eps=EPS, block_size=64)

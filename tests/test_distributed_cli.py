@@ -98,6 +98,7 @@ def test_unreachable_scheduler_exits_2(tmp_path):
 @pytest.mark.parametrize("args, message", [
     (["--scheduler", "tcp://127.0.0.1:1", "--workers", "2"], "not both"),
     (["--workers", "2", "--near-field", "64"], "--near-field and --processes are for the in-process path"),
+    (["--workers", "2", "--processes", "2"], "--near-field and --processes are for the in-process path"),
 ])
 def test_conflicting_options_are_refused(tmp_path, args, message):
     result = runner.invoke(app, ["precompute", "furnace", "-o", str(tmp_path / "x.hfr"), *args])

@@ -199,8 +199,9 @@ def test_scene_far_from_origin_gives_the_same_form_factors():
     moved = scene.replace(vertices=scene.vertices + shift, occluder_vertices=scene.occluder_vertices + shift)
     F, G = form_factor_matrix(scene), form_factor_matrix(moved)
     err = np.abs(F - G).max()
-    assert err < 1e-4, f"max |F - F_translated| = {err:.2e}"
-    assert np.abs(F.sum(axis=1) - G.sum(axis=1)).max() < 1e-4
+    # observed 3e-6 (adaptive splits decided a rounding apart); before the fix: 0.43
+    assert err < 1e-5, f"max |F - F_translated| = {err:.2e}"
+    assert np.abs(F.sum(axis=1) - G.sum(axis=1)).max() < 2e-5
 
 
 def test_kernel_settings_are_recorded_in_the_hfr(tmp_path):

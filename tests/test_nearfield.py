@@ -93,6 +93,7 @@ def test_split_moves_exactly_the_near_pairs():
 
 
 def test_checkpoint_resume_keeps_the_near_field(tmp_path):
+    """An interrupted run resumes with its near field, here in worker processes (same blocks)."""
     scene = load_scene("cornell", patches=600)
     kw = dict(eps=0.03, block_size=64, dtype="float64", near_field=48, processes=1)
     full = factorize(scene, **kw)
@@ -107,7 +108,7 @@ def test_checkpoint_resume_keeps_the_near_field(tmp_path):
 
     with pytest.raises(Interrupt):
         factorize(scene, checkpoint=ckpt, checkpoint_interval=0.0, status=stop, **kw)
-    resumed = factorize(scene, checkpoint=ckpt, **kw)
+    resumed = factorize(scene, checkpoint=ckpt, **(kw | {"processes": 2}))  # resume in worker processes
     assert resumed.N.nnz == full.N.nnz and resumed.rank == full.rank
     np.testing.assert_allclose(resumed.solve(scene.emission), full.solve(scene.emission), rtol=1e-10)
 

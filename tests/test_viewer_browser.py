@@ -90,7 +90,12 @@ def test_page_relights_in_browser(tmp_path):
             page.keyboard.press("End")                           # 4 x 17 W/m2
             bright, t_bright = wait_change(page, dark, ARRIVAL_LIMIT)
             assert intensity.get_attribute("aria-valuenow") == "68"
-            page.screenshot(path=str(tmp_path / "page.png"))
+            # "save PNG": the tab's view through `hfrad render`'s renderer, downloaded by the browser
+            with page.expect_download(timeout=30_000) as download:
+                page.get_by_role("button", name="save PNG").click()
+            saved = tmp_path / "download.png"
+            download.value.save_as(saved)
+            saved_name = download.value.suggested_filename
             browser.close()
     finally:
         app.close()
@@ -102,3 +107,8 @@ def test_page_relights_in_browser(tmp_path):
     assert dark[0] < before[0] - 20 and dark[1] > before[1] + 0.2    # the room went dark
     assert bright[0] > before[0] + 5                                 # and brighter than at 17 W/m2
     assert t_dark < ARRIVAL_LIMIT and t_bright < ARRIVAL_LIMIT
+    from PIL import Image
+    picture = np.asarray(Image.open(saved).convert("RGB"))
+    assert picture.shape[0] == 720 and abs(picture.shape[1] / 720 - 1200 / 800) < 0.02   # the tab's aspect
+    assert picture.mean() > 10                                                          # lit, not blank
+    assert (tmp_path / saved_name).exists()                      # also in --save-dir

@@ -66,7 +66,7 @@ def factorize(scene_or_matrix, reflectance=None, *, areas=None, eps: float = 0.0
               block_size: int | None = None, dtype="float32", order=None, method: str = "hf",
               samples: int | None = None, leaf_share: float = 0.5,
               checkpoint: str | Path | None = None, checkpoint_interval: float = 30.0,
-              blas_threads: int | None = 1, processes: int | None = None, one_ray_tol: float | None = None,
+              blas_threads: int | None = 1, processes: int | None = 1, one_ray_tol: float | None = None,
               near_field: int | str | None = None, rng=None,
               progress: ProgressCallback = None, status: StatusCallback = None) -> HFactorization:
     """Factor a radiosity system once: ``diag(rho_max) F ~= Q V^T``, then solve it for any light in O(nk).
@@ -112,7 +112,10 @@ def factorize(scene_or_matrix, reflectance=None, *, areas=None, eps: float = 0.0
         leave as is). One is fastest while the engine uses the other cores.
     processes : int or None
         Scene only: form-factor worker processes (None: one per core from
-        4,000 patches on); the result does not depend on it.
+        4,000 patches on); the result does not depend on it. Default 1 (this
+        process: numba threads plus one Embree thread), because on the shared
+        benchmark machine (load ~25) two worker processes were measured 2x
+        slower in wall time.
     one_ray_tol : float or None
         Scene only: pairs that together hold at most this share of ``||F||_F``
         get one visibility ray instead of several
@@ -180,7 +183,8 @@ def factorize(scene_or_matrix, reflectance=None, *, areas=None, eps: float = 0.0
     if reflectance is None:
         raise InputError("factorize(F, reflectance): a form-factor matrix needs the (n, 3) reflectance")
     for name, value in (("samples", samples), ("checkpoint", checkpoint), ("status", status),
-                        ("processes", processes), ("one_ray_tol", one_ray_tol), ("near_field", near_field)):
+                        ("processes", None if processes == 1 else processes), ("one_ray_tol", one_ray_tol),
+                        ("near_field", near_field)):
         if value is not None:
             raise InputError(f"{name} applies to a Scene only, not to a form-factor matrix")
     return _factorize_matrix(scene_or_matrix, reflectance, eps=eps, relative=relative,

@@ -96,8 +96,13 @@ def register(app: typer.Typer) -> None:
 def _summary(r: dict, output: Path, render: Optional[Path]) -> None:
     say = common.console.print
     if r["emitters"][0]["intensity"] is not None:
-        for e in r["emitters"]:
+        shown = 12                                       # all of them are in the JSON
+        for e in r["emitters"][:shown]:
             say(f"  {e['name']}: intensity {e['intensity']:.4g}, {e['power_W']:.4g} W", highlight=False)
+        if len(r["emitters"]) > shown:
+            lit = sum(e["intensity"] > 0 for e in r["emitters"])
+            say(f"  ... {len(r['emitters']) - shown} more emitters ({lit} of {len(r['emitters'])} on; "
+                f"{r['total_power_W']:.4g} W in all)", highlight=False)
         for t in r["targets"]:
             a = t["achieved"]
             u = "-" if a["uniformity"] is None else f"{a['uniformity']:.3f}"

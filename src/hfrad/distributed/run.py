@@ -110,7 +110,7 @@ def factorize_distributed(scene, *, scheduler=None, workers: int | None = None, 
 
 def _check_worker_memory(cluster: Cluster, n: int, block_size: int) -> None:
     """Refuse a run no worker can hold a leaf of (it would be killed, retried and killed again)."""
-    need = sizing.ENGINE_BYTES_PER_PATCH * n + sizing.leaf_bytes(n, block_size)
+    need = sizing.PROCESS_BYTES + sizing.ENGINE_BYTES_PER_PATCH * n + sizing.leaf_bytes(n, block_size)
     limits = [x for x in cluster.worker_memory_limits() if x > 0]
     if limits and min(limits) < need:
         raise MemoryLimitError(
@@ -225,7 +225,12 @@ def _run(cluster: Cluster, scene, options: dict, task_threads, progress, status,
                               tracker.executions))
     if records_out is not None:
         records_out.extend(records)
-    params = {**options, "backend": "dask", "workers": cluster.n_workers}
+    from ..formfactors.kernel import settings as kernel_settings
+    from ..formfactors.visibility import settings as visibility_settings
+
+    # as the local path records them: the form-factor kernel's version and tolerances
+    params = {**options, "form_factors": {**kernel_settings(), **visibility_settings()}, "backend": "dask",
+              "workers": cluster.n_workers}
     return HFactorization(perm, lowrank.Q, lowrank.V, rho_max, scene.reflectance, lowrank, params=params,
                           scene=scene)
 

@@ -177,6 +177,17 @@ def _point_to_cluster(x, y, z, nx, ny, nz, T, N, s0, s1, eps):
 
 
 @njit(cache=True, fastmath=False)
+def _points_to_cluster(P, PN, W, i, T, N, s0, s1, eps):
+    """sum_k W[i, k] F_{dA(P[i, k], PN[i, k]) -> triangles s0..s1-1}: patch i's weighted points, eq. (3)."""
+    g = 0.0
+    for k in range(P.shape[1]):
+        if W[i, k] > 0.0:
+            g += W[i, k] * _point_to_cluster(P[i, k, 0], P[i, k, 1], P[i, k, 2], PN[i, k, 0], PN[i, k, 1],
+                                             PN[i, k, 2], T, N, s0, s1, eps)
+    return g
+
+
+@njit(cache=True, fastmath=False)
 def _points_area_ff(xi, yi, zi, Si, xj, yj, zj, Sj):
     """A_i F_ij of two small patches as points with area vectors S (projected areas)."""
     rx = xj - xi
@@ -215,25 +226,11 @@ def _cluster_pair_area_ff(i, j, T, N, start, A, S, C, D, M, MN, MS, MW, Q, QN, W
                                              M[j, m, 0], M[j, m, 1], M[j, m, 2], MS[j, m])
         return total
     if d2 >= (near * reach) ** 2:
-        g_ij = 0.0
-        g_ji = 0.0
-        for k in range(M.shape[1]):
-            if MW[i, k] > 0.0:
-                g_ij += MW[i, k] * _point_to_cluster(M[i, k, 0], M[i, k, 1], M[i, k, 2], MN[i, k, 0], MN[i, k, 1],
-                                                     MN[i, k, 2], T, N, start[j], start[j + 1], eps)
-            if MW[j, k] > 0.0:
-                g_ji += MW[j, k] * _point_to_cluster(M[j, k, 0], M[j, k, 1], M[j, k, 2], MN[j, k, 0], MN[j, k, 1],
-                                                     MN[j, k, 2], T, N, start[i], start[i + 1], eps)
+        g_ij = _points_to_cluster(M, MN, MW, i, T, N, start[j], start[j + 1], eps)
+        g_ji = _points_to_cluster(M, MN, MW, j, T, N, start[i], start[i + 1], eps)
         return 0.5 * (A[i] * g_ij + A[j] * g_ji)
-    g_ij = 0.0
-    g_ji = 0.0
-    for k in range(Q.shape[1]):
-        if W[i, k] > 0.0:
-            g_ij += W[i, k] * _point_to_cluster(Q[i, k, 0], Q[i, k, 1], Q[i, k, 2], QN[i, k, 0], QN[i, k, 1],
-                                                QN[i, k, 2], T, N, start[j], start[j + 1], eps)
-        if W[j, k] > 0.0:
-            g_ji += W[j, k] * _point_to_cluster(Q[j, k, 0], Q[j, k, 1], Q[j, k, 2], QN[j, k, 0], QN[j, k, 1],
-                                                QN[j, k, 2], T, N, start[i], start[i + 1], eps)
+    g_ij = _points_to_cluster(Q, QN, W, i, T, N, start[j], start[j + 1], eps)
+    g_ji = _points_to_cluster(Q, QN, W, j, T, N, start[i], start[i + 1], eps)
     # the points of the smaller patch resolve the interaction (as in kernel.py)
     a_i = A[i] ** _WEIGHT_POWER
     a_j = A[j] ** _WEIGHT_POWER

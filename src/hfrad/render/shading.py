@@ -16,10 +16,18 @@ own three vertices) are smoothed as well as meshes that share vertices.
 
 Everything works on the detail triangles (``scene.faces``). When patches are
 clusters of many triangles, per-corner averaging alone would only blend one
-triangle wide at patch borders and the patches would look blocky, so the
-triangle values are first diffused within their smoothing sets: ``k`` Jacobi
-steps (triangle value <- mean of its corner values), ``k`` ~ the mean number of
-triangles per patch, blur the radiosity over about one patch width.
+triangle wide at patch borders and the patches would look blocky. There each
+corner c instead gets a partition-of-unity blend of the patches near it,
+
+    B_c = sum_q w_q B_q / sum_q w_q,   w_q = max(0, 1 - |x_c - c_q| / (RHO r_q))^2,
+
+over the patches q touching c's vertex in its smoothing set and their
+neighbours on the same smooth surface (c_q the patch centroid, r_q its
+radius: the farthest corner from c_q); the patches touching the vertex also get
+a small floor weight so every corner has one. At a patch centroid the patch's
+own value dominates, half-way to a neighbour the two blend evenly; corners
+that share a vertex and a smoothing set get equal values, so the picture is
+continuous.
 
 Units: radiosity B is an exitance in W/m^2. A Lambertian surface of radiosity B
 has radiance L = B / pi in W/(m^2 sr) in every direction; that is what a pixel
@@ -37,6 +45,12 @@ from ..scene.cluster import weld
 
 #: Default largest angle between patch normals that are still smoothed together, degrees.
 CREASE_ANGLE = 30.0
+
+#: Reach of a clustered patch's value, in units of its radius (see the module docstring).
+RHO = 1.5
+
+#: Floor weight of the patches touching a corner's vertex (so every corner has one).
+_OWN_FLOOR = 1e-3
 
 
 def _corner_pairs(scene, crease_angle: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -103,32 +117,68 @@ def corner_weights(scene, *, crease_angle: float = CREASE_ANGLE):
     return sparse.csr_matrix((vals, (rows, cols)), shape=(3 * t, t))
 
 
-def corner_smoother(scene, *, crease_angle: float = CREASE_ANGLE,
-                    steps: int | None = None) -> Callable[[np.ndarray], np.ndarray]:
+def patch_field_weights(scene, *, crease_angle: float = CREASE_ANGLE):
+    """(3t, n) sparse matrix P: corner values are ``P @ B`` for per-patch radiosity B.
+
+    The partition-of-unity blend of a clustered scene's patches (see the
+    module docstring); each row sums to 1.
+    """
+    from scipy import sparse
+
+    t, n = scene.n_triangles, scene.n_patches
+    a, b, _ = _corner_pairs(scene, crease_angle)
+    patch = scene.patch_of_triangle
+    # S(c): patches touching corner c's vertex in its smoothing set
+    touch = np.unique(a * n + patch[b // 3])
+    ca, cp = touch // n, touch % n
+    # neighbours of each patch on the same smooth surface (itself included)
+    link = np.unique(patch[ca // 3] * n + cp)
+    lp, lq = link // n, link % n
+    first = np.searchsorted(lp, np.arange(n + 1))
+    # candidates of corner c: the neighbours of every patch in S(c)
+    deg = first[cp + 1] - first[cp]
+    rep = np.repeat(np.arange(len(ca)), deg)
+    offset = np.arange(len(rep)) - np.repeat(np.cumsum(deg) - deg, deg)
+    cand = np.unique(ca[rep] * n + lq[first[cp[rep]] + offset])
+    rows, cols = cand // n, cand % n
+    own = np.isin(cand, touch, assume_unique=True)
+    corner_pos = scene.vertices[scene.faces].reshape(-1, 3)
+    centroids = scene.centroids
+    radius = np.zeros(n)
+    np.maximum.at(radius, np.repeat(patch, 3), np.linalg.norm(corner_pos - centroids[np.repeat(patch, 3)], axis=1))
+    dist = np.linalg.norm(corner_pos[rows] - centroids[cols], axis=1)
+    w = np.clip(1.0 - dist / np.maximum(RHO * radius[cols], 1e-300), 0.0, None) ** 2 + _OWN_FLOOR * own
+    total = np.bincount(rows, weights=w, minlength=3 * t)
+    return sparse.csr_matrix((w / total[rows], (rows, cols)), shape=(3 * t, n))
+
+
+def corner_smoother(scene, *, crease_angle: float = CREASE_ANGLE) -> Callable[[np.ndarray], np.ndarray]:
     """``smooth(radiosity) -> (t, 3, 3)``: :func:`smooth_corners` with its sparse weights built once.
 
     For smoothing many radiosities of one scene (the viewer does, per slider
-    move): each call costs ``steps + 1`` sparse products, O(20 t) each.
+    move): each call costs one sparse product, O(20 t).
     """
     t = scene.n_triangles
-    if steps is None:
-        steps = 0 if not scene.is_clustered else int(min(48, round(t / max(scene.n_patches, 1))))
+    if scene.is_clustered:
+        P = patch_field_weights(scene, crease_angle=crease_angle)
+
+        def smooth_clustered(radiosity: np.ndarray) -> np.ndarray:
+            B = np.asarray(radiosity, dtype=np.float64).reshape(scene.n_patches, 3)
+            return np.asarray(P @ B).reshape(t, 3, 3)
+
+        return smooth_clustered
     W = corner_weights(scene, crease_angle=crease_angle)
-    patch = scene.patch_of_triangle
 
     def smooth(radiosity: np.ndarray) -> np.ndarray:
-        values = np.asarray(radiosity, dtype=np.float64).reshape(scene.n_patches, 3)[patch]
+        values = np.asarray(radiosity, dtype=np.float64).reshape(scene.n_patches, 3)
         if t == 0:
             return np.zeros((0, 3, 3))
-        for _ in range(steps):
-            values = np.asarray(W @ values).reshape(t, 3, 3).mean(axis=1)
         return np.asarray(W @ values).reshape(t, 3, 3)
 
     return smooth
 
 
-def smooth_corners(scene, radiosity: np.ndarray, *, crease_angle: float = CREASE_ANGLE,
-                   steps: int | None = None) -> np.ndarray:
+def smooth_corners(scene, radiosity: np.ndarray, *, crease_angle: float = CREASE_ANGLE) -> np.ndarray:
     """(t, 3, 3) float: radiosity at each detail triangle's corners (triangle, corner, channel).
 
     Parameters
@@ -138,14 +188,10 @@ def smooth_corners(scene, radiosity: np.ndarray, *, crease_angle: float = CREASE
         Per patch.
     crease_angle : float, degrees
         Triangles whose normals differ by more than this are not averaged.
-    steps : int, optional
-        Diffusion steps before the corner averaging (see the module
-        docstring); default 0 for an unclustered scene, else the mean number
-        of triangles per patch (at most 48).
 
     Notes
     -----
-    Cost O(sum of vertex degree^2) per step, about 20 t for subdivided meshes.
+    Cost O(sum of vertex degree^2), about 20 t for subdivided meshes.
     A corner whose smoothing set has zero total area keeps its triangle's value.
     To smooth many radiosities of one scene, build :func:`corner_smoother` once.
 
@@ -158,7 +204,7 @@ def smooth_corners(scene, radiosity: np.ndarray, *, crease_angle: float = CREASE
     >>> bool(np.allclose(c, 2.0))
     True
     """
-    return corner_smoother(scene, crease_angle=crease_angle, steps=steps)(radiosity)
+    return corner_smoother(scene, crease_angle=crease_angle)(radiosity)
 
 
 def corner_vertices(scene, *, crease_angle: float = CREASE_ANGLE) -> tuple[np.ndarray, np.ndarray]:

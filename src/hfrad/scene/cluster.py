@@ -18,8 +18,13 @@ radiosity systems):
    and emission, its normal is within ``normal_tolerance`` of the cluster's
    mean normal, and it lies within ``1.5 sqrt(A*)`` of the seed (compact
    patches); a patch holds at most MAX_TRIANGLES triangles (this bounds the
-   form-factor cost of a pair of patches). Leftover slivers smaller than A*/4 are merged into a compatible
-   neighbouring cluster.
+   form-factor cost of a pair of patches).
+4. Leftover slivers smaller than A*/4 join a compatible adjacent cluster;
+   clusters under A*/2 that touch none (separate small parts, gaps, T-joints)
+   join a compatible one among the nearest within 1.5 sqrt(A*) if the union
+   stays within the normal tolerance; crumbs under A*/100 join the nearest
+   one of their material whatever its normal (a patch of almost no area
+   would make the columns of F, A_j F_ji / A_i, huge).
 
 With ``max_edge=L`` faces longer than L are split as before and faces shorter
 than L/2 are grown into patches no wider than L (no area limit).
@@ -60,6 +65,12 @@ MAX_TRIANGLES = 128
 
 #: Clusters smaller than this fraction of the target area look for a nearby (not adjacent) partner.
 NEARBY_BELOW = 0.5
+
+#: Clusters below this fraction of the target area join the nearest compatible one whatever its normal.
+CRUMB = 0.01
+
+#: A crumb may hold up to this many times MAX_TRIANGLES (micro-triangle details).
+CRUMB_CAP = 4
 
 #: Nearest clusters considered, and rounds of nearby merging.
 NEARBY_CANDIDATES = 8
@@ -106,7 +117,7 @@ def _vertex_stars(welded: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.n
 
 @njit(cache=True)
 def _grow(seeds, eligible, key, welded, vstart, vtris, cent, nrm, area, reach, cos_tol, a_max, r_max,
-          max_triangles, label):
+          max_triangles, crumb, label):
     """Greedy region growing from seeds in order; returns the number of clusters.
 
     A cluster takes the unassigned compatible neighbour nearest to its seed
@@ -142,7 +153,9 @@ def _grow(seeds, eligible, key, welded, vstart, vtris, cent, nrm, area, reach, c
                     continue
                 if (nrm[s, 0] * ax + nrm[s, 1] * ay + nrm[s, 2] * az) < cos_tol * ln:
                     continue
-                if d + reach[t] > r_max or acc + area[t] > 1.25 * a_max or count >= max_triangles:
+                # the triangle cap bounds the kernel's cost; a crumb of micro-triangles may pass it
+                if d + reach[t] > r_max or acc + area[t] > 1.25 * a_max or count >= CRUMB_CAP * max_triangles or (
+                        count >= max_triangles and acc >= crumb * a_max):
                     continue
                 label[t] = c
                 count += 1
@@ -165,7 +178,8 @@ def _grow(seeds, eligible, key, welded, vstart, vtris, cent, nrm, area, reach, c
 
 
 @njit(cache=True)
-def _merge_small(label, n_clusters, key, welded, vstart, vtris, nrm, area, cos_tol, a_small, a_max, max_triangles):
+def _merge_small(label, n_clusters, key, welded, vstart, vtris, nrm, area, cos_tol, a_small, a_tiny, a_max,
+                 max_triangles):
     """Merge clusters smaller than ``a_small`` into a compatible neighbour; relabels in place."""
     t_count = label.shape[0]
     c_area = np.zeros(n_clusters)
@@ -211,7 +225,7 @@ def _merge_small(label, n_clusters, key, welded, vstart, vtris, nrm, area, cos_t
                         o = parent[o]
                     if o == c or c_area[o] >= best_area or c_area[o] + c_area[c] > 1.5 * a_max:
                         continue
-                    if c_count[o] + c_count[c] > max_triangles:
+                    if c_count[o] + c_count[c] > (max_triangles if c_area[c] >= a_tiny else CRUMB_CAP * max_triangles):
                         continue
                     lo = math.sqrt(c_vec[o, 0] ** 2 + c_vec[o, 1] ** 2 + c_vec[o, 2] ** 2)
                     lc = math.sqrt(c_vec[c, 0] ** 2 + c_vec[c, 1] ** 2 + c_vec[c, 2] ** 2)
@@ -225,17 +239,12 @@ def _merge_small(label, n_clusters, key, welded, vstart, vtris, nrm, area, cos_t
             c_count[best] += c_count[c]
             for k in range(3):
                 c_vec[best, k] += c_vec[c, k]
-    for t in range(t_count):
-        o = label[t]
-        if o < 0:
-            continue
-        while parent[o] != o:
-            o = parent[o]
-        label[t] = o
+    _to_roots(label, parent)
 
 
 @njit(cache=True)
-def _merge_nearby(label, c_area, c_vec, c_key, c_count, cand, a_small, a_max, cos_tol, cos_pair, max_triangles):
+def _merge_nearby(label, c_area, c_vec, c_key, c_count, cand, a_small, a_tiny, a_max, cos_tol, cos_pair,
+                  max_triangles):
     """Merge small clusters into a nearby compatible one (gaps, T-junctions, separate small parts).
 
     ``cand[c]`` lists cluster c's nearest clusters (by centroid, -1 = none).
@@ -257,24 +266,36 @@ def _merge_nearby(label, c_area, c_vec, c_key, c_count, cand, a_small, a_max, co
                 o = parent[o]
             if o == c or c_key[o] != c_key[c] or c_area[o] + c_area[c] > a_max:
                 continue
-            if c_count[o] + c_count[c] > max_triangles:
+            if c_count[o] + c_count[c] > (max_triangles if c_area[c] >= a_tiny else CRUMB_CAP * max_triangles):
                 continue
             sx = c_vec[o, 0] + c_vec[c, 0]
             sy = c_vec[o, 1] + c_vec[c, 1]
             sz = c_vec[o, 2] + c_vec[c, 2]
-            if math.sqrt(sx * sx + sy * sy + sz * sz) < cos_tol * (c_area[o] + c_area[c]):
-                continue
-            lo = math.sqrt(c_vec[o, 0] ** 2 + c_vec[o, 1] ** 2 + c_vec[o, 2] ** 2)
-            lc = math.sqrt(c_vec[c, 0] ** 2 + c_vec[c, 1] ** 2 + c_vec[c, 2] ** 2)
-            dot = c_vec[o, 0] * c_vec[c, 0] + c_vec[o, 1] * c_vec[c, 1] + c_vec[o, 2] * c_vec[c, 2]
-            if dot < cos_pair * lo * lc:
-                continue
+            if math.sqrt(sx * sx + sy * sy + sz * sz) < 0.5 * (c_area[o] + c_area[c]):
+                continue  # never a patch whose triangles cancel (two opposed crumbs)
+            # a crumb (below a_tiny) joins whatever is nearest: its light is negligible, but a
+            # patch of almost no area makes the columns of F huge (A_j F_ji / A_i)
+            if c_area[c] >= a_tiny:
+                if math.sqrt(sx * sx + sy * sy + sz * sz) < cos_tol * (c_area[o] + c_area[c]):
+                    continue
+                lo = math.sqrt(c_vec[o, 0] ** 2 + c_vec[o, 1] ** 2 + c_vec[o, 2] ** 2)
+                lc = math.sqrt(c_vec[c, 0] ** 2 + c_vec[c, 1] ** 2 + c_vec[c, 2] ** 2)
+                dot = c_vec[o, 0] * c_vec[c, 0] + c_vec[o, 1] * c_vec[c, 1] + c_vec[o, 2] * c_vec[c, 2]
+                if dot < cos_pair * lo * lc:
+                    continue
             parent[c] = o
             c_area[o] += c_area[c]
             c_count[o] += c_count[c]
             c_vec[o, 0], c_vec[o, 1], c_vec[o, 2] = sx, sy, sz
             merged += 1
             break
+    _to_roots(label, parent)
+    return merged
+
+
+@njit(cache=True)
+def _to_roots(label, parent):
+    """Relabel every assigned triangle with the cluster its cluster was merged into."""
     for t in range(label.shape[0]):
         o = label[t]
         if o < 0:
@@ -282,7 +303,6 @@ def _merge_nearby(label, c_area, c_vec, c_key, c_count, cand, a_small, a_max, co
         while parent[o] != o:
             o = parent[o]
         label[t] = o
-    return merged
 
 
 def _relabel(label: np.ndarray) -> int:
@@ -313,10 +333,10 @@ class _Mesh:
         max_triangles = max_triangles or MAX_TRIANGLES
         label = np.full(len(self.areas), -1, np.int64)
         count = _grow(self.seeds, eligible, self.key, self.welded, self.vstart, self.vtris, self.centroids,
-                      self.normals, self.areas, self.reach, cos_tol, a_max, r_max, max_triangles, label)
+                      self.normals, self.areas, self.reach, cos_tol, a_max, r_max, max_triangles, CRUMB, label)
         if merge:
             _merge_small(label, count, self.key, self.welded, self.vstart, self.vtris, self.normals,
-                         self.areas, cos_tol, MERGE_BELOW * a_max, a_max, max_triangles)
+                         self.areas, cos_tol, MERGE_BELOW * a_max, CRUMB * a_max, a_max, max_triangles)
             count = _relabel(label)
             for _ in range(NEARBY_ROUNDS):
                 if not self._nearby(label, count, cos_tol, a_max, r_max, max_triangles):
@@ -345,7 +365,7 @@ class _Mesh:
         cos_pair = math.cos(2 * math.acos(cos_tol))
         c_count = np.bincount(lab, minlength=count).astype(np.int64)
         return _merge_nearby(label, c_area, c_vec, c_key, c_count, np.ascontiguousarray(cand), NEARBY_BELOW * a_max,
-                             a_max, cos_tol, cos_pair, max_triangles)
+                             CRUMB * a_max, a_max, cos_tol, cos_pair, max_triangles)
 
 
 def cluster(scene: Scene, *, patches: int | None = None, max_edge: float | None = None,

@@ -52,7 +52,9 @@ def _error_estimate(fac) -> np.ndarray:
     """(3,) float: the factorization's a-priori relative radiosity error per channel (inf: none)."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", AccuracyWarning)   # shown on the page as "none" instead
-        return np.asarray(fac.error_bound, dtype=np.float64)
+        # the API is moving from the `error_bound` property to an `error_estimate()` method
+        estimate = getattr(fac, "error_estimate", None)
+        return np.asarray(estimate() if callable(estimate) else fac.error_bound, dtype=np.float64)
 
 
 @dataclasses.dataclass
@@ -384,14 +386,14 @@ class ViewerApp:
         client = event.client
         camera, aspect = self._client_camera(client)
         path = self.save_png(camera, self.save_dir / f"hfrad-view-{self._stamp()}.png", aspect=aspect)
-        client.send_file_download(path.name, path.read_bytes())
+        client.send_file_download(path.name, path.read_bytes(), save_immediately=True)
         self._notify(client, "Saved picture", str(path.resolve()))
 
     def _save_emission(self, event) -> None:
         with self._lock:
             settings = [e.setting() for e in self.state.emitters]
         path = write_emission(self.save_dir / f"hfrad-emission-{self._stamp()}.json", settings)
-        event.client.send_file_download(path.name, path.read_bytes())
+        event.client.send_file_download(path.name, path.read_bytes(), save_immediately=True)
         self._notify(event.client, "Saved emission", f"{path.resolve()} (use with --emission-file)")
 
     def _load_upload(self, event) -> None:
