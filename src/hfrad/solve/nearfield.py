@@ -28,7 +28,7 @@ from scipy.sparse.linalg import splu
 from ..errors import AccuracyWarning, FactorizationError
 from ..factorize.lowrank import LowRank
 from .bounds import eq5_bound
-from .woodbury import N_CHANNELS, HFactorization, _channel_scale
+from .woodbury import N_CHANNELS, HFactorization
 
 __all__ = ["NearFieldFactorization", "SOLVER"]
 
@@ -79,21 +79,8 @@ class NearFieldFactorization(HFactorization):
 
     def __init__(self, perm, Q, V, N, rho_max, reflectance, lowrank: LowRank, *, sigma_max=None,
                  params: dict | None = None, scene=None):
-        self.perm = np.asarray(perm, dtype=np.int64)
-        n = self.perm.size
-        self.inv_perm = np.empty(n, np.int64)
-        self.inv_perm[self.perm] = np.arange(n)
-        self.Q = np.asarray(Q)
-        self.V = np.asarray(V, dtype=self.Q.dtype)
+        self._set_state(perm, Q, V, rho_max, reflectance, lowrank, sigma_max, params, scene)
         self.N = sp.csr_matrix(N, dtype=np.float64)
-        self.rho_max = np.asarray(rho_max, dtype=np.float64).reshape(n)
-        self.reflectance = np.asarray(reflectance, dtype=np.float64).reshape(n, N_CHANNELS)
-        self.lowrank = lowrank
-        self.params = dict(params or {})
-        self.scene = scene
-        self.timings: dict = {}
-        self._D = _channel_scale(self.reflectance, self.rho_max)[self.perm]
-        self._sigma = None if sigma_max is None else np.asarray(sigma_max, np.float64)
         self._lu, self._K = self._factor()
 
     @property

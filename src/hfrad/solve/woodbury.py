@@ -103,6 +103,11 @@ class HFactorization:
 
     def __init__(self, perm, Q, V, rho_max, reflectance, lowrank: LowRank, *, Y=None,
                  sigma_max=None, params: dict | None = None, scene=None):
+        self._set_state(perm, Q, V, rho_max, reflectance, lowrank, sigma_max, params, scene)
+        self.Y = woodbury_factors(self.Q, self.V, self._D) if Y is None else np.asarray(Y, self.Q.dtype)
+
+    def _set_state(self, perm, Q, V, rho_max, reflectance, lowrank, sigma_max, params, scene) -> None:
+        """Everything but the solver's own factors (shared with the near-field subclass)."""
         self.perm = np.asarray(perm, dtype=np.int64)
         n = self.perm.size
         self.inv_perm = np.empty(n, np.int64)
@@ -115,9 +120,7 @@ class HFactorization:
         self.params = dict(params or {})
         self.scene = scene
         self.timings: dict = {}
-        D = _channel_scale(self.reflectance, self.rho_max)[self.perm]
-        self.Y = woodbury_factors(self.Q, self.V, D) if Y is None else np.asarray(Y, self.Q.dtype)
-        self._D = D
+        self._D = _channel_scale(self.reflectance, self.rho_max)[self.perm]
         self._sigma = None if sigma_max is None else np.asarray(sigma_max, np.float64)
 
     # -- sizes and accuracy ------------------------------------------------
