@@ -46,6 +46,10 @@ RESULT = "scale"
 #: Real scenes: (file under the shared scenes folder, load options).
 REAL = {
     "sibenik": ("sibenik/sibenik.obj", {"area_light": (30.0, 30.0, 30.0)}),
+    # the cathedral lit from inside: its stained-glass windows emit
+    "sibenik-windows": ("sibenik/sibenik.obj", {"emit": {"staklo_zuto": (40.0, 36.0, 20.0), "staklo_plavo": (20.0, 20.0, 40.0),
+                                                         "staklo_crveno": (40.0, 15.0, 15.0),
+                                                         "staklo_zeleno": (15.0, 40.0, 15.0)}}),
     "sponza": ("sponza-dabrovic/sponza.obj", {"area_light": (30.0, 30.0, 30.0)}),
 }
 
@@ -242,7 +246,7 @@ def main() -> None:
         common.write_json(args.out, data)
     for size in common.parse_sizes(args.sizes) if args.sizes else []:
         cmd = [sys.executable, __file__, "--one", str(size), "--scene", args.scene, "--eps", str(args.eps),
-               "--near-field", str(args.near_field), "--camera", args.camera]
+               "--near-field", str(args.near_field), f"--camera={args.camera}"]
         cmd += ["--processes", str(args.processes)] if args.processes else []
         cmd += ["--residual"] if args.residual else []
         cmd += ["--image", args.image] if args.image else []
