@@ -24,3 +24,15 @@ def closed_system(n, seed=0):
     F /= F.sum(axis=1, keepdims=True)      # exact row sums; reciprocity holds to ~1e-12
     rho = rng.uniform(0.1, 0.9, (n, 3))
     return F, areas, rho
+
+
+class Interrupt(Exception):
+    """Raised by :func:`interrupt_at` to stop a factorization part way (checkpoint tests)."""
+
+
+def interrupt_at(blocks: int):
+    """A ``status`` callback for ``factorize`` that raises :class:`Interrupt` once ``blocks`` are done."""
+    def status(info):
+        if info["blocks"] == blocks:
+            raise Interrupt
+    return status

@@ -27,3 +27,97 @@ def test_factorize_works_twice_after_the_subpackage_is_imported():
 def test_exports_resolve():
     for name in hfrad.__all__:
         assert getattr(hfrad, name) is not None, name
+
+
+def _small_system():
+    scene = hfrad.load_scene("cornell", patches=300)
+    F = hfrad.form_factor_matrix(scene)
+    return scene, F
+
+
+def test_linear_operator_is_the_woodbury_inverse_and_preconditions_gmres():
+    from scipy.sparse.linalg import gmres
+
+    scene, F = _small_system()
+    fac = hfrad.factorize(F, scene.reflectance, eps=0.05, dtype="float64")
+    n = scene.n_patches
+    for c in range(3):
+        A = np.eye(n) - scene.reflectance[:, [c]] * F                 # the exact operator
+        M = fac.as_linear_operator(c)
+        e = scene.emission[:, c]
+        np.testing.assert_allclose(M @ e, fac.solve(scene.emission)[:, c], rtol=1e-12)
+        g = np.random.default_rng(c).standard_normal(n)
+        np.testing.assert_allclose(M.rmatvec(g), fac.solve(np.repeat(g[:, None], 3, 1), trans="T")[:, c],
+                                   rtol=1e-10, atol=1e-12)
+        counts = {}
+        for name, pre in (("none", None), ("hf", M)):
+            it = [0]
+            x, info = gmres(A, e, M=pre, rtol=1e-10, atol=0.0, restart=200,
+                            callback=lambda _: it.__setitem__(0, it[0] + 1), callback_type="pr_norm")
+            assert info == 0
+            assert np.linalg.norm(A @ x - e) <= 1e-9 * np.linalg.norm(e)
+            counts[name] = it[0]
+        # an eps = 0.05 factorization leaves a residual operator of norm << 1: few iterations
+        assert counts["hf"] <= 8 and counts["hf"] < counts["none"], counts
+
+
+def test_trans_and_deprecated_transpose_agree():
+    import pytest
+
+    scene, F = _small_system()
+    fac = hfrad.factorize(F, scene.reflectance, eps=0.05, dtype="float64")
+    g = np.random.default_rng(1).standard_normal((scene.n_patches, 3))
+    with pytest.warns(DeprecationWarning, match="trans='T'"):
+        old = fac.solve(g, transpose=True)
+    np.testing.assert_array_equal(old, fac.solve(g, trans="T"))
+    with pytest.raises(hfrad.InputError, match="trans must be"):
+        fac.solve(g, trans="X")
+
+
+def test_factorize_input_errors():
+    import pytest
+
+    scene, F = _small_system()
+    with pytest.raises(hfrad.InputError, match="needs the .n, 3. reflectance"):
+        hfrad.factorize(F)
+    with pytest.raises(hfrad.InputError, match="Scene carries its reflectance"):
+        hfrad.factorize(scene, scene.reflectance)
+    bad = F.copy()
+    bad[3, 5] = np.nan
+    with pytest.raises(hfrad.InputError, match=r"F\[3, 5\]"):
+        hfrad.factorize(bad, scene.reflectance)
+    rho = scene.reflectance.copy()
+    rho[7, 1] = np.nan
+    with pytest.raises(ValueError, match="patch 7"):
+        hfrad.factorize(F, rho)
+    with pytest.raises(hfrad.SceneError, match="patch 2 reflectance"):
+        scene.replace(reflectance=np.where(np.arange(scene.n_patches)[:, None] == 2, np.nan, scene.reflectance))
+
+
+def test_trimesh_round_trip():
+    import trimesh
+
+    box = trimesh.creation.box(extents=(1.0, 2.0, 3.0))
+    rho = np.linspace(0.1, 0.8, len(box.faces))[:, None].repeat(3, 1)
+    scene = hfrad.Scene.from_trimesh(box, reflectance=rho)
+    assert scene.n_patches == len(box.faces)
+    np.testing.assert_allclose(scene.total_area, box.area)
+    np.testing.assert_allclose(scene.normals, box.face_normals, atol=1e-12)
+    np.testing.assert_array_equal(scene.reflectance, rho)
+    back = scene.to_trimesh()
+    np.testing.assert_array_equal(back.faces, box.faces)
+    np.testing.assert_allclose(back.vertices, box.vertices)
+    np.testing.assert_array_equal(back.face_attributes["reflectance"], rho)
+    import pytest
+    with pytest.raises(hfrad.SceneError, match="face 0"):
+        hfrad.Scene.from_trimesh(box, reflectance=(1.0, 0.5, 0.5))
+
+
+def test_writers_take_the_object_first(tmp_path):
+    import pytest
+
+    image = np.zeros((4, 4, 3), np.uint8)
+    hfrad.save_png(image, tmp_path / "a.png")
+    with pytest.warns(DeprecationWarning, match=r"save_png\(image, path\)"):
+        hfrad.save_png(tmp_path / "b.png", image)
+    assert (tmp_path / "a.png").read_bytes() == (tmp_path / "b.png").read_bytes()

@@ -56,13 +56,13 @@ def test_every_writer_follows_the_umask(tmp_path, umask_027):
     scene = subdivide(furnace(), patches=60)
     n = scene.n_patches
     B = np.full((n, 3), 2.0)
-    write_radiosity(tmp_path / "b.ply", scene, B)
-    write_radiosity(tmp_path / "b.npz", scene, B)
-    save_png(tmp_path / "c.png", np.zeros((4, 5, 3), np.uint8))
+    write_radiosity(scene, B, tmp_path / "b.ply")
+    write_radiosity(scene, B, tmp_path / "b.npz")
+    save_png(np.zeros((4, 5, 3), np.uint8), tmp_path / "c.png")
     stream = HFStream(n, 2, eps=0.1)
     save_checkpoint(stream, tmp_path / "s.partial")
     F = np.full((n, n), 1.0 / n)
-    fac = hfrad.factorize_matrix(F, np.full((n, 3), 0.5), eps=0.05, block_size=32)
+    fac = hfrad.factorize(F, np.full((n, 3), 0.5), eps=0.05, block_size=32)
     hfrad.save(fac, tmp_path / "f.hfr")
     names = sorted(p.name for p in tmp_path.iterdir())
     assert names == ["b.npz", "b.ply", "c.png", "f.hfr", "s.partial"]

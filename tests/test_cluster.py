@@ -135,7 +135,7 @@ def test_refined_then_clustered_cornell_3k_matches_plain_3k():
 
 def test_clustered_scene_renders_exports_and_round_trips(tmp_path, fine_cornell):
     from hfrad.io.export import export_mesh
-    from hfrad.io.hfr import _read_scene, _write_scene
+    from hfrad.solve.hfr import _read_scene, _write_scene
     from hfrad.render import render_radiance, smooth_corners
 
     import h5py
@@ -156,7 +156,7 @@ def test_clustered_scene_renders_exports_and_round_trips(tmp_path, fine_cornell)
     hit = face >= 0
     assert hit.mean() > 0.5 and face.max() < c.n_patches
     assert np.abs(radiance[hit, 0] * np.pi - B[face[hit], 0]).max() < 0.3
-    export_mesh(tmp_path / "c.ply", c, B)
+    export_mesh(c, B, tmp_path / "c.ply")
     header = (tmp_path / "c.ply").read_bytes()[:2000].decode("ascii", "replace")
     assert f"element face {c.n_triangles}" in header and "property int patch" in header
     with h5py.File(tmp_path / "s.h5", "w") as f:

@@ -16,7 +16,7 @@ from typer.testing import CliRunner
 
 import hfrad
 from hfrad.cli import app
-from hfrad.io.hfr import load_hfr, read_hfr_metadata
+from hfrad.solve.hfr import load_hfr, read_hfr_metadata
 from hfrad.pipeline import factorize
 from hfrad.scene.load import load_scene
 

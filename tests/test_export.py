@@ -41,7 +41,7 @@ def test_glb_reloads_with_same_vertices_and_colours(tmp_path, cornell):
     import trimesh
 
     s, B = cornell
-    path = export_mesh(tmp_path / "c.glb", s, B, exposure=-3.0)
+    path = export_mesh(s, B, tmp_path / "c.glb", exposure=-3.0)
     vertices, faces, rgb = vertex_colors(s, B, colors="linear", exposure=-3.0)
     loaded = trimesh.load(path, process=False)
     mesh = next(iter(loaded.geometry.values())) if hasattr(loaded, "geometry") else loaded
@@ -84,7 +84,7 @@ def test_glb_colours_linear_by_default_srgb_on_request(cornell):
 
 def test_ply_has_face_properties(tmp_path, cornell):
     s, B = cornell
-    path = write_radiosity(tmp_path / "c.ply", s, B, s.emission, exposure=-3.0)
+    path = write_radiosity(s, B, tmp_path / "c.ply", s.emission, exposure=-3.0)
     header, v, f = _read_ply(path)
     for prop in ("radiosity_r", "radiosity_g", "radiosity_b", "emission_r", "emission_g", "emission_b", "area"):
         assert f"property float {prop}" in header
@@ -106,7 +106,7 @@ def test_ply_has_face_properties(tmp_path, cornell):
 def test_npz_and_csv(tmp_path, cornell):
     s, B = cornell
     E = s.emission * 2
-    z = np.load(write_radiosity(tmp_path / "c.npz", s, B, E))
+    z = np.load(write_radiosity(s, B, tmp_path / "c.npz", E))
     np.testing.assert_array_equal(z["B"], B)
     np.testing.assert_array_equal(z["E"], E)
     np.testing.assert_array_equal(z["reflectance"], s.reflectance)
@@ -115,7 +115,7 @@ def test_npz_and_csv(tmp_path, cornell):
     np.testing.assert_array_equal(z["normal"], s.normals)
     np.testing.assert_array_equal(z["material"], s.material)
     assert tuple(z["material_names"]) == s.material_names
-    with open(write_radiosity(tmp_path / "c.csv", s, B, E), newline="") as fh:
+    with open(write_radiosity(s, B, tmp_path / "c.csv", E), newline="") as fh:
         rows = list(csv.reader(fh))
     assert rows[0][:3] == ["index", "material", "area"]
     assert len(rows) == s.n_patches + 1
@@ -128,13 +128,13 @@ def test_npz_and_csv(tmp_path, cornell):
 def test_bad_extension_and_shapes(tmp_path, cornell):
     s, B = cornell
     with pytest.raises(ValueError) as info:
-        write_radiosity(tmp_path / "c.obj", s, B)
+        write_radiosity(s, B, tmp_path / "c.obj")
     for ext in RADIOSITY_FORMATS:
         assert ext in str(info.value)
     with pytest.raises(ValueError, match="supported"):
-        export_mesh(tmp_path / "c.npz", s, B)
+        export_mesh(s, B, tmp_path / "c.npz")
     with pytest.raises(ValueError, match="shape"):
-        write_radiosity(tmp_path / "c.npz", s, B[:-1])
+        write_radiosity(s, B[:-1], tmp_path / "c.npz")
     assert list(tmp_path.iterdir()) == []
 
 
@@ -162,5 +162,5 @@ def test_failed_write_leaves_no_file(tmp_path, cornell, monkeypatch, ext):
     monkeypatch.setattr("builtins.open", failing_open)
     target = tmp_path / f"out{ext}"
     with pytest.raises(OSError, match="disk full"):
-        write_radiosity(target, s, B)
+        write_radiosity(s, B, target)
     assert list(tmp_path.iterdir()) == []

@@ -4,10 +4,10 @@ import h5py
 import numpy as np
 import pytest
 
-import hfrad.io.hfr as hfr
+import hfrad.solve.hfr as hfr
 from hfrad.errors import FileFormatError
-from hfrad.pipeline import factorize_matrix
-from hfrad.io.hfr import load_hfr, read_hfr_metadata, save_hfr
+from hfrad import factorize
+from hfrad.solve.hfr import load_hfr, read_hfr_metadata, save_hfr
 from hfrad.scene.scene import Material, Scene
 
 
@@ -38,7 +38,7 @@ def small_scene_and_factorization(n_side=6):
     F = (np.clip(np.einsum("ik,ijk->ij", N, d), 0, None) * np.clip(-np.einsum("jk,ijk->ij", N, d), 0, None)
          / (np.pi * r2 ** 2) * A[None])
     np.fill_diagonal(F, 0.0)
-    fac = factorize_matrix(F, scene.reflectance, eps=0.01, block_size=16, order=np.arange(n)[::-1])
+    fac = factorize(F, scene.reflectance, eps=0.01, block_size=16, order=np.arange(n)[::-1])
     fac.scene = scene
     return scene, fac
 
@@ -47,7 +47,7 @@ def small_scene_and_factorization(n_side=6):
 def saved(tmp_path_factory):
     scene, fac = small_scene_and_factorization()
     path = tmp_path_factory.mktemp("hfr") / "plates.hfr"
-    save_hfr(path, fac, timings={"factor": 1.5})
+    save_hfr(fac, path, timings={"factor": 1.5})
     return path, scene, fac
 
 
@@ -71,7 +71,7 @@ def test_round_trip(saved):
     np.testing.assert_array_equal(s.emission, scene.emission)
     assert s.material_names == ("floor", "lamp") and s.groups == ("floor", "ceiling")
     meta = read_hfr_metadata(path)
-    assert meta["format_version"] == 1 and meta["rank"] == fac.rank and meta["has_patches"]
+    assert meta["format_version"] == 2 and meta["rank"] == fac.rank and meta["has_patches"]
     with h5py.File(path) as f:
         np.testing.assert_array_equal(f["patches/areas"][()], scene.areas)
 
@@ -114,6 +114,6 @@ def test_no_partial_file(saved, tmp_path, monkeypatch):
         raise RuntimeError("disk full")
     monkeypatch.setattr(hfr, "_write_scene", boom)
     with pytest.raises(RuntimeError, match="disk full"):
-        save_hfr(target, fac)
+        save_hfr(fac, target)
     assert not target.exists()
     assert list(tmp_path.iterdir()) == []

@@ -24,7 +24,7 @@ def test_direct(system):
     F, _, rho, E, B = system
     np.testing.assert_allclose(solve_direct(F, rho, E), B, rtol=1e-10)
     lu = LUFactorization(F, rho)
-    x = lu.solve(E, transpose=True)
+    x = lu.solve(E, trans="T")
     for c in range(3):
         np.testing.assert_allclose((np.eye(150) - rho[:, c:c + 1] * F).T @ x[:, c], E[:, c], atol=1e-9)
 

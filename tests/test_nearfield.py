@@ -7,7 +7,7 @@ import pytest
 
 from hfrad.factorize.nearfield import NearFieldSplit, near_radius
 from hfrad.formfactors import form_factor_matrix
-from hfrad.io.hfr import load_hfr, read_hfr_metadata, save_hfr
+from hfrad.solve.hfr import load_hfr, read_hfr_metadata, save_hfr
 from hfrad.pipeline import factorize, near_entries
 from hfrad.scene.load import load_scene
 from hfrad.solve.nearfield import NearFieldFactorization
@@ -57,7 +57,7 @@ def test_transpose_and_batched_solves(cornell, pair):
     near = pair[1]
     rng = np.random.default_rng(0)
     g = rng.standard_normal((scene.n_patches, 3))
-    x = near.solve(g, transpose=True)
+    x = near.solve(g, trans="T")
     exact = np.stack([np.linalg.solve(A.T, g[:, c]) for c, A in enumerate(systems)], axis=1)
     assert (_err(x, exact) < 0.01).all()
     E = np.abs(rng.standard_normal((scene.n_patches, 3, 2)))
@@ -71,7 +71,7 @@ def test_with_reflectance_and_hfr_round_trip(cornell, pair, tmp_path):
     darker = near.with_reflectance(0.5 * scene.reflectance)
     assert isinstance(darker, NearFieldFactorization)
     assert darker.solve(scene.emission).sum() < near.solve(scene.emission).sum()
-    path = save_hfr(tmp_path / "near.hfr", near)
+    path = save_hfr(near, tmp_path / "near.hfr")
     assert read_hfr_metadata(path)["solver"] == near.solver
     back = load_hfr(path)
     assert isinstance(back, NearFieldFactorization) and back.N.nnz == near.N.nnz

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import Interrupt, interrupt_at
 
-from hfrad.pipeline import factorize_matrix
+from hfrad import factorize
 from hfrad.formfactors import form_factor_matrix
-from hfrad.pipeline import factorize
 from hfrad.scene.load import load_scene
 from hfrad.scene.zorder import patch_order
 
@@ -36,15 +36,21 @@ def test_furnace_through_the_pipeline():
 
 
 @pytest.mark.parametrize("dtype", ["float32", "float64"])
-def test_cornell_error_within_eq5_bound(cornell, dtype):
+def test_cornell_error_and_its_figures(cornell, dtype):
     scene, F, exact = cornell
     fac = factorize(scene, eps=0.02, block_size=128, dtype=dtype)
     assert fac.relative_error <= 0.02
-    err = _relative_error(fac.solve(scene.emission), exact)
+    B = fac.solve(scene.emission)
+    err = _relative_error(B, exact)
+    w = np.sqrt(scene.areas)[:, None]
+    err_a = np.linalg.norm(w * (B - exact), axis=0) / np.linalg.norm(w * exact, axis=0)
+    figure = fac.residual(scene.emission, B, form_factors=F)
     print(f"\n{dtype}: n={fac.n_patches} rank={fac.rank} achieved={fac.relative_error:.4f} "
-          f"radiosity error={err} bound={fac.error_bound}")
-    assert (err <= fac.error_bound).all()
-    assert (err < 0.02).all()  # in practice far below the bound (paper, section 2.3)
+          f"radiosity error={err} area-norm error={err_a} residual bound={figure.bound} "
+          f"a-priori bound={fac.error_bound}")
+    assert (err < 6e-3).all(), err                                     # observed 1.7-1.9e-3
+    assert (err_a <= fac.error_bound).all()                            # guaranteed, loose
+    assert (err_a <= figure.bound).all() and (figure.bound < 10 * err_a).all()   # guaranteed, ~5x
 
 
 def test_out_of_core_equals_in_core(cornell):
@@ -52,7 +58,7 @@ def test_out_of_core_equals_in_core(cornell):
     perm = patch_order(scene.centroids, "zorder")
     # one_ray_tol=0: every pair gets all its rays, so the streamed F is the dense F exactly
     streamed = factorize(scene, eps=0.02, block_size=128, dtype="float64", one_ray_tol=0)
-    in_core = factorize_matrix(F, scene.reflectance, eps=0.02, block_size=128, dtype=np.float64, order=perm)
+    in_core = factorize(F, scene.reflectance, eps=0.02, block_size=128, dtype=np.float64, order=perm)
     assert streamed.rank == in_core.rank
     B1, B2 = streamed.solve(scene.emission), in_core.solve(scene.emission)
     assert np.allclose(B1, B2, rtol=1e-8, atol=1e-10 * np.abs(B2).max())
@@ -63,20 +69,14 @@ def test_order_changes_speed_not_answer(cornell):
     for order in ("random", "hilbert"):
         fac = factorize(scene, eps=0.02, block_size=128, order=order)
         err = _relative_error(fac.solve(scene.emission), exact)
-        assert (err <= fac.error_bound).all() and (err < 0.02).all()
+        assert (err < 6e-3).all(), (order, err)                        # observed 1.6-2.0e-3
 
 
 def test_checkpoint_resumes_without_redoing_blocks(tmp_path):
     scene = load_scene("cornell", patches=600)
     full = factorize(scene, eps=0.02, block_size=64, dtype="float64")
     ckpt = tmp_path / "run.partial"
-
-    class Interrupt(Exception):
-        pass
-
-    def stop_after_four(info):
-        if info["blocks"] == 4:
-            raise Interrupt
+    stop_after_four = interrupt_at(4)
 
     with pytest.raises(Interrupt):
         factorize(scene, eps=0.02, block_size=64, dtype="float64", checkpoint=ckpt,

@@ -182,6 +182,6 @@ def test_save_png_roundtrip(tmp_path, cornell):
 
     s, B = cornell
     img = render_image(s, B, camera="front", width=40, height=30)
-    path = save_png(tmp_path / "c.png", img)
+    path = save_png(img, tmp_path / "c.png")
     np.testing.assert_array_equal(np.asarray(Image.open(path)), img)
     assert [p.name for p in tmp_path.iterdir()] == ["c.png"]

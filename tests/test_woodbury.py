@@ -1,11 +1,16 @@
-"""HFactorization: Woodbury solves (eq. 4) against exact solves, eq. 5 bound, colour, adjoint."""
+"""HFactorization: Woodbury solves (eq. 4) against exact solves, error figures, colour, adjoint.
+
+Tolerances are about 3x the errors observed (noted beside each); the guaranteed
+figures are checked to hold, the eq. 5 figure as the paper states it.
+"""
 
 import numpy as np
 import pytest
 from conftest import closed_system
 
 from hfrad.errors import FactorizationError
-from hfrad.pipeline import factorize_blocks, factorize_matrix
+from hfrad import factorize
+from hfrad.pipeline import factorize_blocks
 from hfrad.solve.bounds import residual_norm
 
 
@@ -23,8 +28,13 @@ def exact(F, rho, E, transpose=False):
 @pytest.fixture(scope="module")
 def system():
     F, areas, rho = closed_system(300)
-    fac = factorize_matrix(F, rho, eps=0.02, block_size=32, dtype=np.float64)
+    fac = factorize(F, rho, areas=areas, eps=0.02, block_size=32, dtype=np.float64)
     return F, areas, rho, fac
+
+
+def area_error(B, Bx, areas):
+    w = np.sqrt(areas)[:, None]
+    return np.linalg.norm(w * (B - Bx), axis=0) / np.linalg.norm(w * Bx, axis=0)
 
 
 def test_system_is_physical(system):
@@ -34,16 +44,21 @@ def test_system_is_physical(system):
     np.testing.assert_allclose(areas[:, None] * F, (areas[:, None] * F).T, rtol=1e-6, atol=1e-12)
 
 
-def test_solve_within_eq5_bound(system):
-    F, _, rho, fac = system
+def test_solve_error_and_its_figures(system):
+    F, areas, rho, fac = system
     E = np.random.default_rng(1).random((300, 3))
     B = fac.solve(E)
     Bx = exact(F, rho, E)
     err = np.linalg.norm(B - Bx, axis=0) / np.linalg.norm(Bx, axis=0)
-    bound = fac.error_bound
-    assert np.isfinite(bound).all()
-    assert (err <= bound).all(), (err, bound)
+    assert (err < 1e-3).all(), err                             # observed 2.4-3.0e-4
     assert fac.relative_error <= 0.02
+    est = fac.error_estimate()
+    err_a = area_error(B, Bx, areas)
+    assert est.norm == "area" and est.kind == "probes"
+    assert (err_a <= est.bound).all(), (err_a, est.bound)      # guaranteed (failure probability 1e-6)
+    assert (err <= est.eq5_bound).all()                        # the paper's eq. 5, in the 2-norm
+    figure = fac.residual(E, B, form_factors=F)                # the tight per-solution figure
+    assert (err_a <= figure.bound).all() and (figure.bound <= 20 * err_a).all(), (err_a, figure.bound)
     # the a-posteriori residual is small and consistent with the solve
     blocks = ((s, s + 50, F[:, s:s + 50]) for s in range(0, 300, 50))
     res = residual_norm(blocks, rho, E, B)
@@ -58,7 +73,7 @@ def test_furnace_uniform():
     rho = np.full((n, 3), 0.5)
     E = np.ones(n)
     for eps, tol in ((0.05, 1e-2), (1e-5, 1e-7)):
-        fac = factorize_matrix(F, rho, eps=eps, block_size=16, dtype=np.float64)
+        fac = factorize(F, rho, eps=eps, block_size=16, dtype=np.float64)
         B = fac.solve(E)
         np.testing.assert_allclose(B, 2.0, rtol=tol)
 
@@ -66,11 +81,10 @@ def test_furnace_uniform():
 def test_transpose_matches_adjoint(system):
     F, _, rho, fac = system
     e = np.random.default_rng(2).standard_normal((300, 3))   # negative allowed for the adjoint
-    x = fac.solve(e, transpose=True)
+    x = fac.solve(e, trans="T")
     xx = exact(F, rho, e, transpose=True)
     err = np.linalg.norm(x - xx, axis=0) / np.linalg.norm(xx, axis=0)
-    assert (err <= fac.error_bound).all()
-    assert (err < 1e-2).all()
+    assert (err < 2.5e-3).all(), err                          # observed 6.1-7.5e-4
 
 
 def test_batched_equals_single(system):
@@ -87,7 +101,7 @@ def test_batched_equals_single(system):
 def test_user_order_permutation(system):
     F, _, rho, fac = system
     p = np.random.default_rng(4).permutation(300)
-    fac_p = factorize_matrix(F[np.ix_(p, p)], rho[p], eps=0.02, block_size=32, dtype=np.float64,
+    fac_p = factorize(F[np.ix_(p, p)], rho[p], eps=0.02, block_size=32, dtype=np.float64,
                              order=np.argsort(p))     # same internal order as fac
     E = np.random.default_rng(5).random((300, 3))
     np.testing.assert_allclose(fac_p.solve(E[p]), fac.solve(E)[p], rtol=1e-9)
@@ -96,11 +110,11 @@ def test_user_order_permutation(system):
 def test_identity_vs_random_order_within_bound(system):
     F, _, rho, fac = system
     perm = np.random.default_rng(6).permutation(300)
-    fac_r = factorize_matrix(F, rho, eps=0.02, block_size=32, dtype=np.float64, order=perm)
+    fac_r = factorize(F, rho, eps=0.02, block_size=32, dtype=np.float64, order=perm)
     E = np.random.default_rng(7).random((300, 3))
     B1, B2 = fac.solve(E), fac_r.solve(E)
     diff = np.linalg.norm(B1 - B2, axis=0) / np.linalg.norm(B1, axis=0)
-    assert (diff <= fac.error_bound + fac_r.error_bound).all()
+    assert (diff < 1e-3).all(), diff                          # observed 2.1-2.9e-4
 
 
 def test_streaming_equals_in_core(system):
@@ -120,12 +134,12 @@ def test_with_reflectance(system):
     rho2 = rho * np.random.default_rng(8).uniform(0.5, 1.0, rho.shape)
     rho2 = np.minimum(rho2, rho.max(1, keepdims=True))
     fac2 = fac.with_reflectance(rho2)
-    fresh = factorize_matrix(F, rho2, eps=0.02, block_size=32, dtype=np.float64)
+    fresh = factorize(F, rho2, eps=0.02, block_size=32, dtype=np.float64)
     E = np.random.default_rng(9).random((300, 3))
     Bx = exact(F, rho2, E)
     for f in (fac2, fresh):
         err = np.linalg.norm(f.solve(E) - Bx, axis=0) / np.linalg.norm(Bx, axis=0)
-        assert (err <= f.error_bound).all()
+        assert (err < 7e-4).all(), err                        # observed 1.6-2.3e-4
     bad = rho.copy()
     bad[17, 1] = rho[17].max() + 0.05
     with pytest.raises(ValueError, match="patch 17"):
@@ -147,21 +161,21 @@ def test_bad_inputs(system, E, msg):
 def test_bad_factorize_inputs(system):
     F, _, rho, _ = system
     with pytest.raises(ValueError, match="reflectance"):
-        factorize_matrix(F, np.full((300, 3), 1.0))
+        factorize(F, np.full((300, 3), 1.0))
     with pytest.raises(ValueError, match="method"):
-        factorize_matrix(F, rho, method="qr")
+        factorize(F, rho, method="qr")
     with pytest.raises(ValueError, match="permutation"):
-        factorize_matrix(F, rho, order=np.zeros(300, int))
+        factorize(F, rho, order=np.zeros(300, int))
 
 
 def test_float32_and_singular():
     F, _, rho = closed_system(120, seed=11)
-    fac = factorize_matrix(F, rho, eps=0.01, block_size=16)
+    fac = factorize(F, rho, eps=0.01, block_size=16)
     assert fac.Q.dtype == np.float32 and fac.Y.dtype == np.float32
     E = np.random.default_rng(0).random((120, 3))
     Bx = exact(F, rho, E)
     err = np.linalg.norm(fac.solve(E) - Bx, axis=0) / np.linalg.norm(Bx, axis=0)
-    assert (err <= fac.error_bound).all()
+    assert (err < 7e-4).all(), err                            # observed 1.1-2.3e-4 (float32 factors)
     # rank-1 RF = 1 1^T / n has eigenvalue 1: I - V^T Q = 0 is singular
     from hfrad.solve.woodbury import HFactorization
     with pytest.raises(FactorizationError, match="singular"):

@@ -7,8 +7,10 @@ of the form-factor matrix plus Sherman-Morrison-Woodbury::
     scene = hfrad.load_scene("cornell", patches=3000)      # patches, materials, lights
     fac = hfrad.factorize(scene, eps=0.02)                 # form factors + HF, once
     B = fac.solve(scene.emission)                          # (n, 3) radiosity, O(nk)
-    fac.error_bound                                        # eq. 5, per channel
+    fac.error_estimate()                                   # error figures, per channel
     hfrad.save(fac, "cornell.hfr"); fac = hfrad.load("cornell.hfr")
+
+The whole API is described in docs/api.md.
 
 Names are imported lazily so that ``import hfrad`` stays fast.
 """
@@ -28,15 +30,16 @@ _EXPORTS = {
     "builtin_scene": "hfrad.scene.builtin",
     "subdivide": "hfrad.scene.patches",
     "factorize": "hfrad.pipeline",
-    "factorize_matrix": "hfrad.pipeline",
     "factorize_distributed": "hfrad.distributed",
     "HFactorization": "hfrad.solve.woodbury",
+    "ErrorEstimate": "hfrad.solve.bounds",
     "form_factor_matrix": "hfrad.formfactors.blocks",
     "iter_column_blocks": "hfrad.formfactors.blocks",
     "render_image": "hfrad.render.image",
     "save_png": "hfrad.render.image",
     "write_radiosity": "hfrad.io.export",
     "design": "hfrad.inverse",
+    "InputError": "hfrad.errors",
     "SceneError": "hfrad.errors",
     "FactorizationError": "hfrad.errors",
     "FileFormatError": "hfrad.errors",
@@ -47,16 +50,16 @@ _EXPORTS = {
 
 def load(path) -> "HFactorization":  # noqa: F821 - resolved lazily
     """Read a factorization written by :func:`save` or ``hfrad precompute`` (.hfr)."""
-    from .io.hfr import load_hfr
+    from .solve.hfr import load_hfr
 
     return load_hfr(path)
 
 
-def save(factorization, path) -> None:
-    """Write a factorization (with its scene) to an .hfr file, atomically."""
-    from .io.hfr import save_hfr
+def save(factorization, path) -> "Path":  # noqa: F821
+    """Write a factorization (with its scene) to an .hfr file, atomically; same as ``factorization.save(path)``."""
+    from .solve.hfr import save_hfr
 
-    save_hfr(path, factorization)
+    return save_hfr(factorization, path)
 
 
 class _Package(types.ModuleType):

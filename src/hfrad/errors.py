@@ -8,6 +8,15 @@ from __future__ import annotations
 import numpy as np
 
 
+class InputError(ValueError):
+    """A bad argument or option value from the user: names it, what was expected and what was got.
+
+    The command line turns it (and the other errors below except
+    FactorizationError) into one line and exit code 2; any other exception is
+    an internal error and keeps its traceback.
+    """
+
+
 class SceneError(ValueError):
     """Bad scene input: names the file, face or material and what is wrong."""
 

@@ -33,12 +33,21 @@ def require(nbytes: float, what: str, hint: str = "", fraction: float = 0.8) -> 
                                + (f"; {hint}" if hint else ""))
 
 
-def precompute_bytes(n: int, block_size: int, rank_guess: int | None = None, itemsize: int = 4) -> int:
+#: The rank is only known after the run; the memory check assumes this much.
+RANK_ASSUMPTION = "min(n, 3000), generous for eps = 0.02 up to ~50K patches (10K-patch Cornell box: 1,869)"
+
+
+def rank_guess(n: int) -> int:
+    """The rank the memory check assumes before a run (see :data:`RANK_ASSUMPTION`)."""
+    return min(n, 3000)
+
+
+def precompute_bytes(n: int, block_size: int, rank_guess_: int | None = None, itemsize: int = 4) -> int:
     """Rough peak memory of ``factorize``: a few float64 blocks plus the factors.
 
-    The factors are Q, V and three Y_c (5 n k values); merges hold about twice
-    the rank transiently. The rank is not known before the run: the default
-    guess is min(n, 3000), generous for eps = 0.02 on scenes up to ~50K patches.
+    The factors are Q, V and three Y_c (5 n k values of ``itemsize`` bytes);
+    merges hold about twice the rank transiently. The rank k is not known
+    before the run: :func:`rank_guess` (RANK_ASSUMPTION) unless given.
     """
-    k = min(n, 3000) if rank_guess is None else rank_guess
+    k = rank_guess(n) if rank_guess_ is None else rank_guess_
     return 3 * 8 * n * block_size + (5 + 4) * n * k * itemsize

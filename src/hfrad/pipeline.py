@@ -20,20 +20,24 @@ from typing import Callable
 import numpy as np
 
 from .defaults import DEFAULT_BLOCK_SIZE
-from .errors import SceneError
+from .errors import InputError, SceneError
 from .factorize.api import check_method, lowrank_from_blocks, lowrank_from_matrix
 from .factorize.hf import HFStream
 from .factorize.nearfield import DEFAULT_NEAR_ENTRIES, NearFieldSplit, near_radius
 from .factorize.streaming import load_checkpoint, save_checkpoint
+from .formfactors.energy import warn_energy
 from .progress import ProgressCallback, report
 from .scene.scene import Scene
 from .scene.zorder import patch_order
 from .solve.nearfield import NearFieldFactorization
+from .solve.stats import PassStatistics
 from .solve.woodbury import HFactorization
-from .validation import check_factorize_options, check_permutation, check_reflectance
+from .validation import check_areas, check_factorize_options, check_permutation, check_reflectance
 
 #: ``near_field="auto"`` splits the near field from this many patches on (below, it does not pay).
 NEAR_FIELD_MIN_PATCHES = 3000
+#: Prefix of the pass statistics among a checkpoint's extra arrays.
+_STATS = "stats_"
 
 StatusCallback = Callable[[dict], None] | None
 
@@ -44,6 +48,7 @@ def _scene_key(scene: Scene, params: dict) -> str:
     for a in (scene.vertices, scene.faces, scene.occluder_vertices, scene.occluder_faces, scene.patch_of_triangle,
               scene.reflectance.max(axis=1)):
         h.update(np.ascontiguousarray(a).tobytes())
+    # params hold the form-factor kernel's version and settings: a checkpoint from another kernel is refused
     h.update(json.dumps(params, sort_keys=True).encode())
     return h.hexdigest()
 
@@ -57,49 +62,67 @@ def check_factorize_args(scene: Scene, eps: float, block_size: int, dtype, relat
     return check_factorize_options(scene.n_patches, eps, block_size, dtype, relative)
 
 
-def factorize(scene: Scene, *, eps: float = 0.02, relative: bool = True, block_size: int | None = None,
-              dtype="float32", samples: int | None = None, order: str = "zorder", leaf_share: float = 0.5,
+def factorize(scene_or_matrix, reflectance=None, *, areas=None, eps: float = 0.02, relative: bool = True,
+              block_size: int | None = None, dtype="float32", order=None, method: str = "hf",
+              samples: int | None = None, leaf_share: float = 0.5,
               checkpoint: str | Path | None = None, checkpoint_interval: float = 30.0,
               blas_threads: int | None = 1, processes: int | None = 1, one_ray_tol: float | None = None,
-              near_field: int | str | None = None,
+              near_field: int | str | None = None, rng=None,
               progress: ProgressCallback = None, status: StatusCallback = None) -> HFactorization:
-    """Precompute a scene: form factors with visibility, HF of ``diag(rho_max) F``, Woodbury factors.
+    """Factor a radiosity system once: ``diag(rho_max) F ~= Q V^T``, then solve it for any light in O(nk).
 
     Parameters
     ----------
-    scene : Scene
-        Patches with reflectance (n, 3) in [0, 1).
+    scene_or_matrix : Scene or (n, n) float array
+        A :class:`~hfrad.scene.scene.Scene` (form factors with visibility are
+        computed and streamed in column blocks; the n x n matrix is never
+        formed), or form factors F in the user's patch order (F[i, j]:
+        fraction of the energy leaving i that reaches j).
+    reflectance : (n, 3) float in [0, 1), optional
+        Needed with a matrix; a scene carries its own.
+    areas : (n,) float > 0, m^2, optional
+        Patch areas of a matrix (a scene carries its own): the error bound is
+        then in the area-weighted norm, where reciprocity gives the tight
+        contraction bound; without them the plain 2-norm.
     eps : float in (0, 1)
-        Target ``||G - Q V^T||_F``, relative to ``||G||_F`` (absolute with ``relative=False``).
+        Target ``||G - Q V^T||_F`` relative to ``||G||_F`` (absolute with
+        ``relative=False``), ``G = diag(rho_max) F``.
     block_size : int, optional
-        Column block width (patches per block); default min(256, n).
+        Column block width; default ``min(DEFAULT_BLOCK_SIZE, n)`` (256).
     dtype : {"float32", "float64"}
         Precision of the factors.
+    order : {"zorder", "hilbert", "random", "input"} or (n,) int, optional
+        Internal patch order (internal index t holds user patch order[t]);
+        default Z-order for a scene (the paper's), the input order for a
+        matrix. Only speed and rank depend on it: every input and output
+        stays in the user's order.
+    method : {"hf", "svd", "rsvd", "sketch"}
+        The factorizer; a scene is always streamed through HF (the others
+        need the dense matrix and are baselines).
     samples : int, optional
-        Visibility rays per patch pair (default: the form-factor engine's).
-    order : {"zorder", "hilbert", "random", "input"}
-        Internal patch order; Z-order is the paper's and the default. Only speed and
-        rank depend on it; every input and output stays in the user's order.
+        Visibility rays per patch pair (scene only; default: the engine's).
     leaf_share : float in (0, 1]
         Share of the squared error budget given to the leaf SVDs.
     checkpoint : path, optional
-        Save the stream state here while running; resume from it if it exists.
-        Deleted when the factorization completes.
+        Scene only: save the stream state here while running and resume
+        from it if it exists; deleted when the factorization completes.
     checkpoint_interval : float, seconds
     blas_threads : int or None
-        BLAS threads during the precomputation (None: leave as is). One is
-        fastest while the form-factor engine uses the other cores.
+        Scene only: BLAS threads while the form-factor engine runs (None:
+        leave as is). One is fastest while the engine uses the other cores.
     processes : int or None
-        Form-factor worker processes (None: one per core from 4,000 patches on);
-        the result does not depend on it. Default 1 (this process: numba threads
-        plus one Embree thread), because on the shared benchmark machine (load
-        ~25) two worker processes were measured 2x slower in wall time.
+        Scene only: form-factor worker processes (None: one per core from
+        4,000 patches on); the result does not depend on it. Default 1 (this
+        process: numba threads plus one Embree thread), because on the shared
+        benchmark machine (load ~25) two worker processes were measured 2x
+        slower in wall time.
     one_ray_tol : float or None
-        Pairs that together hold at most this share of ``||F||_F`` get one
-        visibility ray instead of several (:func:`hfrad.formfactors.parallel.one_ray_threshold`);
-        None: ``eps / 4`` for a relative eps, 0 (off) for an absolute one.
+        Scene only: pairs that together hold at most this share of ``||F||_F``
+        get one visibility ray instead of several
+        (:func:`hfrad.formfactors.parallel.one_ray_threshold`); None: ``eps / 4``
+        for a relative eps, 0 (off) for an absolute one.
     near_field : "auto", int or None
-        The near-field split (METHOD.md s. 8, :mod:`hfrad.factorize.nearfield`):
+        Scene only: the near-field split (docs/method.md; :mod:`hfrad.factorize.nearfield`):
         pairs within a radius holding about this many neighbours per row go into
         a sparse N, HF factors only ``G - N``, and the solver is Woodbury around a
         sparse LU of ``I - D_c N`` (:class:`~hfrad.solve.nearfield.NearFieldFactorization`).
@@ -108,22 +131,74 @@ def factorize(scene: Scene, *, eps: float = 0.02, relative: bool = True, block_s
         measured on the Cornell box at 3K-6K patches and eps 0.02, HF's rank at equal
         eps does not drop (it rises ~15% at 6K) and at equal radiosity error it drops
         only ~17% while the sparse LU set-up costs k sparse solves per channel.
+    rng : None, int or numpy Generator
+        Seed of the randomized baselines ("rsvd", "sketch").
     progress : callable (done, total), optional
         Column blocks done.
     status : callable (dict), optional
-        Called after each block with ``blocks``, ``rank``, ``elapsed``.
+        Scene only: called after each block with ``blocks``, ``rank``, ``elapsed``.
 
     Returns
     -------
     HFactorization
         ``fac.solve(E)`` gives the radiosity for any exitance E, in O(nk).
 
+    Raises
+    ------
+    InputError (a ValueError)
+        Bad shapes, values or options (names the argument).
+    SceneError
+        A scene without patches.
+
     Notes
     -----
-    Memory: one n x block_size block (float64) plus the factors (O(nk)); the
-    n x n matrix is never formed. Time: dominated by the form factors.
+    Memory: one n x block_size block (float64) plus the factors (O(nk)).
+    Time: for a scene, dominated by the form factors. docs/method.md
+    explains the method; Aguerre & Fernández 2016.
+
+    Examples
+    --------
+    >>> import numpy as np, hfrad
+    >>> F = np.full((40, 40), 1 / 40)                 # a closed, uniform enclosure
+    >>> fac = hfrad.factorize(F, np.full((40, 3), 0.5), eps=1e-3)
+    >>> bool(np.allclose(fac.solve(np.ones(40)), 2.0))   # B = E / (1 - rho)
+    True
     """
-    if block_size is None and isinstance(scene, Scene):
+    if isinstance(scene_or_matrix, Scene):
+        if reflectance is not None or areas is not None:
+            raise InputError("a Scene carries its reflectance and areas: pass them only with a matrix "
+                             "(or use scene.replace(reflectance=...))")
+        if method != "hf":
+            raise InputError(f"a scene is factored by streaming HF; method {method!r} needs the dense "
+                             "matrix (hfrad.form_factor_matrix(scene)) and is a baseline")
+        return _factorize_scene(scene_or_matrix, eps=eps, relative=relative, block_size=block_size, dtype=dtype,
+                                samples=samples, order="zorder" if order is None else order,
+                                leaf_share=leaf_share, checkpoint=checkpoint,
+                                checkpoint_interval=checkpoint_interval, blas_threads=blas_threads,
+                                processes=processes, one_ray_tol=one_ray_tol, near_field=near_field,
+                                progress=progress, status=status)
+    if isinstance(scene_or_matrix, (str, Path)):
+        raise InputError(f"factorize takes a Scene or a matrix; load the file first: "
+                         f"hfrad.load_scene({str(scene_or_matrix)!r})")
+    if reflectance is None:
+        raise InputError("factorize(F, reflectance): a form-factor matrix needs the (n, 3) reflectance")
+    for name, value in (("samples", samples), ("checkpoint", checkpoint), ("status", status),
+                        ("processes", None if processes == 1 else processes), ("one_ray_tol", one_ray_tol),
+                        ("near_field", near_field)):
+        if value is not None:
+            raise InputError(f"{name} applies to a Scene only, not to a form-factor matrix")
+    return _factorize_matrix(scene_or_matrix, reflectance, eps=eps, relative=relative,
+                             block_size=DEFAULT_BLOCK_SIZE if block_size is None else block_size, dtype=dtype,
+                             order=order, method=method, leaf_share=leaf_share, rng=rng, areas=areas,
+                             progress=progress)
+
+
+def _factorize_scene(scene: Scene, *, eps: float, relative: bool, block_size: int | None, dtype, samples,
+                     order, leaf_share: float, checkpoint, checkpoint_interval: float, blas_threads,
+                     processes, one_ray_tol, near_field, progress: ProgressCallback,
+                     status: StatusCallback) -> HFactorization:
+    """The scene branch of :func:`factorize` (arguments as there): streamed form factors into HF."""
+    if block_size is None:
         block_size = min(DEFAULT_BLOCK_SIZE, max(scene.n_patches, 1))
     dt = check_factorize_args(scene, eps, block_size, dtype, relative)
     from .formfactors.blocks import iter_column_blocks
@@ -131,7 +206,11 @@ def factorize(scene: Scene, *, eps: float = 0.02, relative: bool = True, block_s
     from .formfactors.visibility import settings as visibility_settings
 
     n = scene.n_patches
-    perm = patch_order(scene.centroids, order)
+    if isinstance(order, str):
+        perm = patch_order(scene.centroids, order)
+    else:
+        perm = check_permutation(order, n)
+        order = "custom"
     rho_max = scene.reflectance.max(axis=1)
     n_blocks = math.ceil(n / block_size)
     if one_ray_tol is None:
@@ -143,6 +222,7 @@ def factorize(scene: Scene, *, eps: float = 0.02, relative: bool = True, block_s
               "form_factors": {**kernel_settings(), **visibility_settings()}}
     key = _scene_key(scene, params)
     stream = _open_stream(checkpoint, key, n, n_blocks, eps, relative, dt, leaf_share)
+    stats = _open_stats(stream, n, scene.areas[perm])
     t0 = time.perf_counter()
     ff_kwargs = {} if samples is None else {"samples": samples}
     if samples != 0:
@@ -154,26 +234,37 @@ def factorize(scene: Scene, *, eps: float = 0.02, relative: bool = True, block_s
     split = None
     if params["near_field"]:
         split = NearFieldSplit(scene.centroids[perm], near_radius(scene.centroids, params["near_field"]))
-        if stream.extra:
+        if stream.blocks_done:
             split.restore(stream.extra)
     with _blas_threads(blas_threads):
-        lowrank, time_ff = _stream_blocks(blocks, stream, rows_rho, n_blocks, checkpoint, checkpoint_interval,
-                                          key, progress, status, t0, split)
+        lowrank, time_ff = _stream_blocks(blocks, stream, stats, rows_rho, n_blocks, checkpoint,
+                                          checkpoint_interval, key, progress, status, t0, split)
     lowrank.info.update({"time_formfactors": time_ff, "time_precompute": time.perf_counter() - t0})
+    warn_energy(scene, stats.row_sums[np.argsort(perm)])
     if split is None:
         fac = HFactorization(perm, lowrank.Q, lowrank.V, rho_max, scene.reflectance, lowrank,
-                             params={**params, "backend": "local"}, scene=scene)
+                             params={**params, "backend": "local"}, scene=scene, stats=stats)
     else:
         t1 = time.perf_counter()
         N = split.matrix()
         lowrank.info.update({"near_radius": split.radius, "near_nnz": int(N.nnz)})
         fac = NearFieldFactorization(perm, lowrank.Q, lowrank.V, N, rho_max, scene.reflectance, lowrank,
-                                     params={**params, "backend": "local"}, scene=scene)
+                                     params={**params, "backend": "local"}, scene=scene, stats=stats)
         lowrank.info["time_nearfield_setup"] = time.perf_counter() - t1
     lowrank.info["solver"] = fac.solver
     if checkpoint is not None and Path(checkpoint).exists():
         Path(checkpoint).unlink()
     return fac
+
+
+def _open_stats(stream: HFStream, n: int, weights) -> PassStatistics:
+    """The pass statistics, resumed from the stream's checkpointed extras when it was resumed."""
+    if stream.blocks_done == 0:
+        return PassStatistics(n, weights)
+    state = {k[len(_STATS):]: v for k, v in stream.extra.items() if k.startswith(_STATS)}
+    if not state:
+        raise InputError("the checkpoint comes from an older hfrad (no pass statistics); delete it to start over")
+    return PassStatistics.from_state(state)
 
 
 def near_entries(near_field, n: int) -> int:
@@ -183,7 +274,7 @@ def near_entries(near_field, n: int) -> int:
     if near_field is None or near_field is False:
         return 0
     if isinstance(near_field, str) or int(near_field) != near_field or near_field < 0:
-        raise ValueError(f"near_field must be 'auto', None or a number of neighbours per row (e.g. 64); "
+        raise InputError(f"near_field must be 'auto', None or a number of neighbours per row (e.g. 64); "
                          f"got {near_field!r}")
     return int(near_field)
 
@@ -210,12 +301,13 @@ def _blas_threads(count: int | None):
         yield
 
 
-def _stream_blocks(blocks, stream: HFStream, rows_rho, n_blocks, checkpoint, checkpoint_interval, key,
-                   progress, status, t0, split=None):
-    """Push every column block into the stream (checkpointing); returns (LowRank, form-factor seconds).
+def _stream_blocks(blocks, stream: HFStream, stats: PassStatistics, rows_rho, n_blocks, checkpoint,
+                   checkpoint_interval, key, progress, status, t0, split=None):
+    """Push every column block into the stream and the statistics (checkpointing both).
 
-    With a near-field ``split``, each block's near entries are moved out before HF sees
-    it, and the error budget stays relative to the block's full norm.
+    Returns (LowRank, form-factor seconds). With a near-field ``split``, each
+    block's near entries are moved out before HF sees it, and the error budget
+    stays relative to the block's full norm.
     """
     last_save = time.perf_counter()
     time_ff = 0.0
@@ -223,6 +315,7 @@ def _stream_blocks(blocks, stream: HFStream, rows_rho, n_blocks, checkpoint, che
     for start, stop, block in blocks:
         time_ff += time.perf_counter() - t_ff
         G = rows_rho * block  # G = diag(rho_max) F, rows in internal order
+        stats.add(start, stop, block, rows_rho)
         del block
         if split is None:
             stream.push(G)
@@ -235,62 +328,49 @@ def _stream_blocks(blocks, stream: HFStream, rows_rho, n_blocks, checkpoint, che
             status({"blocks": stream.blocks_done, "rank": stream.current_rank, "elapsed": time.perf_counter() - t0})
         if checkpoint is not None and time.perf_counter() - last_save > checkpoint_interval \
                 and stream.blocks_done < n_blocks:
-            if split is not None:
-                stream.extra = split.state()
+            stream.extra = {**({} if split is None else split.state()),
+                            **{_STATS + k: np.asarray(v) for k, v in stats.state().items()}}
             save_checkpoint(stream, checkpoint, key)
             last_save = time.perf_counter()
         t_ff = time.perf_counter()
     return stream.finish(), time_ff
 
 
-def factorize_matrix(F, reflectance, *, eps: float = 0.02, relative: bool = True,
-                     block_size: int = DEFAULT_BLOCK_SIZE, dtype=np.float32, order=None, method: str = "hf",
-                     rng=None, progress: ProgressCallback = None) -> HFactorization:
-    """Factor an in-core form-factor matrix: ``diag(rho_max) F ~= Q V^T`` in internal order.
-
-    Parameters
-    ----------
-    F : (n, n) float
-        Form factors in the user's patch order (F[i, j]: fraction leaving i that reaches j).
-    reflectance : (n, 3) float in [0, 1)
-    eps : float
-        Frobenius tolerance on ``G = diag(rho_max) F`` (relative to ``||G||_F``
-        unless ``relative=False``).
-    block_size : int
-        Column block width streamed to the factorizer.
-    dtype : float32 or float64
-    order : (n,) int, optional
-        Internal order (e.g. Z-order): internal index t holds user patch order[t].
-    method : {"hf", "svd", "rsvd", "sketch"}
-    rng : seed for the randomized methods.
-    progress : callable (done, total), optional
-
-    Returns
-    -------
-    HFactorization
-
-    Raises
-    ------
-    ValueError
-        Bad shapes, reflectance outside [0, 1), unknown method or order.
-    """
+def _factorize_matrix(F, reflectance, *, eps: float, relative: bool, block_size: int, dtype, order,
+                      method: str, leaf_share: float, rng, areas, progress: ProgressCallback) -> HFactorization:
+    """The matrix branch of :func:`factorize` (arguments as there): validation, then the factorizer."""
     F = np.asarray(F)
     if F.ndim != 2 or F.shape[0] != F.shape[1]:
-        raise ValueError(f"form factors must be a square (n, n) matrix; got {F.shape}")
+        raise InputError(f"form factors must be a square (n, n) matrix; got {F.shape}")
     n = F.shape[0]
     rho = check_reflectance(reflectance, n)
+    if isinstance(order, str):
+        if order != "input":
+            raise InputError(f"order {order!r} needs patch positions: pass a Scene, or an (n,) permutation "
+                             "with a matrix")
+        order = None
     perm = check_permutation(order, n)
     check_method(method)
+    dt = np.dtype(dtype)
+    if dt not in (np.float32, np.float64):
+        raise InputError(f"dtype must be float32 or float64; got {dt}")
+    if not (0.0 < eps < 1.0 if relative else eps > 0.0 and math.isfinite(eps)):
+        raise InputError(f"eps must be in (0, 1) (relative) or > 0 (absolute); got {eps}")
     if block_size < 1:
-        raise ValueError(f"block_size must be >= 1; got {block_size}")
+        raise InputError(f"block_size must be >= 1; got {block_size}")
     rho_max = rho.max(axis=1)
-    lr = lowrank_from_matrix(F, rho_max, perm, eps=eps, relative=relative, block_size=block_size, dtype=dtype,
-                             method=method, rng=rng, progress=progress)
-    params = {"method": method, "block_size": block_size, "dtype": np.dtype(dtype).name,
+    if not np.isfinite(F).all():
+        i, j = np.argwhere(~np.isfinite(F))[0]
+        raise InputError(f"form factors have a NaN or infinite value at F[{i}, {j}]")
+    lr = lowrank_from_matrix(F, rho_max, perm, eps=eps, relative=relative, block_size=block_size, dtype=dt,
+                             method=method, rng=rng, leaf_share=leaf_share, progress=progress)
+    stats = PassStatistics(n, None if areas is None else check_areas(areas, n)[perm])
+    stats.add(0, n, F[np.ix_(perm, perm)], rho_max[perm][:, None])
+    params = {"method": method, "block_size": block_size, "dtype": dt.name,
               "time_factor": lr.info["time_factor"]}
     if method == "hf":
-        params["leaf_share"] = 0.5
-    return HFactorization(perm, lr.Q, lr.V, rho_max, rho, lr, params=params)
+        params["leaf_share"] = leaf_share
+    return HFactorization(perm, lr.Q, lr.V, rho_max, rho, lr, params=params, stats=stats)
 
 
 def factorize_blocks(blocks, n: int, reflectance, perm, *, eps: float = 0.02, relative: bool = True,
@@ -325,9 +405,17 @@ def factorize_blocks(blocks, n: int, reflectance, perm, *, eps: float = 0.02, re
         try:
             n_blocks = len(blocks)
         except TypeError:
-            raise ValueError("pass n_blocks (or block_size) when blocks is a generator") from None
-    lr = lowrank_from_blocks(blocks, n, rho_max, perm, eps=eps, relative=relative, dtype=dtype,
+            raise InputError("pass n_blocks (or block_size) when blocks is a generator") from None
+    stats = PassStatistics(n)
+    rows_rho = rho_max[perm][:, None]
+
+    def recorded():
+        for start, stop, Fb in blocks:
+            yield start, stop, Fb
+            stats.add(start, stop, Fb, rows_rho)   # after the factorizer has checked the block
+
+    lr = lowrank_from_blocks(recorded(), n, rho_max, perm, eps=eps, relative=relative, dtype=dtype,
                              n_blocks=n_blocks, leaf_share=leaf_share, progress=progress)
     params = {"method": "hf", "block_size": block_size, "dtype": np.dtype(dtype).name,
               "leaf_share": leaf_share, "time_factor": lr.info["time_factor"]}
-    return HFactorization(perm, lr.Q, lr.V, rho_max, rho, lr, params=params)
+    return HFactorization(perm, lr.Q, lr.V, rho_max, rho, lr, params=params, stats=stats)

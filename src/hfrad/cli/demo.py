@@ -27,7 +27,7 @@ def register(app: typer.Typer) -> None:
         default 3,000 patches.
         """
         from ..io.export import write_radiosity
-        from ..io.hfr import save_hfr
+        from ..solve.hfr import save_hfr
         from ..pipeline import factorize
         from ..render import render_image, save_png
         from ..scene.load import load_scene
@@ -42,23 +42,25 @@ def register(app: typer.Typer) -> None:
                 fac = factorize(scene, eps=eps, progress=bar)
             t_pre = time.perf_counter() - t0
             info = fac.lowrank.info
-            save_hfr(output / "cornell.hfr", fac, timings={k: v for k, v in info.items() if k.startswith("time")})
+            save_hfr(fac, output / "cornell.hfr", timings={k: v for k, v in info.items() if k.startswith("time")})
             out(f"precompute {t_pre:.1f} s (form factors {info['time_formfactors']:.1f} s, "
                 f"HF {info['time_total']:.1f} s): rank {fac.rank:,} of {fac.n_patches:,}, "
                 f"achieved error {fac.relative_error:.4f} (target {eps})")
-            out("eq. 5 bound on the relative radiosity error (R,G,B): "
-                + ", ".join(f"{b:.3g}" for b in fac.error_bound)
-                + "  (sigma_max " + ", ".join(f"{s:.3f}" for s in fac.sigma_max) + ")")
+            out(common.error_figures_line(fac))
             t1 = time.perf_counter()
             B = fac.solve(scene.emission)
             t_solve = time.perf_counter() - t1
-            save_png(output / "cornell.png", render_image(scene, B, camera="front"))
-            write_radiosity(output / "cornell.glb", scene, B, scene.emission)
+            with common.progress_bar("residual of the solution (form factors again)", quiet) as bar:
+                r = fac.residual(scene.emission, B, progress=bar)
+            out("guaranteed bound on the relative radiosity error of this solution (R,G,B; "
+                f"{r.norm} norm, from its residual): " + ", ".join(f"{b:.3g}" for b in r.bound))
+            save_png(render_image(scene, B, camera="front"), output / "cornell.png")
+            write_radiosity(scene, B, output / "cornell.glb", scene.emission)
             blue = scene.emission * np.array([0.1, 0.3, 1.0]) / 0.4  # relight: same lamp, blue
             t2 = time.perf_counter()
             B_blue = fac.solve(blue)
             t_blue = time.perf_counter() - t2
-            save_png(output / "cornell-blue.png", render_image(scene.replace(emission=blue), B_blue, camera="front"))
+            save_png(render_image(scene.replace(emission=blue), B_blue, camera="front"), output / "cornell-blue.png")
         out(f"solve {t_solve * 1e3:.1f} ms (first), relight {t_blue * 1e3:.1f} ms; wrote "
             f"{output / 'cornell.png'}, {output / 'cornell-blue.png'}, {output / 'cornell.glb'}, "
             f"{output / 'cornell.hfr'} in {time.perf_counter() - t0:.1f} s total")

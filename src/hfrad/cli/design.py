@@ -7,6 +7,7 @@ from typing import Optional
 
 import typer
 
+from ..errors import InputError
 from . import common
 
 #: exit code when the spec is valid but no design meets it (the result JSON says why)
@@ -53,18 +54,18 @@ def register(app: typer.Typer) -> None:
 
         with common.user_errors():
             if output.suffix.lower() != ".json":
-                raise ValueError(f"output must be a .json file, got '{output}'")
+                raise InputError(f"output must be a .json file, got '{output}'")
             if emission_out is not None and emission_out.suffix.lower() != ".json":
-                raise ValueError(f"--emission-out must be a .json file, got '{emission_out}'")
+                raise InputError(f"--emission-out must be a .json file, got '{emission_out}'")
             if render is not None:
                 from ..render import Camera
                 if render.suffix.lower() != ".png":
-                    raise ValueError(f"--render must be a .png file, got '{render}'")
+                    raise InputError(f"--render must be a .png file, got '{render}'")
                 if falsecolor:
                     from ..render.falsecolor import check_unit
                     check_unit(unit)
                 if show not in ("radiosity", "irradiance"):
-                    raise ValueError(f"--show must be radiosity or irradiance, got {show!r}")
+                    raise InputError(f"--show must be radiosity or irradiance, got {show!r}")
                 Camera.parse(camera, np.array([[0.0, 0, 0], [1, 1, 1]]))  # fail on a bad camera before solving
             fac = common.load_factorization(factorization)
             parsed = parse_spec(spec, fac.scene)
@@ -86,7 +87,7 @@ def register(app: typer.Typer) -> None:
                     irradiance_field(fac, result.radiosity, result.exitance)
                 image = render_image(fac.scene.replace(emission=result.exitance), drawn,
                                      camera=camera, width=width, height=height, falsecolor=falsecolor, unit=unit)
-                save_png(render, image)
+                save_png(image, render)
         _summary(result.report, output, render)
         if not result.feasible:
             raise typer.Exit(EXIT_INFEASIBLE)

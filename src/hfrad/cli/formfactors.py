@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Optional
+from typing import List, Optional
 
 import typer
 
@@ -33,29 +33,33 @@ def register(app: typer.Typer) -> None:
         max_edge: Optional[float] = common.MaxEdgeOption,
         patches: Optional[int] = common.PatchesOption,
         unit_scale: float = common.UnitScaleOption,
-        samples: int = typer.Option(4, "--samples", help="Visibility rays per patch pair (1, 4, 9, 16, ...; 1 = centroid to centroid)."),
-        float32: bool = typer.Option(False, "--float32", help="Store F in single precision (half the memory)."),
+        emission: Optional[List[str]] = common.EmissionOption,
+        area_light: Optional[str] = common.AreaLightOption,
+        default_reflectance: float = common.DefaultReflectanceOption,
+        allow_missing_materials: bool = common.AllowMissingMaterialsOption,
         keep_duplicates: bool = common.KeepDuplicatesOption,
+        samples: int = typer.Option(4, "--samples", help="Visibility rays per patch pair (1, 4, 9, 16, ...; 1 = centroid to centroid)."),
+        dtype: str = common.dtype_option("float64"),
         quiet: bool = common.QuietOption,
     ) -> None:
         """Dense form-factor matrix F (visibility included), in the scene's patch order.
 
         F[i, j] is the fraction of the energy leaving patch i that reaches patch j.
-        Memory: n^2 x 8 bytes (x 4 with --float32); larger scenes are refused:
+        Memory: n^2 x 8 bytes (4 with --dtype float32); larger scenes are refused:
         use `hfrad precompute`, which streams F in column blocks instead.
         """
-        import numpy as np
-
         from ..formfactors import check_dense_memory, form_factor_matrix
-        from ..scene.load import load_scene
+        from .info import load_scene_from_options
 
-        dtype = np.float32 if float32 else np.float64
         with common.user_errors():
-            s = load_scene(scene, unit_scale=unit_scale, max_edge=max_edge, patches=patches,
-                           keep_duplicates=keep_duplicates)
-            check_dense_memory(s.n_patches, dtype)
+            dt = common.check_dtype(dtype)
+            s = load_scene_from_options(scene, unit_scale=unit_scale, emit=emission, area_light=area_light,
+                                        default_reflectance=default_reflectance,
+                                        allow_missing_materials=allow_missing_materials,
+                                        max_edge=max_edge, patches=patches, keep_duplicates=keep_duplicates)
+            check_dense_memory(s.n_patches, dt)
             with common.progress_bar(f"form factors ({s.n_patches} patches)", quiet) as progress:
-                F = form_factor_matrix(s, samples=samples, dtype=dtype, progress=progress)
+                F = form_factor_matrix(s, samples=samples, dtype=dt, progress=progress)
             write_npz(output, s, F)
         if not quiet:
             common.console.print(f"wrote {output} ({s.n_patches} x {s.n_patches})", highlight=False)

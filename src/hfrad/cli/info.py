@@ -59,10 +59,10 @@ def register(app: typer.Typer) -> None:
         max_edge: Optional[float] = common.MaxEdgeOption,
         patches: Optional[int] = common.PatchesOption,
         unit_scale: float = common.UnitScaleOption,
-        emit: Optional[List[str]] = common.EmitOption,
+        emission: Optional[List[str]] = common.EmissionOption,
         area_light: Optional[str] = common.AreaLightOption,
         default_reflectance: float = common.DefaultReflectanceOption,
-        allow_missing_materials: bool = typer.Option(False, "--allow-missing-materials", help="Faces whose material is missing get the default reflectance."),
+        allow_missing_materials: bool = common.AllowMissingMaterialsOption,
         keep_duplicates: bool = common.KeepDuplicatesOption,
         as_json: bool = typer.Option(False, "--json", help="Print JSON instead of tables."),
     ) -> None:
@@ -74,12 +74,12 @@ def register(app: typer.Typer) -> None:
         from ..scene.summary import scene_summary
 
         with common.user_errors():
-            s = load_scene_from_options(scene, unit_scale=unit_scale, emit=emit, area_light=area_light,
+            s = load_scene_from_options(scene, unit_scale=unit_scale, emit=emission, area_light=area_light,
                                         default_reflectance=default_reflectance,
                                         allow_missing_materials=allow_missing_materials,
                                         max_edge=max_edge, patches=patches, keep_duplicates=keep_duplicates)
             # the input faces as read (duplicates kept), for the structured report of broken faces
-            faces = load_scene_from_options(scene, unit_scale=unit_scale, emit=emit, area_light=area_light,
+            faces = load_scene_from_options(scene, unit_scale=unit_scale, emit=emission, area_light=area_light,
                                             default_reflectance=default_reflectance,
                                             allow_missing_materials=allow_missing_materials, keep_duplicates=True)
         summary = scene_summary(s)

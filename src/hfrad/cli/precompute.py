@@ -8,6 +8,7 @@ from typing import List, Optional
 
 import typer
 
+from ..errors import InputError
 from ..defaults import DEFAULT_BLOCK_SIZE
 from . import common
 from .info import load_scene_from_options
@@ -22,15 +23,16 @@ def register(app: typer.Typer) -> None:
         max_edge: Optional[float] = common.MaxEdgeOption,
         patches: Optional[int] = common.PatchesOption,
         block: Optional[int] = typer.Option(None, "--block", help=f"Column block width (patches); default min({DEFAULT_BLOCK_SIZE}, n)."),
-        dtype: str = typer.Option("float32", "--dtype", help="float32 (default) or float64."),
+        dtype: str = common.dtype_option("float32"),
         samples: Optional[int] = typer.Option(None, "--samples", help="Visibility rays per patch pair."),
         order: str = typer.Option("zorder", "--order", help="Internal patch order: zorder, hilbert, random, input."),
         processes: int = typer.Option(1, "--processes", help="Form-factor worker processes, each with its own Embree scene (default 1: this process, numba threads + one Embree thread)."),
         near_field: Optional[int] = typer.Option(None, "--near-field", help="Split pairs within ~this many neighbours per row into a sparse N (e.g. 64); solver: Woodbury around a sparse LU. Default: off."),
         unit_scale: float = common.UnitScaleOption,
-        emit: Optional[List[str]] = common.EmitOption,
+        emission: Optional[List[str]] = common.EmissionOption,
         area_light: Optional[str] = common.AreaLightOption,
         default_reflectance: float = common.DefaultReflectanceOption,
+        allow_missing_materials: bool = common.AllowMissingMaterialsOption,
         keep_duplicates: bool = common.KeepDuplicatesOption,
         scheduler: Optional[str] = typer.Option(
             None, "--scheduler", help="Run on a Dask cluster: tcp://HOST:PORT of a running `dask scheduler` "
@@ -50,31 +52,34 @@ def register(app: typer.Typer) -> None:
         lost worker); each worker needs about 25 n BLOCK bytes plus, for the
         root merge, ~16 n k x 4 bytes (docs/cluster.md).
         """
-        from ..io.hfr import save_hfr
+        from ..solve.hfr import save_hfr
         from ..pipeline import factorize
 
         t0 = time.perf_counter()
         with common.user_errors():
+            common.check_dtype(dtype)
             if output.suffix != ".hfr":
-                raise ValueError(f"output must end in .hfr; got {output}")
-            s = load_scene_from_options(scene, unit_scale=unit_scale, emit=emit, area_light=area_light,
+                raise InputError(f"output must end in .hfr; got {output}")
+            s = load_scene_from_options(scene, unit_scale=unit_scale, emit=emission, area_light=area_light,
                                         default_reflectance=default_reflectance,
+                                        allow_missing_materials=allow_missing_materials,
                                         max_edge=max_edge, patches=patches, keep_duplicates=keep_duplicates)
-            common.check_memory_for_precompute(s.n_patches, block or DEFAULT_BLOCK_SIZE)
+            common.check_memory_for_precompute(s.n_patches, block or DEFAULT_BLOCK_SIZE, dtype)
             if not quiet:
                 from ..memory import human, precompute_bytes
-                common.console.print(f"memory estimate: about {human(precompute_bytes(s.n_patches, block or DEFAULT_BLOCK_SIZE))}"
-                                     f" for {s.n_patches:,} patches (rank guessed; refused above 80% of the "
-                                     "available memory)", highlight=False)
+                estimate = precompute_bytes(s.n_patches, block or DEFAULT_BLOCK_SIZE,
+                                            itemsize=common.check_dtype(dtype).itemsize)
+                common.console.print(f"memory estimate: about {human(estimate)} for {s.n_patches:,} patches "
+                                     "(rank guessed; refused above 80% of the available memory)", highlight=False)
             if scheduler is not None or workers is not None:
                 if near_field or processes != 1:
-                    raise ValueError("--near-field and --processes are for the in-process path; with --scheduler "
+                    raise InputError("--near-field and --processes are for the in-process path; with --scheduler "
                                      "or --workers the Dask workers compute the blocks and HF has no near-field "
                                      "split yet")
                 t_load = time.perf_counter() - t0
                 fac = _on_cluster(s, scheduler, workers, quiet, eps=eps, block_size=block, dtype=dtype,
                                   samples=samples, order=order)
-                save_hfr(output, fac, timings={"load": t_load, **_stage_times(fac)})
+                save_hfr(fac, output, timings={"load": t_load, **_stage_times(fac)})
                 _report(fac, output, time.perf_counter() - t0)
                 return
             checkpoint = output.with_name(output.name + ".partial")
@@ -86,7 +91,7 @@ def register(app: typer.Typer) -> None:
                 fac = factorize(s, eps=eps, block_size=block, dtype=dtype, samples=samples, order=order,
                                 checkpoint=checkpoint, progress=bar, status=status, processes=processes,
                                 near_field=near_field or None)
-            save_hfr(output, fac, timings={"load": t_load, **_stage_times(fac)})
+            save_hfr(fac, output, timings={"load": t_load, **_stage_times(fac)})
         _report(fac, output, time.perf_counter() - t0)
 
 
@@ -101,7 +106,7 @@ def _on_cluster(scene, scheduler: Optional[str], workers: Optional[int], quiet: 
     from ..memory import human
 
     if scheduler is not None and workers is not None:
-        raise ValueError("give --scheduler or --workers, not both")
+        raise InputError("give --scheduler or --workers, not both")
     n, block = scene.n_patches, min(options["block_size"] or DEFAULT_BLOCK_SIZE, scene.n_patches)
     k = rank_guess(n, options["eps"])
     try:
@@ -121,12 +126,9 @@ def _on_cluster(scene, scheduler: Optional[str], workers: Optional[int], quiet: 
 
 def _report(fac, output: Path, seconds: float) -> None:
     info = fac.lowrank.info
-    bound = ", ".join(f"{b:.3g}" for b in fac.error_bound)
-    sigma = ", ".join(f"{x:.4f}" for x in fac.sigma_max)
     common.console.print(
         f"wrote {output}: {fac.n_patches:,} patches, rank {fac.rank:,}, "
-        f"achieved error {fac.relative_error:.4f} (target {fac.eps}), sigma_max {sigma}, "
-        f"eq. 5 bound on the relative radiosity error (R,G,B) {bound}\n"
+        f"achieved error {fac.relative_error:.4f} (target {fac.eps})\n{common.error_figures_line(fac)}\n"
         f"solver {fac.solver}, time {seconds:.1f} s (form factors {info.get('time_formfactors', 0):.1f} s, "
         f"factorization {info.get('time_total', 0):.1f} s"
         + (f"; summed over {info['workers']} Dask workers" if info.get("backend") == "dask" else "") + ")",

@@ -8,8 +8,9 @@ from typing import List, Optional
 
 import typer
 
+from ..errors import InputError
 from . import common
-from .solve import EmissionFileOption, EmissionOption, EmissionScaleOption
+from .solve import EmissionFileOption, EmissionScaleOption
 
 
 def register(app: typer.Typer) -> None:
@@ -17,7 +18,7 @@ def register(app: typer.Typer) -> None:
     def render(
         factorization: Path = typer.Argument(..., help="Factorization file from `hfrad precompute` (.hfr)."),
         output: Path = typer.Option(..., "-o", "--output", help="Picture to write (.png)."),
-        emission: Optional[List[str]] = EmissionOption,
+        emission: Optional[List[str]] = common.EmissionOption,
         emission_scale: float = EmissionScaleOption,
         emission_file: Optional[Path] = EmissionFileOption,
         camera: str = typer.Option("auto", "--camera",
@@ -49,7 +50,7 @@ def register(app: typer.Typer) -> None:
 
         with common.user_errors():
             if output.suffix.lower() != ".png":
-                raise ValueError(f"output must be a .png file, got '{output}'")
+                raise InputError(f"output must be a .png file, got '{output}'")
             if falsecolor:
                 from ..render.falsecolor import check_unit
                 check_unit(unit)
@@ -65,6 +66,6 @@ def register(app: typer.Typer) -> None:
                                  exposure=exposure, auto_exposure=auto_exposure, flat=flat,
                                  falsecolor=falsecolor, unit=unit)
             t_render = time.perf_counter() - t1
-            save_png(output, image)
+            save_png(image, output)
         common.console.print(f"wrote {output}: {width}x{height}, {scene.n_patches:,} patches; "
                              f"solve {t_solve * 1e3:.1f} ms, render {t_render:.2f} s", highlight=False)

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import typer
 
+from ..errors import InputError
 from . import common
 
 
@@ -32,12 +33,12 @@ def register(app: typer.Typer) -> None:
 
         with common.user_errors():
             if factorization.suffix.lower() != ".hfr":
-                raise ValueError(f"{factorization}: not a factorization file (.hfr); make one with "
+                raise InputError(f"{factorization}: not a factorization file (.hfr); make one with "
                                  "`hfrad precompute SCENE -o FILE.hfr`")
             if not factorization.is_file():
                 raise FileNotFoundError(f"{factorization}: no such file")
             if not save_dir.is_dir():
-                raise ValueError(f"--save-dir {save_dir}: no such folder")
+                raise InputError(f"--save-dir {save_dir}: no such folder")
             fac = common.load_factorization(factorization)
             viewer = ViewerApp(fac, host=host, port=port, save_dir=save_dir, direct=direct)
         where = ("this machine only; --host 0.0.0.0 shares it on the network" if host in ("127.0.0.1", "localhost")

@@ -9,6 +9,7 @@ import os
 from dataclasses import dataclass
 from typing import Iterator
 
+from ..errors import InputError
 
 
 def default_connect_timeout() -> float:
@@ -85,7 +86,7 @@ def _one_blas_thread(active: bool):
 def _check_address(address: str) -> str:
     address = address.strip()
     if not address or any(c.isspace() for c in address):
-        raise ValueError(f"scheduler address must look like tcp://HOST:PORT; got {address!r}")
+        raise InputError(f"scheduler address must look like tcp://HOST:PORT; got {address!r}")
     return address if "://" in address else f"tcp://{address}"
 
 
@@ -125,7 +126,7 @@ def connect(scheduler=None, *, workers: int | None = None, timeout: float | None
     except ImportError as exc:  # pragma: no cover - a dependency of hfrad
         raise ImportError("the cluster backend needs dask.distributed: pip install 'dask[distributed]'") from exc
     if (scheduler is None) == (workers is None):
-        raise ValueError("give either a scheduler address (tcp://HOST:PORT) or a number of local workers, not "
+        raise InputError("give either a scheduler address (tcp://HOST:PORT) or a number of local workers, not "
                          f"{'both' if scheduler is not None else 'neither'}")
     if isinstance(scheduler, Client):
         yield Cluster(scheduler, scheduler.scheduler.address, len(scheduler.nthreads()),
@@ -133,7 +134,7 @@ def connect(scheduler=None, *, workers: int | None = None, timeout: float | None
         return
     if workers is not None:
         if int(workers) != workers or workers < 1:
-            raise ValueError(f"workers must be a positive integer; got {workers}")
+            raise InputError(f"workers must be a positive integer; got {workers}")
         workers = int(workers)
         bokeh = importlib.util.find_spec("bokeh") is not None  # the dashboard needs it
         cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)

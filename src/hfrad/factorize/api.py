@@ -12,6 +12,7 @@ from typing import Iterable
 
 import numpy as np
 
+from ..errors import InputError
 from ..progress import ProgressCallback
 from .baselines import randomized_factorization, sketch_factorization, svd_factorization
 from .hf import hierarchical_factorization
@@ -27,7 +28,7 @@ def check_method(method: str) -> None:
 
 
 def lowrank_from_matrix(F: np.ndarray, rho_max: np.ndarray, perm: np.ndarray, *, eps: float, relative: bool,
-                        block_size: int, dtype, method: str, rng=None,
+                        block_size: int, dtype, method: str, rng=None, leaf_share: float = 0.5,
                         progress: ProgressCallback = None) -> LowRank:
     """``G_int = diag(rho_max) F`` in internal order ``perm``, factored by ``method``.
 
@@ -36,7 +37,7 @@ def lowrank_from_matrix(F: np.ndarray, rho_max: np.ndarray, perm: np.ndarray, *,
     F : (n, n) float, user order
     rho_max : (n,) float, user order
     perm : (n,) int, internal order (internal index t holds user patch perm[t])
-    eps, relative, block_size, dtype, rng, progress
+    eps, relative, block_size, dtype, rng, leaf_share, progress
         As in :func:`hfrad.factorize`.
     method : {"hf", "svd", "rsvd", "sketch"}
 
@@ -50,7 +51,7 @@ def lowrank_from_matrix(F: np.ndarray, rho_max: np.ndarray, perm: np.ndarray, *,
         blocks = ((s, min(s + block_size, n), F[np.ix_(perm, perm[s:s + block_size])])
                   for s in range(0, n, block_size))
         return lowrank_from_blocks(blocks, n, rho_max, perm, eps=eps, relative=relative, dtype=dtype,
-                                   n_blocks=-(-n // block_size), progress=progress)
+                                   n_blocks=-(-n // block_size), leaf_share=leaf_share, progress=progress)
     t0 = time.perf_counter()
     G = (rho_max[perm, None] * F[np.ix_(perm, perm)]).astype(dtype)
     if method == "svd":
@@ -84,6 +85,10 @@ def lowrank_from_blocks(blocks: Iterable[tuple[int, int, np.ndarray]], n: int, r
             Fb = np.asarray(Fb, dtype=dtype)
             if Fb.shape != (n, stop - start):
                 raise ValueError(f"block {start}:{stop} must have shape ({n}, {stop - start}); got {Fb.shape}")
+            if not np.isfinite(Fb).all():   # LAPACK runs unchecked: a NaN would give a silent rank-0 node
+                i, j = np.argwhere(~np.isfinite(Fb))[0]
+                raise InputError(f"column block {start}:{stop} has a NaN or infinite value at row {i}, "
+                                 f"column {start + j}")
             expected[0] = stop
             yield scale * Fb                       # rows of G = diag(rho_max) F
 

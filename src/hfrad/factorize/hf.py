@@ -1,6 +1,6 @@
 """HF: the one-pass hierarchical factorization of a matrix given by column blocks.
 
-Aguerre & Fernández 2016, METHOD.md section 5. Column blocks ``A_j`` (n x b_j)
+Aguerre & Fernández 2016; docs/method.md, section 4. Column blocks ``A_j`` (n x b_j)
 arrive left to right; each is compressed by a truncated SVD (a leaf) and
 siblings are merged by a thin QR plus a small SVD, driven by a binary counter
 over a stack. Nothing n x n is ever formed: memory is one block plus
@@ -359,8 +359,8 @@ def hierarchical_factorization(blocks: Iterable[np.ndarray], n: int, *, eps: flo
     Notes
     -----
     Cost O(n b^2) per leaf and O(n (k1 + k2)^2) per merge; memory one block plus
-    O(log m) factor pairs. Aguerre & Fernández 2016, section 3; METHOD.md
-    section 5.
+    O(log m) factor pairs. Aguerre & Fernández 2016, section 3; docs/method.md,
+    section 4.
 
     Examples
     --------

@@ -12,6 +12,7 @@ import os
 
 import numpy as np
 
+from ..errors import InputError
 from ..atomic import atomic_path
 from .hf import HFStream, _Node
 
@@ -26,8 +27,10 @@ def _params(stream: HFStream) -> dict:
 def save_checkpoint(stream: HFStream, path: str | os.PathLike, key: str = "") -> None:
     """Write the stream state to ``path`` atomically (temporary name, then rename).
 
-    ``key`` identifies the input (scene and parameters hash); :func:`load_checkpoint`
-    refuses a checkpoint whose key differs.
+    ``key`` identifies the input (scene, parameters and form-factor kernel
+    version); :func:`load_checkpoint` refuses a checkpoint whose key differs.
+    ``stream.extra`` (name -> array) is what else the pass accumulates (row
+    sums, probes, the near field) and comes back with the stream.
     """
     import h5py
 
@@ -57,10 +60,10 @@ def load_checkpoint(path: str | os.PathLike, key: str = "") -> HFStream:
 
     with h5py.File(path, "r") as f:
         if int(f.attrs.get("version", -1)) != CHECKPOINT_VERSION:
-            raise ValueError(f"{path}: checkpoint version {f.attrs.get('version')} is not "
+            raise InputError(f"{path}: checkpoint version {f.attrs.get('version')} is not "
                              f"{CHECKPOINT_VERSION}; delete it to start over")
         if str(f.attrs["key"]) != key:
-            raise ValueError(f"{path}: checkpoint was made for another scene or other parameters; "
+            raise InputError(f"{path}: checkpoint was made for another scene or other parameters; "
                              "delete it to start over")
         stream = HFStream(**json.loads(f.attrs["params"]))
         stream.blocks_done = int(f.attrs["blocks_done"])
@@ -75,3 +78,4 @@ def load_checkpoint(path: str | os.PathLike, key: str = "") -> HFStream:
         if "extra" in f:
             stream.extra = {name: ds[()] for name, ds in f["extra"].items()}
     return stream
+

@@ -1,7 +1,7 @@
 """Form factors with visibility: kernels, ray casting, column blocks.
 
 F[i, j] = fraction of the energy leaving patch i that arrives at patch j,
-visibility included (METHOD.md s. 7). Public entry points:
+visibility included (docs/method.md, section 2). Public entry points:
 
 - :func:`iter_column_blocks` streams F in column blocks (what the hierarchical
   factorization consumes; optionally cached on disk and resumable);

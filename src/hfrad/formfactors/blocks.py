@@ -6,7 +6,7 @@ symmetric quadrature) times V (visibility.py, fraction of unoccluded rays).
 Both factors are reciprocity-symmetric, so A_i F_ij = A_j F_ji to rounding.
 
 The hierarchical factorization consumes F one column block at a time
-(METHOD.md s. 5): :func:`iter_column_blocks` yields them in an internal order
+(docs/method.md, section 4): :func:`iter_column_blocks` yields them in an internal order
 (Z-order), each computed independently of the others, so a run can be
 streamed, cached on disk and resumed, or spread over machines.
 """
@@ -21,7 +21,7 @@ from typing import Iterator
 import numpy as np
 
 from ..defaults import DEFAULT_BLOCK_SIZE
-from ..errors import MemoryLimitError
+from ..errors import InputError, MemoryLimitError
 from ..memory import available_bytes as available_memory
 from ..progress import ProgressCallback, report
 from ..validation import check_permutation
@@ -149,10 +149,10 @@ def _check_common(scene, samples, block_size) -> None:
     if samples != 0:
         check_samples(samples)
     if block_size is not None and (int(block_size) != block_size or block_size < 1):
-        raise ValueError(f"block_size must be a positive integer, got {block_size}")
+        raise InputError(f"block_size must be a positive integer, got {block_size}")
     if scene.n_patches and not (scene.areas > 0).all():
         bad = int(np.flatnonzero(~(scene.areas > 0))[0])
-        raise ValueError(f"{scene.name}: patch {bad} has zero area; "
+        raise InputError(f"{scene.name}: patch {bad} has zero area; "
                          "remove degenerate patches first (hfrad.scene.patches.drop_degenerate)")
 
 

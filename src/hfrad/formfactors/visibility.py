@@ -16,7 +16,7 @@ split) and replaces the estimate: partial visibility between near patches is
 where a coarse estimate's error is largest, and such pairs are few.
 
 There is no random jitter on purpose: Monte Carlo noise in F is full rank and
-destroys the low rank the hierarchical factorization relies on (METHOD.md s. 7).
+destroys the low rank the hierarchical factorization relies on (docs/method.md, section 2).
 
 End points are moved off their surfaces along the patch normals by
 ``1e-5 x scene size`` so that a ray never hits the face it starts or ends on.
@@ -41,6 +41,7 @@ import time
 import numpy as np
 from numba import njit, prange
 
+from ..errors import InputError
 from .kernel import points_on_triangles, split_centroids
 from .raycast import RayCaster
 
@@ -73,7 +74,7 @@ def check_samples(samples: int) -> int:
     """Validate ``samples`` (a perfect square >= 1); returns its square root."""
     m = math.isqrt(int(samples)) if int(samples) >= 1 else 0
     if samples != int(samples) or m < 1 or m * m != int(samples):
-        raise ValueError(f"samples must be a perfect square (1, 4, 9, 16, ...) so the sample points "
+        raise InputError(f"samples must be a perfect square (1, 4, 9, 16, ...) so the sample points "
                          f"are a stratified split of each triangle, got {samples}")
     return m
 

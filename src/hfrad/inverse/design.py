@@ -11,6 +11,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from ..errors import InputError
 from ..progress import ProgressCallback, report
 from .optimize import GOAL_RTOL, optimise, power_per_intensity
 from .spec import DesignSpec, Target, parse_spec
@@ -80,8 +81,7 @@ def _solver_accuracy(fac) -> dict:
     out = {"relative_error": float(fac.relative_error)}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        est = getattr(fac, "error_estimate", None)
-        bound = est() if callable(est) else getattr(fac, "error_bound", None)
+        bound = fac.error_estimate().bound
     if bound is not None:
         b = np.atleast_1d(np.asarray(bound, dtype=np.float64))
         out["radiosity_error_bound"] = [float(x) if math.isfinite(x) else None for x in b]
@@ -152,7 +152,7 @@ def design(fac, spec: "Mapping[str, Any] | DesignSpec | str", *, method: str = "
     t_start = time.perf_counter()
     scene = fac.scene
     if scene is None:
-        raise ValueError("the factorization carries no scene (patches); load it from an .hfr file "
+        raise InputError("the factorization carries no scene (patches); load it from an .hfr file "
                          "written by `hfrad precompute` or build it with hfrad.factorize(scene)")
     if not isinstance(spec, DesignSpec):
         spec = parse_spec(spec, scene)

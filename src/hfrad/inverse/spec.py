@@ -38,7 +38,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from .. import errors as _errors
+from ..errors import InputError
 from ..render.falsecolor import photometric
 
 #: quantity -> (unit printed in results, description)
@@ -58,12 +58,7 @@ _TARGET_KEYS = {"name", "quantity", *GOALS, *_SELECTORS}
 _TOP_KEYS = {"emitters", "targets", "objective", "background", "description"}
 
 
-# InputError (bad user input, a ValueError) is being introduced by the architecture work;
-# until it is on main, a ValueError is what the CLI reports as bad input.
-_InputError = getattr(_errors, "InputError", ValueError)
-
-
-class SpecError(_InputError):
+class SpecError(InputError):
     """A design spec is malformed; the message names the field (``targets[1].quantity``)."""
 
 

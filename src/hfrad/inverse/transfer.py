@@ -271,7 +271,7 @@ def _solve_adjoint(fac, g: np.ndarray) -> np.ndarray:
     import inspect
     if "trans" in inspect.signature(fac.solve).parameters:
         return fac.solve(g, trans="T")
-    return fac.solve(g, transpose=True)
+    return fac.solve(g, trans="T")
 
 
 def adjoint_response(fac, spec: DesignSpec, *, progress: ProgressCallback = None,

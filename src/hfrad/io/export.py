@@ -22,11 +22,13 @@ from __future__ import annotations
 
 import csv
 import os
+import warnings
 from pathlib import Path
 
 import numpy as np
 
 from ..atomic import atomic_path
+from ..errors import InputError
 from ..render.shading import CREASE_ANGLE, corner_vertices, smooth_corners
 from ..render.tonemap import auto_exposure, tonemap
 
@@ -40,14 +42,14 @@ def _check(scene, array, name: str) -> np.ndarray:
     if a.shape == (n,):
         a = np.repeat(a[:, None], 3, axis=1)
     if a.shape != (n, 3):
-        raise ValueError(f"{name} must have shape ({n}, 3) or ({n},) for a scene of {n} patches, got {a.shape}")
+        raise InputError(f"{name} must have shape ({n}, 3) or ({n},) for a scene of {n} patches, got {a.shape}")
     return a
 
 
 def _extension(path, allowed: tuple[str, ...], what: str) -> str:
     ext = Path(path).suffix.lower()
     if ext not in allowed:
-        raise ValueError(f"cannot write {what} to '{path}': unsupported extension '{ext or '(none)'}'; "
+        raise InputError(f"cannot write {what} to '{path}': unsupported extension '{ext or '(none)'}'; "
                          f"supported: {', '.join(allowed)}")
     return ext
 
@@ -73,7 +75,7 @@ def vertex_colors(scene, radiosity: np.ndarray, *, colors: str = "linear", expos
     rgb : (v, 3) uint8
     """
     if colors not in ("linear", "srgb"):
-        raise ValueError(f"colors must be 'linear' or 'srgb', got {colors!r}")
+        raise InputError(f"colors must be 'linear' or 'srgb', got {colors!r}")
     B = _check(scene, radiosity, "radiosity")
     vertices, faces = corner_vertices(scene, crease_angle=crease_angle)
     corner = smooth_corners(scene, B, crease_angle=crease_angle).reshape(-1, 3)
@@ -85,17 +87,17 @@ def vertex_colors(scene, radiosity: np.ndarray, *, colors: str = "linear", expos
     return vertices, faces, tonemap(radiance, exposure=float(exposure), encoding=colors)
 
 
-def export_mesh(path: "str | os.PathLike", scene, radiosity: np.ndarray, *, colors: str | None = None,
+def export_mesh(scene, radiosity: np.ndarray, path: "str | os.PathLike", *, colors: str | None = None,
                 exposure: float | None = None, exitance: np.ndarray | None = None) -> Path:
     """Write the patches coloured by radiosity as ``.glb`` or ``.ply``.
 
     Parameters
     ----------
+    scene : Scene
+    radiosity : (n, 3) float, W/m^2
     path : str or PathLike
         Extension picks the format: ``.glb`` (binary glTF, per-vertex
         ``COLOR_0``) or ``.ply`` (binary PLY with per-face physical values).
-    scene : Scene
-    radiosity : (n, 3) float, W/m^2
     colors : {'linear', 'srgb'}, optional
         Vertex colour encoding; default 'linear' for .glb (glTF spec), 'srgb'
         for .ply (what viewers expect).
@@ -111,7 +113,7 @@ def export_mesh(path: "str | os.PathLike", scene, radiosity: np.ndarray, *, colo
 
     Raises
     ------
-    ValueError
+    InputError (a ValueError)
         Unsupported extension (the message lists the supported ones) or
         arrays of the wrong shape.
 
@@ -123,6 +125,10 @@ def export_mesh(path: "str | os.PathLike", scene, radiosity: np.ndarray, *, colo
     triangles meet at a crease or a material border, so it has more vertices
     than ``scene.vertices``.
     """
+    if isinstance(scene, (str, os.PathLike)):  # the old order: (path, scene, radiosity)
+        warnings.warn("the object comes first, then the path: export_mesh(scene, radiosity, path)",
+                      DeprecationWarning, stacklevel=2)
+        scene, radiosity, path = radiosity, path, scene
     ext = _extension(path, MESH_FORMATS, "a mesh")
     colors = colors or ("linear" if ext == ".glb" else "srgb")
     vertices, faces, rgb = vertex_colors(scene, radiosity, colors=colors, exposure=exposure)
@@ -203,12 +209,14 @@ def _write_csv(path, scene, B, E) -> None:
                         *map(lambda x: repr(float(x)), B[i]), *map(lambda x: repr(float(x)), E[i])])
 
 
-def write_radiosity(path: "str | os.PathLike", scene, radiosity: np.ndarray, exitance: np.ndarray | None = None,
+def write_radiosity(scene, radiosity: np.ndarray, path: "str | os.PathLike", exitance: np.ndarray | None = None,
                     *, colors: str | None = None, exposure: float | None = None) -> Path:
     """Write a radiosity solution; the extension picks the format.
 
     Parameters
     ----------
+    scene : Scene
+    radiosity : (n, 3) or (n,) float, W/m^2
     path : str or PathLike
         ``.npz``: arrays ``B`` (n, 3) W/m^2, ``E`` (n, 3) W/m^2,
         ``reflectance`` (n, 3), ``area`` (n,) m^2, ``centroid`` (n, 3) m,
@@ -216,8 +224,6 @@ def write_radiosity(path: "str | os.PathLike", scene, radiosity: np.ndarray, exi
         ``.csv``: one row per patch: index, material name, area, centroid
         xyz, B rgb, E rgb (header row first).
         ``.ply`` / ``.glb``: coloured mesh, see :func:`export_mesh`.
-    scene : Scene
-    radiosity : (n, 3) or (n,) float, W/m^2
     exitance : (n, 3) or (n,) float, W/m^2, optional
         The emission that was solved for; default ``scene.emission``.
     colors : {'linear', 'srgb'}, optional
@@ -232,7 +238,7 @@ def write_radiosity(path: "str | os.PathLike", scene, radiosity: np.ndarray, exi
 
     Raises
     ------
-    ValueError
+    InputError (a ValueError)
         Unknown extension (the message lists the supported ones) or arrays
         of the wrong shape.
 
@@ -243,14 +249,18 @@ def write_radiosity(path: "str | os.PathLike", scene, radiosity: np.ndarray, exi
     >>> s = furnace()
     >>> B = s.emission / (1 - s.reflectance)
     >>> with tempfile.TemporaryDirectory() as d:
-    ...     p = write_radiosity(pathlib.Path(d) / "b.npz", s, B)
+    ...     p = write_radiosity(s, B, pathlib.Path(d) / "b.npz")
     ...     bool(np.allclose(np.load(p)["B"], B))
     True
     """
+    if isinstance(scene, (str, os.PathLike)):  # the old order: (path, scene, radiosity[, exitance])
+        warnings.warn("the object comes first, then the path: write_radiosity(scene, radiosity, path)",
+                      DeprecationWarning, stacklevel=2)
+        scene, radiosity, path, exitance = radiosity, path, scene, exitance
     ext = _extension(path, RADIOSITY_FORMATS, "radiosity")
     B = _check(scene, radiosity, "radiosity")
     E = scene.emission if exitance is None else _check(scene, exitance, "exitance")
     if ext in MESH_FORMATS:
-        return export_mesh(path, scene, B, colors=colors, exposure=exposure, exitance=E)
+        return export_mesh(scene, B, path, colors=colors, exposure=exposure, exitance=E)
     (_write_npz if ext == ".npz" else _write_csv)(path, scene, B, np.asarray(E, dtype=np.float64))
     return Path(path)

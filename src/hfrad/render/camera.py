@@ -16,6 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..errors import InputError
+
 #: Field of view of the named views, degrees (the classic Cornell box camera is ~39.3).
 DEFAULT_FOV = 40.0
 _MARGIN = 1.05  # framing slack so the scene does not touch the image border
@@ -43,14 +45,14 @@ class Camera:
     def __post_init__(self) -> None:
         p, t, u = (np.asarray(v, dtype=np.float64).reshape(3) for v in (self.position, self.target, self.up))
         if not (np.isfinite(p).all() and np.isfinite(t).all() and np.isfinite(u).all()):
-            raise ValueError(f"camera position, target and up must be finite, got {p}, {t}, {u}")
+            raise InputError(f"camera position, target and up must be finite, got {p}, {t}, {u}")
         if np.linalg.norm(t - p) == 0:
-            raise ValueError(f"camera target must differ from its position, both are {tuple(p)}")
+            raise InputError(f"camera target must differ from its position, both are {tuple(p)}")
         if not 0 < self.fov < 180:
-            raise ValueError(f"camera fov must be in (0, 180) degrees, got {self.fov}")
+            raise InputError(f"camera fov must be in (0, 180) degrees, got {self.fov}")
         f = (t - p) / np.linalg.norm(t - p)
         if np.linalg.norm(np.cross(f, u)) < 1e-9 * max(np.linalg.norm(u), 1e-300):
-            raise ValueError(f"camera up {tuple(u)} is parallel to the view direction {tuple(f)}; "
+            raise InputError(f"camera up {tuple(u)} is parallel to the view direction {tuple(f)}; "
                              "give another up vector")
         object.__setattr__(self, "position", tuple(map(float, p)))
         object.__setattr__(self, "target", tuple(map(float, t)))
@@ -158,6 +160,6 @@ class Camera:
             if len(pos) != 3 or len(tgt) != 3:
                 raise ValueError
         except ValueError:
-            raise ValueError(f"camera must be 'auto', 'front' or 'x,y,z:tx,ty,tz[:fov_degrees]', "
+            raise InputError(f"camera must be 'auto', 'front' or 'x,y,z:tx,ty,tz[:fov_degrees]', "
                              f"got '{text}'") from None
         return cls(tuple(pos), tuple(tgt), (0.0, 1.0, 0.0), fov)

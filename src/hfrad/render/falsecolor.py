@@ -24,6 +24,7 @@ import math
 
 import numpy as np
 
+from ..errors import InputError
 from .tonemap import LUMINANCE_WEIGHTS, to_uint8
 
 #: lm/W: luminous efficacy at 555 nm, the peak of the photopic curve.
@@ -43,7 +44,7 @@ _VIRIDIS = np.array([
 def check_unit(unit: str) -> str:
     """``unit`` if it is one of :data:`UNITS`, else ValueError naming them."""
     if unit not in UNITS:
-        raise ValueError(f"unit must be one of {', '.join(UNITS)}, got {unit!r}")
+        raise InputError(f"unit must be one of {', '.join(UNITS)}, got {unit!r}")
     return unit
 
 

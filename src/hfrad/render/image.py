@@ -18,6 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import atomic_path
+from ..errors import InputError
+from ..validation import object_first
 
 from .camera import Camera
 from .falsecolor import check_unit, colorbar_width, falsecolor_image, photometric
@@ -33,7 +35,7 @@ def _check_radiosity(scene, radiosity) -> np.ndarray:
     if B.shape == (n,):
         B = np.repeat(B[:, None], 3, axis=1)
     if B.shape != (n, 3):
-        raise ValueError(f"radiosity must have shape ({n}, 3) or ({n},) for a scene of {n} patches, "
+        raise InputError(f"radiosity must have shape ({n}, 3) or ({n},) for a scene of {n} patches, "
                          f"got {B.shape}")
     return B
 
@@ -41,7 +43,7 @@ def _check_radiosity(scene, radiosity) -> np.ndarray:
 def _check_size(width: int, height: int) -> None:
     for name, v in (("width", width), ("height", height)):
         if int(v) != v or v < 1:
-            raise ValueError(f"{name} must be a positive whole number of pixels, got {v}")
+            raise InputError(f"{name} must be a positive whole number of pixels, got {v}")
 
 
 def render_radiance(scene, radiosity, camera: "Camera | str" = "auto", *, width: int = 512,
@@ -164,7 +166,7 @@ def render_image(scene, radiosity, *, camera: "Camera | str" = "auto", width: in
     return tonemap(radiance, exposure=float(exposure))
 
 
-def save_png(path: "str | os.PathLike", image: np.ndarray) -> Path:
+def save_png(image: np.ndarray, path: "str | os.PathLike") -> Path:
     """Write an (h, w, 3) or (h, w) uint8 picture as PNG, atomically.
 
     The file is written under a temporary name in the same folder and renamed,
@@ -172,10 +174,11 @@ def save_png(path: "str | os.PathLike", image: np.ndarray) -> Path:
     """
     from PIL import Image
 
+    image, path = object_first(image, path, "save_png(image, path)")
     path = Path(path)
     arr = np.asarray(image)
     if arr.dtype != np.uint8 or arr.ndim not in (2, 3):
-        raise ValueError(f"image must be an (h, w, 3) or (h, w) uint8 array, got {arr.dtype} {arr.shape}")
+        raise InputError(f"image must be an (h, w, 3) or (h, w) uint8 array, got {arr.dtype} {arr.shape}")
     with atomic_path(path) as tmp, open(tmp, "wb") as fh:
         Image.fromarray(arr).save(fh, format="PNG")
     return path

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..errors import InputError
+
 #: Rec. 709 / sRGB luminance weights of linear R, G, B.
 LUMINANCE_WEIGHTS = np.array([0.2126, 0.7152, 0.0722])
 
@@ -97,9 +99,9 @@ def tonemap(radiance: np.ndarray, *, exposure: float = 0.0, encoding: str = "srg
     (..., 3) uint8
     """
     if encoding not in ("srgb", "linear"):
-        raise ValueError(f"encoding must be 'srgb' or 'linear', got {encoding!r}")
+        raise InputError(f"encoding must be 'srgb' or 'linear', got {encoding!r}")
     if not np.isfinite(exposure):
-        raise ValueError(f"exposure must be a finite number of EV, got {exposure}")
+        raise InputError(f"exposure must be a finite number of EV, got {exposure}")
     x = np.asarray(radiance, dtype=np.float64) * (2.0 ** exposure)
     x = np.clip(np.nan_to_num(x, nan=0.0, posinf=1.0, neginf=0.0), 0.0, 1.0)
     return to_uint8(srgb_encode(x) if encoding == "srgb" else x)

@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 
-from ..errors import SceneError
+from ..errors import InputError, SceneError
 from .scene import Scene
 
 
@@ -81,15 +81,15 @@ def subdivide(scene: Scene, *, max_edge: float | None = None, patches: int | Non
         the input faces are kept as the occluder mesh for ray casting.
     """
     if max_edge is not None and patches is not None:
-        raise ValueError("give either max_edge or patches, not both")
+        raise InputError("give either max_edge or patches, not both")
     if patches is not None:
         if patches < 1:
-            raise ValueError(f"patches must be >= 1, got {patches}")
+            raise InputError(f"patches must be >= 1, got {patches}")
         max_edge = max_edge_for_count(scene, patches)
     if max_edge is None:
         return scene
     if not (max_edge > 0 and math.isfinite(max_edge)):
-        raise ValueError(f"max_edge must be a positive length, got {max_edge}")
+        raise InputError(f"max_edge must be a positive length, got {max_edge}")
     splits = splits_for_edge(scene, max_edge)
     if (splits == 1).all():
         return scene

@@ -157,6 +157,16 @@ class Scene:
                                  "must be in [0, 1) (a reflectance of 1 or more creates energy)")
             if not (np.isfinite(em).all() and (em >= 0).all()):
                 raise SceneError(f"{self.name}: material '{m.name}' emission {tuple(em)} must be finite and >= 0")
+        # per-patch overrides are checked too: a NaN would reach LAPACK (which runs unchecked)
+        bad = ~(np.isfinite(self.reflectance) & (self.reflectance >= 0) & (self.reflectance < 1)).all(axis=1)
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise SceneError(f"{self.name}: patch {i} reflectance {self.reflectance[i].tolist()} must be finite "
+                             "and in [0, 1)")
+        bad = ~(np.isfinite(self.emission) & (self.emission >= 0)).all(axis=1)
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise SceneError(f"{self.name}: patch {i} emission {self.emission[i].tolist()} must be finite and >= 0")
 
     # -- sizes -------------------------------------------------------------
     @property
@@ -298,6 +308,69 @@ class Scene:
                 return i
         raise SceneError(f"{self.name}: no material named '{name}'; materials are: "
                          + ", ".join(self.material_names))
+
+    # -- trimesh interoperability --------------------------------------------
+    @classmethod
+    def from_trimesh(cls, mesh, *, reflectance=(0.7, 0.7, 0.7), emission=(0.0, 0.0, 0.0),
+                     name: str = "trimesh") -> "Scene":
+        """A scene from a :class:`trimesh.Trimesh`: one patch per face, in face order.
+
+        Parameters
+        ----------
+        mesh : trimesh.Trimesh
+            Faces counter-clockwise seen from the front (trimesh's convention).
+        reflectance : (3,) or (n, 3) float in [0, 1)
+            One material for all faces, or one reflectance per face.
+        emission : (3,) or (n, 3) float >= 0, W/m^2
+            Emitted exitance, for all faces or per face.
+        name : str
+
+        Returns
+        -------
+        Scene
+            One material ``"trimesh"`` (per-face values are stored as
+            per-patch overrides).
+
+        Raises
+        ------
+        SceneError
+            Non-finite vertices, reflectance outside [0, 1), negative emission.
+        """
+        vertices = np.asarray(mesh.vertices, dtype=np.float64)
+        faces = np.asarray(mesh.faces, dtype=np.int64)
+        n = len(faces)
+        rho = np.asarray(reflectance, dtype=np.float64)
+        em = np.asarray(emission, dtype=np.float64)
+        uniform = rho.shape == (3,) and em.shape == (3,)
+        material = Material("trimesh", tuple(float(x) for x in (rho if rho.shape == (3,) else (0.0,) * 3)),
+                            tuple(float(x) for x in (em if em.shape == (3,) else (0.0,) * 3)))
+        rho_n, em_n = np.broadcast_to(rho, (n, 3)), np.broadcast_to(em, (n, 3))
+        bad = ~(np.isfinite(rho_n) & (rho_n >= 0) & (rho_n < 1)).all(axis=1)
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise SceneError(f"{name}: reflectance of face {i} {rho_n[i].tolist()} must be in [0, 1)")
+        bad = ~(np.isfinite(em_n) & (em_n >= 0)).all(axis=1)
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise SceneError(f"{name}: emission of face {i} {em_n[i].tolist()} must be finite and >= 0")
+        return cls(vertices=vertices, faces=faces, material=np.zeros(n, np.int64), materials=(material,),
+                   reflectance=None if uniform else rho_n, emission=None if uniform else em_n, name=name)
+
+    def to_trimesh(self):
+        """The patches as a :class:`trimesh.Trimesh` (one face per patch, patch order, no merging).
+
+        Per-face ``reflectance`` and ``emission`` (n, 3) go into
+        ``mesh.face_attributes``; the face colours show the reflectance.
+        """
+        import trimesh
+
+        rgba = np.concatenate([np.clip(self.reflectance * 255.0 + 0.5, 0, 255),
+                               np.full((self.n_patches, 1), 255.0)], axis=1).astype(np.uint8)
+        mesh = trimesh.Trimesh(vertices=np.array(self.vertices), faces=np.array(self.faces),
+                               face_colors=rgba, process=False)
+        mesh.face_attributes["reflectance"] = np.array(self.reflectance)
+        mesh.face_attributes["emission"] = np.array(self.emission)
+        return mesh
 
     def replace(self, **changes) -> "Scene":
         """A copy with some fields changed (cached geometry is recomputed lazily)."""

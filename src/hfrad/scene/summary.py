@@ -25,7 +25,7 @@ def scene_summary(scene: Scene) -> dict:
     power = (scene.emission * scene.areas[:, None]).sum(axis=0)
     warnings = list(scene.warnings)
     if not emitting.any():
-        warnings.append("no emitter: add light with --emit NAME=R,G,B or --area-light R,G,B before solving")
+        warnings.append("no emitter: add light with --emission NAME=R,G,B or --area-light R,G,B before solving")
     return {
         "scene": scene.name,
         "patches": scene.n_patches,

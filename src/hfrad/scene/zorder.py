@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..errors import InputError
+
 BITS_PER_AXIS = 21  # 3 x 21 = 63 bits fit in an unsigned 64-bit code
 
 
@@ -39,7 +41,7 @@ def morton_codes(points: np.ndarray, bits: int = BITS_PER_AXIS) -> np.ndarray:
     """
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if not 1 <= bits <= BITS_PER_AXIS:
-        raise ValueError(f"bits must be in 1..{BITS_PER_AXIS}, got {bits}")
+        raise InputError(f"bits must be in 1..{BITS_PER_AXIS}, got {bits}")
     if len(points) == 0:
         return np.zeros(0, np.uint64)
     lo = points.min(axis=0)
@@ -119,4 +121,4 @@ def patch_order(points: np.ndarray, order: str = "zorder", *, rng=0) -> np.ndarr
         return random_permutation(n, rng)
     if order == "input":
         return np.arange(n)
-    raise ValueError(f"order must be one of {ORDERS}; got {order!r}")
+    raise InputError(f"order must be one of {ORDERS}; got {order!r}")

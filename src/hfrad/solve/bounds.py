@@ -1,13 +1,152 @@
-"""Accuracy figures: sigma_max, the eq. 5 bound and the a-posteriori residual."""
+"""Accuracy figures: the guaranteed error bounds, the eq. 5 figure and the a-posteriori residual.
+
+docs/method.md, section 7 explains them.
+"""
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Iterable
 
 import numpy as np
 
-__all__ = ["power_sigma_max", "eq5_bound", "residual_norm"]
+__all__ = ["ErrorEstimate", "ResidualEstimate", "estimate_errors", "solution_bound", "relative_bound",
+           "contraction_bound", "power_sigma_max", "eq5_bound", "residual_norm", "residual_estimate"]
+
+
+def _figures(a) -> list:
+    return [float(x) if np.isfinite(x) else None for x in np.atleast_1d(a)]
+
+
+@dataclass(frozen=True)
+class ErrorEstimate:
+    """Accuracy figures of a factorization, per colour channel (R, G, B); docs/method.md, section 7.
+
+    Attributes
+    ----------
+    bound : (3,) float
+        Upper bound on the relative radiosity error ``||B~ - B|| / ||B||`` of
+        any solve, in the norm ``norm``; inf where there is none.
+    norm : {"area", "2"}
+        ``"area"``: ``||x|| = sqrt(sum_i A_i x_i^2)`` (areas known, reciprocity);
+        ``"2"``: the plain 2-norm (a matrix given without areas).
+    kind : {"probes", "eq5"}
+        ``"probes"``: the factorization error measured by random probes during
+        the single pass, times the bound on ``||(I - R_c F)^{-1}||``; guaranteed
+        except with probability ``failure_probability``. ``"eq5"``: no probes
+        were recorded (an older file): ``bound`` is the eq. 5 figure, not
+        guaranteed (sigma_max is an estimate from below).
+    failure_probability : float or None
+        Probability that ``bound`` is not an upper bound (None: no guarantee).
+    operator_error : (3,) float or None
+        Upper bound on ``||R_c F - Q_c V^T||`` in ``norm`` (same failure probability).
+    contraction : (3,) float or None
+        Upper bound on ``||R_c F||`` in ``norm``: ``max_i rho_c,i`` times the
+        largest row sum of F (area norm) or ``sqrt(max row sum * max column sum)``.
+    eq5_bound : (3,) float
+        Aguerre & Fernández 2016, eq. 5: ``eps / (1 - sigma)`` with the
+        achieved Frobenius error and ``sigma = sigma_max(Q_c V^T) + eps``
+        (a secondary figure, kept for comparison with the paper).
+    sigma_max : (3,) float
+        Power-iteration estimate of sigma_max(Q_c V^T).
+    """
+
+    bound: np.ndarray
+    norm: str
+    kind: str
+    failure_probability: float | None
+    operator_error: np.ndarray | None
+    contraction: np.ndarray | None
+    eq5_bound: np.ndarray
+    sigma_max: np.ndarray
+
+    def as_dict(self) -> dict:
+        """JSON-ready figures (inf becomes None)."""
+        return {"error_bound": _figures(self.bound), "error_norm": self.norm, "error_bound_kind": self.kind,
+                "failure_probability": self.failure_probability,
+                "operator_error": None if self.operator_error is None else _figures(self.operator_error),
+                "contraction": None if self.contraction is None else _figures(self.contraction),
+                "eq5_bound": _figures(self.eq5_bound), "sigma_max": _figures(self.sigma_max)}
+
+
+def relative_bound(delta) -> np.ndarray:
+    """``||B - B~|| / ||B||`` from ``delta >= ||B - B~|| / ||B~||``: ``delta / (1 - delta)``, inf if delta >= 1."""
+    d = np.atleast_1d(np.asarray(delta, dtype=np.float64))
+    out = np.full(d.shape, np.inf)
+    ok = d < 1.0
+    out[ok] = d[ok] / (1.0 - d[ok])
+    return out
+
+
+def solution_bound(operator_error, contraction) -> np.ndarray:
+    """Relative radiosity error bound from ``||R_c F - G~_c|| <= operator_error`` and ``||R_c F|| <= contraction``.
+
+    ``B - B~ = (I - R_c F)^{-1} (R_c F - G~_c) B~`` and
+    ``||(I - R_c F)^{-1}|| <= 1 / (1 - contraction)``, so
+    ``||B - B~|| / ||B~|| <= operator_error / (1 - contraction)``; then
+    :func:`relative_bound`. inf where ``contraction >= 1``.
+    """
+    e = np.asarray(operator_error, dtype=np.float64)
+    k = np.asarray(contraction, dtype=np.float64)
+    delta = np.divide(e, 1.0 - k, out=np.full(e.shape, np.inf), where=k < 1.0)
+    return relative_bound(delta)
+
+
+def estimate_errors(achieved_error: float, sigma_max, *, operator_error=None, contraction=None,
+                    norm: str = "2", failure_probability: float | None = None) -> ErrorEstimate:
+    """Assemble an :class:`ErrorEstimate`; without probe figures the bound falls back to eq. 5."""
+    sigma = np.asarray(sigma_max, dtype=np.float64)
+    eq5 = eq5_bound(achieved_error, sigma + achieved_error)
+    if operator_error is None or contraction is None:
+        return ErrorEstimate(bound=eq5, norm="2", kind="eq5", failure_probability=None, operator_error=None,
+                             contraction=None, eq5_bound=eq5, sigma_max=sigma)
+    return ErrorEstimate(bound=solution_bound(operator_error, contraction), norm=norm, kind="probes",
+                         failure_probability=failure_probability,
+                         operator_error=np.asarray(operator_error, np.float64),
+                         contraction=np.asarray(contraction, np.float64), eq5_bound=eq5, sigma_max=sigma)
+
+
+@dataclass(frozen=True)
+class ResidualEstimate:
+    """The a-posteriori figures of one solution B~ (per channel), from one pass over the exact F.
+
+    Attributes
+    ----------
+    residual : (3,) float
+        ``||E - (I - R_c F) B~|| / ||E||`` in ``norm``.
+    bound : (3,) float
+        Guaranteed (deterministic) bound on ``||B~ - B|| / ||B||`` in ``norm``:
+        ``||r|| / ((1 - contraction) ||B~||)`` through :func:`relative_bound`.
+    contraction : (3,) float
+        Upper bound on ``||R_c F||`` from this pass's row (and column) sums.
+    norm : {"area", "2"}
+    """
+
+    residual: np.ndarray
+    bound: np.ndarray
+    contraction: np.ndarray
+    norm: str
+
+    def as_dict(self) -> dict:
+        return {"residual": _figures(self.residual), "residual_bound": _figures(self.bound),
+                "residual_norm": self.norm, "contraction": _figures(self.contraction)}
+
+
+def contraction_bound(reflectance, row_sums, col_sums=None, *, weighted: bool = True) -> np.ndarray:
+    """(3,) upper bound on ``||R_c F||`` per channel from the row (and column) sums of F >= 0.
+
+    Area-weighted norm (``weighted``): reciprocity ``A_i F_ij = A_j F_ji`` makes
+    ``A^{1/2} F A^{-1/2}`` symmetric, so its 2-norm is the spectral radius of F,
+    at most the largest row sum. Plain 2-norm: ``||F||_2 <= sqrt(||F||_1 ||F||_inf)``.
+    Then ``||R_c F|| <= max_i rho_c,i ||F||``.
+    """
+    rho = np.asarray(reflectance, dtype=np.float64).reshape(-1, 3)
+    if rho.size == 0:
+        return np.zeros(3)
+    row = float(np.max(row_sums))
+    norm_F = row if weighted else math.sqrt(row * float(np.max(col_sums)))
+    return rho.max(axis=0) * norm_F
 
 
 def power_sigma_max(Q: np.ndarray, V: np.ndarray, *, rtol: float = 1e-7, max_iter: int = 500) -> float:
@@ -50,6 +189,60 @@ def eq5_bound(error: float, sigma_max) -> np.ndarray:
     return out
 
 
+def _stream_FB(blocks, B: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One pass over column blocks of F: ``F B`` (n, 3), row sums and column sums of F."""
+    n = B.shape[0]
+    FB, rows, cols = np.zeros_like(B), np.zeros(n), np.zeros(n)
+    for start, stop, Fb in blocks:
+        Fb = np.asarray(Fb, np.float64)
+        FB += Fb @ B[start:stop]
+        rows += Fb.sum(axis=1)
+        cols[start:stop] = Fb.sum(axis=0)
+    return FB, rows, cols
+
+
+def residual_estimate(blocks: Iterable[tuple[int, int, np.ndarray]], reflectance, exitance, radiosity,
+                      *, perm=None, areas=None) -> ResidualEstimate:
+    """The guaranteed per-solution figure: residual of B~ with the exact F, and the error bound it gives.
+
+    ``B - B~ = (I - R_c F)^{-1} r`` with ``r = E - (I - R_c F) B~``, so
+    ``||B - B~|| <= ||r|| / (1 - ||R_c F||)``; ``||R_c F||`` is bounded by this
+    pass's own row sums (:func:`contraction_bound`).
+
+    Parameters
+    ----------
+    blocks : iterable of (start, stop, Fblock)
+        Column blocks of F, user order, or internal order when ``perm`` is given.
+    reflectance : (n, 3) float, user order
+    exitance, radiosity : (n, 3) float, W/m^2, user order
+    perm : (n,) int, optional
+    areas : (n,) float, m^2, user order, optional
+        Patch areas: the area-weighted norm. Without them the plain 2-norm.
+
+    Notes
+    -----
+    One pass over F, O(n^2) time, O(n b) memory.
+    """
+    rho = np.asarray(reflectance, np.float64)
+    E = np.asarray(exitance, np.float64)
+    B = np.asarray(radiosity, np.float64)
+    w = None if areas is None else np.asarray(areas, np.float64)
+    if perm is not None:
+        rho, E, B = rho[perm], E[perm], B[perm]
+        w = None if w is None else w[perm]
+    FB, rows, cols = _stream_FB(blocks, B)
+    r = E - (B - rho * FB)
+    sw = np.ones(len(B)) if w is None else np.sqrt(w)
+    norm = (lambda x: np.linalg.norm(sw[:, None] * x, axis=0))
+    nr, ne, nb = norm(r), norm(E), norm(B)
+    kappa = contraction_bound(rho, rows, cols, weighted=w is not None)
+    delta = np.divide(nr, (1.0 - kappa) * nb, out=np.full(3, np.inf), where=(kappa < 1.0) & (nb > 0))
+    delta[(nr == 0) & (kappa < 1.0)] = 0.0
+    residual = np.divide(nr, ne, out=np.where(nr > 0, np.inf, 0.0), where=ne > 0)
+    return ResidualEstimate(residual=residual, bound=relative_bound(delta), contraction=kappa,
+                            norm="2" if w is None else "area")
+
+
 def residual_norm(blocks: Iterable[tuple[int, int, np.ndarray]], reflectance, exitance, radiosity,
                   *, perm=None) -> np.ndarray:
     """A-posteriori ``||(I - R_c F) B~_c - E_c||_2 / ||E_c||_2`` per channel, streaming F.
@@ -71,14 +264,4 @@ def residual_norm(blocks: Iterable[tuple[int, int, np.ndarray]], reflectance, ex
     -----
     One pass over F, O(n^2) time, O(n b) memory.
     """
-    rho = np.asarray(reflectance, np.float64)
-    E = np.asarray(exitance, np.float64)
-    B = np.asarray(radiosity, np.float64)
-    if perm is not None:
-        rho, E, B = rho[perm], E[perm], B[perm]
-    FB = np.zeros_like(B)
-    for start, stop, Fb in blocks:
-        FB += np.asarray(Fb, np.float64) @ B[start:stop]
-    r = B - rho * FB - E
-    nr, ne = np.linalg.norm(r, axis=0), np.linalg.norm(E, axis=0)
-    return np.divide(nr, ne, out=np.where(nr > 0, np.inf, 0.0), where=ne > 0)
+    return residual_estimate(blocks, reflectance, exitance, radiosity, perm=perm).residual

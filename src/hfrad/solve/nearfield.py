@@ -18,17 +18,14 @@ Setting up K_c costs one sparse solve with k right-hand sides per channel.
 
 from __future__ import annotations
 
-import warnings
-
 import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
 from scipy.sparse.linalg import splu
 
-from ..errors import AccuracyWarning, FactorizationError
+from ..errors import FactorizationError
 from ..factorize.lowrank import LowRank
-from .bounds import eq5_bound
-from .woodbury import N_CHANNELS, HFactorization, _channel_scale
+from .woodbury import N_CHANNELS, HFactorization
 
 __all__ = ["NearFieldFactorization", "SOLVER"]
 
@@ -56,7 +53,7 @@ class NearFieldFactorization(HFactorization):
     """A factored radiosity system ``G = N + Q V^T``: solve ``(I - R_c F) B_c = E_c``.
 
     Same interface as :class:`~hfrad.solve.woodbury.HFactorization` (``solve``,
-    ``solve(transpose=True)``, ``with_reflectance``, ``rank``, ``error_bound``).
+    ``solve(trans="T")``, ``with_reflectance``, ``rank``, ``error_estimate()``).
 
     Parameters
     ----------
@@ -78,22 +75,9 @@ class NearFieldFactorization(HFactorization):
     solver = SOLVER
 
     def __init__(self, perm, Q, V, N, rho_max, reflectance, lowrank: LowRank, *, sigma_max=None,
-                 params: dict | None = None, scene=None):
-        self.perm = np.asarray(perm, dtype=np.int64)
-        n = self.perm.size
-        self.inv_perm = np.empty(n, np.int64)
-        self.inv_perm[self.perm] = np.arange(n)
-        self.Q = np.asarray(Q)
-        self.V = np.asarray(V, dtype=self.Q.dtype)
+                 params: dict | None = None, scene=None, stats=None):
+        self._set_state(perm, Q, V, rho_max, reflectance, lowrank, sigma_max, params, scene, stats)
         self.N = sp.csr_matrix(N, dtype=np.float64)
-        self.rho_max = np.asarray(rho_max, dtype=np.float64).reshape(n)
-        self.reflectance = np.asarray(reflectance, dtype=np.float64).reshape(n, N_CHANNELS)
-        self.lowrank = lowrank
-        self.params = dict(params or {})
-        self.scene = scene
-        self.timings: dict = {}
-        self._D = _channel_scale(self.reflectance, self.rho_max)[self.perm]
-        self._sigma = None if sigma_max is None else np.asarray(sigma_max, np.float64)
         self._lu, self._K = self._factor()
 
     @property
@@ -145,34 +129,14 @@ class NearFieldFactorization(HFactorization):
             sigma = new
         return float(np.linalg.norm(d * (N @ x + Q @ (V.T @ x))))
 
-    @property
-    def sigma_max(self) -> np.ndarray:
-        """(3,) float: sigma_max(D_c (N + Q V^T)) per channel (power iteration, cached)."""
-        if self._sigma is None:
-            self._sigma = np.array([self._power_sigma(c) for c in range(N_CHANNELS)])
-        return self._sigma
+    def _sigma_estimates(self) -> np.ndarray:
+        """(3,) sigma_max(D_c (N + Q V^T)) per channel, for eq. 5 (the achieved error is ``||G - N - Q V^T||_F``)."""
+        return np.array([self._power_sigma(c) for c in range(N_CHANNELS)])
 
-    @property
-    def error_bound(self) -> np.ndarray:
-        """(3,) float: eq. 5 with the achieved ``||G - N - Q V^T||_F`` (see HFactorization.error_bound)."""
-        e = self.achieved_error
-        sigma = self.sigma_max + e
-        bound = eq5_bound(e, sigma)
-        if not np.isfinite(bound).all():
-            warnings.warn(f"sigma_max + error >= 1 for some channel (sigma estimates {sigma.round(4).tolist()}); "
-                          "eq. 5 gives no bound", AccuracyWarning, stacklevel=2)
-        return bound
-
-    def solve(self, exitance, *, transpose: bool = False) -> np.ndarray:
-        """Radiosity ``B_c = (I - R_c F)^{-1} E_c`` per channel (see module docstring).
-
-        Parameters and returns as :meth:`HFactorization.solve`.
-        """
-        E = self._validate(exitance, transpose)
-        if E.ndim == 1:
-            E = np.repeat(E[:, None], N_CHANNELS, axis=1)
-        batched = E.ndim == 3
-        Ei = E[self.perm] if batched else E[self.perm][:, :, None]   # (n, 3, m), internal order
+    def _solve(self, E: np.ndarray, adjoint: bool) -> np.ndarray:
+        """Radiosity ``B_c = (I - R_c F)^{-1} E_c`` per channel (see module docstring); E (n, 3, m), user order."""
+        transpose = adjoint
+        Ei = E[self.perm]                                                  # (n, 3, m), internal order
         n, _, m = Ei.shape
         k = self.rank
         trans = "T" if transpose else "N"
@@ -194,14 +158,13 @@ class NearFieldFactorization(HFactorization):
                           for c in range(N_CHANNELS)], axis=1)
             w = (self.V @ z.reshape(k, -1).astype(self.dtype)).astype(np.float64).reshape(n, N_CHANNELS, m)
             out = x + np.stack([_lu_solve(self._lu[c], w[:, c, :], "T") for c in range(N_CHANNELS)], axis=1)
-        out = out[self.inv_perm]
-        return out if batched else out[:, :, 0]
+        return out[self.inv_perm]
 
     def with_reflectance(self, reflectance) -> "NearFieldFactorization":
         """The same factorization with new reflectances <= rho_max (new sparse LUs and K_c)."""
         rho = self._checked_reflectance(reflectance)
         return NearFieldFactorization(self.perm, self.Q, self.V, self.N, self.rho_max, rho, self.lowrank,
-                                      params=self.params, scene=self.scene)
+                                      params=self.params, scene=self.scene, stats=self.stats)
 
     def __repr__(self) -> str:
         return (f"NearFieldFactorization(n_patches={self.n_patches}, rank={self.rank}, "

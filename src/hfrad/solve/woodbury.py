@@ -1,6 +1,6 @@
 """The factorization object: solve (I - R_c F) B_c = E_c in O(nk) by Sherman-Morrison-Woodbury.
 
-Colour without three factorizations (METHOD.md section 3): G = diag(rho_max) F
+Colour without three factorizations (docs/method.md, section 6): G = diag(rho_max) F
 is factored once, G ~= Q V^T, and channel c uses Q_c = D_c Q with
 D_c = diag(rho_c / rho_max), so ``R_c F ~= Q_c V^T`` with the same error bound.
 """
@@ -12,10 +12,11 @@ import warnings
 import numpy as np
 import scipy.linalg as sla
 
-from ..errors import AccuracyWarning, FactorizationError
+from ..errors import AccuracyWarning, FactorizationError, InputError
 from ..factorize.lowrank import LowRank
-from ..validation import check_reflectance
-from .bounds import eq5_bound, power_sigma_max
+from ..validation import check_finite, check_reflectance, check_trans
+from .bounds import ErrorEstimate, ResidualEstimate, estimate_errors, power_sigma_max, residual_estimate
+from .stats import FAILURE_PROBABILITY, PassStatistics
 
 N_CHANNELS = 3
 _RCOND_MIN = 1e-12   # below this the k x k system has no meaningful solution
@@ -89,6 +90,9 @@ class HFactorization:
         Precomputed Woodbury factors (as stored in an .hfr file).
     sigma_max : (3,) float, optional
         Cached power-iteration estimates of sigma_max(Q_c V^T).
+    stats : PassStatistics, optional
+        Row/column sums of F and the probe sketch recorded during the pass
+        (internal order): what the guaranteed error bound is computed from.
     params : dict, optional
         Parameters of the run (block size, order, method...), for the record.
 
@@ -102,7 +106,12 @@ class HFactorization:
     solver = "woodbury"
 
     def __init__(self, perm, Q, V, rho_max, reflectance, lowrank: LowRank, *, Y=None,
-                 sigma_max=None, params: dict | None = None, scene=None):
+                 sigma_max=None, params: dict | None = None, scene=None, stats: PassStatistics | None = None):
+        self._set_state(perm, Q, V, rho_max, reflectance, lowrank, sigma_max, params, scene, stats)
+        self.Y = woodbury_factors(self.Q, self.V, self._D) if Y is None else np.asarray(Y, self.Q.dtype)
+
+    def _set_state(self, perm, Q, V, rho_max, reflectance, lowrank, sigma_max, params, scene, stats) -> None:
+        """What every solver of a factorization holds (shared with the near-field solver)."""
         self.perm = np.asarray(perm, dtype=np.int64)
         n = self.perm.size
         self.inv_perm = np.empty(n, np.int64)
@@ -115,10 +124,10 @@ class HFactorization:
         self.params = dict(params or {})
         self.scene = scene
         self.timings: dict = {}
-        D = _channel_scale(self.reflectance, self.rho_max)[self.perm]
-        self.Y = woodbury_factors(self.Q, self.V, D) if Y is None else np.asarray(Y, self.Q.dtype)
-        self._D = D
+        self._D = _channel_scale(self.reflectance, self.rho_max)[self.perm]
         self._sigma = None if sigma_max is None else np.asarray(sigma_max, np.float64)
+        self._estimate: ErrorEstimate | None = None
+        self.stats = stats
 
     # -- sizes and accuracy ------------------------------------------------
     @property
@@ -148,50 +157,86 @@ class HFactorization:
         """``||G - Q V^T||_F / ||G||_F``."""
         return self.lowrank.relative_error
 
+    def error_estimate(self) -> ErrorEstimate:
+        """Accuracy figures of this factorization, per colour channel (computed once, cached).
+
+        Returns
+        -------
+        ErrorEstimate
+            ``bound``: an upper bound on the relative radiosity error of any
+            solve, in the area-weighted norm, failing with probability
+            ``failure_probability`` (1e-6); ``eq5_bound``: the paper's eq. 5,
+            a secondary figure; and the quantities they are made of
+            (docs/method.md, section 7).
+
+        Warns
+        -----
+        AccuracyWarning
+            Where a channel has no finite bound (``||R_c F||`` may reach 1, or
+            the factorization error is too large).
+
+        Notes
+        -----
+        O(n k p) for the probes and a power iteration on the factors for eq. 5
+        (O(nk) per step, a few hundred steps at most).
+        """
+        if self._estimate is None:
+            if self._sigma is None:
+                self._sigma = self._sigma_estimates()
+            if self.stats is None:
+                est = estimate_errors(self.achieved_error, self._sigma)
+            else:
+                est = estimate_errors(self.achieved_error, self._sigma,
+                                      operator_error=self.stats.operator_error(self.Q, self.V, self._D,
+                                                                               near=getattr(self, "N", None)),
+                                      contraction=self.stats.contraction(self.reflectance[self.perm]),
+                                      norm=self.stats.norm, failure_probability=FAILURE_PROBABILITY)
+            bad = ~np.isfinite(est.bound)
+            if bad.any():
+                why = ("sigma_max + error >= 1, eq. 5 gives no bound" if est.kind == "eq5" else
+                       f"contraction bound {np.round(est.contraction, 4).tolist()} and operator error "
+                       f"{np.round(est.operator_error, 4).tolist()} give no bound")
+                warnings.warn(f"no error bound for channels {np.flatnonzero(bad).tolist()}: {why}; "
+                              "fac.residual(E, B) gives the per-solution figure", AccuracyWarning, stacklevel=2)
+            self._estimate = est
+        return self._estimate
+
+    def _sigma_estimates(self) -> np.ndarray:
+        """(3,) power-iteration estimates of sigma_max(Q_c V^T), for eq. 5."""
+        return np.array([power_sigma_max(self.Q * self._D[:, c:c + 1].astype(self.dtype), self.V)
+                         for c in range(N_CHANNELS)])
+
     @property
     def sigma_max(self) -> np.ndarray:
-        """(3,) float: sigma_max(Q_c V^T) per channel, power iteration on the factors (cached)."""
-        if self._sigma is None:
-            self._sigma = np.array([power_sigma_max(self.Q * self._D[:, c:c + 1].astype(self.dtype), self.V)
-                                    for c in range(N_CHANNELS)])
-        return self._sigma
+        """(3,) float: sigma_max(Q_c V^T) per channel (stored by :meth:`error_estimate`)."""
+        return self.error_estimate().sigma_max
 
     @property
     def error_bound(self) -> np.ndarray:
-        """(3,) float: eq. 5 bound on ``||B~_c - B_c|| / ||B_c||`` per channel.
+        """(3,) float: the relative radiosity error bound per channel (see :meth:`error_estimate`)."""
+        return self.error_estimate().bound
 
-        ``eps_abs / (1 - sigma)`` with ``eps_abs`` the achieved absolute
-        Frobenius error (>= the 2-norm error of every channel) and, to stay
-        conservative, ``sigma = sigma_max(Q_c V^T) + eps_abs`` (Weyl: an upper
-        bound on sigma_max(R_c F) when the power estimate has converged).
-        ``inf`` with an AccuracyWarning where ``sigma >= 1``.
-        """
-        e = self.achieved_error
-        sigma = self.sigma_max + e
-        bound = eq5_bound(e, sigma)
-        ok = np.isfinite(bound)
-        if not ok.all():
-            warnings.warn(f"sigma_max + error >= 1 for channels {np.flatnonzero(~ok).tolist()} "
-                          f"(sigma estimates {sigma.round(4).tolist()}); eq. 5 gives no bound",
-                          AccuracyWarning, stacklevel=2)
-        return bound
+    @property
+    def eq5_bound(self) -> np.ndarray:
+        """(3,) float: the paper's eq. 5 figure per channel (see :meth:`error_estimate`)."""
+        return self.error_estimate().eq5_bound
 
     # -- solving -------------------------------------------------------------
-    def _validate(self, exitance, transpose: bool) -> np.ndarray:
+    def _validate(self, exitance, adjoint: bool) -> np.ndarray:
         E = np.asarray(exitance, dtype=np.float64)
         n = self.n_patches
         if E.ndim not in (1, 2, 3) or E.shape[0] != n or (E.ndim >= 2 and E.shape[1] != N_CHANNELS):
-            raise ValueError(f"exitance must have shape ({n},), ({n}, 3) or ({n}, 3, m) "
+            raise InputError(f"exitance must have shape ({n},), ({n}, 3) or ({n}, 3, m) "
                              f"(patches in the scene's order); got {E.shape}")
         if not np.isfinite(E).all():
             bad = int(np.flatnonzero(~np.isfinite(E.reshape(n, -1)).all(axis=1))[0])
-            raise ValueError(f"exitance has a NaN or infinite value at patch {bad}")
-        if not transpose and (E < 0).any():
+            raise InputError(f"exitance has a NaN or infinite value at patch {bad}")
+        if not adjoint and (E < 0).any():
             bad = int(np.flatnonzero((E.reshape(n, -1) < 0).any(axis=1))[0])
-            raise ValueError(f"exitance must be >= 0 (W/m^2); patch {bad} has a negative value")
+            raise InputError(f"exitance must be >= 0 (W/m^2); patch {bad} has a negative value")
         return E
 
-    def solve(self, exitance, *, transpose: bool = False) -> np.ndarray:
+    def solve(self, exitance, trans: str = "N", *, transpose: bool | None = None) -> np.ndarray:
         """Radiosity ``B_c = (I - R_c F)^{-1} E_c`` for every channel (eq. 4).
 
         Parameters
@@ -199,10 +244,13 @@ class HFactorization:
         exitance : (n,), (n, 3) or (n, 3, m) float >= 0, W/m^2, user patch order
             (n,) is a grey emission (the same for the three channels); (n, 3, m)
             is a batch of m emissions, solved together as matrix products.
-        transpose : bool
-            Solve the adjoint ``(I - R_c F)^T x = e`` instead (inverse design):
+        trans : {"N", "T"}
+            "T" solves the adjoint ``(I - R_c F)^T x = e`` instead (inverse
+            design), as in :func:`scipy.linalg.lu_solve`:
             ``(I - V Q_c^T)^{-1} = I - V Y_c^T``, so ``x = e - V (Y_c^T e)``.
             Negative entries are allowed then.
+        transpose : bool, optional
+            Deprecated spelling of ``trans="T"``.
 
         Returns
         -------
@@ -210,23 +258,34 @@ class HFactorization:
 
         Raises
         ------
-        ValueError
-            Wrong shape (expected and got are named), NaN/inf, or negative exitance.
+        InputError (a ValueError)
+            Wrong shape (expected and got are named), NaN/inf, negative
+            exitance, or an unknown ``trans``.
 
         Notes
         -----
         O(n k) per right-hand side and channel.
         """
-        E = self._validate(exitance, transpose)
+        if transpose is not None:
+            warnings.warn("solve(E, transpose=True) is deprecated; use solve(E, trans='T')",
+                          DeprecationWarning, stacklevel=2)
+            trans = "T" if transpose else "N"
+        adjoint = check_trans(trans)
+        E = self._validate(exitance, adjoint)
         if E.ndim == 1:
             E = np.repeat(E[:, None], N_CHANNELS, axis=1)
         batched = E.ndim == 3
-        Ei = E[self.perm] if batched else E[self.perm][:, :, None]   # (n, 3, m), internal order
+        out = self._solve(E if batched else E[:, :, None], adjoint)
+        return out if batched else out[:, :, 0]
+
+    def _solve(self, E: np.ndarray, adjoint: bool) -> np.ndarray:
+        """The solve of validated (n, 3, m) exitance in the user's order (the body of :meth:`solve`)."""
+        Ei = E[self.perm]                                                 # (n, 3, m), internal order
         m = Ei.shape[2]
         # One pass over the shared factor for all channels and emissions at once,
         # then one pass over each channel's own factor: the solve is bandwidth bound.
         E2 = Ei.reshape(len(Ei), N_CHANNELS * m).astype(self.dtype)
-        if transpose:
+        if adjoint:
             # (I - V Q_c^T)^{-1} = I - V Y_c^T:  x = e - V (Y_c^T e)
             W = np.concatenate([self.Y[c].T @ E2[:, c * m:(c + 1) * m] for c in range(N_CHANNELS)], axis=1)
             B = Ei - (self.V @ W).reshape(Ei.shape)
@@ -235,16 +294,101 @@ class HFactorization:
             B = Ei.copy()
             for c in range(N_CHANNELS):
                 B[:, c, :] -= self.Y[c] @ W[:, c * m:(c + 1) * m]           # eq. (4)
-        out = B[self.inv_perm]
-        return out if batched else out[:, :, 0]
+        return B[self.inv_perm]
+
+    def as_linear_operator(self, channel: int):
+        """``(I - R_c F)^{-1}`` of one channel as a :class:`scipy.sparse.linalg.LinearOperator`.
+
+        ``matvec`` is the O(nk) Woodbury solve, ``rmatvec`` the adjoint one;
+        vectors are in the user's patch order. Use it as a preconditioner
+        ``M`` of an iterative solver of the exact system (e.g.
+        ``scipy.sparse.linalg.gmres(I - R_c F, e, M=fac.as_linear_operator(c))``).
+
+        Parameters
+        ----------
+        channel : int in {0, 1, 2}
+            R, G or B.
+        """
+        from scipy.sparse.linalg import LinearOperator
+
+        if channel not in range(N_CHANNELS):
+            raise InputError(f"channel must be 0, 1 or 2 (R, G, B); got {channel!r}")
+        n = self.n_patches
+
+        def apply(x, adjoint: bool):
+            x = np.asarray(x, dtype=np.float64).reshape(n, -1)
+            E = np.zeros((n, N_CHANNELS, x.shape[1]))
+            E[:, channel] = x                      # the other channels stay zero: their solves cost O(nk) only
+            return self._solve(E, adjoint)[:, channel]
+
+        return LinearOperator((n, n), matvec=lambda x: apply(x, False), rmatvec=lambda x: apply(x, True),
+                              matmat=lambda X: apply(X, False), rmatmat=lambda X: apply(X, True),
+                              dtype=np.float64)
+
+    def residual(self, exitance, radiosity, *, form_factors=None, progress=None) -> ResidualEstimate:
+        """The guaranteed figure of one solution: its residual with the exact F, and the error bound it gives.
+
+        ``r = E - (I - R_c F) B~`` and ``||B~ - B|| <= ||r|| / (1 - ||R_c F||)``
+        (docs/method.md, section 7), in the area-weighted norm when the patch
+        areas are known. Uses this factorization's reflectance (which may
+        differ from its scene's after :meth:`with_reflectance`).
+
+        Parameters
+        ----------
+        exitance, radiosity : (n, 3) float, W/m^2, user patch order
+        form_factors : (n, n) float, optional
+            The exact F (user order). Without it F is streamed again from the
+            factorization's scene (as slow as the precompute's form factors).
+        progress : callable (done, total), optional
+
+        Returns
+        -------
+        ResidualEstimate
+            ``residual`` (relative, per channel) and ``bound`` (guaranteed
+            relative radiosity error of ``radiosity``, per channel).
+        """
+        E = self._validate(exitance, False)
+        B = check_finite(radiosity, "radiosity")
+        if E.shape != (self.n_patches, N_CHANNELS) or B.shape != E.shape:
+            raise InputError(f"exitance and radiosity must both have shape ({self.n_patches}, 3); "
+                             f"got {E.shape} and {B.shape}")
+        areas = self.areas
+        if form_factors is not None:
+            F = check_finite(form_factors, "form_factors")
+            if F.shape != (self.n_patches, self.n_patches):
+                raise InputError(f"form_factors must have shape ({self.n_patches}, {self.n_patches}); got {F.shape}")
+            return residual_estimate([(0, self.n_patches, F)], self.reflectance, E, B, areas=areas)
+        if self.scene is None:
+            raise InputError("this factorization has no scene to recompute F from; pass form_factors=F")
+        from ..formfactors.blocks import iter_column_blocks
+
+        samples = self.params.get("samples")
+        kwargs = {} if samples is None else {"samples": samples}
+        blocks = iter_column_blocks(self.scene, order=self.perm, progress=progress, **kwargs)
+        return residual_estimate(blocks, self.reflectance, E, B, perm=self.perm, areas=areas)
+
+    @property
+    def areas(self) -> np.ndarray | None:
+        """(n,) patch areas (m^2, user order) weighting the error norm, or None (plain 2-norm)."""
+        if self.scene is not None:
+            return np.asarray(self.scene.areas)
+        if self.stats is not None and self.stats.weights is not None:
+            return self.stats.weights[self.inv_perm]
+        return None
+
+    def save(self, path) -> "Path":
+        """Write this factorization (with its scene's patches) to an ``.hfr`` file, atomically."""
+        from .hfr import save_hfr
+
+        return save_hfr(self, path)
 
     def _checked_reflectance(self, reflectance) -> np.ndarray:
-        """(n, 3) float64 reflectance, validated and <= rho_max (ValueError naming the patch)."""
+        """(n, 3) float64 reflectance, validated and <= rho_max (InputError naming the patch)."""
         rho = check_reflectance(reflectance, self.n_patches)
         over = rho.max(axis=1) > self.rho_max * (1 + 1e-12)
         if over.any():
             i = int(np.flatnonzero(over)[0])
-            raise ValueError(f"patch {i} reflectance {rho[i].tolist()} exceeds rho_max "
+            raise InputError(f"patch {i} reflectance {rho[i].tolist()} exceeds rho_max "
                              f"{self.rho_max[i]:.6g} of this factorization; refactorize with the "
                              "new reflectance (factorize again)")
         return rho
@@ -264,7 +408,7 @@ class HFactorization:
         """
         rho = self._checked_reflectance(reflectance)
         return HFactorization(self.perm, self.Q, self.V, self.rho_max, rho, self.lowrank,
-                              params=self.params, scene=self.scene)
+                              params=self.params, scene=self.scene, stats=self.stats)
 
     def __repr__(self) -> str:
         return (f"HFactorization(n_patches={self.n_patches}, rank={self.rank}, "

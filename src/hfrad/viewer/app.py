@@ -22,7 +22,7 @@ from typing import Callable
 
 import numpy as np
 
-from ..errors import AccuracyWarning
+from ..errors import AccuracyWarning, InputError
 from ..io.emission import emission_json, loads_emission, write_emission
 from ..render.camera import Camera
 from ..render.falsecolor import UNITS
@@ -106,7 +106,7 @@ class ViewerApp:
     def __init__(self, fac, *, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, save_dir: "str | Path" = ".",
                  direct: bool = False, verbose: bool = False) -> None:
         if fac.scene is None:
-            raise ValueError("the factorization has no patches stored; re-run `hfrad precompute` (it stores them)")
+            raise InputError("the factorization has no patches stored; re-run `hfrad precompute` (it stores them)")
         viser = _import_viser()
         self.fac, self.scene = fac, fac.scene
         self.save_dir = Path(save_dir)
@@ -373,7 +373,7 @@ class ViewerApp:
         width = max(1, int(round(height * aspect)))
         image = render_image(self.scene.replace(emission=E), B, camera=camera, width=width, height=height,
                              exposure=exposure, falsecolor=falsecolor, unit=unit)
-        return save_png(path, image)
+        return save_png(image, path)
 
     def _client_camera(self, client) -> tuple[Camera, float]:
         cam = client.camera

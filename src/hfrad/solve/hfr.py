@@ -1,6 +1,7 @@
 """The ``.hfr`` factorization file (HDF5): everything needed to solve again without F.
 
-Layout (format version 1)::
+Layout (format version 2; version 1 files, without checksums and pass
+statistics, are still read)::
 
     /                  attrs: format ("hfrad-factorization"), format_version,
                        hfrad_version, n_patches, rank, eps, relative,
@@ -13,18 +14,25 @@ Layout (format version 1)::
                        the near field N (CSR, internal order) instead of Y when
                        the near-field split was used (attr solver says which)
     /factors/rho_max   (n,) float64, user order
+    /factors/reflectance (n, 3) float64, user order
+    /stats/...         row_sums, col_sums, sketch (n, p), weights: what the
+                       pass over F recorded, internal order; attrs probes, seed
     /patches/...       vertices, faces, material, reflectance, emission,
                        areas, normals, centroids, group, triangle_patch
                        (only for clustered patches: the patch of each
                        triangle of ``faces``); attrs
                        material_names, group_names, materials (JSON)
 
-The file is written under a temporary name in the same folder and renamed
-when complete, so a crash never leaves a partial ``.hfr`` behind.
+Every dataset carries HDF5's Fletcher-32 checksum and the attributes a
+SHA-256 digest (``attrs_sha256``), so a damaged file is refused with the name
+of the damaged dataset instead of giving an answer from garbage. The file is
+written under a temporary name in the same folder and renamed when complete,
+so a crash never leaves a partial ``.hfr`` behind.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 from pathlib import Path
 
@@ -36,11 +44,14 @@ from .._version import __version__
 from ..atomic import atomic_path
 from ..errors import FileFormatError
 from ..factorize.lowrank import LowRank
-from ..solve.nearfield import NearFieldFactorization
-from ..solve.woodbury import HFactorization
+from ..validation import object_first
+from .nearfield import NearFieldFactorization
+from .stats import PassStatistics
+from .woodbury import HFactorization
 
 FORMAT = "hfrad-factorization"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+DIGEST = "attrs_sha256"
 
 __all__ = ["save_hfr", "load_hfr", "read_hfr_metadata", "FORMAT_VERSION"]
 
@@ -56,9 +67,9 @@ def _json_default(o):
 def _write_scene(g: h5py.Group, scene) -> None:
     for name in ("vertices", "faces", "material", "reflectance", "emission", "areas", "normals",
                  "centroids", "group", "parent", "occluder_vertices", "occluder_faces"):
-        g.create_dataset(name, data=np.asarray(getattr(scene, name)))
+        _dataset(g, name, getattr(scene, name))
     if scene.is_clustered:  # patches that are clusters of the detail triangles `faces`
-        g.create_dataset("triangle_patch", data=np.asarray(scene.triangle_patch))
+        _dataset(g, "triangle_patch", scene.triangle_patch)
     g.attrs["material_names"] = json.dumps(list(scene.material_names))
     g.attrs["group_names"] = json.dumps(list(scene.groups))
     g.attrs["materials"] = json.dumps([{"name": m.name, "reflectance": list(m.reflectance),
@@ -67,13 +78,13 @@ def _write_scene(g: h5py.Group, scene) -> None:
     g.attrs["name"] = str(scene.name)
 
 
-def save_hfr(path, factorization: HFactorization, *, scene=None, timings: dict | None = None) -> Path:
+def save_hfr(factorization: HFactorization, path, *, scene=None, timings: dict | None = None) -> Path:
     """Write ``factorization`` (and optionally its scene's patches) to an .hfr file.
 
     Parameters
     ----------
-    path : str or Path
     factorization : HFactorization
+    path : str or Path
     scene : Scene, optional
         Defaults to ``factorization.scene``.
     timings : dict, optional
@@ -83,9 +94,11 @@ def save_hfr(path, factorization: HFactorization, *, scene=None, timings: dict |
     -------
     Path of the written file. Written atomically (temporary file + rename).
     """
+    factorization, path = object_first(factorization, path, "save_hfr(factorization, path)")
     path = Path(path)
     fac = factorization
     scene = fac.scene if scene is None else scene
+    estimate = fac.error_estimate()
     with atomic_path(path) as tmp:
         with h5py.File(tmp, "w") as f:
             lr = fac.lowrank
@@ -100,29 +113,73 @@ def save_hfr(path, factorization: HFactorization, *, scene=None, timings: dict |
             a["achieved_error"] = lr.achieved_error
             a["norm"] = lr.norm
             a["method"] = lr.method
-            a["sigma_max"] = fac.sigma_max
-            a["error_bound"] = fac.error_bound
+            a["sigma_max"] = estimate.sigma_max
+            a["error_bound"] = estimate.bound
             a["parameters"] = json.dumps(fac.params, default=_json_default)
             a["timings"] = json.dumps(timings or {}, default=_json_default)
             a["lowrank_info"] = json.dumps({k: v for k, v in lr.info.items() if k != "leaf_ranks"},
                                            default=_json_default)
             g = f.create_group("factors")
-            g.create_dataset("perm", data=fac.perm)
-            g.create_dataset("Q", data=fac.Q)
-            g.create_dataset("V", data=fac.V)
+            for name in ("perm", "Q", "V", "rho_max", "reflectance"):
+                _dataset(g, name, getattr(fac, name))
             a["solver"] = getattr(fac, "solver", "woodbury")
             N = getattr(fac, "N", None)
             if N is None:
-                g.create_dataset("Y", data=fac.Y)
+                _dataset(g, "Y", fac.Y)
             else:  # near-field split: sparse N (CSR, internal order) instead of the Y_c
-                g.create_dataset("near_data", data=N.data)
-                g.create_dataset("near_indices", data=N.indices)
-                g.create_dataset("near_indptr", data=N.indptr)
-            g.create_dataset("rho_max", data=fac.rho_max)
-            g.create_dataset("reflectance", data=fac.reflectance)
+                _dataset(g, "near_data", N.data)
+                _dataset(g, "near_indices", N.indices)
+                _dataset(g, "near_indptr", N.indptr)
+            if fac.stats is not None:
+                _write_stats(f.create_group("stats"), fac.stats)
             if scene is not None:
                 _write_scene(f.create_group("patches"), scene)
+            f.attrs[DIGEST] = _attrs_digest(f)
     return path
+
+
+def _dataset(g: h5py.Group, name: str, data) -> None:
+    """A dataset with HDF5's Fletcher-32 checksum (chunked; an empty array has nothing to check)."""
+    a = np.asarray(data)
+    if a.size and a.ndim:
+        g.create_dataset(name, data=a, fletcher32=True, chunks=True)
+    else:
+        g.create_dataset(name, data=a)
+
+
+def _write_stats(g: h5py.Group, stats) -> None:
+    state = stats.state()
+    for name in ("row_sums", "col_sums", "sketch", "weights"):
+        if name in state:
+            _dataset(g, name, state[name])
+    g.attrs["probes"], g.attrs["seed"] = state["probes"], state["seed"]
+
+
+def _attrs_digest(f: h5py.File) -> str:
+    """SHA-256 over every attribute of every group (as stored), except the digest itself."""
+    h = hashlib.sha256()
+    groups = []
+    f.visititems(lambda name, obj: groups.append((name, obj)) if isinstance(obj, h5py.Group) else None)
+    for name, obj in [("/", f), *sorted(groups, key=lambda t: t[0])]:
+        for key in sorted(obj.attrs):
+            if obj is f and key == DIGEST:
+                continue
+            value = np.asarray(obj.attrs[key])
+            h.update(f"{name}/{key}:{value.dtype.str}:{value.shape}:".encode())
+            h.update(value.tobytes() if value.dtype.kind != "O" else repr(value.tolist()).encode())
+    return h.hexdigest()
+
+
+def _read(g: h5py.Group, name: str, path: Path):
+    """A dataset's data; FileFormatError naming the file and the dataset when it is missing or damaged."""
+    where = f"{g.name.rstrip('/')}/{name}"
+    try:
+        return g[name][()]
+    except KeyError:
+        raise FileFormatError(f"{path}: dataset {where} is missing (truncated or corrupted file)") from None
+    except (OSError, ValueError) as exc:
+        raise FileFormatError(f"{path}: dataset {where} is damaged (checksum mismatch or unreadable data): "
+                              f"{exc}") from exc
 
 
 def _open(path: Path) -> h5py.File:
@@ -177,37 +234,51 @@ def read_hfr_metadata(path) -> dict:
             raise FileFormatError(f"{path}: corrupted .hfr header: {exc}") from exc
 
 
-def _read_scene(g: h5py.Group):
+def _read_scene(g: h5py.Group, path: Path | None = None):
     from ..scene.scene import Material, Scene
+    path = Path(g.file.filename) if path is None else path
     mats = tuple(Material(m["name"], tuple(m["reflectance"]), tuple(m["emission"]))
                  for m in json.loads(g.attrs["materials"]))
-    return Scene(vertices=g["vertices"][()], faces=g["faces"][()], material=g["material"][()],
-                 materials=mats, group=g["group"][()], groups=tuple(json.loads(g.attrs["group_names"])),
-                 reflectance=g["reflectance"][()], emission=g["emission"][()], name=str(g.attrs["name"]),
-                 **{k: g[k][()] for k in ("parent", "occluder_vertices", "occluder_faces", "triangle_patch") if k in g})
+    optional = {k: _read(g, k, path) for k in ("parent", "occluder_vertices", "occluder_faces", "triangle_patch")
+                if k in g}
+    return Scene(vertices=_read(g, "vertices", path), faces=_read(g, "faces", path),
+                 material=_read(g, "material", path), materials=mats, group=_read(g, "group", path),
+                 groups=tuple(json.loads(g.attrs["group_names"])), reflectance=_read(g, "reflectance", path),
+                 emission=_read(g, "emission", path), name=str(g.attrs["name"]), **optional)
+
+
+def _read_stats(g: h5py.Group, path: Path) -> PassStatistics:
+    state = {k: _read(g, k, path) for k in ("row_sums", "col_sums", "sketch", "weights") if k in g}
+    state.update(probes=int(g.attrs["probes"]), seed=int(g.attrs["seed"]))
+    return PassStatistics.from_state(state)
 
 
 def load_hfr(path) -> HFactorization:
     """Read an .hfr file back into an :class:`HFactorization` (with ``.scene`` if stored).
 
+    Every dataset's checksum and the attributes' digest are verified.
+
     Raises
     ------
     FileNotFoundError
     FileFormatError
-        Truncated or corrupted file (names it), or a newer format version
-        (upgrade hfrad).
+        Truncated or damaged file (names the file and the damaged dataset),
+        or a newer format version (upgrade hfrad).
     """
     path = Path(path)
     with _open(path) as f:
         try:
+            if DIGEST in f.attrs and str(f.attrs[DIGEST]) != _attrs_digest(f):
+                raise FileFormatError(f"{path}: the header attributes are damaged (their SHA-256 digest "
+                                      "does not match)")
             meta = _metadata(f)
             g = f["factors"]
-            perm, Q, V = g["perm"][()], g["Q"][()], g["V"][()]
-            Y = g["Y"][()] if "Y" in g else None
-            near = tuple(g[k][()] for k in ("near_data", "near_indices", "near_indptr")) \
+            perm, Q, V, rho_max, rho = (_read(g, k, path) for k in ("perm", "Q", "V", "rho_max", "reflectance"))
+            Y = _read(g, "Y", path) if "Y" in g else None
+            near = tuple(_read(g, k, path) for k in ("near_data", "near_indices", "near_indptr")) \
                 if "near_data" in g else None
-            rho_max, rho = g["rho_max"][()], g["reflectance"][()]
-            scene = _read_scene(f["patches"]) if "patches" in f else None
+            scene = _read_scene(f["patches"], path) if "patches" in f else None
+            stats = _read_stats(f["stats"], path) if "stats" in f else None
         except FileFormatError:
             raise
         except Exception as exc:  # h5py raises KeyError/OSError/ValueError on damaged data
@@ -221,10 +292,10 @@ def load_hfr(path) -> HFactorization:
                  relative=meta["relative"], method=meta["method"], info=meta["lowrank_info"])
     if near is None:
         fac = HFactorization(perm, Q, V, rho_max, rho, lr, Y=Y, sigma_max=meta["sigma_max"],
-                             params=meta["parameters"], scene=scene)
+                             params=meta["parameters"], scene=scene, stats=stats)
     else:
         N = sp.csr_matrix(near, shape=(n, n))
         fac = NearFieldFactorization(perm, Q, V, N, rho_max, rho, lr, sigma_max=meta["sigma_max"],
-                                     params=meta["parameters"], scene=scene)
+                                     params=meta["parameters"], scene=scene, stats=stats)
     fac.timings = meta["timings"]
     return fac

@@ -1,0 +1,80 @@
+"""Energy checks on the row sums of F: a patch cannot send out more light than it has.
+
+Row i of F sums to the fraction of patch i's light that lands on other
+patches: at most 1, exactly 1 in a closed scene. The sums are accumulated for
+free while F streams past (:class:`hfrad.solve.stats.PassStatistics`). A row
+well above 1 means duplicated or overlapping geometry (each copy receives the
+full share) or a form-factor failure; well below 1 in a closed scene means
+light leaks through a gap.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+
+from ..errors import AccuracyWarning
+
+#: Row sums within this of 1 are the kernel's and the visibility sampling's own error.
+ROW_SUM_TOLERANCE = 0.05
+#: Patches named in a warning.
+WORST = 5
+
+__all__ = ["ROW_SUM_TOLERANCE", "energy_problems", "warn_energy", "is_closed"]
+
+
+def is_closed(scene) -> bool:
+    """Whether the occluder mesh is closed: every edge is shared by exactly two triangles."""
+    faces = np.asarray(scene.occluder_faces)
+    if not len(faces):
+        return False
+    edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    return bool((counts == 2).all())
+
+
+def _worst(scene, idx: np.ndarray, row_sums: np.ndarray) -> str:
+    names = scene.material_names
+    return ", ".join(f"patch {i} ({names[scene.material[i]]}) {row_sums[i]:.3f}" for i in idx)
+
+
+def energy_problems(scene, row_sums, *, tolerance: float = ROW_SUM_TOLERANCE) -> list[str]:
+    """Messages about rows of F that create energy (> 1 + tolerance) or, in a closed scene, leak it.
+
+    Parameters
+    ----------
+    scene : Scene
+    row_sums : (n,) float, user patch order
+        ``sum_j F[i, j]``.
+    tolerance : float
+
+    Returns
+    -------
+    list of str, empty when the row sums are plausible; each names the worst
+    patches, their materials and row sums.
+    """
+    r = np.asarray(row_sums, dtype=np.float64)
+    out = []
+    over = np.flatnonzero(r > 1.0 + tolerance)
+    if over.size:
+        worst = over[np.argsort(r[over])[::-1][:WORST]]
+        mats = sorted({scene.material_names[m] for m in scene.material[over]})
+        out.append(f"{scene.name}: {over.size} patches send out more light than they receive (row sums of F up "
+                   f"to {r.max():.3f} > 1 + {tolerance}), materials {', '.join(mats)}; worst: "
+                   f"{_worst(scene, worst, r)}. Duplicate or overlapping faces? (hfrad info lists them)")
+    if r.size and is_closed(scene):
+        under = np.flatnonzero(r < 1.0 - tolerance)
+        if under.size:
+            worst = under[np.argsort(r[under])[:WORST]]
+            out.append(f"{scene.name}: the scene is closed but {under.size} patches lose light (row sums of F "
+                       f"down to {r.min():.3f} < 1 - {tolerance}); worst: {_worst(scene, worst, r)}")
+    return out
+
+
+def warn_energy(scene, row_sums, *, tolerance: float = ROW_SUM_TOLERANCE) -> list[str]:
+    """Emit :func:`energy_problems` as AccuracyWarnings; returns the messages."""
+    problems = energy_problems(scene, row_sums, tolerance=tolerance)
+    for message in problems:
+        warnings.warn(message, AccuracyWarning, stacklevel=3)
+    return problems
