@@ -26,7 +26,7 @@ def register(app: typer.Typer) -> None:
         dtype: str = common.dtype_option("float32"),
         samples: Optional[int] = typer.Option(None, "--samples", help="Visibility rays per patch pair."),
         order: str = typer.Option("zorder", "--order", help="Internal patch order: zorder, hilbert, random, input."),
-        processes: int = typer.Option(1, "--processes", help="Form-factor worker processes, each with its own Embree scene (default 1: this process, numba threads + one Embree thread)."),
+        processes: Optional[int] = typer.Option(None, "--processes", help="Form-factor worker processes, each with its own Embree scene. Default: one per core from 4,000 patches on (idle 2 cores, 10K patches: form factors 9.9 s vs 18.4 s in one process), else this process."),
         near_field: Optional[int] = typer.Option(None, "--near-field", help="Split pairs within ~this many neighbours per row into a sparse N (e.g. 64); solver: Woodbury around a sparse LU. Default: off."),
         unit_scale: float = common.UnitScaleOption,
         emission: Optional[List[str]] = common.EmissionOption,
@@ -72,7 +72,7 @@ def register(app: typer.Typer) -> None:
                 common.console.print(f"memory estimate: about {human(estimate)} for {s.n_patches:,} patches "
                                      "(rank guessed; refused above 80% of the available memory)", highlight=False)
             if scheduler is not None or workers is not None:
-                if near_field or processes != 1:
+                if near_field or processes not in (None, 1):
                     raise InputError("--near-field and --processes are for the in-process path; with --scheduler "
                                      "or --workers the Dask workers compute the blocks and HF has no near-field "
                                      "split yet")
