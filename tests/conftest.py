@@ -36,3 +36,12 @@ def interrupt_at(blocks: int):
         if info["blocks"] == blocks:
             raise Interrupt
     return status
+
+
+def run_cli(*args):
+    """Invoke the ``hfrad`` command line in-process; arguments may be paths or numbers."""
+    from typer.testing import CliRunner
+
+    from hfrad.cli import app
+
+    return CliRunner().invoke(app, [str(a) for a in args])

@@ -7,18 +7,14 @@ import json
 import click
 import pytest
 import typer
-from typer.testing import CliRunner
+from conftest import run_cli as run
 
 from hfrad.cli import app
 
-runner = CliRunner()
 SCENE_COMMANDS = ("info", "formfactors", "precompute")
 SCENE_FLAGS = {"--max-edge", "--patches", "--unit-scale", "--emission", "--area-light", "--default-reflectance",
                "--allow-missing-materials"}
 
-
-def run(*args):
-    return runner.invoke(app, [str(a) for a in args])
 
 
 def _flags(command: str) -> dict[str, click.Parameter]:
@@ -90,7 +86,7 @@ def test_allow_missing_materials_on_precompute(tmp_path):
 def test_solve_json(tmp_path):
     hfr = tmp_path / "c.hfr"
     assert run("precompute", "cornell", "--patches", "200", "--eps", "0.05", "-o", hfr, "--quiet").exit_code == 0
-    result = runner.invoke(app, ["solve", str(hfr), "-o", str(tmp_path / "b.npz"), "--json", "--emit", "light=5"])
+    result = run("solve", hfr, "-o", tmp_path / "b.npz", "--json", "--emit", "light=5")
     assert result.exit_code == 0, result.output
     line = next(l for l in result.output.splitlines() if l.startswith("{"))
     report = json.loads(line)

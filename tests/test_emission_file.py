@@ -6,17 +6,10 @@ import json
 
 import numpy as np
 import pytest
-from typer.testing import CliRunner
 
-from hfrad.cli import app
+from conftest import run_cli as run
 from hfrad.errors import FileFormatError
 from hfrad.io.emission import EmitterSetting, emission_overrides, read_emission, write_emission
-
-runner = CliRunner()
-
-
-def run(*args):
-    return runner.invoke(app, [str(a) for a in args])
 
 
 @pytest.fixture(scope="module")
