@@ -26,6 +26,7 @@ from .factorize.hf import HFStream
 from .factorize.nearfield import DEFAULT_NEAR_ENTRIES, NearFieldSplit, near_radius
 from .factorize.streaming import load_checkpoint, save_checkpoint
 from .formfactors.energy import warn_energy
+from .formfactors.parallel import default_one_ray_tol
 from .progress import ProgressCallback, report
 from .scene.scene import Scene
 from .scene.zorder import patch_order
@@ -216,7 +217,7 @@ def _factorize_scene(scene: Scene, *, eps: float, relative: bool, block_size: in
     rho_max = scene.reflectance.max(axis=1)
     n_blocks = math.ceil(n / block_size)
     if one_ray_tol is None:
-        one_ray_tol = 0.25 * eps if relative else 0.0
+        one_ray_tol = default_one_ray_tol(eps, relative)
     params = {"eps": eps, "relative": relative, "block_size": block_size, "dtype": dt.name,
               "samples": samples, "order": order, "leaf_share": leaf_share, "one_ray_tol": one_ray_tol,
               "near_field": near_entries(near_field, n),

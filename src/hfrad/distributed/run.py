@@ -22,6 +22,7 @@ from distributed.scheduler import KilledWorker
 from ..defaults import DEFAULT_BLOCK_SIZE
 from ..errors import MemoryLimitError, SceneError
 from ..factorize.hf import counter_tree
+from ..formfactors.parallel import default_one_ray_tol
 from ..memory import human
 from ..progress import ProgressCallback, report
 from ..scene.scene import Scene
@@ -101,7 +102,7 @@ def factorize_distributed(scene, *, scheduler=None, workers: int | None = None, 
     dt = check_factorize_options(scene.n_patches, eps, block_size, dtype, relative)
     options = {"eps": eps, "relative": relative, "block_size": block_size, "dtype": dt.name,
                "samples": samples, "order": order, "leaf_share": leaf_share,
-               "one_ray_tol": (0.25 * eps if relative else 0.0) if one_ray_tol is None else one_ray_tol}
+               "one_ray_tol": default_one_ray_tol(eps, relative) if one_ray_tol is None else one_ray_tol}
     if isinstance(scheduler, Cluster):
         return _run(scheduler, scene, options, task_threads, progress, status, records)
     with connect(scheduler, workers=workers, timeout=connect_timeout) as cluster:

@@ -59,6 +59,19 @@ def default_workers() -> int:
         return max(1, os.cpu_count() or 1)
 
 
+#: Share of the factorization's error budget eps that the one-ray rule may spend by default.
+ONE_RAY_SHARE = 0.25
+
+
+def default_one_ray_tol(eps: float, relative: bool) -> float:
+    """The one-ray rule's tolerance when the user gives none: ``ONE_RAY_SHARE * eps``.
+
+    Only for a relative eps (a share of ``||F||_F``); with an absolute eps the
+    rule is off (0), since the threshold is relative to ``||F||_F``.
+    """
+    return ONE_RAY_SHARE * eps if relative else 0.0
+
+
 def one_ray_threshold(scene, tol: float, *, geometry: PatchGeometry | None = None,
                       sample_columns: int = THRESHOLD_SAMPLE_COLUMNS) -> float:
     """Largest ``tau`` such that pairs with ``A_i F_ij < tau`` hold at most ``tol^2`` of ``||F||_F^2``.
