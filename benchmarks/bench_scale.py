@@ -77,6 +77,18 @@ def copy_seconds(nbytes: int, repeat: int = 5) -> float:
     return best
 
 
+def _status_printer(n: int, every: float = 60.0):
+    """A ``status`` callback printing blocks done and rank to stderr about once a minute."""
+    last = [time.perf_counter()]
+
+    def show(state: dict) -> None:
+        if time.perf_counter() - last[0] >= every:
+            last[0] = time.perf_counter()
+            print(f"    n={n:,}: {state['blocks']} blocks, rank {state['rank']:,}, {state['elapsed']:.0f} s, "
+                  f"load {os.getloadavg()[0]:.1f}", file=sys.stderr, flush=True)
+    return show
+
+
 def run_one(args) -> dict:
     """One size, in this process: the precompute, then a relighting solve and the residual."""
     from hfrad.pipeline import factorize
@@ -88,7 +100,10 @@ def run_one(args) -> dict:
     t_load = time.perf_counter() - t0
     n = scene.n_patches
     t1 = time.perf_counter()
-    fac = factorize(scene, eps=args.eps, processes=args.processes, near_field=args.near_field or None)
+    checkpoint = Path(args.checkpoint) / f"{args.scene}-{args.one}-{args.eps}-{args.near_field}.ckpt" \
+        if args.checkpoint else None
+    fac = factorize(scene, eps=args.eps, processes=args.processes, near_field=args.near_field or None,
+                    checkpoint=checkpoint, status=_status_printer(n))
     t_total = time.perf_counter() - t1
     info = fac.lowrank.info
     k = fac.rank
@@ -226,6 +241,8 @@ def main() -> None:
     p.add_argument("--ffprobe", type=int, default=0, help="probe the form-factor engine at this patch count")
     p.add_argument("--blocks", type=int, default=6)
     p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--checkpoint", default=None,
+                   help="folder for checkpoints: an interrupted size resumes when rerun (large runs)")
     p.add_argument("--report", action="store_true")
     p.add_argument("--out", default=RESULT, help="results/NAME.json to add to (default scale)")
     p.add_argument("--one", type=int, default=0, help=argparse.SUPPRESS)
@@ -250,11 +267,12 @@ def main() -> None:
         cmd += ["--processes", str(args.processes)] if args.processes else []
         cmd += ["--residual"] if args.residual else []
         cmd += ["--image", args.image] if args.image else []
+        cmd += ["--checkpoint", args.checkpoint] if args.checkpoint else []
         print(f"running {args.scene} at {size:,} patches (load {os.getloadavg()[0]:.1f}) ...", flush=True)
-        proc = subprocess.run(cmd, capture_output=True, text=True)
+        proc = subprocess.run(cmd, stdout=subprocess.PIPE, text=True)  # its progress goes to stderr
         rows = [json.loads(line[4:]) for line in proc.stdout.splitlines() if line.startswith("ROW ")]
         if proc.returncode or not rows:
-            print(f"  failed (exit {proc.returncode}): {proc.stderr[-2000:]}", flush=True)
+            print(f"  failed (exit {proc.returncode}; its messages are above)", flush=True)
             continue
         row = rows[0] | {"machine": m}
         print(f"  n={row['n_patches']:,} rank {row['rank']:,} FF {row['time_formfactors']:.0f} s, "

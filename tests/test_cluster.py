@@ -9,7 +9,7 @@ from typer.testing import CliRunner
 from hfrad.formfactors.analytic import parallel_rectangles
 from hfrad.formfactors.blocks import form_factor_matrix
 from hfrad.scene.builtin import cornell_box, parallel_plates
-from hfrad.scene.cluster import cluster, cluster_summary
+from hfrad.scene.cluster import CRUMB, cluster, cluster_summary, compactness, patch_diameters
 from hfrad.scene.load import load_scene
 from hfrad.scene.patches import subdivide
 
@@ -61,6 +61,71 @@ def test_split_and_grow_in_one_scene():
     summary = cluster_summary(c)
     assert summary["clustered"] and summary["triangles_per_patch"]["max"] > 1
     assert abs(c.total_area - s.total_area) <= 1e-12 * s.total_area
+
+
+def _strip_floor(strips: int = 20, size: float = 10.0):
+    """A size x size floor of long thin strips, each two triangles along its length (Sponza's floor)."""
+    from hfrad.scene.scene import Material, Scene
+
+    w = size / strips
+    v = np.array([p for k in range(strips) for p in ((0, k * w, 0), (size, k * w, 0), (size, (k + 1) * w, 0),
+                                                      (0, (k + 1) * w, 0))], float)
+    f = np.array([t for k in range(strips) for t in ((4 * k, 4 * k + 1, 4 * k + 2), (4 * k, 4 * k + 2, 4 * k + 3))])
+    return Scene(vertices=v, faces=f, material=np.zeros(len(f), int), materials=(Material("floor", (0.5, 0.5, 0.5)),))
+
+
+def test_long_thin_faces_give_compact_patches():
+    """Strips 20 x longer than wide are cut before growing: patches of bounded diameter, not strips."""
+    s = _strip_floor()
+    c = cluster(s, patches=100)
+    assert 90 <= c.n_patches <= 110
+    assert abs(c.total_area - s.total_area) <= 1e-12 * s.total_area
+    assert (c.parent >= 0).all() and set(np.unique(c.parent)) == set(range(s.n_patches))
+    q = compactness(c)
+    # a 10 m x 0.5 m strip (or its 2 x 2 split) has D^2/A ~ 20-70; observed p99 3.7, max 14.2
+    assert np.percentile(q, 99) < 8.0 and q.max() < 25.0
+    # no patch wider than the growing's reach allows (observed 3.8 sqrt(target area))
+    assert patch_diameters(c).max() < 4.5 * np.sqrt(s.total_area / 100)
+    summary = cluster_summary(c)["compactness"]
+    assert summary["max"] == pytest.approx(q.max()) and summary["p99"] <= summary["max"]
+
+
+def _plates_with_screws(screws: int = 12):
+    """Two opposed unit plates of 800 triangles, with 1 mm spheres of 320 triangles on the lower one."""
+    import trimesh
+
+    from hfrad.scene.scene import Scene
+
+    plates = subdivide(parallel_plates(1, 1, 1), patches=800)
+    v, f, m = [plates.vertices], [plates.faces], [plates.material]
+    rng = np.random.default_rng(0)
+    for _ in range(screws):
+        ico = trimesh.creation.icosphere(subdivisions=2, radius=1e-3)
+        f.append(ico.faces + sum(len(x) for x in v))
+        v.append(ico.vertices + [rng.uniform(0.1, 0.9), rng.uniform(0.1, 0.9), 2e-3])
+        m.append(np.zeros(len(ico.faces), int))
+    return Scene(vertices=np.concatenate(v), faces=np.concatenate(f), material=np.concatenate(m),
+                 materials=plates.materials)
+
+
+def test_micro_triangle_crumbs_join_a_patch_and_keep_F_a_contraction():
+    """Tiny closed parts (screws) become no patch of their own: patch areas spanning 10^4 made
+    the plain 2-norm of F exceed 1 (a column of F sums the shares F_ij <= 1 of every crumb i)."""
+    s = _plates_with_screws()
+    c = cluster(s, patches=60)
+    target = s.total_area / 60
+    assert c.areas.min() >= CRUMB * target  # observed 0.46 target; unmerged screws were 5e-5
+    assert c.areas.max() / c.areas.min() < 10  # observed 2.3 (2.8e4 with the screws as patches)
+    assert c.non_flatness.max() < 0.01  # a screw is 1e-3 of its host's area: the host stays flat
+    assert c.n_triangles == s.n_patches and abs(c.total_area - s.total_area) <= 1e-12 * s.total_area
+    from hfrad.formfactors.clustered import KERNEL_TRIANGLES, ClusterGeometry
+
+    geom = ClusterGeometry(c)  # hosts of a screw have > KERNEL_TRIANGLES: the kernel skips screw triangles
+    assert np.diff(c.patch_triangles[0]).max() > KERNEL_TRIANGLES >= np.diff(geom.start).max()
+    assert 0 < geom.dropped.max() < 1e-3
+    F = form_factor_matrix(c, samples=0)
+    assert F.sum(axis=1).max() <= 1.0 and F.sum(axis=0).max() <= 1.0  # observed 0.24, 0.25
+    assert np.linalg.norm(F, 2) < 1.0  # observed 0.21 (1.20 with the screws as patches)
 
 
 def test_request_that_cannot_be_met_warns():

@@ -100,7 +100,9 @@ def _print_summary(summary: dict) -> None:
         out.print(f"clustered: {summary['patches']:,} patches of {c['triangles']:,} triangles "
                   f"({per['mean']:.1f} per patch on average, median {per['median']:g}, at most {per['max']:,}); "
                   f"patch area spread (std/mean) {c['area_cv']:.2f}; worst non-flatness {c['worst_non_flatness']:.3f} "
-                  "(1 - |mean normal|; 0 = flat)", highlight=False)
+                  "(1 - |mean normal|; 0 = flat); compactness diameter^2/area median "
+                  f"{c['compactness']['median']:.1f}, 99th percentile {c['compactness']['p99']:.1f}, worst "
+                  f"{c['compactness']['max']:.0f} (disk 1.3, square 2-4, strip ~ length/width)", highlight=False)
     lo, hi = summary["bounds_min"], summary["bounds_max"]
     out.print("bounds: min (" + ", ".join(f"{x:.4g}" for x in lo) + ")  max (" + ", ".join(f"{x:.4g}" for x in hi) + ")")
     table = Table("material", "reflectance (R,G,B)", "emission W/m^2", "patches", "area m^2")

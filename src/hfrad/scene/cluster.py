@@ -9,6 +9,11 @@ radiosity systems):
 
 1. Target area A* = total area / N (times a factor found by a few secant
    steps so that the patch count comes out within ~5 % of N).
+1b. Faces longer than PRESPLIT_EDGE sqrt(A*) are first cut by longest-edge
+   bisection until no piece is (:func:`presplit`), and the pieces are grown
+   like any small face: a long thin face (Sponza's floor strips) would otherwise be a
+   long thin patch, one radiosity value along a strip; now its pieces join
+   their neighbours across the strip into compact patches.
 2. Faces larger than A* are split m x m, m = round(sqrt(area / A*)), as
    :func:`hfrad.scene.patches.subdivide` does; each piece is a patch.
 3. The other faces are grown into clusters. Seeds are taken along the Z-order
@@ -44,7 +49,7 @@ import math
 import numpy as np
 from numba import njit
 
-from .patches import split_faces
+from .patches import _merge_vertices as merge_vertices, split_faces
 from .scene import Scene
 from .zorder import zorder_permutation
 
@@ -60,14 +65,14 @@ MAX_TRIANGLES = 128
 #: Clusters smaller than this fraction of the target area are merged into a neighbour.
 MERGE_BELOW = 0.25
 
-#: Most triangles in one patch (bounds the form-factor cost of a patch pair).
-MAX_TRIANGLES = 128
-
 #: Clusters smaller than this fraction of the target area look for a nearby (not adjacent) partner.
 NEARBY_BELOW = 0.5
 
 #: Clusters below this fraction of the target area join the nearest compatible one whatever its normal.
 CRUMB = 0.01
+
+#: A crumb joins a patch whatever its normal if it adds at most this fraction of the patch's area.
+CRUMB_SHARE = 0.02
 
 #: A crumb may hold up to this many times MAX_TRIANGLES (micro-triangle details).
 CRUMB_CAP = 4
@@ -78,6 +83,9 @@ NEARBY_ROUNDS = 4
 
 #: Accept a patch count within this relative distance of the one asked for.
 COUNT_TOLERANCE = 0.05
+
+#: Faces longer than this times sqrt(target area) are cut before growing (compact patches).
+PRESPLIT_EDGE = 1.5
 
 
 def weld(vertices: np.ndarray, faces: np.ndarray, *, rel_tol: float = 1e-9) -> np.ndarray:
@@ -178,9 +186,58 @@ def _grow(seeds, eligible, key, welded, vstart, vtris, cent, nrm, area, reach, c
 
 
 @njit(cache=True)
-def _merge_small(label, n_clusters, key, welded, vstart, vtris, nrm, area, cos_tol, a_small, a_tiny, a_max,
-                 max_triangles):
-    """Merge clusters smaller than ``a_small`` into a compatible neighbour; relabels in place."""
+def _cluster_spheres(label, n_clusters, cent, reach, area):
+    """(centres (c, 3), radii (c,)): a sphere around each cluster's triangles (area-weighted centre)."""
+    c_cen = np.zeros((n_clusters, 3))
+    c_area = np.zeros(n_clusters)
+    for t in range(label.shape[0]):
+        c = label[t]
+        if c >= 0:
+            c_area[c] += area[t]
+            for k in range(3):
+                c_cen[c, k] += area[t] * cent[t, k]
+    for c in range(n_clusters):
+        if c_area[c] > 0.0:
+            for k in range(3):
+                c_cen[c, k] /= c_area[c]
+    rad = np.zeros(n_clusters)
+    for t in range(label.shape[0]):
+        c = label[t]
+        if c >= 0:
+            d = math.sqrt((cent[t, 0] - c_cen[c, 0]) ** 2 + (cent[t, 1] - c_cen[c, 1]) ** 2
+                          + (cent[t, 2] - c_cen[c, 2]) ** 2) + reach[t]
+            rad[c] = max(rad[c], d)
+    return c_cen, rad
+
+
+@njit(cache=True)
+def _union_sphere(cen, rad, a, b):
+    """Smallest sphere around spheres a and b: (x, y, z, radius)."""
+    dx = cen[b, 0] - cen[a, 0]
+    dy = cen[b, 1] - cen[a, 1]
+    dz = cen[b, 2] - cen[a, 2]
+    d = math.sqrt(dx * dx + dy * dy + dz * dz)
+    if d + rad[b] <= rad[a]:
+        return cen[a, 0], cen[a, 1], cen[a, 2], rad[a]
+    if d + rad[a] <= rad[b]:
+        return cen[b, 0], cen[b, 1], cen[b, 2], rad[b]
+    r = 0.5 * (d + rad[a] + rad[b])
+    f = (r - rad[a]) / d
+    return cen[a, 0] + f * dx, cen[a, 1] + f * dy, cen[a, 2] + f * dz, r
+
+
+@njit(cache=True)
+def _set_sphere(cen, rad, o, x, y, z, r):
+    cen[o, 0], cen[o, 1], cen[o, 2], rad[o] = x, y, z, r
+
+
+@njit(cache=True)
+def _merge_small(label, n_clusters, key, welded, vstart, vtris, nrm, area, cent, reach, cos_tol, a_small, a_tiny,
+                 a_max, max_triangles, d_max):
+    """Merge clusters smaller than ``a_small`` into a compatible neighbour; relabels in place.
+
+    The union must fit in a sphere of diameter ``d_max`` (no strips chained into long patches).
+    """
     t_count = label.shape[0]
     c_area = np.zeros(n_clusters)
     c_vec = np.zeros((n_clusters, 3))
@@ -205,6 +262,7 @@ def _merge_small(label, n_clusters, key, welded, vstart, vtris, nrm, area, cos_t
             members[fill[label[t]]] = t
             fill[label[t]] += 1
     c_count = start[1:] - start[:-1]
+    s_cen, s_rad = _cluster_spheres(label, n_clusters, cent, reach, area)
     parent = np.arange(n_clusters)
     order = np.argsort(c_area)
     for c in order:
@@ -227,6 +285,8 @@ def _merge_small(label, n_clusters, key, welded, vstart, vtris, nrm, area, cos_t
                         continue
                     if c_count[o] + c_count[c] > (max_triangles if c_area[c] >= a_tiny else CRUMB_CAP * max_triangles):
                         continue
+                    if 2.0 * _union_sphere(s_cen, s_rad, o, c)[3] > d_max:
+                        continue
                     lo = math.sqrt(c_vec[o, 0] ** 2 + c_vec[o, 1] ** 2 + c_vec[o, 2] ** 2)
                     lc = math.sqrt(c_vec[c, 0] ** 2 + c_vec[c, 1] ** 2 + c_vec[c, 2] ** 2)
                     dot = c_vec[o, 0] * c_vec[c, 0] + c_vec[o, 1] * c_vec[c, 1] + c_vec[o, 2] * c_vec[c, 2]
@@ -234,6 +294,8 @@ def _merge_small(label, n_clusters, key, welded, vstart, vtris, nrm, area, cos_t
                         best = o
                         best_area = c_area[o]
         if best >= 0:
+            x, y, z, r = _union_sphere(s_cen, s_rad, best, c)
+            _set_sphere(s_cen, s_rad, best, x, y, z, r)
             parent[c] = best
             c_area[best] += c_area[c]
             c_count[best] += c_count[c]
@@ -243,13 +305,14 @@ def _merge_small(label, n_clusters, key, welded, vstart, vtris, nrm, area, cos_t
 
 
 @njit(cache=True)
-def _merge_nearby(label, c_area, c_vec, c_key, c_count, cand, a_small, a_tiny, a_max, cos_tol, cos_pair,
-                  max_triangles):
+def _merge_nearby(label, c_area, c_vec, c_key, c_count, s_cen, s_rad, cand, a_small, a_tiny, a_max, cos_tol,
+                  cos_pair, max_triangles, d_max):
     """Merge small clusters into a nearby compatible one (gaps, T-junctions, separate small parts).
 
     ``cand[c]`` lists cluster c's nearest clusters (by centroid, -1 = none).
     A merge must keep the non-flatness 1 - |S| / A of the union within
-    1 - cos_tol and the two mean normals within acos(cos_pair).
+    1 - cos_tol, the two mean normals within acos(cos_pair) and the union in a
+    sphere of diameter ``d_max`` (``s_cen``, ``s_rad``: each cluster's sphere).
     """
     n = c_area.shape[0]
     parent = np.arange(n)
@@ -268,6 +331,9 @@ def _merge_nearby(label, c_area, c_vec, c_key, c_count, cand, a_small, a_tiny, a
                 continue
             if c_count[o] + c_count[c] > (max_triangles if c_area[c] >= a_tiny else CRUMB_CAP * max_triangles):
                 continue
+            x, y, z, r = _union_sphere(s_cen, s_rad, o, c)
+            if 2.0 * r > d_max:
+                continue
             sx = c_vec[o, 0] + c_vec[c, 0]
             sy = c_vec[o, 1] + c_vec[c, 1]
             sz = c_vec[o, 2] + c_vec[c, 2]
@@ -284,6 +350,7 @@ def _merge_nearby(label, c_area, c_vec, c_key, c_count, cand, a_small, a_tiny, a
                 if dot < cos_pair * lo * lc:
                     continue
             parent[c] = o
+            _set_sphere(s_cen, s_rad, o, x, y, z, r)
             c_area[o] += c_area[c]
             c_count[o] += c_count[c]
             c_vec[o, 0], c_vec[o, 1], c_vec[o, 2] = sx, sy, sz
@@ -324,7 +391,7 @@ class _Mesh:
         self.normals = np.ascontiguousarray(scene.normals)
         self.areas = np.ascontiguousarray(scene.areas)
         self.reach = np.linalg.norm(tri - self.centroids[:, None], axis=2).max(axis=1) if len(tri) else np.zeros(0)
-        self.longest = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max(axis=1) if len(tri) else np.zeros(0)
+        self.longest = _longest_edges(tri)
         self.key = compatibility_classes(scene)
         self.seeds = zorder_permutation(self.centroids)
 
@@ -335,14 +402,67 @@ class _Mesh:
         count = _grow(self.seeds, eligible, self.key, self.welded, self.vstart, self.vtris, self.centroids,
                       self.normals, self.areas, self.reach, cos_tol, a_max, r_max, max_triangles, CRUMB, label)
         if merge:
+            d_max = 2.0 * r_max
             _merge_small(label, count, self.key, self.welded, self.vstart, self.vtris, self.normals,
-                         self.areas, cos_tol, MERGE_BELOW * a_max, CRUMB * a_max, a_max, max_triangles)
+                         self.areas, self.centroids, self.reach, cos_tol, MERGE_BELOW * a_max, CRUMB * a_max, a_max,
+                         max_triangles, d_max)
             count = _relabel(label)
             for _ in range(NEARBY_ROUNDS):
                 if not self._nearby(label, count, cos_tol, a_max, r_max, max_triangles):
                     break
                 count = _relabel(label)
+            if self._absorb_crumbs(label, count, CRUMB * a_max, r_max, cos_tol):
+                count = _relabel(label)
         return label, count
+
+    def _absorb_crumbs(self, label: np.ndarray, count: int, a_tiny: float, r_max: float, cos_tol: float) -> int:
+        """Clusters still below ``a_tiny`` (parts made of micro-triangles: screws, hinges) join the
+        nearest cluster of their class that is not one, within ``r_max``, whatever its normal or
+        triangle count; returns how many did.
+
+        Their light is negligible, but patch areas spanning 10^6 make the plain 2-norm of F
+        large (a column of F sums the shares F_ij <= 1 of every crumb i that sees patch j), and
+        the kernel leaves out a patch's tiniest triangles (``hfrad.formfactors.clustered``).
+        """
+        from scipy.spatial import cKDTree
+
+        ok = label >= 0
+        lab = label[ok]
+        c_area = np.bincount(lab, weights=self.areas[ok], minlength=count)
+        c_cen = np.stack([np.bincount(lab, weights=self.areas[ok] * self.centroids[ok, k], minlength=count)
+                          for k in range(3)], axis=1) / np.maximum(c_area, 1e-300)[:, None]
+        c_key = np.zeros(count, np.int64)
+        c_key[lab] = self.key[ok]
+        c_vec = np.stack([np.bincount(lab, weights=self.areas[ok] * self.normals[ok, k], minlength=count)
+                          for k in range(3)], axis=1)
+        crumb = c_area < a_tiny
+        target = np.arange(count)
+        for k in np.unique(c_key[crumb]):
+            hosts = np.flatnonzero((c_key == k) & ~crumb)
+            small = np.flatnonzero((c_key == k) & crumb)
+            if not len(hosts):
+                continue
+            dist, near = cKDTree(c_cen[hosts]).query(c_cen[small], k=min(NEARBY_CANDIDATES, len(hosts)),
+                                                     distance_upper_bound=r_max)
+            dist, near = dist.reshape(len(small), -1), near.reshape(len(small), -1)
+            for q in np.argsort(c_area[small])[::-1]:
+                c = small[q]
+                for d, h in zip(dist[q], near[q]):
+                    if not np.isfinite(d):
+                        break
+                    h = hosts[h]
+                    union = c_vec[h] + c_vec[c]
+                    # a share of the host's area too small to matter, or the union stays flat enough
+                    if (c_area[c] <= CRUMB_SHARE * c_area[h]
+                            or np.linalg.norm(union) >= cos_tol * (c_area[h] + c_area[c])):
+                        target[c] = h
+                        c_area[h] += c_area[c]
+                        c_vec[h] = union
+                        break
+        moved = int((target != np.arange(count)).sum())
+        if moved:
+            label[ok] = target[lab]
+        return moved
 
     def _nearby(self, label: np.ndarray, count: int, cos_tol: float, a_max: float, r_max: float,
                 max_triangles: int) -> int:
@@ -364,8 +484,9 @@ class _Mesh:
         cand = np.where(np.isfinite(dist), cand, -1)[:, 1:].astype(np.int64)
         cos_pair = math.cos(2 * math.acos(cos_tol))
         c_count = np.bincount(lab, minlength=count).astype(np.int64)
-        return _merge_nearby(label, c_area, c_vec, c_key, c_count, np.ascontiguousarray(cand), NEARBY_BELOW * a_max,
-                             CRUMB * a_max, a_max, cos_tol, cos_pair, max_triangles)
+        s_cen, s_rad = _cluster_spheres(label, count, self.centroids, self.reach, self.areas)
+        return _merge_nearby(label, c_area, c_vec, c_key, c_count, s_cen, s_rad, np.ascontiguousarray(cand),
+                             NEARBY_BELOW * a_max, CRUMB * a_max, a_max, cos_tol, cos_pair, max_triangles, 2.0 * r_max)
 
 
 def cluster(scene: Scene, *, patches: int | None = None, max_edge: float | None = None,
@@ -422,6 +543,8 @@ def cluster(scene: Scene, *, patches: int | None = None, max_edge: float | None 
         raise ValueError(f"max_edge must be a positive length, got {max_edge}")
     if scene.n_patches == 0:
         return scene
+    if patches is not None:
+        scene = presplit(scene, PRESPLIT_EDGE * math.sqrt(scene.total_area / patches))
     mesh = _Mesh(scene)
     cos_tol = math.cos(math.radians(normal_tolerance))
     if max_edge is not None:
@@ -441,6 +564,54 @@ def cluster(scene: Scene, *, patches: int | None = None, max_edge: float | None 
                 f"--patches {patches:,} was met only to {total:,} patches (small separate parts limit the merging; "
                 + why + ")")
     return _build(scene, splits, label, count, note=note)
+
+
+def presplit(scene: Scene, max_edge: float) -> Scene:
+    """The unclustered scene with every face longer than ``max_edge`` bisected until none is.
+
+    Longest-edge bisection (cut at the midpoint of the longest edge, again and
+    again): a sliver of length L becomes ~2 L / max_edge pieces, not the
+    (L / max_edge)^2 of an m x m split, and a well-shaped face gets
+    well-shaped pieces. Area and orientation are kept exactly; coincident
+    points are merged (the growing welds by position anyway); ``parent``
+    still names the input face. Unchanged when no face is that long.
+    """
+    tri = scene.triangles
+    owner = np.arange(len(tri))
+    long = _longest_edges(tri) > max_edge
+    if not long.any():
+        return scene
+    done_tri, done_owner = [tri[~long]], [owner[~long]]
+    tri, owner = tri[long], owner[long]
+    while len(tri):
+        # rotate each triangle so that its longest edge is (corner 0, corner 1), then cut it there
+        k = np.argmax(np.linalg.norm(np.roll(tri, -1, axis=1) - tri, axis=2), axis=1)
+        rot = (k[:, None] + np.arange(3)[None]) % 3
+        a, b, c = (tri[np.arange(len(tri)), rot[:, q]] for q in range(3))
+        mid = 0.5 * (a + b)
+        tri = np.concatenate([np.stack([a, mid, c], axis=1), np.stack([mid, b, c], axis=1)])
+        owner = np.concatenate([owner, owner])
+        long = _longest_edges(tri) > max_edge
+        done_tri.append(tri[~long])
+        done_owner.append(owner[~long])
+        tri, owner = tri[long], owner[long]
+    tri = np.concatenate(done_tri)
+    owner = np.concatenate(done_owner)
+    order = np.argsort(owner, kind="stable")  # pieces of one face together, in face order
+    tri, owner = tri[order], owner[order]
+    vertices, faces = merge_vertices(tri.reshape(-1, 3), np.arange(3 * len(tri)).reshape(-1, 3), scene)
+    return Scene(vertices=vertices, faces=faces, material=scene.material[owner], materials=scene.materials,
+                 group=scene.group[owner], groups=scene.groups, reflectance=scene.reflectance[owner],
+                 emission=scene.emission[owner], parent=scene.parent[owner],
+                 occluder_vertices=scene.occluder_vertices, occluder_faces=scene.occluder_faces,
+                 name=scene.name, warnings=scene.warnings)
+
+
+def _longest_edges(tri: np.ndarray) -> np.ndarray:
+    """(t,) longest edge of each of (t, 3, 3) triangles."""
+    if not len(tri):
+        return np.zeros(0)
+    return np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max(axis=1)
 
 
 def _fit_count(mesh: _Mesh, patches: int, cos_tol: float) -> tuple[np.ndarray, np.ndarray, int]:
@@ -503,10 +674,32 @@ def _build(scene: Scene, splits: np.ndarray, label: np.ndarray, count: int, note
         name=scene.name, warnings=warnings)
 
 
+def patch_diameters(scene: Scene) -> np.ndarray:
+    """(n,) metres: twice the largest distance of a patch's corners from its centroid.
+
+    At least the patch's diameter and at most twice it (a disk: exactly it).
+    """
+    start, index = scene.patch_triangles
+    if not len(index):
+        return np.zeros(scene.n_patches)
+    owner = np.repeat(np.arange(scene.n_patches), np.diff(start))
+    reach = np.linalg.norm(scene.triangles[index] - scene.centroids[owner][:, None], axis=2).max(axis=1)
+    return 2.0 * np.maximum.reduceat(reach, start[:-1])
+
+
+def compactness(scene: Scene) -> np.ndarray:
+    """(n,) D^2 / A per patch, D from :func:`patch_diameters`: 4 / pi for a disk, about 2.3 to 5 for
+    squares and equilateral triangles, ~ length / width for a long strip."""
+    if not scene.n_patches:
+        return np.zeros(0)
+    return patch_diameters(scene) ** 2 / np.maximum(scene.areas, 1e-300)
+
+
 def cluster_summary(scene: Scene) -> dict:
-    """What clustering did: patches, triangles per patch, worst non-flatness."""
+    """What clustering did: patches, triangles per patch, worst non-flatness, compactness."""
     per = np.bincount(scene.patch_of_triangle, minlength=scene.n_patches) if scene.n_patches else np.zeros(0, int)
     nf = scene.non_flatness
+    q = compactness(scene)
     return {
         "clustered": scene.is_clustered,
         "triangles": scene.n_triangles,
@@ -514,4 +707,6 @@ def cluster_summary(scene: Scene) -> dict:
                                 "max": int(per.max(initial=0)), "median": float(np.median(per)) if per.size else 0.0},
         "worst_non_flatness": float(nf.max(initial=0.0)),
         "area_cv": float(scene.areas.std() / scene.areas.mean()) if per.size else 0.0,
+        "compactness": {"median": float(np.median(q)) if q.size else 0.0,
+                        "p99": float(np.percentile(q, 99)) if q.size else 0.0, "max": float(q.max(initial=0.0))},
     }
