@@ -44,8 +44,8 @@ def register(app: typer.Typer) -> None:
         """Precompute a scene once: form factors with visibility, HF, Woodbury factors.
 
         Memory: one n x BLOCK block of form factors (8 n BLOCK bytes) plus the
-        factors Q and V, 2 n k x 4 bytes in float32, and three k x k float64
-        LUs (k = rank; k ~ 1,900 at 10K patches and eps 0.02 -> ~0.23 GB). The n x n matrix is never stored.
+        factors, about 5 n k x 4 bytes in float32 (k = rank; k ~ 1,500 at 10K
+        patches and eps 0.02 -> ~0.3 GB). The n x n matrix is never stored.
         A checkpoint (OUTPUT.partial) is written every 30 s; rerun the same
         command to resume after an interruption. With --scheduler or --workers
         the work runs as Dask tasks (no checkpoint: Dask re-runs the tasks of a
