@@ -100,8 +100,10 @@ def run_one(args) -> dict:
     t_load = time.perf_counter() - t0
     n = scene.n_patches
     t1 = time.perf_counter()
-    checkpoint = Path(args.checkpoint) / f"{args.scene}-{args.one}-{args.eps}-{args.near_field}.ckpt" \
-        if args.checkpoint else None
+    checkpoint = None
+    if args.checkpoint:
+        Path(args.checkpoint).mkdir(parents=True, exist_ok=True)
+        checkpoint = Path(args.checkpoint) / f"{args.scene}-{args.one}-{args.eps}-{args.near_field}.ckpt"
     fac = factorize(scene, eps=args.eps, processes=args.processes, near_field=args.near_field or None,
                     checkpoint=checkpoint, status=_status_printer(n))
     t_total = time.perf_counter() - t1

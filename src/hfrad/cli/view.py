@@ -27,7 +27,8 @@ def register(app: typer.Typer) -> None:
         """Serve a web page to relight FILE.hfr: per-emitter on/off, intensity and colour, exposure,
         false colour, live solve timings; save PNG and emission JSON.
 
-        Memory: the factors (about 5 n k x 4 bytes) plus one radiosity per emitter.
+        Memory: the factors (Q and V, 2 n k x 4 bytes, and three k x k float64
+        LUs) plus one radiosity per emitter.
         """
         from ..viewer import ViewerApp
 
