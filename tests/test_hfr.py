@@ -1,5 +1,7 @@
 """The .hfr file: round trip, damaged files, newer versions, atomic writes."""
 
+from pathlib import Path
+
 import h5py
 import numpy as np
 import pytest
@@ -54,8 +56,11 @@ def saved(tmp_path_factory):
 def test_round_trip(saved):
     path, scene, fac = saved
     back = load_hfr(path)
-    for name in ("perm", "Q", "V", "Y", "rho_max", "reflectance"):
+    for name in ("perm", "Q", "V", "rho_max", "reflectance"):
         np.testing.assert_array_equal(getattr(back, name), getattr(fac, name))
+    for (lu, piv), (lu0, piv0) in zip(back.capacitance_lu, fac.capacitance_lu):
+        np.testing.assert_array_equal(lu, lu0)
+        np.testing.assert_array_equal(piv, piv0)
     assert back.Q.dtype == np.float32
     assert back.rank == fac.rank and back.eps == fac.eps
     assert back.achieved_error == fac.achieved_error and back.relative_error == fac.relative_error
@@ -71,7 +76,7 @@ def test_round_trip(saved):
     np.testing.assert_array_equal(s.emission, scene.emission)
     assert s.material_names == ("floor", "lamp") and s.groups == ("floor", "ceiling")
     meta = read_hfr_metadata(path)
-    assert meta["format_version"] == 2 and meta["rank"] == fac.rank and meta["has_patches"]
+    assert meta["format_version"] == 3 and meta["rank"] == fac.rank and meta["has_patches"]
     with h5py.File(path) as f:
         np.testing.assert_array_equal(f["patches/areas"][()], scene.areas)
 
@@ -117,3 +122,41 @@ def test_no_partial_file(saved, tmp_path, monkeypatch):
         save_hfr(fac, target)
     assert not target.exists()
     assert list(tmp_path.iterdir()) == []
+
+
+def test_reads_version_2_file(tmp_path):
+    """A file written by hfrad 0.1 before format 3 (Y stored, tests/data/plates-v2.hfr) loads and solves.
+
+    Its stored Y_c give the old solve ``B = E - Y_c (V^T E_c)``; the new solve from
+    Q, V alone agrees to float32 rounding, and so does a v3 copy of it.
+    """
+    old = Path(__file__).parent / "data" / "plates-v2.hfr"
+    assert read_hfr_metadata(old)["format_version"] == 2
+    fac = load_hfr(old)
+    with h5py.File(old) as f:
+        Y, V, perm = f["factors/Y"][()], f["factors/V"][()], f["factors/perm"][()]
+    E = fac.scene.emission
+    Ei = E[perm]
+    B_old = np.stack([Ei[:, c] - Y[c] @ (V.T @ Ei[:, c]) for c in range(3)], axis=1)[np.argsort(perm)]
+    B = fac.solve(E)
+    np.testing.assert_allclose(B, B_old, rtol=0, atol=2e-7 * np.abs(B_old).max())   # observed 3.5e-8
+    e = np.random.default_rng(0).standard_normal(E.shape)
+    Bt_old = np.stack([e[perm][:, c] - V @ (Y[c].T @ e[perm][:, c]) for c in range(3)], axis=1)[np.argsort(perm)]
+    np.testing.assert_allclose(fac.solve(e, trans="T"), Bt_old, rtol=0, atol=2e-8 * np.abs(Bt_old).max())  # 3.4e-9
+    new = save_hfr(fac, tmp_path / "plates-v3.hfr")
+    assert read_hfr_metadata(new)["format_version"] == 3
+    with h5py.File(new) as f:
+        assert "Y" not in f["factors"] and f["factors/capacitance_lu"].shape == (3, fac.rank, fac.rank)
+    np.testing.assert_array_equal(load_hfr(new).solve(E), B)
+    np.testing.assert_array_equal(load_hfr(new).solve(e, trans="T"), fac.solve(e, trans="T"))
+
+
+def test_damaged_capacitance(saved, tmp_path):
+    """A v3 file whose k x k factors are missing is refused, naming what is inconsistent."""
+    path, *_ = saved
+    bad = tmp_path / "nolu.hfr"
+    bad.write_bytes(path.read_bytes())
+    with h5py.File(bad, "a") as f:
+        del f["factors/capacitance_lu"], f["factors/capacitance_piv"]
+    with pytest.raises(FileFormatError, match="nolu.hfr: inconsistent arrays.*capacitance None"):
+        load_hfr(bad)

@@ -171,7 +171,8 @@ def test_bad_factorize_inputs(system):
 def test_float32_and_singular():
     F, _, rho = closed_system(120, seed=11)
     fac = factorize(F, rho, eps=0.01, block_size=16)
-    assert fac.Q.dtype == np.float32 and fac.Y.dtype == np.float32
+    assert fac.Q.dtype == np.float32 and fac.V.dtype == np.float32
+    assert all(lu.dtype == np.float32 and lu.shape == (fac.rank,) * 2 for lu, _ in fac.capacitance_lu)
     E = np.random.default_rng(0).random((120, 3))
     Bx = exact(F, rho, E)
     err = np.linalg.norm(fac.solve(E) - Bx, axis=0) / np.linalg.norm(Bx, axis=0)
@@ -181,3 +182,68 @@ def test_float32_and_singular():
     with pytest.raises(FactorizationError, match="singular"):
         HFactorization(fac.perm, np.ones((120, 1)), np.full((120, 1), 1.0 / 120), np.full(120, 0.5),
                        np.full((120, 3), 0.5), fac.lowrank)
+
+
+def test_keeps_only_q_v_and_small_factors(system):
+    """Memory: nothing n x k beyond Q and V (no Y_c); the k x k LUs are in the factors' dtype."""
+    F, _, rho, fac = system
+    n, k = fac.Q.shape
+    assert fac.V.shape == (n, k) and 0 < k < n
+    big = {name for name, v in vars(fac).items() if isinstance(v, np.ndarray) and v.size >= n * k}
+    assert big == {"Q", "V"}, big
+    assert len(fac.capacitance_lu) == 3
+    for lu, piv in fac.capacitance_lu:
+        assert lu.shape == (k, k) and lu.dtype == np.float64 and piv.shape == (k,)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_capacitance_precision(dtype):
+    """M_c from float32 products solves as accurately as from float64 ones (vs the exact dense solve), both trans."""
+    from hfrad.solve.woodbury import capacitance, factor_capacitance, low_rank_correction
+    F, _, rho = closed_system(300)
+    fac = factorize(F, rho, eps=0.02, block_size=32, dtype=dtype)
+    E = np.random.default_rng(10).random((300, 3, 2))
+    Ei = E[fac.perm]
+    for adjoint in (False, True):
+        Bx = np.stack([exact(F, rho, E[:, :, j], transpose=adjoint) for j in range(2)], axis=2)
+        B = {}
+        for setup in (np.float32, np.float64):
+            M = capacitance(fac.Q, fac.V, fac._D, dtype=setup)
+            lus = [factor_capacitance(M[c], "M", fac.dtype) for c in range(3)]
+            B[setup] = (Ei + low_rank_correction(fac.Q, fac.V, fac._D, lus, Ei, adjoint))[fac.inv_perm]
+            err = np.linalg.norm(B[setup] - Bx) / np.linalg.norm(Bx)
+            assert err < 1e-3, (adjoint, setup, err)                             # observed 2.3e-4
+        diff = np.linalg.norm(B[np.float32] - B[np.float64]) / np.linalg.norm(Bx)
+        assert diff < 3e-7, (adjoint, diff)                                       # observed 2-6e-8
+
+
+def test_capacitance_grey_shortcut_equals_direct():
+    """M_c via V^T Q minus the coloured patches' rows equals the direct V^T D_c Q."""
+    from hfrad.solve.woodbury import capacitance
+    rng = np.random.default_rng(12)
+    n, k = 200, 17
+    Q, V = rng.standard_normal((n, k)), rng.standard_normal((n, k)) / n
+    D = np.ones((n, 3))
+    D[:30, 0], D[40:50, 2] = rng.random(30), rng.random(10)       # few coloured patches: the shortcut
+    direct = np.stack([np.eye(k) - V.T @ (D[:, c:c + 1] * Q) for c in range(3)])
+    np.testing.assert_allclose(capacitance(Q, V, D), direct, rtol=0, atol=1e-12)
+    D = rng.random((n, 3))                                          # all coloured: the direct products
+    direct = np.stack([np.eye(k) - V.T @ (D[:, c:c + 1] * Q) for c in range(3)])
+    np.testing.assert_allclose(capacitance(Q, V, D), direct, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_thin_products_match_numpy(dtype):
+    """The streaming kernels of the solve equal numpy's products (zero rows skipped, BLAS above THIN_MAX)."""
+    from hfrad.solve import thin
+    rng = np.random.default_rng(13)
+    A = rng.standard_normal((1000, 37)).astype(dtype)
+    tol = 1e-6 if dtype == np.float32 else 3e-15                  # observed 2.6e-7 / 6.7e-16 (relative to max)
+    for r in (1, 3, thin.THIN_MAX + 1):
+        S, X = rng.standard_normal((37, r)), rng.standard_normal((1000, r))
+        X[rng.random(1000) < 0.9] = 0.0                             # most patches do not emit
+        for got, ref in ((thin.matmul(A, S), A.astype(np.float64) @ S),
+                         (thin.tmatmul(A, X), A.astype(np.float64).T @ X)):
+            assert got.dtype == dtype and got.shape == ref.shape
+            assert np.abs(got - ref).max() <= tol * np.abs(ref).max(), (r, np.abs(got - ref).max())
+    np.testing.assert_array_equal(thin.tmatmul(A, np.zeros((1000, 3))), 0.0)

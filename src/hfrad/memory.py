@@ -42,12 +42,18 @@ def rank_guess(n: int) -> int:
     return min(n, 3000)
 
 
+def factors_bytes(n: int, k: int, itemsize: int = 4) -> int:
+    """Memory of a factorization ready to solve: Q and V (2 n k values of ``itemsize``
+    bytes) and three k x k LU factors in the same dtype (:class:`~hfrad.solve.woodbury.HFactorization`)."""
+    return (2 * n * k + 3 * k * k) * itemsize
+
+
 def precompute_bytes(n: int, block_size: int, rank_guess_: int | None = None, itemsize: int = 4) -> int:
     """Rough peak memory of ``factorize``: a few float64 blocks plus the factors.
 
-    The factors are Q, V and three Y_c (5 n k values of ``itemsize`` bytes);
-    merges hold about twice the rank transiently. The rank k is not known
-    before the run: :func:`rank_guess` (RANK_ASSUMPTION) unless given.
+    The factors: :func:`factors_bytes`; merges hold about twice the rank
+    transiently (4 n k values). The rank k is not known before the run:
+    :func:`rank_guess` (RANK_ASSUMPTION) unless given.
     """
     k = rank_guess(n) if rank_guess_ is None else rank_guess_
-    return 3 * 8 * n * block_size + (5 + 4) * n * k * itemsize
+    return 3 * 8 * n * block_size + factors_bytes(n, k, itemsize) + 4 * n * k * itemsize

@@ -19,20 +19,17 @@ Setting up K_c costs one sparse solve with k right-hand sides per channel.
 from __future__ import annotations
 
 import numpy as np
-import scipy.linalg as sla
 import scipy.sparse as sp
 from scipy.sparse.linalg import splu
 
 from ..errors import FactorizationError
 from ..factorize.lowrank import LowRank
-from .woodbury import N_CHANNELS, HFactorization
+from .woodbury import N_CHANNELS, HFactorization, factor_capacitance, low_rank_correction
 
 __all__ = ["NearFieldFactorization", "SOLVER"]
 
 #: How the solve works, as recorded in .hfr files and reports.
 SOLVER = "woodbury+splu(I - D_c N)"
-
-_RCOND_MIN = 1e-12
 
 
 def _lu_solve(lu, X: np.ndarray, trans: str = "N") -> np.ndarray:
@@ -65,52 +62,46 @@ class NearFieldFactorization(HFactorization):
         The near field of ``G_int = diag(rho_max) F`` (internal order).
     rho_max, reflectance, lowrank, sigma_max, params, scene
         As for :class:`HFactorization`.
+    capacitance : sequence of 3 ``(lu, piv)``, optional
+        LU factors of the ``K_c`` (as stored in an .hfr file); computed
+        (one sparse solve with k right-hand sides per channel) when not given.
 
     Notes
     -----
-    Memory: Q, V (2 n k in the factor dtype), N and its three sparse LU factors.
+    Memory: Q, V (2 n k in the factor dtype), N, its three sparse LU factors
+    and three k x k LU factors (in the factors' dtype).
     Per solve O(n k + nnz(LU)) per right-hand side and channel.
     """
 
     solver = SOLVER
 
-    def __init__(self, perm, Q, V, N, rho_max, reflectance, lowrank: LowRank, *, sigma_max=None,
-                 params: dict | None = None, scene=None, stats=None):
+    def __init__(self, perm, Q, V, N, rho_max, reflectance, lowrank: LowRank, *, capacitance=None,
+                 sigma_max=None, params: dict | None = None, scene=None, stats=None):
         self._set_state(perm, Q, V, rho_max, reflectance, lowrank, sigma_max, params, scene, stats)
         self.N = sp.csr_matrix(N, dtype=np.float64)
-        self._lu, self._K = self._factor()
+        self._splu = self._factor_near()
+        self.capacitance_lu = self._capacitance_lu(capacitance)
 
-    @property
-    def Y(self):  # noqa: N802 - the plain solver's name, for code that checks for it
-        """None: this solver keeps no n x k Woodbury factors (see module docstring)."""
-        return None
-
-    def _factor(self):
-        n, k = self.Q.shape
-        eye = sp.identity(n, format="csr")
-        Q64, V64 = self.Q.astype(np.float64), self.V.astype(np.float64)
-        lus, Ks = [], []
+    def _factor_near(self) -> list:
+        """SuperLU of ``A_c = I - D_c N`` per channel."""
+        eye = sp.identity(self.n_patches, format="csr")
+        lus = []
         for c in range(N_CHANNELS):
             A = (eye - sp.diags(self._D[:, c]) @ self.N).tocsc()
             try:
                 # N's pattern is symmetric (near is a symmetric relation): minimum degree on A^T + A
-                lu = splu(A, permc_spec="MMD_AT_PLUS_A")
+                lus.append(splu(A, permc_spec="MMD_AT_PLUS_A"))
             except RuntimeError as exc:
                 raise FactorizationError(f"channel {c}: I - D_c N is singular ({exc})") from exc
-            K = np.eye(k) - V64.T @ _lu_solve(lu, self._D[:, c:c + 1] * Q64) if k else np.zeros((0, 0))
-            if k:
-                lu_k, piv, info = sla.lapack.dgetrf(K)
-                anorm = float(np.abs(K).sum(axis=1).max())
-                rcond = sla.lapack.dgecon(lu_k, anorm, norm="I")[0] if info == 0 else 0.0
-                rcond *= anorm / max(anorm, 1.0)
-                if info != 0 or not rcond > _RCOND_MIN:
-                    raise FactorizationError(f"channel {c}: I - V^T A_c^-1 D_c Q ({k} x {k}) is singular "
-                                             f"(reciprocal condition {rcond:.2e}); reflectance too close to 1?")
-                Ks.append((lu_k, piv))
-            else:
-                Ks.append(None)
-            lus.append(lu)
-        return lus, Ks
+        return lus
+
+    def _capacitance_lu(self, stored) -> list:
+        """The three ``(lu, piv)`` of ``K_c = I_k - V^T A_c^{-1} D_c Q``: ``stored`` checked, or computed."""
+        if stored is not None or self.rank == 0:
+            return super()._capacitance_lu(stored)
+        Q64, V64 = self.Q.astype(np.float64), self.V.astype(np.float64)
+        return [factor_capacitance(np.eye(self.rank) - V64.T @ _lu_solve(self._splu[c], self._D[:, c:c + 1] * Q64),
+                                   f"channel {c}: I - V^T A_c^-1 D_c Q", self.dtype) for c in range(N_CHANNELS)]
 
     def _power_sigma(self, c: int, rtol: float = 1e-6, max_iter: int = 300) -> float:
         """sigma_max(D_c (N + Q V^T)) by power iteration on A^T A, O(nk + nnz(N)) per step."""
@@ -135,29 +126,15 @@ class NearFieldFactorization(HFactorization):
 
     def _solve(self, E: np.ndarray, adjoint: bool) -> np.ndarray:
         """Radiosity ``B_c = (I - R_c F)^{-1} E_c`` per channel (see module docstring); E (n, 3, m), user order."""
-        transpose = adjoint
+        trans = "T" if adjoint else "N"
         Ei = E[self.perm]                                                  # (n, 3, m), internal order
-        n, _, m = Ei.shape
-        k = self.rank
-        trans = "T" if transpose else "N"
-        x = np.stack([_lu_solve(self._lu[c], Ei[:, c, :], trans) for c in range(N_CHANNELS)], axis=1)           # A_c^{-1} E_c  (or A_c^{-T})
-        if k == 0:
-            out = x
-        elif not transpose:
-            y = (self.V.T @ x.reshape(n, -1).astype(self.dtype)).astype(np.float64).reshape(k, N_CHANNELS, m)
-            z = np.stack([sla.lu_solve(self._K[c], y[:, c, :], check_finite=False) for c in range(N_CHANNELS)],
-                         axis=1)
-            w = (self.Q @ z.reshape(k, -1).astype(self.dtype)).astype(np.float64).reshape(n, N_CHANNELS, m)
-            out = x + np.stack([_lu_solve(self._lu[c], self._D[:, c:c + 1] * w[:, c, :]) for c in range(N_CHANNELS)],
-                               axis=1)
-        else:
-            # M^{-T} = A^{-T} + A^{-T} V K^{-T} U^T A^{-T},  U = D_c Q
-            dx = (self._D[:, :, None] * x).reshape(n, -1).astype(self.dtype)
-            y = (self.Q.T @ dx).astype(np.float64).reshape(k, N_CHANNELS, m)
-            z = np.stack([sla.lu_solve(self._K[c], y[:, c, :], trans=1, check_finite=False)
-                          for c in range(N_CHANNELS)], axis=1)
-            w = (self.V @ z.reshape(k, -1).astype(self.dtype)).astype(np.float64).reshape(n, N_CHANNELS, m)
-            out = x + np.stack([_lu_solve(self._lu[c], w[:, c, :], "T") for c in range(N_CHANNELS)], axis=1)
+        # x_c = A_c^{-1} E_c (or A_c^{-T}); forward B = x + A^{-1} D Q K^{-1} V^T x,
+        # adjoint B = x + A^{-T} V K^{-T} Q^T D x
+        x = np.stack([_lu_solve(self._splu[c], Ei[:, c, :], trans) for c in range(N_CHANNELS)], axis=1)
+        if self.rank == 0:
+            return x[self.inv_perm]
+        W = low_rank_correction(self.Q, self.V, self._D, self.capacitance_lu, x, adjoint)
+        out = x + np.stack([_lu_solve(self._splu[c], W[:, c, :], trans) for c in range(N_CHANNELS)], axis=1)
         return out[self.inv_perm]
 
     def with_reflectance(self, reflectance) -> "NearFieldFactorization":

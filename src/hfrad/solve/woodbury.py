@@ -16,6 +16,7 @@ from ..errors import AccuracyWarning, FactorizationError, InputError
 from ..factorize.lowrank import LowRank
 from ..validation import check_finite, check_reflectance, check_trans
 from .bounds import ErrorEstimate, ResidualEstimate, estimate_errors, power_sigma_max, residual_estimate
+from . import thin
 from .stats import FAILURE_PROBABILITY, PassStatistics
 
 N_CHANNELS = 3
@@ -29,49 +30,121 @@ def _channel_scale(reflectance: np.ndarray, rho_max: np.ndarray) -> np.ndarray:
     return out
 
 
-def woodbury_factors(Q: np.ndarray, V: np.ndarray, D: np.ndarray) -> np.ndarray:
-    """Per-channel ``Y_c = -Q_c (I_k - V^T Q_c)^{-1}``, ``Q_c = D_c Q``  (eq. 4).
+def capacitance(Q: np.ndarray, V: np.ndarray, D: np.ndarray, dtype=None) -> np.ndarray:
+    """Per-channel ``M_c = I_k - V^T D_c Q``, the k x k matrices of the Woodbury solve (eq. 4).
 
     Parameters
     ----------
     Q, V : (n, k) float, internal patch order
-    D : (n, 3) float
+    D : (n, C) float
         Channel scales ``rho_c / rho_max`` in internal order.
+    dtype : numpy dtype, optional
+        Precision of the n x k x k products (default: the factors' dtype;
+        benchmarks/bench_solve.py measures float32 against float64 here).
 
     Returns
     -------
-    Y : (3, n, k) array in the dtype of Q
+    M : (C, k, k) float64
+
+    Notes
+    -----
+    ``V^T D_c Q = V^T Q - V_S^T (1 - D_c)_S Q_S`` with S the patches where
+    ``D_c != 1``: grey patches (``rho_c = rho_max``) are shared by every
+    channel, so this costs ``n k^2 + sum_c |S_c| k^2`` multiply-adds instead
+    of ``C n k^2`` where few patches are coloured (it is used when cheaper).
+    """
+    dt = np.dtype(Q.dtype if dtype is None else dtype)
+    Qd, Vd = Q.astype(dt, copy=False), V.astype(dt, copy=False)
+    n, k = Q.shape
+    eye = np.eye(k)
+    coloured = [np.flatnonzero(D[:, c] != 1.0) for c in range(D.shape[1])]
+    M = np.empty((D.shape[1], k, k))
+    if sum(map(len, coloured)) < (D.shape[1] - 1) * n:
+        base = eye - Vd.T @ Qd
+        for c, rows in enumerate(coloured):
+            M[c] = base + Vd[rows].T @ ((1.0 - D[rows, c:c + 1]).astype(dt) * Qd[rows])
+    else:
+        for c in range(D.shape[1]):
+            M[c] = eye - Vd.T @ (D[:, c:c + 1].astype(dt) * Qd)
+    return M
+
+
+def factor_capacitance(M: np.ndarray, what: str, dtype=np.float64) -> tuple[np.ndarray, np.ndarray]:
+    """LU factors ``(lu, piv)`` of one k x k capacitance matrix (for :func:`scipy.linalg.lu_solve`).
+
+    Factored and checked in float64; ``lu`` is returned in ``dtype`` (the
+    factors' dtype: ``M_c`` is well conditioned, about 2 on the test scenes, so
+    a float32 LU changes the radiosity by less than 1e-6 of the HF error).
 
     Raises
     ------
     FactorizationError
-        ``I - V^T Q_c`` is singular (RF has an eigenvalue at 1: not a physical scene).
+        ``M`` is singular or nearly so (``what`` names it and its channel):
+        R F has an eigenvalue near 1, which no physical scene has.
     """
-    n, k = Q.shape
-    Y = np.empty((D.shape[1], n, k), Q.dtype)
-    V64 = V.astype(np.float64, copy=False)
-    for c in range(D.shape[1]):
-        Qc = Q.astype(np.float64) * D[:, c:c + 1]
-        M = np.eye(k) - V64.T @ Qc                                    # I_k - V^T Q_c
-        lu, piv, info = sla.lapack.dgetrf(M.T)
-        anorm = float(np.abs(M).sum(axis=0).max()) if k else 1.0
-        rcond = sla.lapack.dgecon(lu, anorm, norm="I")[0] if k and info == 0 else float(info == 0)
-        # 1 / (||M^-1|| max(||M||, 1)): a tiny M (an eigenvalue of Q_c V^T at 1) is singular too
-        rcond *= anorm / max(anorm, 1.0)
-        if info != 0 or not rcond > _RCOND_MIN:
-            raise FactorizationError(
-                f"channel {c}: I - V^T Q_c ({k} x {k}) is singular (reciprocal condition "
-                f"{rcond:.2e}); R F has an eigenvalue near 1 (reflectance too close to 1?)")
-        # Y_c^T = -M^{-T} Q_c^T                                       # eq. (4)
-        Y[c] = -sla.lu_solve((lu, piv), Qc.T, check_finite=False).T
-    return Y
+    k = M.shape[0]
+    if k == 0:
+        return np.zeros((0, 0), dtype), np.zeros(0, np.int32)
+    lu, piv, info = sla.lapack.dgetrf(np.asarray(M, np.float64))
+    anorm = float(np.abs(M).sum(axis=0).max())
+    rcond = sla.lapack.dgecon(lu, anorm, norm="1")[0] if info == 0 else 0.0
+    # 1 / (||M^-1|| max(||M||, 1)): a tiny M (an eigenvalue of Q_c V^T at 1) is singular too
+    rcond *= anorm / max(anorm, 1.0)
+    if info != 0 or not rcond > _RCOND_MIN:
+        raise FactorizationError(f"{what} ({k} x {k}) is singular (reciprocal condition {rcond:.2e}); "
+                                 "R F has an eigenvalue near 1 (reflectance too close to 1?)")
+    return lu.astype(dtype, copy=False), piv
+
+
+def low_rank_correction(Q: np.ndarray, V: np.ndarray, D: np.ndarray, lus, X: np.ndarray,
+                        adjoint: bool) -> np.ndarray:
+    """The Woodbury term for every channel and right-hand side at once, reading Q and V once each.
+
+    Forward: ``W_c = D_c Q M_c^{-1} V^T X_c``; adjoint:
+    ``W_c = V M_c^{-T} Q^T D_c X_c``, with ``lus[c]`` the LU of ``M_c``
+    (:func:`factor_capacitance`). The plain solve is ``X + W``; the near-field
+    split applies its sparse inverse to W.
+
+    Parameters
+    ----------
+    Q, V : (n, k) float, internal order
+    D : (n, C) float
+    lus : sequence of C ``(lu, piv)``
+    X : (n, C, m) float64, internal order
+
+    Returns
+    -------
+    W : (n, C, m) float64
+
+    Notes
+    -----
+    Two products with all ``C m`` right-hand sides stacked (k x n x Cm, then
+    n x k x Cm, in the factors' dtype, :mod:`hfrad.solve.thin`) and C small
+    k x k triangular solves, all in the factors' dtype: the solve streams Q and V once (2nk
+    words, its memory-bandwidth limit; rows of V whose patches do not emit
+    are not read).
+    """
+    n, C, m = X.shape
+    k = Q.shape[1]
+    if k == 0:
+        return np.zeros_like(X, dtype=np.float64)
+    first, second = (Q, V) if adjoint else (V, Q)
+    if adjoint:
+        X = D[:, :, None] * X
+    T = thin.tmatmul(first, X.reshape(n, C * m)).reshape(k, C, m)
+    S = np.empty((k, C, m), second.dtype)
+    for c in range(C):   # the LU in the factors' dtype too: LAPACK getrs without converting it
+        S[:, c, :] = sla.lu_solve(lus[c], T[:, c, :], trans=1 if adjoint else 0, check_finite=False)
+    W = thin.matmul(second, S.reshape(k, C * m)).reshape(n, C, m)
+    return W.astype(np.float64) if adjoint else D[:, :, None] * W
 
 
 class HFactorization:
     """A factored radiosity system: solve ``(I - R_c F) B_c = E_c`` for any E in O(nk).
 
-    ``B~_c = E_c - Y_c (V^T E_c)``, ``Y_c = -Q_c (I_k - V^T Q_c)^{-1}`` (eq. 4),
-    computed in the internal (Z-order) patch order and returned in the user's.
+    ``B~_c = E_c + D_c Q M_c^{-1} (V^T E_c)``, ``M_c = I_k - V^T D_c Q``
+    (eq. 4 with ``Q_c = D_c Q``), computed in the internal (Z-order) patch
+    order and returned in the user's.
 
     Parameters
     ----------
@@ -86,8 +159,9 @@ class HFactorization:
         Must satisfy ``reflectance <= rho_max`` per patch.
     lowrank : LowRank
         Metadata of the factorization (eps, achieved error, norm, relative).
-    Y : (3, n, k) float, optional
-        Precomputed Woodbury factors (as stored in an .hfr file).
+    capacitance : sequence of 3 ``(lu, piv)``, optional
+        LU factors of the ``M_c`` (as stored in an .hfr file); computed
+        from Q, V and the reflectance when not given.
     sigma_max : (3,) float, optional
         Cached power-iteration estimates of sigma_max(Q_c V^T).
     stats : PassStatistics, optional
@@ -99,16 +173,32 @@ class HFactorization:
     Notes
     -----
     ``solver`` names the method ("woodbury"; the near-field split's subclass says its own).
-    Memory O(nk) (Q, V and three Y_c in the factor dtype). Each right-hand side
-    costs O(nk). Aguerre & Fernández 2016, eq. 2-5.
+    Memory: Q and V (2 n k) and three k x k LU factors (3 k^2), all in the
+    factors' dtype; nothing else n x k is kept. A solve of all three channels (and
+    m emissions) reads Q and V once each: O(nk) per right-hand side.
+    Set-up: ``n k^2`` multiply-adds (plus ``k^2`` per coloured patch and
+    channel, :func:`capacitance`) and three k x k LUs. Aguerre & Fernández
+    2016, eq. 2-5.
     """
 
     solver = "woodbury"
 
-    def __init__(self, perm, Q, V, rho_max, reflectance, lowrank: LowRank, *, Y=None,
+    def __init__(self, perm, Q, V, rho_max, reflectance, lowrank: LowRank, *, capacitance=None,
                  sigma_max=None, params: dict | None = None, scene=None, stats: PassStatistics | None = None):
         self._set_state(perm, Q, V, rho_max, reflectance, lowrank, sigma_max, params, scene, stats)
-        self.Y = woodbury_factors(self.Q, self.V, self._D) if Y is None else np.asarray(Y, self.Q.dtype)
+        self.capacitance_lu = self._capacitance_lu(capacitance)
+
+    def _capacitance_lu(self, stored) -> list:
+        """The three ``(lu, piv)`` of ``M_c = I_k - V^T D_c Q``: ``stored`` checked, or computed."""
+        k = self.rank
+        if stored is not None:
+            lus = [(np.asarray(lu, self.dtype), np.asarray(piv, np.int32)) for lu, piv in stored]
+            if len(lus) != N_CHANNELS or any(lu.shape != (k, k) or piv.shape != (k,) for lu, piv in lus):
+                raise InputError(f"capacitance must be {N_CHANNELS} (lu, piv) pairs of shapes ({k}, {k}) "
+                                 f"and ({k},)")
+            return lus
+        M = capacitance(self.Q, self.V, self._D)
+        return [factor_capacitance(M[c], f"channel {c}: I - V^T Q_c", self.dtype) for c in range(N_CHANNELS)]
 
     def _set_state(self, perm, Q, V, rho_max, reflectance, lowrank, sigma_max, params, scene, stats) -> None:
         """What every solver of a factorization holds (shared with the near-field solver)."""
@@ -247,7 +337,7 @@ class HFactorization:
         trans : {"N", "T"}
             "T" solves the adjoint ``(I - R_c F)^T x = e`` instead (inverse
             design), as in :func:`scipy.linalg.lu_solve`:
-            ``(I - V Q_c^T)^{-1} = I - V Y_c^T``, so ``x = e - V (Y_c^T e)``.
+            ``x = e + V M_c^{-T} (Q^T D_c e)``, the same factors.
             Negative entries are allowed then.
         transpose : bool, optional
             Deprecated spelling of ``trans="T"``.
@@ -264,7 +354,8 @@ class HFactorization:
 
         Notes
         -----
-        O(n k) per right-hand side and channel.
+        O(n k) per right-hand side; Q and V are read once for all channels
+        and emissions together (:func:`low_rank_correction`).
         """
         if transpose is not None:
             warnings.warn("solve(E, transpose=True) is deprecated; use solve(E, trans='T')",
@@ -281,19 +372,7 @@ class HFactorization:
     def _solve(self, E: np.ndarray, adjoint: bool) -> np.ndarray:
         """The solve of validated (n, 3, m) exitance in the user's order (the body of :meth:`solve`)."""
         Ei = E[self.perm]                                                 # (n, 3, m), internal order
-        m = Ei.shape[2]
-        # One pass over the shared factor for all channels and emissions at once,
-        # then one pass over each channel's own factor: the solve is bandwidth bound.
-        E2 = Ei.reshape(len(Ei), N_CHANNELS * m).astype(self.dtype)
-        if adjoint:
-            # (I - V Q_c^T)^{-1} = I - V Y_c^T:  x = e - V (Y_c^T e)
-            W = np.concatenate([self.Y[c].T @ E2[:, c * m:(c + 1) * m] for c in range(N_CHANNELS)], axis=1)
-            B = Ei - (self.V @ W).reshape(Ei.shape)
-        else:
-            W = self.V.T @ E2                                                  # (k, 3m)
-            B = Ei.copy()
-            for c in range(N_CHANNELS):
-                B[:, c, :] -= self.Y[c] @ W[:, c * m:(c + 1) * m]           # eq. (4)
+        B = Ei + low_rank_correction(self.Q, self.V, self._D, self.capacitance_lu, Ei, adjoint)   # eq. (4)
         return B[self.inv_perm]
 
     def as_linear_operator(self, channel: int):
@@ -397,7 +476,7 @@ class HFactorization:
         """The same factorization with new reflectances, without refactoring.
 
         Allowed when ``reflectance <= rho_max`` everywhere (only the k x k
-        inverses are recomputed: O(n k^2)).
+        matrices ``M_c`` and their LUs are recomputed: O(n k^2)).
 
         Raises
         ------
