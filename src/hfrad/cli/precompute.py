@@ -22,6 +22,7 @@ def register(app: typer.Typer) -> None:
         eps: float = typer.Option(0.02, "--eps", help="Target relative Frobenius error of RF ~ Q V^T, in (0, 1)."),
         max_edge: Optional[float] = common.MaxEdgeOption,
         patches: Optional[int] = common.PatchesOption,
+        refine: Optional[float] = typer.Option(None, "--refine", help="After cutting, solve once on those patches and split (conforming, one level) every patch on an edge where the luminance jumps by more than this fraction (e.g. 0.2). At most 8,000 patches before refining."),
         block: Optional[int] = typer.Option(None, "--block", help=f"Column block width (patches); default min({DEFAULT_BLOCK_SIZE}, n)."),
         dtype: str = common.dtype_option("float32"),
         samples: Optional[int] = typer.Option(None, "--samples", help="Visibility rays per patch pair."),
@@ -64,6 +65,13 @@ def register(app: typer.Typer) -> None:
                                         default_reflectance=default_reflectance,
                                         allow_missing_materials=allow_missing_materials,
                                         max_edge=max_edge, patches=patches, keep_duplicates=keep_duplicates)
+            if refine is not None:
+                from ..solve.refine import refine_by_radiosity
+                before = s.n_patches
+                with common.progress_bar(f"coarse solve on {before:,} patches", quiet) as bar:
+                    s, marked = refine_by_radiosity(s, refine, progress=bar)
+                if not quiet:
+                    common.console.print(f"refined: {marked:,} of {before:,} patches marked, {s.n_patches:,} patches now")
             common.check_memory_for_precompute(s.n_patches, block or DEFAULT_BLOCK_SIZE, dtype)
             if not quiet:
                 from ..memory import human, precompute_bytes
