@@ -9,7 +9,10 @@ Run:  PYTHONPATH=src python benchmarks/bench_accuracy.py [--patches 3000,10000] 
    the default rules (what a user gets), with the kernel time.
 2. Closure: row sums of F (visibility included) of the built-in Cornell box at
    each patch count: mean and worst |sum - 1|, patches off by more than 0.2%.
-3. Cost: the full F at the largest patch count, streamed in Z-order column
+3. Visibility samples (``--samples-sweep``): row sums of the Cornell box at
+   the smallest patch count with 4, 16, 36 and 64 rays per pair (every pair
+   that needs rays), which shows what closing every row to 0.2% would cost.
+4. Cost: the full F at the largest patch count, streamed in Z-order column
    blocks, with today's kernel (``--baseline-ref``, extracted with git archive)
    and this one, alternating in subprocesses of the same run; the load average
    is recorded with every timing.
@@ -98,6 +101,31 @@ def _worker(patches: int) -> dict:
     return out
 
 
+def closure_vs_samples(patches: int) -> list[dict]:
+    """Row sums of the Cornell box with more visibility rays per pair (the first round)."""
+    from hfrad.formfactors.blocks import FormFactorEngine, iter_column_blocks
+    from hfrad.scene.builtin import cornell_box
+    from hfrad.scene.patches import subdivide
+
+    scene = subdivide(cornell_box(), patches=patches)
+    rows = []
+    for samples in (4, 16, 36, 64):
+        load0 = os.getloadavg()[0]
+        t = time.perf_counter()
+        engine = FormFactorEngine(scene, samples=samples)
+        sums = np.zeros(scene.n_patches)
+        for _, _, block in iter_column_blocks(scene, 256, engine=engine):
+            sums += block.sum(axis=1)
+        err = np.abs(sums - 1)
+        rows.append({"patches": scene.n_patches, "samples": samples, "seconds": time.perf_counter() - t,
+                     "rays_M": engine.rays / 1e6, "row_sum_mean_err": float(err.mean()),
+                     "row_sum_max_err": float(err.max()), "rows_off_by_0.2%": int((err > 2e-3).sum()),
+                     "load": load0})
+        engine.close()
+        print(rows[-1], flush=True)
+    return rows
+
+
 def _run_worker(src: Path, patches: int) -> dict:
     env = dict(os.environ, PYTHONPATH=str(src))
     res = subprocess.run([sys.executable, __file__, "--worker", str(patches)], env=env, cwd=str(src.parent),
@@ -112,17 +140,25 @@ def main() -> None:
     p.add_argument("--baseline-ref", default="083c557", help="git commit with today's kernel (v2)")
     p.add_argument("--worker", type=int, help=argparse.SUPPRESS)
     p.add_argument("--skip-convergence", action="store_true")
+    p.add_argument("--samples-sweep", action="store_true", help="only the row sums vs visibility rays table")
     args = p.parse_args()
     if args.worker:
         print(json.dumps(_worker(args.worker)))
         return
     m = header("form-factor accuracy and its cost")
     out = {"machine": m}
+    sizes = [int(x) for x in args.patches.split(",")]
+    if args.samples_sweep:
+        out["closure_vs_samples"] = closure_vs_samples(min(sizes))
+        print_table("row sums vs visibility rays per pair", out["closure_vs_samples"],
+                    ["patches", "samples", "seconds", "rays_M", "row_sum_mean_err", "row_sum_max_err",
+                     "rows_off_by_0.2%", "load"])
+        print("wrote", write_json("accuracy_samples", out))
+        return
     if not args.skip_convergence:
         out["convergence"] = convergence()
         print_table("error against the closed form vs kernel tolerance", out["convergence"],
                     ["case", "patches", "rules", "tolerance", "rel_error", "kernel_s"])
-    sizes = [int(x) for x in args.patches.split(",")]
     with tempfile.TemporaryDirectory() as tmp:
         archive = subprocess.run(["git", "archive", args.baseline_ref, "src"], cwd=ROOT, capture_output=True,
                                  check=True).stdout

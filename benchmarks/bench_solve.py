@@ -313,7 +313,12 @@ def relight_case(n_target: int, args) -> dict:
 
 
 def relight_main(args, sizes) -> int:
+    import numba
     mach = common.header("Relighting solve vs reading the factors once (Cornell box)", args.blas_threads)
+    if args.blas_threads and args.blas_threads > 0:        # the solve's streaming kernels (hfrad.solve.thin)
+        numba.set_num_threads(min(args.blas_threads, numba.config.NUMBA_NUM_THREADS))
+    mach["numba_threads"] = numba.get_num_threads()
+    print(f"BLAS threads {args.blas_threads}, numba threads {mach['numba_threads']}")
     rows = [relight_case(n, args) for n in sizes]
     common.print_table("one RGB solve (median of %d), seconds; read_2nk = reading Q and V once" % args.relight_repeat,
                        rows, ["n", "k", "solve_new_median", "solve_old_median", "solve_old/new", "read_2nk_copy",

@@ -1,13 +1,16 @@
 """Pictures of the patches: radiosity with the patch edges drawn over it.
 
-Run:  PYTHONPATH=src python examples/patch_wireframe.py [--patches 3000] [-o docs/images]
+Run:  PYTHONPATH=src python examples/patch_wireframe.py [--patches 3000] [-o docs/images] [--refine 0.3]
 
 Writes ``cornell-patches.png`` (the built-in Cornell box) and, when
 ../shared/scenes is present, ``mcguire-cornell-patches.png``
 (CornellBox-Original.obj, duplicates merged). The radiosity is an exact dense
 solve of (I - diag(rho) F) B = E per channel, so what is seen is the form
 factors and the patches, not a factorization error. Edges are where the patch
-seen by a pixel differs from its right or lower neighbour's.
+seen by a pixel differs from its right or lower neighbour's. With ``--refine T``
+it also writes ``cornell-refined-patches.png``: the built-in box cut to a third
+of the patches, refined once where that coarse solution jumps by more than T
+(``hfrad precompute --refine``), solved again.
 """
 
 from __future__ import annotations
@@ -53,16 +56,26 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--patches", type=int, default=3000)
     p.add_argument("-o", "--output", type=Path, default=Path("docs/images"))
+    p.add_argument("--refine", type=float, default=None)
     args = p.parse_args()
     args.output.mkdir(parents=True, exist_ok=True)
     jobs = [("cornell", "cornell-patches.png", "front")]
     original = SHARED / "cornell-box" / "CornellBox-Original.obj"
     if original.exists():
         jobs.append((str(original), "mcguire-cornell-patches.png", "0,1,3.9:0,1,0"))
+    if args.refine is not None:
+        from hfrad.solve.refine import refine_by_radiosity
+
+        coarse = load_scene("cornell", patches=args.patches // 3)
+        scene, marked = refine_by_radiosity(coarse, args.refine)
+        B = exact_radiosity(scene)
+        path = save_png(wireframe_picture(scene, B, "front"), args.output / "cornell-refined-patches.png")
+        print(f"wrote {path} ({coarse.n_patches} patches, {marked} marked, {scene.n_patches} after refining)")
+        return
     for source, name, camera in jobs:
         scene = load_scene(source, patches=args.patches)
         B = exact_radiosity(scene)
-        path = save_png(args.output / name, wireframe_picture(scene, B, camera))
+        path = save_png(wireframe_picture(scene, B, camera), args.output / name)
         print(f"wrote {path} ({scene.n_patches} patches; {'; '.join(scene.warnings) or 'no warnings'})")
 
 

@@ -88,7 +88,7 @@ def test_demo(tmp_path):
 
 def test_info_and_version():
     result = run("info", "cornell", "--json")
-    assert result.exit_code == 0 and '"patches": 260' in result.output  # floor and ceiling triangulated around holes
+    assert result.exit_code == 0 and '"patches": 54' in result.output  # floor and ceiling: constrained Delaunay around the holes
     result = run("--version")
     assert result.exit_code == 0 and result.output.startswith("hfrad ")
 

@@ -172,6 +172,7 @@ def test_float32_and_singular():
     F, _, rho = closed_system(120, seed=11)
     fac = factorize(F, rho, eps=0.01, block_size=16)
     assert fac.Q.dtype == np.float32 and fac.V.dtype == np.float32
+    assert all(lu.dtype == np.float32 and lu.shape == (fac.rank,) * 2 for lu, _ in fac.capacitance_lu)
     E = np.random.default_rng(0).random((120, 3))
     Bx = exact(F, rho, E)
     err = np.linalg.norm(fac.solve(E) - Bx, axis=0) / np.linalg.norm(Bx, axis=0)
@@ -184,7 +185,7 @@ def test_float32_and_singular():
 
 
 def test_keeps_only_q_v_and_small_factors(system):
-    """Memory: nothing n x k beyond Q and V (no Y_c); the k x k LUs are float64."""
+    """Memory: nothing n x k beyond Q and V (no Y_c); the k x k LUs are in the factors' dtype."""
     F, _, rho, fac = system
     n, k = fac.Q.shape
     assert fac.V.shape == (n, k) and 0 < k < n
@@ -208,7 +209,7 @@ def test_capacitance_precision(dtype):
         B = {}
         for setup in (np.float32, np.float64):
             M = capacitance(fac.Q, fac.V, fac._D, dtype=setup)
-            lus = [factor_capacitance(M[c], "M") for c in range(3)]
+            lus = [factor_capacitance(M[c], "M", fac.dtype) for c in range(3)]
             B[setup] = (Ei + low_rank_correction(fac.Q, fac.V, fac._D, lus, Ei, adjoint))[fac.inv_perm]
             err = np.linalg.norm(B[setup] - Bx) / np.linalg.norm(Bx)
             assert err < 1e-3, (adjoint, setup, err)                             # observed 2.3e-4
@@ -229,3 +230,20 @@ def test_capacitance_grey_shortcut_equals_direct():
     D = rng.random((n, 3))                                          # all coloured: the direct products
     direct = np.stack([np.eye(k) - V.T @ (D[:, c:c + 1] * Q) for c in range(3)])
     np.testing.assert_allclose(capacitance(Q, V, D), direct, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_thin_products_match_numpy(dtype):
+    """The streaming kernels of the solve equal numpy's products (zero rows skipped, BLAS above THIN_MAX)."""
+    from hfrad.solve import thin
+    rng = np.random.default_rng(13)
+    A = rng.standard_normal((1000, 37)).astype(dtype)
+    tol = 1e-6 if dtype == np.float32 else 3e-15                  # observed 2.6e-7 / 6.7e-16 (relative to max)
+    for r in (1, 3, thin.THIN_MAX + 1):
+        S, X = rng.standard_normal((37, r)), rng.standard_normal((1000, r))
+        X[rng.random(1000) < 0.9] = 0.0                             # most patches do not emit
+        for got, ref in ((thin.matmul(A, S), A.astype(np.float64) @ S),
+                         (thin.tmatmul(A, X), A.astype(np.float64).T @ X)):
+            assert got.dtype == dtype and got.shape == ref.shape
+            assert np.abs(got - ref).max() <= tol * np.abs(ref).max(), (r, np.abs(got - ref).max())
+    np.testing.assert_array_equal(thin.tmatmul(A, np.zeros((1000, 3))), 0.0)

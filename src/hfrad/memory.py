@@ -44,8 +44,8 @@ def rank_guess(n: int) -> int:
 
 def factors_bytes(n: int, k: int, itemsize: int = 4) -> int:
     """Memory of a factorization ready to solve: Q and V (2 n k values of ``itemsize``
-    bytes) and three k x k float64 LU factors (:class:`~hfrad.solve.woodbury.HFactorization`)."""
-    return 2 * n * k * itemsize + 3 * 8 * k * k
+    bytes) and three k x k LU factors in the same dtype (:class:`~hfrad.solve.woodbury.HFactorization`)."""
+    return (2 * n * k + 3 * k * k) * itemsize
 
 
 def precompute_bytes(n: int, block_size: int, rank_guess_: int | None = None, itemsize: int = 4) -> int:

@@ -25,9 +25,6 @@ RED = (0.63, 0.065, 0.05)
 GREEN = (0.14, 0.45, 0.091)
 LIGHT_EMISSION = (17.0, 12.0, 4.0)
 
-#: Point spacing (m) of the floor and ceiling triangulations around the blocks and the light.
-FLOOR_SPACING = 0.25
-
 
 class _Builder:
     """Collects quads and triangles with their material and group names."""
@@ -62,97 +59,32 @@ class _Builder:
         )
 
 
-def _strip_decomposition(x0, x1, z0, z1, holes: list[np.ndarray]) -> list[np.ndarray]:
-    """Quads covering the rectangle [x0,x1] x [z0,z1] minus convex holes.
+def _rectangle_with_holes(x0, x1, z0, z1, holes: list[np.ndarray]) -> list[np.ndarray]:
+    """Triangles covering [x0,x1] x [z0,z1] minus convex holes, using only their corners.
 
-    Vertical lines through every hole corner cut the rectangle into strips; in
-    each strip a convex hole's lower and upper boundaries are straight, so the
-    free space is a stack of trapezoids. Returns (4, 2) corner arrays (x, z),
+    Triangle's constrained Delaunay triangulation (``p``; quality ``q20`` with
+    ``Y``: no points added on the boundary, so the walls and the blocks' sides
+    meet the floor at their own corners). Patches are cut from these faces by
+    :func:`hfrad.scene.patches.subdivide`. Returns (3, 2) corner arrays (x, z),
     counter-clockwise in (x, z).
     """
-    xs = sorted({x0, x1, *[float(x) for h in holes for x in h[:, 0]]})
-    quads = []
-    for xa, xb in zip(xs[:-1], xs[1:]):
-        if xb - xa < 1e-12:
-            continue
-        xm = 0.5 * (xa + xb)
-        spans = []  # (lower boundary at xa, at xb; upper at xa, at xb) of each hole in this strip
-        for h in holes:
-            lo_hi = [_hole_z_range(h, x) for x in (xa, xb, xm)]
-            if lo_hi[2] is None:
-                continue
-            spans.append((lo_hi[0], lo_hi[1]))
-        spans.sort(key=lambda s: s[0][0] + s[1][0])
-        bottom = (z0, z0)
-        for (lo_a, hi_a), (lo_b, hi_b) in spans:
-            quads.append(np.array([[xa, bottom[0]], [xa, lo_a], [xb, lo_b], [xb, bottom[1]]]))
-            bottom = (hi_a, hi_b)
-        quads.append(np.array([[xa, bottom[0]], [xa, z1], [xb, z1], [xb, bottom[1]]]))
-    return quads
+    import triangle
 
-
-def _delaunay_with_holes(x0, x1, z0, z1, holes: list[np.ndarray], spacing: float) -> list[np.ndarray]:
-    """Well-shaped triangles covering [x0,x1] x [z0,z1] minus convex holes.
-
-    A Delaunay triangulation of: the rectangle's boundary and every hole edge
-    sampled at about ``spacing``, and a grid of interior points at least
-    0.6 x spacing away from any of them. Each hole edge piece is then an edge of
-    the triangulation (its diametral circle holds no other point), so dropping
-    the triangles inside the holes leaves exactly the free area, without the
-    slivers that cutting strips through every hole corner makes.
-    Returns (3, 2) corner arrays (x, z), counter-clockwise in (x, z).
-    """
-    from scipy.spatial import Delaunay
-
-    def ring(poly):
-        pts = []
-        for k in range(len(poly)):
-            a, b = poly[k], poly[(k + 1) % len(poly)]
-            m = max(1, int(np.ceil(np.linalg.norm(b - a) / spacing)))
-            pts += [a + (b - a) * t for t in np.arange(m) / m]
-        return np.array(pts)
-
-    outer = np.array([[x0, z0], [x1, z0], [x1, z1], [x0, z1]], dtype=float)
-    rings = [ring(outer)] + [ring(np.asarray(h, float)) for h in holes]
-    boundary = np.vstack(rings)
-    gx = np.arange(x0 + spacing, x1 - 0.5 * spacing, spacing)
-    gz = np.arange(z0 + spacing, z1 - 0.5 * spacing, spacing)
-    grid = np.array([(x, z) for x in gx for z in gz])
-    keep = np.min(np.linalg.norm(grid[:, None] - boundary[None], axis=2), axis=1) > 0.6 * spacing
-    keep &= ~np.array([any(_inside(h, p) for h in holes) for p in grid])
-    points = np.vstack([boundary, grid[keep]])
-    tris = points[Delaunay(points).simplices]
-    centre = tris.mean(axis=1)
-    free = ~np.array([any(_inside(h, c) for h in holes) for c in centre])
+    rings = [np.array([[x0, z0], [x1, z0], [x1, z1], [x0, z1]], dtype=float)]
+    rings += [np.asarray(h, dtype=float) for h in holes]
+    points, segments = [], []
+    for ring in rings:
+        base = sum(len(r) for r in points)
+        points.append(ring)
+        segments += [(base + k, base + (k + 1) % len(ring)) for k in range(len(ring))]
+    mesh = triangle.triangulate({"vertices": np.vstack(points), "segments": np.array(segments),
+                                 "holes": np.array([h.mean(axis=0) for h in rings[1:]]).reshape(-1, 2)},
+                                "pq20Y")
     out = []
-    for t in tris[free]:
+    for t in mesh["vertices"][mesh["triangles"]]:
         ccw = (t[1, 0] - t[0, 0]) * (t[2, 1] - t[0, 1]) - (t[1, 1] - t[0, 1]) * (t[2, 0] - t[0, 0]) > 0
         out.append(t if ccw else t[::-1])
     return out
-
-
-def _inside(poly: np.ndarray, p) -> bool:
-    """Whether point p is strictly inside the convex polygon ``poly`` (either orientation)."""
-    signs = []
-    for k in range(len(poly)):
-        a, b = poly[k], poly[(k + 1) % len(poly)]
-        signs.append((b[0] - a[0]) * (p[1] - a[1]) - (b[1] - a[1]) * (p[0] - a[0]))
-    signs = np.array(signs)
-    return bool((signs > 1e-12).all() or (signs < -1e-12).all())
-
-
-def _hole_z_range(hole: np.ndarray, x: float):
-    """(z_min, z_max) of a convex polygon's cross-section at ``x``, or None."""
-    zs = []
-    n = len(hole)
-    for k in range(n):
-        (xa, za), (xb, zb) = hole[k], hole[(k + 1) % n]
-        if min(xa, xb) - 1e-12 <= x <= max(xa, xb) + 1e-12:
-            if abs(xb - xa) < 1e-12:
-                zs += [za, zb]
-            else:
-                zs.append(za + (x - xa) / (xb - xa) * (zb - za))
-    return (min(zs), max(zs)) if zs else None
 
 
 def _footprint(cx: float, cz: float, size: float, angle_deg: float) -> np.ndarray:
@@ -175,7 +107,7 @@ def cornell_box() -> Scene:
     lo, hi = -1.0, 1.0
 
     def floor_or_ceiling(y: float, holes, material: str, group: str, up: bool) -> None:
-        for t in _delaunay_with_holes(lo, hi, lo, hi, holes, FLOOR_SPACING):
+        for t in _rectangle_with_holes(lo, hi, lo, hi, holes):
             p = [(x, y, z) for x, z in t]  # counter-clockwise in (x, z) -> normal -y
             if up:
                 p = p[::-1]

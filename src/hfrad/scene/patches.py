@@ -1,9 +1,11 @@
 """Cutting input faces into patches.
 
-Each triangle is split uniformly into m x m congruent sub-triangles, with m
-chosen from its longest edge. New vertices are shared between neighbouring
-patches (merged by position), so rendering can interpolate radiosity smoothly.
-Subdivision conserves each face's area exactly (up to rounding).
+:func:`subdivide` makes conforming, well-shaped patches
+(:mod:`hfrad.scene.conform`): no T-junctions, minimum angle about 30 degrees,
+no edge longer than ``max_edge``. :func:`split_faces` (used by clustering)
+splits each triangle uniformly into m x m congruent sub-triangles.
+New vertices are shared between neighbouring patches (merged by position), so
+rendering can interpolate radiosity smoothly. Both conserve area (up to rounding).
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ import math
 import numpy as np
 
 from ..errors import InputError, SceneError
+from .conform import conforming_subdivide
 from .scene import Scene
 
 
@@ -90,10 +93,24 @@ def subdivide(scene: Scene, *, max_edge: float | None = None, patches: int | Non
         return scene
     if not (max_edge > 0 and math.isfinite(max_edge)):
         raise InputError(f"max_edge must be a positive length, got {max_edge}")
-    splits = splits_for_edge(scene, max_edge)
-    if (splits == 1).all():
+    if patches is not None and patches <= scene.n_patches:
         return scene
-    return split_faces(scene, splits)[0]
+    return conforming_subdivide(scene, max_edge) if patches is None else _mesh_for_count(scene, patches)
+
+
+def _mesh_for_count(scene: Scene, patches: int) -> Scene:
+    """Conforming patches, about ``patches`` of them (a few meshings, h scaled by sqrt(count ratio))."""
+    # an equilateral patch of edge h has area sqrt(3)/4 h^2; Triangle's meshes average ~0.6 of that
+    h = math.sqrt(scene.total_area / patches / (0.6 * math.sqrt(3) / 4))
+    best = None
+    for _ in range(6):
+        mesh = conforming_subdivide(scene, h)
+        if best is None or abs(mesh.n_patches - patches) < abs(best.n_patches - patches):
+            best = mesh
+        if abs(mesh.n_patches - patches) <= 0.03 * patches:
+            break
+        h *= math.sqrt(mesh.n_patches / patches)
+    return best
 
 
 def split_faces(scene: Scene, splits: np.ndarray) -> tuple[Scene, np.ndarray]:

@@ -12,7 +12,7 @@ checksums and pass statistics)::
     /factors/perm      (n,) int64, internal order
     /factors/Q, V      (n, k) float32/64, internal order
     /factors/capacitance_lu, capacitance_piv
-                       (3, k, k) float64 and (3, k) int32: LAPACK getrf
+                       (3, k, k) in the factors' dtype and (3, k) int32: LAPACK getrf
                        factors of each channel's k x k Woodbury matrix
                        (``I - V^T D_c Q``, or ``I - V^T A_c^-1 D_c Q`` with
                        the near field), so loading needs no O(n k^2) set-up
@@ -130,7 +130,7 @@ def save_hfr(factorization: HFactorization, path, *, scene=None, timings: dict |
                 _dataset(g, name, getattr(fac, name))
             a["solver"] = getattr(fac, "solver", "woodbury")
             k = fac.rank
-            _dataset(g, "capacitance_lu", np.array([lu for lu, _ in fac.capacitance_lu], np.float64).reshape(3, k, k))
+            _dataset(g, "capacitance_lu", np.array([lu for lu, _ in fac.capacitance_lu], fac.dtype).reshape(3, k, k))
             _dataset(g, "capacitance_piv", np.array([p for _, p in fac.capacitance_lu], np.int32).reshape(3, k))
             N = getattr(fac, "N", None)
             if N is not None:  # near-field split: sparse N (CSR, internal order)

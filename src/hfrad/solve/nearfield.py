@@ -69,7 +69,7 @@ class NearFieldFactorization(HFactorization):
     Notes
     -----
     Memory: Q, V (2 n k in the factor dtype), N, its three sparse LU factors
-    and three k x k LU factors (float64).
+    and three k x k LU factors (in the factors' dtype).
     Per solve O(n k + nnz(LU)) per right-hand side and channel.
     """
 
@@ -101,7 +101,7 @@ class NearFieldFactorization(HFactorization):
             return super()._capacitance_lu(stored)
         Q64, V64 = self.Q.astype(np.float64), self.V.astype(np.float64)
         return [factor_capacitance(np.eye(self.rank) - V64.T @ _lu_solve(self._splu[c], self._D[:, c:c + 1] * Q64),
-                                   f"channel {c}: I - V^T A_c^-1 D_c Q") for c in range(N_CHANNELS)]
+                                   f"channel {c}: I - V^T A_c^-1 D_c Q", self.dtype) for c in range(N_CHANNELS)]
 
     def _power_sigma(self, c: int, rtol: float = 1e-6, max_iter: int = 300) -> float:
         """sigma_max(D_c (N + Q V^T)) by power iteration on A^T A, O(nk + nnz(N)) per step."""

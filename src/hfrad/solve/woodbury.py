@@ -16,6 +16,7 @@ from ..errors import AccuracyWarning, FactorizationError, InputError
 from ..factorize.lowrank import LowRank
 from ..validation import check_finite, check_reflectance, check_trans
 from .bounds import ErrorEstimate, ResidualEstimate, estimate_errors, power_sigma_max, residual_estimate
+from . import thin
 from .stats import FAILURE_PROBABILITY, PassStatistics
 
 N_CHANNELS = 3
@@ -68,8 +69,12 @@ def capacitance(Q: np.ndarray, V: np.ndarray, D: np.ndarray, dtype=None) -> np.n
     return M
 
 
-def factor_capacitance(M: np.ndarray, what: str) -> tuple[np.ndarray, np.ndarray]:
+def factor_capacitance(M: np.ndarray, what: str, dtype=np.float64) -> tuple[np.ndarray, np.ndarray]:
     """LU factors ``(lu, piv)`` of one k x k capacitance matrix (for :func:`scipy.linalg.lu_solve`).
+
+    Factored and checked in float64; ``lu`` is returned in ``dtype`` (the
+    factors' dtype: ``M_c`` is well conditioned, about 2 on the test scenes, so
+    a float32 LU changes the radiosity by less than 1e-6 of the HF error).
 
     Raises
     ------
@@ -79,7 +84,7 @@ def factor_capacitance(M: np.ndarray, what: str) -> tuple[np.ndarray, np.ndarray
     """
     k = M.shape[0]
     if k == 0:
-        return np.zeros((0, 0)), np.zeros(0, np.int32)
+        return np.zeros((0, 0), dtype), np.zeros(0, np.int32)
     lu, piv, info = sla.lapack.dgetrf(np.asarray(M, np.float64))
     anorm = float(np.abs(M).sum(axis=0).max())
     rcond = sla.lapack.dgecon(lu, anorm, norm="1")[0] if info == 0 else 0.0
@@ -88,7 +93,7 @@ def factor_capacitance(M: np.ndarray, what: str) -> tuple[np.ndarray, np.ndarray
     if info != 0 or not rcond > _RCOND_MIN:
         raise FactorizationError(f"{what} ({k} x {k}) is singular (reciprocal condition {rcond:.2e}); "
                                  "R F has an eigenvalue near 1 (reflectance too close to 1?)")
-    return lu, piv
+    return lu.astype(dtype, copy=False), piv
 
 
 def low_rank_correction(Q: np.ndarray, V: np.ndarray, D: np.ndarray, lus, X: np.ndarray,
@@ -113,9 +118,11 @@ def low_rank_correction(Q: np.ndarray, V: np.ndarray, D: np.ndarray, lus, X: np.
 
     Notes
     -----
-    Two GEMMs with all ``C m`` right-hand sides stacked (k x n x Cm, then
-    n x k x Cm, in the factors' dtype) and C small k x k triangular solves in
-    float64: the solve streams 2nk words, its memory-bandwidth limit.
+    Two products with all ``C m`` right-hand sides stacked (k x n x Cm, then
+    n x k x Cm, in the factors' dtype, :mod:`hfrad.solve.thin`) and C small
+    k x k triangular solves, all in the factors' dtype: the solve streams Q and V once (2nk
+    words, its memory-bandwidth limit; rows of V whose patches do not emit
+    are not read).
     """
     n, C, m = X.shape
     k = Q.shape[1]
@@ -124,11 +131,11 @@ def low_rank_correction(Q: np.ndarray, V: np.ndarray, D: np.ndarray, lus, X: np.
     first, second = (Q, V) if adjoint else (V, Q)
     if adjoint:
         X = D[:, :, None] * X
-    T = (first.T @ X.reshape(n, C * m).astype(first.dtype)).astype(np.float64).reshape(k, C, m)
+    T = thin.tmatmul(first, X.reshape(n, C * m)).reshape(k, C, m)
     S = np.empty((k, C, m), second.dtype)
-    for c in range(C):
+    for c in range(C):   # the LU in the factors' dtype too: LAPACK getrs without converting it
         S[:, c, :] = sla.lu_solve(lus[c], T[:, c, :], trans=1 if adjoint else 0, check_finite=False)
-    W = (second @ S.reshape(k, C * m)).reshape(n, C, m)
+    W = thin.matmul(second, S.reshape(k, C * m)).reshape(n, C, m)
     return W.astype(np.float64) if adjoint else D[:, :, None] * W
 
 
@@ -166,8 +173,8 @@ class HFactorization:
     Notes
     -----
     ``solver`` names the method ("woodbury"; the near-field split's subclass says its own).
-    Memory: Q and V (2 n k in the factor dtype) and three k x k LU factors
-    (float64); nothing else n x k is kept. A solve of all three channels (and
+    Memory: Q and V (2 n k) and three k x k LU factors (3 k^2), all in the
+    factors' dtype; nothing else n x k is kept. A solve of all three channels (and
     m emissions) reads Q and V once each: O(nk) per right-hand side.
     Set-up: ``n k^2`` multiply-adds (plus ``k^2`` per coloured patch and
     channel, :func:`capacitance`) and three k x k LUs. Aguerre & Fernández
@@ -185,13 +192,13 @@ class HFactorization:
         """The three ``(lu, piv)`` of ``M_c = I_k - V^T D_c Q``: ``stored`` checked, or computed."""
         k = self.rank
         if stored is not None:
-            lus = [(np.asarray(lu, np.float64), np.asarray(piv, np.int32)) for lu, piv in stored]
+            lus = [(np.asarray(lu, self.dtype), np.asarray(piv, np.int32)) for lu, piv in stored]
             if len(lus) != N_CHANNELS or any(lu.shape != (k, k) or piv.shape != (k,) for lu, piv in lus):
                 raise InputError(f"capacitance must be {N_CHANNELS} (lu, piv) pairs of shapes ({k}, {k}) "
                                  f"and ({k},)")
             return lus
         M = capacitance(self.Q, self.V, self._D)
-        return [factor_capacitance(M[c], f"channel {c}: I - V^T Q_c") for c in range(N_CHANNELS)]
+        return [factor_capacitance(M[c], f"channel {c}: I - V^T Q_c", self.dtype) for c in range(N_CHANNELS)]
 
     def _set_state(self, perm, Q, V, rho_max, reflectance, lowrank, sigma_max, params, scene, stats) -> None:
         """What every solver of a factorization holds (shared with the near-field solver)."""
