@@ -45,8 +45,9 @@ def register(app: typer.Typer) -> None:
         """Precompute a scene once: form factors with visibility, HF, Woodbury factors.
 
         Memory: one n x BLOCK block of form factors (8 n BLOCK bytes) plus the
-        factors, about 5 n k x 4 bytes in float32 (k = rank; k ~ 1,500 at 10K
-        patches and eps 0.02 -> ~0.3 GB). The n x n matrix is never stored.
+        factors: Q, V and three k x k inverses, (2 n k + 3 k^2) x 4 bytes in
+        float32 (k = rank; k ~ 2,000 at 10K patches and eps 0.02 -> ~0.2 GB).
+        The n x n matrix is never stored.
         A checkpoint (OUTPUT.partial) is written every 30 s; rerun the same
         command to resume after an interruption. With --scheduler or --workers
         the work runs as Dask tasks (no checkpoint: Dask re-runs the tasks of a
