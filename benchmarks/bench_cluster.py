@@ -6,8 +6,8 @@ patch, worst non-flatness, seconds (best of 2; the first call of a process also
 compiles the numba kernels and is not counted).
 
 Part 2 (``--kernel``) measures form-factor kernel throughput (pairs per second, no
-visibility, best of 3) in one run: the clustered kernel on each scene clustered to the
-first patch count, with kernel.py's rules for near pairs of few triangles (the default)
+visibility, best of 3, 128 rows x all columns) in one run: the clustered kernel on each
+scene clustered to each patch count, with kernel.py's rules for near pairs of few triangles (the default)
 and without them (the 32-point rule for every near pair), against the plain kernel on
 the same scene unclustered (one triangle per patch, as many rows); and on the built-in
 Cornell box at the same patch count both ways (refined 4x and clustered back, against
@@ -128,7 +128,7 @@ def main() -> None:
         common.print_table("clustering", rows, ["scene", "faces", "asked", "patches", "triangles", "tri_per_patch",
                                                 "max_tri", "non_flatness", "area_ratio", "D2/A_p99", "D2/A_max",
                                                 "D/sqrtA*_max", "seconds", "load"])
-    kernel = kernel_rows(sizes[0]) if args.kernel else []
+    kernel = [r for n in sizes for r in kernel_rows(n)] if args.kernel else []
     if kernel:
         common.print_table("kernel throughput (no visibility)", kernel, ["scene", "kernel", "patches", "pairs",
                                                                          "pairs_per_s", "load"])
