@@ -29,15 +29,15 @@ exactly as ``hfrad precompute`` does (``hfrad.pipeline.factorize``, eps 0.02, ca
 ``benchmarks/.cache/relight-cornell-N.hfr``), against the memory-bandwidth limit:
 
 * one RGB emission (the scene's light), median and best of >= 20 solves, for the present solver
-  (Q, V and three k x k LUs; Q and V read once per RGB solve) and the previous one (three n x k
+  (Q, V and three k x k inverses; Q and V read once per RGB solve) and the previous one (three n x k
   ``Y_c = -D_c Q M_c^{-1}`` rebuilt here, float64 set-up as it was; the solve read V and the Y_c);
 * the time to read Q and V once (2nk words), measured in the same run three ways: half of a
   ``np.copyto`` of 2nk words (the issue's definition: copy bandwidth, read + write), a streaming
   ``Q.sum() + V.sum()``, and a matrix-vector product with each (BLAS gemv);
-* set-up (the k x k ``M_c`` and their LUs) in float32 and float64, and the old Y set-up; the
+* set-up (the k x k ``M_c`` and their inverses) in float32 and float64, and the old Y set-up; the
   radiosity difference float32 vs float64 set-up, next to the HF error;
-* ``.hfr`` size and load time: format 3 (stores the LUs) vs format 2 (stores Y; a loaded v2 file
-  recomputes the LUs from Q and V).
+* ``.hfr`` size and load time: format 3 (stores the inverses) vs format 2 (stores Y; a loaded v2 file
+  recomputes the inverses from Q and V).
 
       PYTHONPATH=src python benchmarks/bench_solve.py --relight --sizes 10000,20000
 Writes benchmarks/results/solve-relight.json.
@@ -220,7 +220,7 @@ def old_solve(fac, Y, E: np.ndarray) -> np.ndarray:
 
 
 def write_v2(src, dst, Y: np.ndarray) -> None:
-    """Copy a format-3 .hfr to the format-2 layout: Y (3, n, k) instead of the k x k LUs."""
+    """Copy a format-3 .hfr to the format-2 layout: Y (3, n, k) instead of the k x k inverses."""
     import h5py
     from hfrad.solve import hfr
     with h5py.File(src) as f, h5py.File(dst, "w") as g:
@@ -232,7 +232,7 @@ def write_v2(src, dst, Y: np.ndarray) -> None:
                 f.copy(name, g)
         fac_g = g.create_group("factors")
         for name in f["factors"]:
-            if not name.startswith("capacitance"):
+            if name != "capacitance_inverse":
                 f.copy(f"factors/{name}", fac_g)
         hfr._dataset(fac_g, "Y", Y)
         g.attrs[hfr.DIGEST] = hfr._attrs_digest(g)
@@ -244,7 +244,7 @@ def relight_case(n_target: int, args) -> dict:
     from hfrad.pipeline import factorize as precompute
     from hfrad.scene.load import load_scene
     from hfrad.solve.hfr import load_hfr, save_hfr
-    from hfrad.solve.woodbury import capacitance, factor_capacitance, low_rank_correction
+    from hfrad.solve.woodbury import capacitance, invert_capacitance, low_rank_correction
 
     cache = common.CACHE_DIR / f"relight-cornell-{n_target}.hfr"
     if cache.exists():
@@ -262,17 +262,17 @@ def relight_case(n_target: int, args) -> dict:
     print(f"\n[relight cornell n={n} k={k}]", file=sys.stderr, flush=True)
     E = fac.scene.emission.copy()
 
-    # set-up: new (M_c in float32 / float64 + LU) vs old (three Y_c, float64)
+    # set-up: new (M_c in float32 / float64, inverted) vs old (three Y_c, float64)
     def setup(dtype):
         M = capacitance(fac.Q, fac.V, fac._D, dtype=dtype)
-        return [factor_capacitance(M[c], "M") for c in range(3)]
+        return np.stack([invert_capacitance(M[c], "M", fac.dtype) for c in range(3)])
     t32 = common.best_of(lambda: setup(np.float32), 2)
     t64 = common.best_of(lambda: setup(np.float64), 2)
     row["setup_new_f32"], row["setup_new_f64"] = t32.best, t64.best
     Y, row["setup_old_y"] = old_woodbury_y(fac)
     Ei = E[fac.perm][:, :, None]
-    B32, B64 = ((Ei + low_rank_correction(fac.Q, fac.V, fac._D, lus, Ei, False))[fac.inv_perm, :, 0]
-                for lus in (t32.result, t64.result))
+    B32, B64 = ((Ei + low_rank_correction(fac.Q, fac.V, fac._D, inv, Ei, False))[fac.inv_perm, :, 0]
+                for inv in (t32.result, t64.result))
     row["setup_f32_vs_f64"] = float(np.linalg.norm(B32 - B64) / np.linalg.norm(B64))
     print(f"  set-up: new f32 {t32.best:.2f} s, f64 {t64.best:.2f} s, old Y {row['setup_old_y']:.2f} s; "
           f"f32 vs f64 radiosity {row['setup_f32_vs_f64']:.1e}", file=sys.stderr, flush=True)
@@ -292,19 +292,21 @@ def relight_case(n_target: int, args) -> dict:
     row["old_over_2nk_copy"] = row["solve_old_median"] / row["read_2nk_copy"]
     row["solve_old/new"] = row["solve_old_median"] / row["solve_new_median"]
     item = fac.dtype.itemsize
-    row["memory_new_mb"] = (2 * n * k * item + 3 * 8 * k * k) / 1e6
+    row["memory_new_mb"] = (2 * n * k + 3 * k * k) * item / 1e6
     row["memory_old_mb"] = 5 * n * k * item / 1e6
 
-    # the file: format 3 vs format 2, size and load time
-    v2 = cache.with_name(cache.stem + "-v2.hfr")
-    write_v2(cache, v2, Y)
+    # the file: format 3 (as this hfrad writes it) vs format 2, size and load time
+    v3, v2 = (cache.with_name(f"{cache.stem}-{v}.hfr") for v in ("v3", "v2"))
+    save_hfr(fac, v3, timings=fac.timings)
+    write_v2(v3, v2, Y)
     del Y
-    row["file_v3_mb"], row["file_v2_mb"] = cache.stat().st_size / 1e6, v2.stat().st_size / 1e6
-    row["load_v3"] = common.best_of(lambda: load_hfr(cache), 2).best
+    row["file_v3_mb"], row["file_v2_mb"] = v3.stat().st_size / 1e6, v2.stat().st_size / 1e6
+    row["load_v3"] = common.best_of(lambda: load_hfr(v3), 2).best
     t = common.best_of(lambda: load_hfr(v2), 2)
     row["load_v2"] = t.best
     np.testing.assert_allclose(t.result.solve(E), B_new, rtol=0, atol=1e-5 * np.abs(B_new).max())
     v2.unlink()
+    v3.unlink()
     row["loadavg_end"] = os.getloadavg()[0]
     print(f"  solve median new {row['solve_new_median'] * 1e3:.1f} ms, old {row['solve_old_median'] * 1e3:.1f} ms; "
           f"read 2nk: copy/2 {row['read_2nk_copy'] * 1e3:.1f} ms, sum {row['read_2nk_sum'] * 1e3:.1f} ms; "

@@ -58,9 +58,7 @@ def test_round_trip(saved):
     back = load_hfr(path)
     for name in ("perm", "Q", "V", "rho_max", "reflectance"):
         np.testing.assert_array_equal(getattr(back, name), getattr(fac, name))
-    for (lu, piv), (lu0, piv0) in zip(back.capacitance_lu, fac.capacitance_lu):
-        np.testing.assert_array_equal(lu, lu0)
-        np.testing.assert_array_equal(piv, piv0)
+    np.testing.assert_array_equal(back.capacitance_inv, fac.capacitance_inv)
     assert back.Q.dtype == np.float32
     assert back.rank == fac.rank and back.eps == fac.eps
     assert back.achieved_error == fac.achieved_error and back.relative_error == fac.relative_error
@@ -146,17 +144,18 @@ def test_reads_version_2_file(tmp_path):
     new = save_hfr(fac, tmp_path / "plates-v3.hfr")
     assert read_hfr_metadata(new)["format_version"] == 3
     with h5py.File(new) as f:
-        assert "Y" not in f["factors"] and f["factors/capacitance_lu"].shape == (3, fac.rank, fac.rank)
+        assert "Y" not in f["factors"] and f["factors/capacitance_inverse"].shape == (3, fac.rank, fac.rank)
     np.testing.assert_array_equal(load_hfr(new).solve(E), B)
     np.testing.assert_array_equal(load_hfr(new).solve(e, trans="T"), fac.solve(e, trans="T"))
 
 
-def test_damaged_capacitance(saved, tmp_path):
-    """A v3 file whose k x k factors are missing is refused, naming what is inconsistent."""
-    path, *_ = saved
-    bad = tmp_path / "nolu.hfr"
-    bad.write_bytes(path.read_bytes())
-    with h5py.File(bad, "a") as f:
-        del f["factors/capacitance_lu"], f["factors/capacitance_piv"]
-    with pytest.raises(FileFormatError, match="nolu.hfr: inconsistent arrays.*capacitance None"):
-        load_hfr(bad)
+def test_without_stored_inverses(saved, tmp_path):
+    """A file without the k x k inverses (written before they were stored) recomputes them: same solve."""
+    path, scene, fac = saved
+    old = tmp_path / "noinv.hfr"
+    old.write_bytes(path.read_bytes())
+    with h5py.File(old, "a") as f:
+        del f["factors/capacitance_inverse"]
+    back = load_hfr(old)
+    np.testing.assert_allclose(back.capacitance_inv, fac.capacitance_inv, rtol=0, atol=0)
+    np.testing.assert_array_equal(back.solve(scene.emission), fac.solve(scene.emission))

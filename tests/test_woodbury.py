@@ -172,7 +172,7 @@ def test_float32_and_singular():
     F, _, rho = closed_system(120, seed=11)
     fac = factorize(F, rho, eps=0.01, block_size=16)
     assert fac.Q.dtype == np.float32 and fac.V.dtype == np.float32
-    assert all(lu.dtype == np.float32 and lu.shape == (fac.rank,) * 2 for lu, _ in fac.capacitance_lu)
+    assert fac.capacitance_inv.dtype == np.float32 and fac.capacitance_inv.shape == (3, fac.rank, fac.rank)
     E = np.random.default_rng(0).random((120, 3))
     Bx = exact(F, rho, E)
     err = np.linalg.norm(fac.solve(E) - Bx, axis=0) / np.linalg.norm(Bx, axis=0)
@@ -185,21 +185,21 @@ def test_float32_and_singular():
 
 
 def test_keeps_only_q_v_and_small_factors(system):
-    """Memory: nothing n x k beyond Q and V (no Y_c); the k x k LUs are in the factors' dtype."""
+    """Memory: nothing n x k beyond Q and V (no Y_c); three k x k inverses in the factors' dtype."""
     F, _, rho, fac = system
     n, k = fac.Q.shape
     assert fac.V.shape == (n, k) and 0 < k < n
-    big = {name for name, v in vars(fac).items() if isinstance(v, np.ndarray) and v.size >= n * k}
+    arrays = {name: v for name, v in vars(fac).items() if isinstance(v, np.ndarray)}
+    assert arrays["capacitance_inv"].shape == (3, k, k) and arrays["capacitance_inv"].dtype == fac.dtype
+    big = {name for name, v in arrays.items() if v.size >= n * k and name != "capacitance_inv"}
     assert big == {"Q", "V"}, big
-    assert len(fac.capacitance_lu) == 3
-    for lu, piv in fac.capacitance_lu:
-        assert lu.shape == (k, k) and lu.dtype == np.float64 and piv.shape == (k,)
+    assert sum(v.nbytes for v in arrays.values()) <= (2 * n * k + 3 * k * k + 20 * n) * 8
 
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
 def test_capacitance_precision(dtype):
     """M_c from float32 products solves as accurately as from float64 ones (vs the exact dense solve), both trans."""
-    from hfrad.solve.woodbury import capacitance, factor_capacitance, low_rank_correction
+    from hfrad.solve.woodbury import capacitance, invert_capacitance, low_rank_correction
     F, _, rho = closed_system(300)
     fac = factorize(F, rho, eps=0.02, block_size=32, dtype=dtype)
     E = np.random.default_rng(10).random((300, 3, 2))
@@ -209,8 +209,8 @@ def test_capacitance_precision(dtype):
         B = {}
         for setup in (np.float32, np.float64):
             M = capacitance(fac.Q, fac.V, fac._D, dtype=setup)
-            lus = [factor_capacitance(M[c], "M", fac.dtype) for c in range(3)]
-            B[setup] = (Ei + low_rank_correction(fac.Q, fac.V, fac._D, lus, Ei, adjoint))[fac.inv_perm]
+            inv = np.stack([invert_capacitance(M[c], "M", fac.dtype) for c in range(3)])
+            B[setup] = (Ei + low_rank_correction(fac.Q, fac.V, fac._D, inv, Ei, adjoint))[fac.inv_perm]
             err = np.linalg.norm(B[setup] - Bx) / np.linalg.norm(Bx)
             assert err < 1e-3, (adjoint, setup, err)                             # observed 2.3e-4
         diff = np.linalg.norm(B[np.float32] - B[np.float64]) / np.linalg.norm(Bx)

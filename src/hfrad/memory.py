@@ -44,7 +44,7 @@ def rank_guess(n: int) -> int:
 
 def factors_bytes(n: int, k: int, itemsize: int = 4) -> int:
     """Memory of a factorization ready to solve: Q and V (2 n k values of ``itemsize``
-    bytes) and three k x k LU factors in the same dtype (:class:`~hfrad.solve.woodbury.HFactorization`)."""
+    bytes) and three k x k inverses in the same dtype (:class:`~hfrad.solve.woodbury.HFactorization`)."""
     return (2 * n * k + 3 * k * k) * itemsize
 
 

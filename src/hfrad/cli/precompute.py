@@ -28,7 +28,7 @@ def register(app: typer.Typer) -> None:
         samples: Optional[int] = typer.Option(None, "--samples", help="Visibility rays per patch pair."),
         order: str = typer.Option("zorder", "--order", help="Internal patch order: zorder, hilbert, random, input."),
         processes: Optional[int] = typer.Option(None, "--processes", help="Form-factor worker processes, each with its own Embree scene. Default: one per core from 4,000 patches on (idle 2 cores, 10K patches: form factors 9.9 s vs 18.4 s in one process), else this process."),
-        near_field: str = typer.Option("auto", "--near-field", help="Near-field split: pairs within ~this many neighbours per row go into a sparse N, HF factors the smooth rest, the solver is Woodbury around a sparse LU. 'auto' (default): 300 from 2,000 patches on (Cornell box, 5K patches, eps 0.05: rank 1,081 -> 195 at lower radiosity error); 'off' or 0: plain Woodbury."),
+        near_field: str = typer.Option("auto", "--near-field", help="Near-field split: pairs within the radius holding ~this many facing neighbours (nonzeros of a row of N) go into a sparse N, HF factors the smooth rest, the solver is Woodbury around a sparse LU. 'auto' (default): 120 from 2,000 patches on (Cornell box, 5K patches, eps 0.05: rank 1,081 -> 195 at lower radiosity error); 'off' or 0: plain Woodbury."),
         unit_scale: float = common.UnitScaleOption,
         emission: Optional[List[str]] = common.EmissionOption,
         area_light: Optional[str] = common.AreaLightOption,
@@ -45,8 +45,9 @@ def register(app: typer.Typer) -> None:
         """Precompute a scene once: form factors with visibility, HF, Woodbury factors.
 
         Memory: one n x BLOCK block of form factors (8 n BLOCK bytes) plus the
-        factors, about 5 n k x 4 bytes in float32 (k = rank; k ~ 1,500 at 10K
-        patches and eps 0.02 -> ~0.3 GB). The n x n matrix is never stored.
+        factors: Q, V and three k x k inverses, (2 n k + 3 k^2) x 4 bytes in
+        float32 (k = rank; k ~ 2,000 at 10K patches and eps 0.02 -> ~0.2 GB).
+        The n x n matrix is never stored.
         A checkpoint (OUTPUT.partial) is written every 30 s; rerun the same
         command to resume after an interruption. With --scheduler or --workers
         the work runs as Dask tasks (no checkpoint: Dask re-runs the tasks of a

@@ -59,7 +59,7 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Solve (I - RF) B = E for the scene's emitters (or --emission) and write B.
 
-        Memory: the factors (Q, V and three k x k LUs: (2 n k + 3 k^2) x 4
+        Memory: the factors (Q, V and three k x k inverses: (2 n k + 3 k^2) x 4
         bytes in float32) plus O(n).
         Prints the error figures of the answer (see docs/method.md).
         """

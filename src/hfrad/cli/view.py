@@ -27,7 +27,7 @@ def register(app: typer.Typer) -> None:
         """Serve a web page to relight FILE.hfr: per-emitter on/off, intensity and colour, exposure,
         false colour, live solve timings; save PNG and emission JSON.
 
-        Memory: the factors (Q, V and three k x k LUs: (2 n k + 3 k^2) x 4
+        Memory: the factors (Q, V and three k x k inverses: (2 n k + 3 k^2) x 4
         bytes in float32) plus one radiosity per emitter.
         """
         from ..viewer import ViewerApp

@@ -1,9 +1,9 @@
 """The ``.hfr`` factorization file (HDF5): everything needed to solve again without F.
 
 Layout (format version 3; versions 1 and 2, which stored three n x k
-Woodbury matrices ``Y`` instead of the k x k LUs, are still read: their
-``Y`` is ignored and the LUs recomputed from Q and V; version 1 files have no
-checksums and pass statistics)::
+Woodbury matrices ``Y`` instead of the k x k inverses, are still read: their
+``Y`` is not read and the inverses are recomputed from Q and V, O(n k^2 + k^3);
+version 1 files have no checksums and pass statistics)::
 
     /                  attrs: format ("hfrad-factorization"), format_version,
                        hfrad_version, n_patches, rank, eps, relative,
@@ -11,11 +11,11 @@ checksums and pass statistics)::
                        parameters (JSON), timings (JSON)
     /factors/perm      (n,) int64, internal order
     /factors/Q, V      (n, k) float32/64, internal order
-    /factors/capacitance_lu, capacitance_piv
-                       (3, k, k) in the factors' dtype and (3, k) int32: LAPACK getrf
-                       factors of each channel's k x k Woodbury matrix
-                       (``I - V^T D_c Q``, or ``I - V^T A_c^-1 D_c Q`` with
-                       the near field), so loading needs no O(n k^2) set-up
+    /factors/capacitance_inverse
+                       (3, k, k) in the factors' dtype: the inverse of each
+                       channel's k x k Woodbury matrix (``I - V^T D_c Q``, or
+                       ``I - V^T A_c^-1 D_c Q`` with the near field), so
+                       loading needs no O(n k^2) set-up (recomputed if absent)
     /factors/near_data, near_indices, near_indptr
                        the near field N (CSR, internal order) when the
                        near-field split was used (attr solver says which)
@@ -129,9 +129,7 @@ def save_hfr(factorization: HFactorization, path, *, scene=None, timings: dict |
             for name in ("perm", "Q", "V", "rho_max", "reflectance"):
                 _dataset(g, name, getattr(fac, name))
             a["solver"] = getattr(fac, "solver", "woodbury")
-            k = fac.rank
-            _dataset(g, "capacitance_lu", np.array([lu for lu, _ in fac.capacitance_lu], fac.dtype).reshape(3, k, k))
-            _dataset(g, "capacitance_piv", np.array([p for _, p in fac.capacitance_lu], np.int32).reshape(3, k))
+            _dataset(g, "capacitance_inverse", fac.capacitance_inv)
             N = getattr(fac, "N", None)
             if N is not None:  # near-field split: sparse N (CSR, internal order)
                 _dataset(g, "near_data", N.data)
@@ -282,8 +280,7 @@ def load_hfr(path) -> HFactorization:
             g = f["factors"]
             perm, Q, V, rho_max, rho = (_read(g, k, path) for k in ("perm", "Q", "V", "rho_max", "reflectance"))
             # versions 1-2 stored Y (3 n k words) instead: not read, the LUs are recomputed
-            cap = tuple(_read(g, k, path) for k in ("capacitance_lu", "capacitance_piv")) \
-                if "capacitance_lu" in g else None
+            cap = _read(g, "capacitance_inverse", path) if "capacitance_inverse" in g else None
             near = tuple(_read(g, k, path) for k in ("near_data", "near_indices", "near_indptr")) \
                 if "near_data" in g else None
             scene = _read_scene(f["patches"], path) if "patches" in f else None
@@ -294,19 +291,17 @@ def load_hfr(path) -> HFactorization:
             raise FileFormatError(f"{path}: truncated or corrupted .hfr file: {exc}") from exc
     n, k = meta["n_patches"], meta["rank"]
     if Q.shape != (n, k) or V.shape != (n, k) or perm.shape != (n,) \
-            or (cap is not None and (cap[0].shape != (3, k, k) or cap[1].shape != (3, k))) \
-            or (cap is None and meta["format_version"] >= 3):
-        raise FileFormatError(f"{path}: inconsistent arrays (Q {Q.shape}, V {V.shape}, capacitance "
-                              f"{None if cap is None else (cap[0].shape, cap[1].shape)}, rank {k})")
-    capacitance = None if cap is None else list(zip(cap[0], cap[1]))
+            or (cap is not None and cap.shape != (3, k, k)):
+        raise FileFormatError(f"{path}: inconsistent arrays (Q {Q.shape}, V {V.shape}, capacitance_inverse "
+                              f"{None if cap is None else cap.shape}, rank {k})")
     lr = LowRank(Q=Q, V=V, achieved_error=meta["achieved_error"], norm=meta["norm"], eps=meta["eps"],
                  relative=meta["relative"], method=meta["method"], info=meta["lowrank_info"])
     if near is None:
-        fac = HFactorization(perm, Q, V, rho_max, rho, lr, capacitance=capacitance, sigma_max=meta["sigma_max"],
+        fac = HFactorization(perm, Q, V, rho_max, rho, lr, capacitance=cap, sigma_max=meta["sigma_max"],
                              params=meta["parameters"], scene=scene, stats=stats)
     else:
         N = sp.csr_matrix(near, shape=(n, n))
-        fac = NearFieldFactorization(perm, Q, V, N, rho_max, rho, lr, capacitance=capacitance,
+        fac = NearFieldFactorization(perm, Q, V, N, rho_max, rho, lr, capacitance=cap,
                                      sigma_max=meta["sigma_max"], params=meta["parameters"], scene=scene,
                                      stats=stats)
     fac.timings = meta["timings"]

@@ -9,7 +9,7 @@ Sherman-Morrison-Woodbury around ``A_c`` (factored once by SciPy's SuperLU,
 ``scipy.sparse.linalg.splu``):
 
     B_c = x_c + A_c^{-1} U_c K_c^{-1} V^T x_c,   x_c = A_c^{-1} E_c,
-    K_c = I_k - V^T A_c^{-1} U_c                 (k x k, LU-factored once).
+    K_c = I_k - V^T A_c^{-1} U_c                 (k x k, inverted once).
 
 A solve reads Q and V once each (2nk words, for the three channels together)
 plus two sparse triangular solve pairs per channel; nothing else n x k is kept.
@@ -24,7 +24,7 @@ from scipy.sparse.linalg import splu
 
 from ..errors import FactorizationError
 from ..factorize.lowrank import LowRank
-from .woodbury import N_CHANNELS, HFactorization, factor_capacitance, low_rank_correction
+from .woodbury import N_CHANNELS, HFactorization, invert_capacitance, low_rank_correction
 
 __all__ = ["NearFieldFactorization", "SOLVER"]
 
@@ -62,14 +62,14 @@ class NearFieldFactorization(HFactorization):
         The near field of ``G_int = diag(rho_max) F`` (internal order).
     rho_max, reflectance, lowrank, sigma_max, params, scene
         As for :class:`HFactorization`.
-    capacitance : sequence of 3 ``(lu, piv)``, optional
-        LU factors of the ``K_c`` (as stored in an .hfr file); computed
+    capacitance : (3, k, k) float, optional
+        The inverses ``K_c^{-1}`` (as stored in an .hfr file); computed
         (one sparse solve with k right-hand sides per channel) when not given.
 
     Notes
     -----
     Memory: Q, V (2 n k in the factor dtype), N, its three sparse LU factors
-    and three k x k LU factors (in the factors' dtype).
+    and the three k x k inverses ``K_c^{-1}`` (in the factors' dtype).
     Per solve O(n k + nnz(LU)) per right-hand side and channel.
     """
 
@@ -80,7 +80,7 @@ class NearFieldFactorization(HFactorization):
         self._set_state(perm, Q, V, rho_max, reflectance, lowrank, sigma_max, params, scene, stats)
         self.N = sp.csr_matrix(N, dtype=np.float64)
         self._splu = self._factor_near()
-        self.capacitance_lu = self._capacitance_lu(capacitance)
+        self.capacitance_inv = self._capacitance_inv(capacitance)
 
     def _factor_near(self) -> list:
         """SuperLU of ``A_c = I - D_c N`` per channel."""
@@ -95,13 +95,14 @@ class NearFieldFactorization(HFactorization):
                 raise FactorizationError(f"channel {c}: I - D_c N is singular ({exc})") from exc
         return lus
 
-    def _capacitance_lu(self, stored) -> list:
-        """The three ``(lu, piv)`` of ``K_c = I_k - V^T A_c^{-1} D_c Q``: ``stored`` checked, or computed."""
+    def _capacitance_inv(self, stored) -> np.ndarray:
+        """(3, k, k) ``K_c^{-1}``, ``K_c = I_k - V^T A_c^{-1} D_c Q``: ``stored`` checked, or computed."""
         if stored is not None or self.rank == 0:
-            return super()._capacitance_lu(stored)
+            return super()._capacitance_inv(stored)
         Q64, V64 = self.Q.astype(np.float64), self.V.astype(np.float64)
-        return [factor_capacitance(np.eye(self.rank) - V64.T @ _lu_solve(self._splu[c], self._D[:, c:c + 1] * Q64),
-                                   f"channel {c}: I - V^T A_c^-1 D_c Q", self.dtype) for c in range(N_CHANNELS)]
+        return np.stack([invert_capacitance(np.eye(self.rank) - V64.T @ _lu_solve(self._splu[c], self._D[:, c:c + 1] * Q64),
+                                            f"channel {c}: I - V^T A_c^-1 D_c Q", self.dtype)
+                         for c in range(N_CHANNELS)])
 
     def _power_sigma(self, c: int, rtol: float = 1e-6, max_iter: int = 300) -> float:
         """sigma_max(D_c (N + Q V^T)) by power iteration on A^T A, O(nk + nnz(N)) per step."""
@@ -133,7 +134,7 @@ class NearFieldFactorization(HFactorization):
         x = np.stack([_lu_solve(self._splu[c], Ei[:, c, :], trans) for c in range(N_CHANNELS)], axis=1)
         if self.rank == 0:
             return x[self.inv_perm]
-        W = low_rank_correction(self.Q, self.V, self._D, self.capacitance_lu, x, adjoint)
+        W = low_rank_correction(self.Q, self.V, self._D, self.capacitance_inv, x, adjoint)
         out = x + np.stack([_lu_solve(self._splu[c], W[:, c, :], trans) for c in range(N_CHANNELS)], axis=1)
         return out[self.inv_perm]
 

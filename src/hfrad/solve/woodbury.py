@@ -69,12 +69,17 @@ def capacitance(Q: np.ndarray, V: np.ndarray, D: np.ndarray, dtype=None) -> np.n
     return M
 
 
-def factor_capacitance(M: np.ndarray, what: str, dtype=np.float64) -> tuple[np.ndarray, np.ndarray]:
-    """LU factors ``(lu, piv)`` of one k x k capacitance matrix (for :func:`scipy.linalg.lu_solve`).
+def invert_capacitance(M: np.ndarray, what: str, dtype=np.float64) -> np.ndarray:
+    """The inverse of one k x k capacitance matrix, after a singularity check.
 
-    Factored and checked in float64; ``lu`` is returned in ``dtype`` (the
-    factors' dtype: ``M_c`` is well conditioned, about 2 on the test scenes, so
-    a float32 LU changes the radiosity by less than 1e-6 of the HF error).
+    LU-factored (LAPACK getrf), checked and inverted (getri) in float64; the
+    inverse is returned C-contiguous in ``dtype`` (the factors' dtype). An
+    explicit inverse, not the LU: applying it is one matrix-vector product
+    that streams its k^2 words, where two triangular solves of a single
+    right-hand side ran ~25x slower (k = 2,067, ``benchmarks/bench_solve.py
+    --relight``). ``M_c`` is well conditioned (about 2 on the test scenes),
+    so neither the inverse nor its float32 rounding costs accuracy that the
+    exact-solve tests can see.
 
     Raises
     ------
@@ -84,7 +89,7 @@ def factor_capacitance(M: np.ndarray, what: str, dtype=np.float64) -> tuple[np.n
     """
     k = M.shape[0]
     if k == 0:
-        return np.zeros((0, 0), dtype), np.zeros(0, np.int32)
+        return np.zeros((0, 0), dtype)
     lu, piv, info = sla.lapack.dgetrf(np.asarray(M, np.float64))
     anorm = float(np.abs(M).sum(axis=0).max())
     rcond = sla.lapack.dgecon(lu, anorm, norm="1")[0] if info == 0 else 0.0
@@ -93,23 +98,25 @@ def factor_capacitance(M: np.ndarray, what: str, dtype=np.float64) -> tuple[np.n
     if info != 0 or not rcond > _RCOND_MIN:
         raise FactorizationError(f"{what} ({k} x {k}) is singular (reciprocal condition {rcond:.2e}); "
                                  "R F has an eigenvalue near 1 (reflectance too close to 1?)")
-    return lu.astype(dtype, copy=False), piv
+    # the blocked getri needs its workspace size: with the default (k) it is ~5x slower
+    inv, info = sla.lapack.dgetri(lu, piv, lwork=max(int(sla.lapack.dgetri_lwork(k)[0]), k))
+    return np.ascontiguousarray(inv, dtype)
 
 
-def low_rank_correction(Q: np.ndarray, V: np.ndarray, D: np.ndarray, lus, X: np.ndarray,
+def low_rank_correction(Q: np.ndarray, V: np.ndarray, D: np.ndarray, inverse: np.ndarray, X: np.ndarray,
                         adjoint: bool) -> np.ndarray:
     """The Woodbury term for every channel and right-hand side at once, reading Q and V once each.
 
     Forward: ``W_c = D_c Q M_c^{-1} V^T X_c``; adjoint:
-    ``W_c = V M_c^{-T} Q^T D_c X_c``, with ``lus[c]`` the LU of ``M_c``
-    (:func:`factor_capacitance`). The plain solve is ``X + W``; the near-field
+    ``W_c = V M_c^{-T} Q^T D_c X_c``, with ``inverse[c]`` = ``M_c^{-1}``
+    (:func:`invert_capacitance`). The plain solve is ``X + W``; the near-field
     split applies its sparse inverse to W.
 
     Parameters
     ----------
     Q, V : (n, k) float, internal order
     D : (n, C) float
-    lus : sequence of C ``(lu, piv)``
+    inverse : (C, k, k) float, the factors' dtype
     X : (n, C, m) float64, internal order
 
     Returns
@@ -119,10 +126,10 @@ def low_rank_correction(Q: np.ndarray, V: np.ndarray, D: np.ndarray, lus, X: np.
     Notes
     -----
     Two products with all ``C m`` right-hand sides stacked (k x n x Cm, then
-    n x k x Cm, in the factors' dtype, :mod:`hfrad.solve.thin`) and C small
-    k x k triangular solves, all in the factors' dtype: the solve streams Q and V once (2nk
-    words, its memory-bandwidth limit; rows of V whose patches do not emit
-    are not read).
+    n x k x Cm, :mod:`hfrad.solve.thin`) and C products with the k x k
+    inverses, all in the factors' dtype: the solve streams Q and V once and the
+    inverses once (2nk + 3k^2 words, its memory-bandwidth limit; rows of V
+    whose patches do not emit are not read).
     """
     n, C, m = X.shape
     k = Q.shape[1]
@@ -133,8 +140,8 @@ def low_rank_correction(Q: np.ndarray, V: np.ndarray, D: np.ndarray, lus, X: np.
         X = D[:, :, None] * X
     T = thin.tmatmul(first, X.reshape(n, C * m)).reshape(k, C, m)
     S = np.empty((k, C, m), second.dtype)
-    for c in range(C):   # the LU in the factors' dtype too: LAPACK getrs without converting it
-        S[:, c, :] = sla.lu_solve(lus[c], T[:, c, :], trans=1 if adjoint else 0, check_finite=False)
+    for c in range(C):
+        S[:, c, :] = (inverse[c].T if adjoint else inverse[c]) @ T[:, c, :]
     W = thin.matmul(second, S.reshape(k, C * m)).reshape(n, C, m)
     return W.astype(np.float64) if adjoint else D[:, :, None] * W
 
@@ -159,9 +166,9 @@ class HFactorization:
         Must satisfy ``reflectance <= rho_max`` per patch.
     lowrank : LowRank
         Metadata of the factorization (eps, achieved error, norm, relative).
-    capacitance : sequence of 3 ``(lu, piv)``, optional
-        LU factors of the ``M_c`` (as stored in an .hfr file); computed
-        from Q, V and the reflectance when not given.
+    capacitance : (3, k, k) float, optional
+        The inverses ``M_c^{-1}`` (as stored in an .hfr file); computed from
+        Q, V and the reflectance when not given.
     sigma_max : (3,) float, optional
         Cached power-iteration estimates of sigma_max(Q_c V^T).
     stats : PassStatistics, optional
@@ -173,11 +180,12 @@ class HFactorization:
     Notes
     -----
     ``solver`` names the method ("woodbury"; the near-field split's subclass says its own).
-    Memory: Q and V (2 n k) and three k x k LU factors (3 k^2), all in the
-    factors' dtype; nothing else n x k is kept. A solve of all three channels (and
+    Memory: Q and V (2 n k) and the three k x k inverses ``M_c^{-1}``
+    (3 k^2, ``capacitance_inv``), all in the factors' dtype; nothing else
+    n x k is kept. A solve of all three channels (and
     m emissions) reads Q and V once each: O(nk) per right-hand side.
     Set-up: ``n k^2`` multiply-adds (plus ``k^2`` per coloured patch and
-    channel, :func:`capacitance`) and three k x k LUs. Aguerre & Fernández
+    channel, :func:`capacitance`) and three k x k inversions. Aguerre & Fernández
     2016, eq. 2-5.
     """
 
@@ -186,19 +194,19 @@ class HFactorization:
     def __init__(self, perm, Q, V, rho_max, reflectance, lowrank: LowRank, *, capacitance=None,
                  sigma_max=None, params: dict | None = None, scene=None, stats: PassStatistics | None = None):
         self._set_state(perm, Q, V, rho_max, reflectance, lowrank, sigma_max, params, scene, stats)
-        self.capacitance_lu = self._capacitance_lu(capacitance)
+        self.capacitance_inv = self._capacitance_inv(capacitance)
 
-    def _capacitance_lu(self, stored) -> list:
-        """The three ``(lu, piv)`` of ``M_c = I_k - V^T D_c Q``: ``stored`` checked, or computed."""
+    def _capacitance_inv(self, stored) -> np.ndarray:
+        """(3, k, k) ``M_c^{-1}``, ``M_c = I_k - V^T D_c Q``: ``stored`` checked, or computed."""
         k = self.rank
         if stored is not None:
-            lus = [(np.asarray(lu, self.dtype), np.asarray(piv, np.int32)) for lu, piv in stored]
-            if len(lus) != N_CHANNELS or any(lu.shape != (k, k) or piv.shape != (k,) for lu, piv in lus):
-                raise InputError(f"capacitance must be {N_CHANNELS} (lu, piv) pairs of shapes ({k}, {k}) "
-                                 f"and ({k},)")
-            return lus
+            inv = np.ascontiguousarray(stored, self.dtype)
+            if inv.shape != (N_CHANNELS, k, k):
+                raise InputError(f"capacitance must have shape ({N_CHANNELS}, {k}, {k}); got {inv.shape}")
+            return inv
         M = capacitance(self.Q, self.V, self._D)
-        return [factor_capacitance(M[c], f"channel {c}: I - V^T Q_c", self.dtype) for c in range(N_CHANNELS)]
+        return np.stack([invert_capacitance(M[c], f"channel {c}: I - V^T Q_c", self.dtype)
+                         for c in range(N_CHANNELS)])
 
     def _set_state(self, perm, Q, V, rho_max, reflectance, lowrank, sigma_max, params, scene, stats) -> None:
         """What every solver of a factorization holds (shared with the near-field solver)."""
@@ -372,7 +380,7 @@ class HFactorization:
     def _solve(self, E: np.ndarray, adjoint: bool) -> np.ndarray:
         """The solve of validated (n, 3, m) exitance in the user's order (the body of :meth:`solve`)."""
         Ei = E[self.perm]                                                 # (n, 3, m), internal order
-        B = Ei + low_rank_correction(self.Q, self.V, self._D, self.capacitance_lu, Ei, adjoint)   # eq. (4)
+        B = Ei + low_rank_correction(self.Q, self.V, self._D, self.capacitance_inv, Ei, adjoint)   # eq. (4)
         return B[self.inv_perm]
 
     def as_linear_operator(self, channel: int):
@@ -476,7 +484,7 @@ class HFactorization:
         """The same factorization with new reflectances, without refactoring.
 
         Allowed when ``reflectance <= rho_max`` everywhere (only the k x k
-        matrices ``M_c`` and their LUs are recomputed: O(n k^2)).
+        matrices ``M_c`` and their inverses are recomputed: O(n k^2 + k^3)).
 
         Raises
         ------
