@@ -100,7 +100,7 @@ def kernel_rows(patches: int, n_rows: int = 128) -> list[dict]:
 
 
 def hfr_rows(paths: list[str]) -> list[dict]:
-    from hfrad.io.hfr import load_hfr
+    from hfrad.solve.hfr import load_hfr
 
     rows = []
     for p in paths:

@@ -96,3 +96,28 @@ def test_input_t_junction_becomes_a_shared_vertex():
     # the pieces on the crease: 0-0.4 cut in 2, 0.4-1 cut in 2 (each at most 0.3 long)
     assert on_crease.sum() == 4
     assert s.areas.sum() == pytest.approx(2.0, rel=1e-12)
+
+
+def test_block_standing_on_an_uncut_floor_meets_it_along_the_contact_line():
+    # CornellBox-Original's blocks stand on a floor of two triangles: their bottom edges lie
+    # inside the floor; they must become edges of the floor's patches (same points)
+    b = _Builder()
+    b.quad((0, 0, 2), (2, 0, 2), (2, 0, 0), (0, 0, 0), "plate2", "floor")  # faces +y
+    x0, x1, z0, z1, top = 0.6, 1.3, 0.5, 1.2, 0.5
+    foot = [(x0, z0), (x1, z0), (x1, z1), (x0, z1)]
+    for k in range(4):
+        (xa, za), (xb, zb) = foot[k], foot[(k + 1) % 4]
+        b.quad((xa, 0, za), (xb, 0, zb), (xb, top, zb), (xa, top, za), "plate1", "block")
+    b.quad((x0, top, z0), (x0, top, z1), (x1, top, z1), (x1, top, z0), "plate1", "block")
+    s = subdivide(b.build(_plate_materials(), "block on floor"), max_edge=0.2)
+    assert _t_junctions(s) == 0
+    seg, count = _edges(s)
+    on_floor = (np.abs(seg[:, :, 1]) < 1e-12).all(axis=1)
+    inside = on_floor & (seg[:, :, 0] > 0.1).all(axis=1) & (seg[:, :, 0] < 1.9).all(axis=1) \
+        & (seg[:, :, 2] > 0.1).all(axis=1) & (seg[:, :, 2] < 1.9).all(axis=1)
+    # edges on the footprint's outline: two floor patches and one block side each
+    outline = inside & (count == 3)
+    assert outline.sum() == 4 * 4  # each 0.7 m side cut into 4 pieces of at most 0.2 m
+    assert (count[inside & ~outline] == 2).all()
+    floor = s.group == s.groups.index("floor")
+    assert s.areas[floor].sum() == pytest.approx(4.0, rel=1e-12)

@@ -129,7 +129,7 @@ def factorize(scene_or_matrix, reflectance=None, *, areas=None, eps: float = 0.0
         pairs within a radius holding about this many neighbours per row go into
         a sparse N, HF factors only ``G - N``, and the solver is Woodbury around a
         sparse LU of ``I - D_c N`` (:class:`~hfrad.solve.nearfield.NearFieldFactorization`).
-        "auto" (default): ``DEFAULT_NEAR_ENTRIES`` (300) neighbours per row from
+        "auto" (default): ``DEFAULT_NEAR_ENTRIES`` (120) facing neighbours per row from
         ``NEAR_FIELD_MIN_PATCHES`` (2,000) patches on, off below; None or 0: off (plain
         Woodbury). Measured on the Cornell box (rank, radiosity error vs the exact
         solve): 5K patches, eps 0.05: 1,081 -> 195 and 0.83% -> 0.55%; eps 0.02:
@@ -221,8 +221,12 @@ def _factorize_scene(scene: Scene, *, eps: float, relative: bool, block_size: in
     params = {"eps": eps, "relative": relative, "block_size": block_size, "dtype": dt.name,
               "samples": samples, "order": order, "leaf_share": leaf_share, "one_ray_tol": one_ray_tol,
               "near_field": near_entries(near_field, n),
+              # the radius, not only the count, is part of the checkpoint key
+              "near_radius": 0.0,
               # kernel version and tolerance: recorded in the .hfr, part of the checkpoint key
               "form_factors": {**kernel_settings(), **visibility_settings()}}
+    if params["near_field"]:
+        params["near_radius"] = near_radius(scene.centroids, params["near_field"], scene.normals)
     key = _scene_key(scene, params)
     stream = _open_stream(checkpoint, key, n, n_blocks, eps, relative, dt, leaf_share)
     stats = _open_stats(stream, n, scene.areas[perm])
@@ -236,7 +240,7 @@ def _factorize_scene(scene: Scene, *, eps: float, relative: bool, block_size: in
     rows_rho = rho_max[perm][:, None].astype(dt)
     split = None
     if params["near_field"]:
-        split = NearFieldSplit(scene.centroids[perm], near_radius(scene.centroids, params["near_field"]))
+        split = NearFieldSplit(scene.centroids[perm], params["near_radius"])
         if stream.blocks_done:
             split.restore(stream.extra)
     with _blas_threads(blas_threads):

@@ -26,27 +26,38 @@ from scipy.spatial import cKDTree
 
 __all__ = ["NearFieldSplit", "near_radius", "DEFAULT_NEAR_ENTRIES"]
 
-#: Neighbours per row the default radius aims at (centroids within the radius, the patch
-#: itself and coplanar neighbours, whose F is 0, included: ~100-130 nonzero entries per row
-#: on the Cornell box). Measured there (HF rank and area-weighted radiosity error vs the
-#: exact solve; plain -> split at 300): 2K patches eps 0.05: 591 -> 60, 0.75% -> 0.86%;
-#: eps 0.02: 740 -> 432, 0.24% -> 0.13%; 5K eps 0.05: 1,081 -> 195, 0.83% -> 0.55%;
-#: eps 0.02: 1,362 -> 1,307, 0.19% -> 0.10%. 64 entries only halved the rank at eps 0.05,
-#: and 1,200 cut it further at eps 0.02 but SuperLU's fill made the sparse LU 170 s at 20K
-#: (300: 2.3 s, ~650 LU entries per row from 5K to 20K).
-DEFAULT_NEAR_ENTRIES = 300
+#: Facing neighbours per row the default radius aims at: patches that can exchange light
+#: (each in front of the other), i.e. about the nonzero entries of a row of N. Counting
+#: facing patches, not all centroids, keeps nnz(N) - and SuperLU's fill - the same from
+#: scene to scene: 300 plain neighbours were ~100-140 nonzeros per row on the Cornell box
+#: (whose coplanar neighbours have F = 0), but a synthetic pattern with 300 nonzeros per row
+#: did not finish its sparse LU in 500 s at 20K patches. Measured on the Cornell box with
+#: the radius of 300 plain neighbours (~140 facing at 2K-5K patches, ~75 at 20K; HF rank
+#: and area-weighted radiosity error vs the exact solve, plain -> split): 2K patches eps
+#: 0.05: 591 -> 60, 0.75% -> 0.86%; eps 0.02: 740 -> 432, 0.24% -> 0.13%; 5K eps 0.05:
+#: 1,081 -> 195, 0.83% -> 0.55%; eps 0.02: 1,362 -> 1,307, 0.19% -> 0.10%. 64 plain
+#: neighbours only halved the rank at eps 0.05; 1,200 (~750 nonzeros) cut it further at
+#: eps 0.02 but the sparse LU took 170 s at 20K (300: 2.3 s, ~650 LU entries per row).
+DEFAULT_NEAR_ENTRIES = 120
 
 _SAMPLE = 2048  # centroids sampled to pick the radius (deterministic: evenly spaced)
+_LOOK = 6       # nearest centroids searched per sample, times ``entries``
 
 
-def near_radius(centroids: np.ndarray, entries: int = DEFAULT_NEAR_ENTRIES) -> float:
+def near_radius(centroids: np.ndarray, entries: int = DEFAULT_NEAR_ENTRIES,
+                normals: np.ndarray | None = None) -> float:
     """Centroid distance within which a patch has about ``entries`` neighbours (median).
 
     Parameters
     ----------
     centroids : (n, 3) float, metres
     entries : int
-        Target neighbours per row of N (including the patch itself).
+        Target neighbours per row of N.
+    normals : (n, 3) float, optional
+        Unit patch normals: then only *facing* neighbours count (each in front of
+        the other: the pairs whose form factor can be nonzero), so ``entries`` is
+        about the nonzeros per row of N. Without normals every centroid counts
+        (the patch itself included).
 
     Returns
     -------
@@ -56,10 +67,19 @@ def near_radius(centroids: np.ndarray, entries: int = DEFAULT_NEAR_ENTRIES) -> f
     n = len(c)
     if n < 2 or entries < 2:
         return 0.0
-    k = min(int(entries), n)
-    sample = c[np.unique(np.linspace(0, n - 1, min(n, _SAMPLE)).astype(np.int64))]
-    dist, _ = cKDTree(c).query(sample, k=k)
-    return float(np.median(dist[:, -1]))
+    pick = np.unique(np.linspace(0, n - 1, min(n, _SAMPLE)).astype(np.int64))
+    tree = cKDTree(c)
+    if normals is None:
+        dist, _ = tree.query(c[pick], k=min(int(entries), n))
+        return float(np.median(dist[:, -1]))
+    nrm = np.asarray(normals, np.float64)
+    dist, idx = tree.query(c[pick], k=min(_LOOK * int(entries), n))
+    d = c[idx] - c[pick][:, None, :]                                   # (s, k, 3) towards the neighbour
+    facing = (np.einsum("skx,sx->sk", d, nrm[pick]) > 0) & (np.einsum("skx,skx->sk", d, nrm[idx]) < 0)
+    count = np.cumsum(facing, axis=1)
+    # the distance at which the entries-th facing neighbour appears (the farthest searched if fewer)
+    at = np.minimum((count < entries).sum(axis=1), dist.shape[1] - 1)
+    return float(np.median(dist[np.arange(len(pick)), at]))
 
 
 class NearFieldSplit:

@@ -49,7 +49,7 @@ import math
 import numpy as np
 from numba import njit
 
-from .patches import _merge_vertices as merge_vertices, split_faces
+from .patches import split_faces
 from .scene import Scene
 from .zorder import zorder_permutation
 
@@ -100,8 +100,27 @@ def weld(vertices: np.ndarray, faces: np.ndarray, *, rel_tol: float = 1e-9) -> n
         return faces.reshape(0, 3)
     scale = float(np.abs(vertices).max(initial=0.0)) or 1.0
     key = np.rint(vertices / (scale * rel_tol)).astype(np.int64)
-    _, inverse = np.unique(key, axis=0, return_inverse=True)
-    return inverse.reshape(-1)[faces]
+    return row_ids(key)[faces]
+
+
+def row_ids(table: np.ndarray) -> np.ndarray:
+    """(n,) int64: equal rows of the (n, k) ``table`` get equal ids 0..u-1 (in sorted row order).
+
+    Same as ``np.unique(table, axis=0, return_inverse=True)[1]``, several times faster
+    (a lexsort on the columns instead of sorting rows as opaque records).
+    """
+    table = np.asarray(table)
+    n = len(table)
+    if n == 0:
+        return np.zeros(0, np.int64)
+    order = np.lexsort(table.T[::-1])
+    ordered = table[order]
+    new = np.empty(n, bool)
+    new[0] = True
+    np.any(ordered[1:] != ordered[:-1], axis=1, out=new[1:])
+    ids = np.empty(n, np.int64)
+    ids[order] = np.cumsum(new) - 1
+    return ids
 
 
 def compatibility_classes(scene: Scene) -> np.ndarray:
@@ -110,7 +129,7 @@ def compatibility_classes(scene: Scene) -> np.ndarray:
     Same material, group, reflectance and emission (a patch has one of each).
     """
     table = np.column_stack([scene.material, scene.group, scene.reflectance, scene.emission])
-    return np.unique(table, axis=0, return_inverse=True)[1].reshape(-1).astype(np.int64)
+    return row_ids(table)
 
 
 def _vertex_stars(welded: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
@@ -599,7 +618,11 @@ def presplit(scene: Scene, max_edge: float) -> Scene:
     owner = np.concatenate(done_owner)
     order = np.argsort(owner, kind="stable")  # pieces of one face together, in face order
     tri, owner = tri[order], owner[order]
-    vertices, faces = merge_vertices(tri.reshape(-1, 3), np.arange(3 * len(tri)).reshape(-1, 3), scene)
+    points = tri.reshape(-1, 3)
+    ids = weld(points, np.arange(len(points)).reshape(-1, 1)).reshape(-1)  # coincident points share an id
+    vertices = np.empty((int(ids.max()) + 1, 3))
+    vertices[ids] = points
+    faces = ids.reshape(-1, 3)
     return Scene(vertices=vertices, faces=faces, material=scene.material[owner], materials=scene.materials,
                  group=scene.group[owner], groups=scene.groups, reflectance=scene.reflectance[owner],
                  emission=scene.emission[owner], parent=scene.parent[owner],

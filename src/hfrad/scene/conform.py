@@ -6,14 +6,16 @@ like a block's bottom corner on the floor's edge). Both faces that share an
 edge, and faces meeting at a T-junction vertex, therefore see the same points.
 Coplanar, edge-connected faces of one material and group are then meshed
 together as one planar region by Shewchuk's Triangle (``triangle`` package):
-its boundary points fixed (switch ``Y``: no new points on boundary segments),
-interior points placed for a minimum angle of :data:`MIN_ANGLE` degrees
-(``q``) and an area of an equilateral triangle of edge h (``a``); triangles
-whose longest edge still exceeds h are refined until none does.
+its boundary points fixed (switch ``YY``: no new points on any segment), a
+triangular lattice of spacing :data:`LATTICE` h inside, and an edge still
+longer than h given its midpoint until none is. Edges of other faces lying
+inside a region (a block standing on a floor that is not cut around it) are
+constraints of its mesh too, cut at the same points, so the floor's patches
+meet the block's along the contact line.
 
-The result: patch edges are either shared by exactly two patches or lie on a
-crease or the mesh boundary, where the neighbour has the same points; every
-patch edge is at most h; each region's area is kept to rounding.
+The result: no patch vertex lies inside another patch's edge (no T-junction),
+patches on either side of a crease or contact line share their points, every
+patch edge is at most h, and each region's area is kept to rounding.
 """
 
 from __future__ import annotations
@@ -115,8 +117,8 @@ def _mesh_region(xy: np.ndarray, segments: np.ndarray, h: float, inside) -> dict
 
     Interior points: a triangular lattice of spacing ``LATTICE * h``, less the
     points nearer than ``CLEARANCE`` lattice spacings to a boundary point; then
-    Triangle's constrained Delaunay triangulation (``p``, ``Y``: no points added
-    on the boundary). An edge still longer than h (say across a right-angled
+    Triangle's constrained Delaunay triangulation (``p``, ``YY``: no points added
+    on any segment). An edge still longer than h (say across a right-angled
     corner) gets its midpoint added, and the region is meshed again.
     """
     lo, hi = xy.min(axis=0), xy.max(axis=0)
@@ -131,12 +133,12 @@ def _mesh_region(xy: np.ndarray, segments: np.ndarray, h: float, inside) -> dict
     if len(lattice):
         lattice = lattice[inside(lattice)]
     pslg = {"vertices": np.vstack([xy, lattice]), "segments": segments}
-    rough = triangle.triangulate({"vertices": xy, "segments": segments}, "pY")
+    rough = triangle.triangulate({"vertices": xy, "segments": segments}, "pYY")
     cent = rough["vertices"][rough["triangles"]].mean(axis=1)
     outside = ~inside(cent)
     if outside.any():
         pslg["holes"] = cent[outside]
-    mesh = triangle.triangulate(pslg, "pY")
+    mesh = triangle.triangulate(pslg, "pYY")
     for _ in range(20):
         v, t = mesh["vertices"], mesh["triangles"]
         e = np.unique(np.sort(np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]]), axis=1), axis=0)
@@ -144,7 +146,7 @@ def _mesh_region(xy: np.ndarray, segments: np.ndarray, h: float, inside) -> dict
         if not long_.any():
             break
         pslg = dict(pslg, vertices=np.vstack([v, 0.5 * (v[e[long_, 0]] + v[e[long_, 1]])]))
-        mesh = triangle.triangulate(pslg, "pY")
+        mesh = triangle.triangulate(pslg, "pYY")
     return mesh
 
 
@@ -223,6 +225,36 @@ def conforming_subdivide(scene: Scene, h: float) -> Scene:
     longest = np.linalg.norm(V[F] - V[np.roll(F, 1, axis=1)], axis=2).max(axis=1)
     face_keys = [[(min(p, q), max(p, q)) for p, q in pieces] for pieces in face_pieces]
 
+    keys = list(piece_points)
+    ends = np.array(keys, dtype=np.int64).reshape(-1, 2)
+    piece_tree = cKDTree(0.5 * (P[ends[:, 0]] + P[ends[:, 1]]))
+
+    def _contact_lines(members, own, normal, origin, u, v, face_xy) -> list:
+        """Segments of other faces' edges lying inside the region (a block standing on a floor).
+
+        They become constraints of the region's mesh, cut at the same points as
+        on the faces they belong to, so the floor's patches meet the block's.
+        """
+        corners = V[F[members]].reshape(-1, 3)
+        centre = 0.5 * (corners.min(axis=0) + corners.max(axis=0))
+        radius = 0.5 * float(np.linalg.norm(corners.max(axis=0) - corners.min(axis=0)))
+        cand = np.array(piece_tree.query_ball_point(centre, radius + tol), dtype=np.int64)
+        if not len(cand):
+            return []
+        a, b = P[ends[cand, 0]] - origin, P[ends[cand, 1]] - origin
+        on = (np.abs(a @ normal) <= tol) & (np.abs(b @ normal) <= tol)
+        cand, a, b = cand[on], a[on], b[on]
+        out = []
+        if len(cand):
+            test = np.concatenate([a, b, 0.5 * (a + b)])
+            inside = _point_in_triangles(np.stack([test @ u, test @ v], axis=1), face_xy, tol).any(axis=1)
+            inside = inside.reshape(3, -1).all(axis=0)
+            for c in cand[inside]:
+                if keys[c] not in own:
+                    chain = piece_points[keys[c]]
+                    out += list(zip(chain[:-1], chain[1:]))
+        return out
+
     def mesh_members(members: np.ndarray):
         """(new 3-D points, triangles as ids (P first, then the new points), owner face) or None."""
         count: dict[tuple[int, int], int] = {}
@@ -239,14 +271,15 @@ def conforming_subdivide(scene: Scene, h: float) -> Scene:
                 segs += list(zip(chain[:-1], chain[1:]))
         if not segs:
             return None
-        ids = np.unique(segs)
-        local = {g: k for k, g in enumerate(ids)}
         normal = areas[members] @ normals[members]
         normal /= np.linalg.norm(normal)
         u, v = _basis(normal)
-        origin = P[ids[0]]
-        xy = np.stack([(P[ids] - origin) @ u, (P[ids] - origin) @ v], axis=1)
+        origin = P[segs[0][0]]
         face_xy = np.stack([(V[F[members]] - origin) @ u, (V[F[members]] - origin) @ v], axis=-1)
+        segs += _contact_lines(members, count, normal, origin, u, v, face_xy)
+        ids = np.unique(segs)
+        local = {g: k for k, g in enumerate(ids)}
+        xy = np.stack([(P[ids] - origin) @ u, (P[ids] - origin) @ v], axis=1)
         try:
             mesh = _mesh_region(xy, np.array([(local[a], local[b]) for a, b in segs]), h,
                                 lambda c: _point_in_triangles(c, face_xy, tol).any(axis=1))
