@@ -5,6 +5,7 @@ from __future__ import annotations
 import socket
 import threading
 import time
+import warnings
 
 import numpy as np
 import pytest
@@ -223,3 +224,13 @@ def test_cli_refuses_non_factorization(tmp_path):
     fake.write_bytes(b"not hdf5 at all")
     result = CliRunner().invoke(cli_app, ["view", str(fake)])
     assert result.exit_code == 2 and "fake.hfr" in result.output, result.output
+
+
+def test_page_error_figure_is_the_factorizations_bound(fac):
+    from hfrad.viewer.app import _error_estimate
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        expected = np.asarray(fac.error_estimate().bound, dtype=np.float64)
+    got = _error_estimate(fac)
+    assert got.shape == (3,)
+    np.testing.assert_array_equal(got, expected)

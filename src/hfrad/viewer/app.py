@@ -52,9 +52,7 @@ def _error_estimate(fac) -> np.ndarray:
     """(3,) float: the factorization's a-priori relative radiosity error per channel (inf: none)."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", AccuracyWarning)   # shown on the page as "none" instead
-        # the API is moving from the `error_bound` property to an `error_estimate()` method
-        estimate = getattr(fac, "error_estimate", None)
-        return np.asarray(estimate() if callable(estimate) else fac.error_bound, dtype=np.float64)
+        return np.asarray(fac.error_estimate().bound, dtype=np.float64)
 
 
 @dataclasses.dataclass
