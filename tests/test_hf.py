@@ -104,3 +104,28 @@ def test_bad_arguments(matrix):
         hierarchical_factorization(col_blocks(A, 64), 400, eps=-1)
     with pytest.raises(ValueError, match=r"block 0 must have shape \(399, b\)"):
         hierarchical_factorization(col_blocks(A, 64), 399)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_gram_leaf_matches_the_svd_leaf(dtype):
+    """The Gram leaf (tall blocks, budget well above rounding) keeps the SVD leaf's rank, or one
+    more (it picks the rank within 90% of the budget), and its reported discard is the true
+    ||A - U S V^T||_F^2."""
+    from hfrad.factorize import hf
+    rng = np.random.default_rng(3)
+    n, b = 4000, 64
+    A = (rng.standard_normal((n, 20)) @ rng.standard_normal((20, b)) * np.exp(-np.arange(b) / 6)
+         + 1e-3 * rng.standard_normal((n, b))).astype(dtype)
+    norm2 = float(np.sum(np.square(A, dtype=np.float64)))
+    budget2 = 0.5 * 0.02 ** 2 * norm2
+    gram = hf._leaf_gram(A, norm2, budget2, 0)
+    U, s, _ = hf._svd(A, "test")
+    k, d2 = hf.truncation_rank(s, budget2)
+    true2 = float(np.sum(np.square(A.astype(np.float64) - (gram.U * gram.s) @ gram.V.T)))
+    print(f"\nrank gram {gram.s.size} svd {k}; discard gram {gram.discarded2 / norm2:.4e} "
+          f"svd {d2 / norm2:.4e} true {true2 / norm2:.4e}")
+    assert k <= gram.s.size <= k + 1
+    # observed: float64 exact to rounding, float32 2.4e-7 ||A||^2 off (float32 sums)
+    assert abs(gram.discarded2 - true2) <= 1e-6 * norm2
+    np.testing.assert_allclose(gram.U.T @ gram.U, np.eye(gram.s.size), atol=1e-5)
+    assert true2 <= budget2
