@@ -218,15 +218,14 @@ def _factorize_scene(scene: Scene, *, eps: float, relative: bool, block_size: in
     n_blocks = math.ceil(n / block_size)
     if one_ray_tol is None:
         one_ray_tol = default_one_ray_tol(eps, relative)
+    entries = near_entries(near_field, n)
     params = {"eps": eps, "relative": relative, "block_size": block_size, "dtype": dt.name,
               "samples": samples, "order": order, "leaf_share": leaf_share, "one_ray_tol": one_ray_tol,
-              "near_field": near_entries(near_field, n),
+              "near_field": entries,
               # the radius, not only the count, is part of the checkpoint key
-              "near_radius": 0.0,
+              "near_radius": near_radius(scene.centroids, entries, scene.normals) if entries else 0.0,
               # kernel version and tolerance: recorded in the .hfr, part of the checkpoint key
               "form_factors": {**kernel_settings(), **visibility_settings()}}
-    if params["near_field"]:
-        params["near_radius"] = near_radius(scene.centroids, params["near_field"], scene.normals)
     key = _scene_key(scene, params)
     stream = _open_stream(checkpoint, key, n, n_blocks, eps, relative, dt, leaf_share)
     stats = _open_stats(stream, n, scene.areas[perm])
