@@ -118,7 +118,7 @@ def test_gram_leaf_matches_the_svd_leaf(dtype):
          + 1e-3 * rng.standard_normal((n, b))).astype(dtype)
     norm2 = float(np.sum(np.square(A, dtype=np.float64)))
     budget2 = 0.5 * 0.02 ** 2 * norm2
-    gram = hf._leaf_gram(A, norm2, budget2, 0)
+    gram = hf._leaf_gram(A, norm2, norm2, budget2, 0)
     U, s, _ = hf._svd(A, "test")
     k, d2 = hf.truncation_rank(s, budget2)
     true2 = float(np.sum(np.square(A.astype(np.float64) - (gram.U * gram.s) @ gram.V.T)))
@@ -128,4 +128,27 @@ def test_gram_leaf_matches_the_svd_leaf(dtype):
     # observed: float64 exact to rounding, float32 2.4e-7 ||A||^2 off (float32 sums)
     assert abs(gram.discarded2 - true2) <= 1e-6 * norm2
     np.testing.assert_allclose(gram.U.T @ gram.U, np.eye(gram.s.size), atol=1e-5)
+    assert true2 <= budget2
+
+
+def test_leaf_takes_the_gram_path_when_the_budget_norm_exceeds_the_block(monkeypatch):
+    """With the near-field split the budget comes from the block's norm *before* its near
+    entries were moved out (larger than ||A||^2). The Gram leaf must measure its discard on A
+    itself and be kept: measuring it against the larger norm once sent every near-field leaf
+    through the Gram matrix *and* a full gesdd of the tall block."""
+    from hfrad.factorize import hf
+    rng = np.random.default_rng(5)
+    n, b = 4000, 64
+    A = (rng.standard_normal((n, 12)) @ rng.standard_normal((12, b))).astype(np.float32)
+    a2 = float(np.sum(np.square(A, dtype=np.float64)))
+    norm2 = 4.0 * a2                       # the near entries held 3/4 of the block's mass
+    budget2 = 0.5 * 0.02 ** 2 * norm2
+    tall_svds = []
+    real_svd = hf._svd
+    monkeypatch.setattr(hf, "_svd", lambda M, where: (tall_svds.append(M.shape), real_svd(M, where))[1])
+    node = hf._leaf(A, norm2, budget2, 0)
+    assert not [shape for shape in tall_svds if shape[0] == n], tall_svds
+    true2 = float(np.sum(np.square(A.astype(np.float64) - (node.U * node.s) @ node.V.T)))
+    assert node.norm2 == norm2             # merges keep budgeting from the full norm
+    assert abs(node.discarded2 - true2) <= 1e-6 * a2
     assert true2 <= budget2

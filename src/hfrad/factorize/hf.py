@@ -85,23 +85,28 @@ def _leaf(A: np.ndarray, norm2: float, budget2: float, j: int) -> _Node:
     if norm2 == 0.0 or n == 0:
         return _Node(0, np.zeros((n, 0), A.dtype), np.zeros(0, A.dtype),
                      np.zeros((b, 0), A.dtype), norm2, 0.0, budget2)
-    if n >= _GRAM_MIN_ASPECT * b and budget2 >= _GRAM_MIN_EPS * np.finfo(A.dtype).eps * norm2:
-        node = _leaf_gram(A, norm2, budget2, j)
-        if node is not None:
-            return node
+    if n >= _GRAM_MIN_ASPECT * b:
+        # the block's own norm, not ``norm2``: with the near-field split the budget is taken
+        # from the norm before the near entries were moved out, which A no longer holds
+        a2 = float(np.sum(np.square(A, dtype=np.float64)))
+        if budget2 >= _GRAM_MIN_EPS * np.finfo(A.dtype).eps * a2:
+            node = _leaf_gram(A, a2, norm2, budget2, j)
+            if node is not None:
+                return node
     U, s, Wt = _svd(A, f"leaf block {j}")
     U, s, Wt, d2 = _truncate(U, s, Wt, budget2)
     return _Node(0, np.ascontiguousarray(U), s, np.ascontiguousarray(Wt.T), norm2, d2, budget2 - d2)
 
 
-def _leaf_gram(A: np.ndarray, norm2: float, budget2: float, j: int) -> _Node | None:
+def _leaf_gram(A: np.ndarray, a2: float, norm2: float, budget2: float, j: int) -> _Node | None:
     """The leaf from the Gram matrix: one SYRK (n b^2) instead of gesdd's ~4 n b^2 flops.
 
     The eigenvectors of ``A^T A`` give the kept right subspace ``V_k``; then
     ``A V_k = Q R`` (thin QR) and ``R = U_r S W^T`` make ``(Q U_r) S (V_k W)^T``, the exact
     orthogonal projection ``A V_k V_k^T``, so the discard is ``||A||^2 - sum S^2`` (measured
-    on the projection itself, not taken from the eigenvalues). None when rounding left that
-    discard over the budget (the caller then runs the full SVD).
+    on the projection itself, not taken from the eigenvalues; ``a2`` = ``||A||^2`` in float64,
+    ``norm2`` = the norm the budget was taken from). None when rounding left that discard
+    over the budget (the caller then runs the full SVD).
     """
     lam, W = np.linalg.eigh((A.T @ A).astype(np.float64))       # ascending
     lam, W = np.clip(lam[::-1], 0.0, None), W[:, ::-1]
@@ -109,7 +114,7 @@ def _leaf_gram(A: np.ndarray, norm2: float, budget2: float, j: int) -> _Node | N
     Vk = np.ascontiguousarray(W[:, :k], dtype=A.dtype)
     Qm, R = sla.qr(A @ Vk, mode="economic", overwrite_a=True, check_finite=False)
     Ur, s, Wt = _svd(R, f"leaf block {j} (Gram)")
-    discarded2 = max(norm2 - float(np.sum(np.square(s, dtype=np.float64))), 0.0)
+    discarded2 = max(a2 - float(np.sum(np.square(s, dtype=np.float64))), 0.0)
     if discarded2 > budget2:
         return None
     U, Vt = Qm @ Ur, Wt @ Vk.T
