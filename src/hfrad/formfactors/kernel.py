@@ -20,7 +20,16 @@ The polygon integral (1) is exact; only the outer integral over the point
 triangle is a quadrature, chosen per triangle pair by its centroid distance d
 and diameters (longest edges) D_t, D_u:
 
-- *far* pairs, d >= near * (D_t + D_u): the symmetric centroid rule
+- *distant* pairs, d >= FAR * (D_t + D_u) (FAR = 6): point to point between the
+  centroids, A_t A_u cos_t cos_u / (pi d^2 + (A_t + A_u) / 2), symmetric by
+  construction. The area term in the denominator is the exact correction for a
+  point facing a coaxial disk (F = A / (pi h^2 + A)); it removes most of the
+  midpoint rule's O((D/d)^2) bias for facing patches (without it the 12-split
+  C-11 plates at d = 3 are 1.4e-3 off; with it 8.2e-4, the centroid rule there
+  gave 7.0e-4). Almost all of the O(n^2) pairs of a large scene are distant,
+  and this rule has no arc tangent: the kernel runs 2x faster at 20K patches
+  (11.6 -> 17-23 M pairs/s, 2 threads; F changes by 7e-5 in the Frobenius norm);
+- *far* pairs, near * (D_t + D_u) <= d < FAR * (D_t + D_u): the symmetric centroid rule
   1/2 (A_t F_{c_t->u} + A_u F_{c_u->t}), two evaluations of (1), relative error
   O((D/d)^2) (median 0.2% at the switch for the default ``near`` = 3, and the
   far pairs carry a small share of any row's sum);
@@ -66,10 +75,14 @@ import numpy as np
 from numba import njit, prange
 
 #: Bumped whenever the numbers produced by this module change (cache keys use it).
-KERNEL_VERSION = 4  # 4: visibility's second round of rays (visibility.py)
+KERNEL_VERSION = 5  # 5: point-to-point rule beyond FAR; 4: visibility's second round of rays
 
 #: Triangle pairs closer than NEAR * (D_t + D_u) (centroid distance) leave the centroid rule.
 NEAR = 3.0
+
+#: Triangle pairs at least FAR * (D_t + D_u) apart are two points with the disk-corrected
+#: point-to-point rule (see module docstring): no contour integral, no arc tangent.
+FAR = 6.0
 
 #: Triangle pairs closer than ADAPTIVE * (D_t + D_u) take the adaptive path.
 ADAPTIVE = 1.5
@@ -90,7 +103,7 @@ _INV_2PI = 1.0 / (2.0 * math.pi)
 
 def settings(*, near: float = NEAR, adaptive: float = ADAPTIVE, tolerance: float = TOLERANCE) -> dict:
     """The kernel's version and parameters, as recorded with results (.hfr files, cache keys)."""
-    return {"kernel_version": KERNEL_VERSION, "near": float(near), "adaptive": float(adaptive),
+    return {"kernel_version": KERNEL_VERSION, "far": FAR, "near": float(near), "adaptive": float(adaptive),
             "tolerance": float(tolerance)}
 
 
@@ -369,6 +382,13 @@ def _triangle_pair_area_ff(t, u, T, N, A, C, D, near, adaptive, eps, tol):
     dz = C[t, 2] - C[u, 2]
     d2 = dx * dx + dy * dy + dz * dz
     s2 = (D[t] + D[u]) * (D[t] + D[u])
+    if d2 >= FAR * FAR * s2:  # distant: centroid to centroid (both cosines at the centroids)
+        r2 = d2
+        cos_t = -(N[t, 0] * dx + N[t, 1] * dy + N[t, 2] * dz)
+        cos_u = N[u, 0] * dx + N[u, 1] * dy + N[u, 2] * dz
+        if cos_t <= 0.0 or cos_u <= 0.0:
+            return 0.0
+        return A[t] * A[u] * cos_t * cos_u / (r2 * (math.pi * r2 + 0.5 * (A[t] + A[u])))
     if d2 >= near * near * s2:  # far: symmetric centroid rule
         g_tu = _point_to_patch(C[t, 0], C[t, 1], C[t, 2], N[t, 0], N[t, 1], N[t, 2], T, N, u, eps)
         g_ut = _point_to_patch(C[u, 0], C[u, 1], C[u, 2], N[u, 0], N[u, 1], N[u, 2], T, N, t, eps)
