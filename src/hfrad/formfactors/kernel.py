@@ -75,7 +75,7 @@ import numpy as np
 from numba import njit, prange
 
 #: Bumped whenever the numbers produced by this module change (cache keys use it).
-KERNEL_VERSION = 5  # 5: point-to-point rule beyond FAR; 4: visibility's second round of rays
+KERNEL_VERSION = 6  # 6: probe rays first (probing.py); 5: point-to-point rule beyond FAR; 4: visibility's second round of rays
 
 #: Triangle pairs closer than NEAR * (D_t + D_u) (centroid distance) leave the centroid rule.
 NEAR = 3.0
