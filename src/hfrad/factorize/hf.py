@@ -79,8 +79,12 @@ _GRAM_MIN_ASPECT = 8
 _GRAM_MARGIN = 0.9  # the rank is chosen within this share of the budget, for rounding
 
 
-def _leaf(A: np.ndarray, norm2: float, budget2: float, j: int) -> _Node:
-    """Compress one column block ``A_j`` (n x b) by a truncated thin SVD."""
+def _leaf(A: np.ndarray, norm2: float, budget2: float, j: int, a2: float | None = None) -> _Node:
+    """Compress one column block ``A_j`` (n x b) by a truncated thin SVD.
+
+    ``a2`` is ``||A||^2`` when the caller has it (float64); it differs from ``norm2``
+    when the budget comes from a larger norm (the near-field split).
+    """
     n, b = A.shape
     if norm2 == 0.0 or n == 0:
         return _Node(0, np.zeros((n, 0), A.dtype), np.zeros(0, A.dtype),
@@ -88,7 +92,8 @@ def _leaf(A: np.ndarray, norm2: float, budget2: float, j: int) -> _Node:
     if n >= _GRAM_MIN_ASPECT * b:
         # the block's own norm, not ``norm2``: with the near-field split the budget is taken
         # from the norm before the near entries were moved out, which A no longer holds
-        a2 = float(np.sum(np.square(A, dtype=np.float64)))
+        if a2 is None:
+            a2 = float(np.sum(np.square(A, dtype=np.float64)))
         if budget2 >= _GRAM_MIN_EPS * np.finfo(A.dtype).eps * a2:
             node = _leaf_gram(A, a2, norm2, budget2, j)
             if node is not None:
@@ -297,9 +302,10 @@ def compress_leaf(A: np.ndarray, budget: ErrorBudget, j: int, norm2: float | Non
     ``A`` must already be in the working dtype; its norm accumulates in float64. ``norm2``
     overrides the norm the relative budget is taken from (see ``HFStream.push``).
     """
+    a2 = None  # ||A||^2, when computed here the leaf need not compute it again
     if norm2 is None:
-        norm2 = float(np.sum(np.square(A, dtype=np.float64)))
-    return _leaf(A, norm2, budget.leaf(norm2), j)
+        norm2 = a2 = float(np.sum(np.square(A, dtype=np.float64)))
+    return _leaf(A, norm2, budget.leaf(norm2), j, a2)
 
 
 def merge_nodes(left: _Node, right: _Node, budget: ErrorBudget, where: str) -> _Node:

@@ -27,7 +27,7 @@ and diameters (longest edges) D_t, D_u:
   midpoint rule's O((D/d)^2) bias for facing patches (without it the 12-split
   C-11 plates at d = 3 are 1.4e-3 off; with it 8.2e-4, the centroid rule there
   gave 7.0e-4). Almost all of the O(n^2) pairs of a large scene are distant,
-  and this rule has no arc tangent: the kernel runs 2x faster at 20K patches
+  and this rule has no arc tangent: the kernel runs 1.5-2x faster at 20K patches
   (11.6 -> 17-23 M pairs/s, 2 threads; F changes by 7e-5 in the Frobenius norm);
 - *far* pairs, near * (D_t + D_u) <= d < FAR * (D_t + D_u): the symmetric centroid rule
   1/2 (A_t F_{c_t->u} + A_u F_{c_u->t}), two evaluations of (1), relative error
@@ -75,7 +75,8 @@ import numpy as np
 from numba import njit, prange
 
 #: Bumped whenever the numbers produced by this module change (cache keys use it).
-KERNEL_VERSION = 6  # 6: probe rays first (probing.py); 5: point-to-point rule beyond FAR; 4: visibility's second round of rays
+#: 6: probe rays first (probing.py); 5: point-to-point rule beyond FAR; 4: visibility's second round.
+KERNEL_VERSION = 6
 
 #: Triangle pairs closer than NEAR * (D_t + D_u) (centroid distance) leave the centroid rule.
 NEAR = 3.0
@@ -383,12 +384,12 @@ def _triangle_pair_area_ff(t, u, T, N, A, C, D, near, adaptive, eps, tol):
     d2 = dx * dx + dy * dy + dz * dz
     s2 = (D[t] + D[u]) * (D[t] + D[u])
     if d2 >= FAR * FAR * s2:  # distant: centroid to centroid (both cosines at the centroids)
-        r2 = d2
         cos_t = -(N[t, 0] * dx + N[t, 1] * dy + N[t, 2] * dz)
         cos_u = N[u, 0] * dx + N[u, 1] * dy + N[u, 2] * dz
         if cos_t <= 0.0 or cos_u <= 0.0:
             return 0.0
-        return A[t] * A[u] * cos_t * cos_u / (r2 * (math.pi * r2 + 0.5 * (A[t] + A[u])))
+        # cos_t cos_u here carry d^2 (unnormalized directions), hence the extra d2 below
+        return A[t] * A[u] * cos_t * cos_u / (d2 * (math.pi * d2 + 0.5 * (A[t] + A[u])))
     if d2 >= near * near * s2:  # far: symmetric centroid rule
         g_tu = _point_to_patch(C[t, 0], C[t, 1], C[t, 2], N[t, 0], N[t, 1], N[t, 2], T, N, u, eps)
         g_ut = _point_to_patch(C[u, 0], C[u, 1], C[u, 2], N[u, 0], N[u, 1], N[u, 2], T, N, t, eps)

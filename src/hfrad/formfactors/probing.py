@@ -5,21 +5,22 @@ a patch pair deep inside a shadow, or in full view, has the same visibility as
 the pairs around it. Casting ``samples`` rays for every pair spends most rays
 where one would do. Here each pair that needs rays (visibility.py: its
 unoccluded F is positive and an occluder may cut it) first gets one *probe*
-segment (the first of its usual ``samples`` segments). The pair (i, j) keeps the probe's answer (0 or 1)
-when the probes of its *neighbouring pairs*
+segment (the first of its usual ``samples`` segments). The pair (i, j) keeps
+the probe's answer (0 or 1) when the probes of its *neighbouring pairs*
 
     (a, j) for a in nb(i)   and   (i, b) for b in nb(j)
 
-(nb = the ``NEIGHBOURS`` patches nearest by centroid, and any tied with them) all say the same, and is
-sent to the usual ``samples`` rays (and their second round) otherwise: the
+(nb = the ``NEIGHBOURS`` patches nearest by centroid, and any tied with them)
+all say the same, and is sent to the usual ``samples`` rays (and their second
+round) otherwise: the
 pairs along a shadow boundary, whose visibility is partial, are exactly the
-pairs whose neighbours disagree. A neighbour pair with a zero unoccluded form
-factor (a neighbour on another face, around an edge or a corner) counts as
+pairs whose neighbours disagree. A neighbour pair whose patches do not face
+each other (a neighbour on another face, around an edge or a corner) counts as
 disagreeing: where an occluder meets a receiver (contact shadows), the pairs
 across the boundary do not exist, and the probe alone would miss a shadow that
 covers half of the patch. Close pairs (centroid distance below
-``refine_near`` (D_i + D_j)) and, when the caller asks, large pairs always get
-every ray. Pairs no occluder can cut say "visible".
+``refine_near`` (D_i + D_j)) and large pairs (F_ij or F_ji >= PROBE_BELOW)
+always get every ray. Pairs no occluder can cut say "visible".
 
 Every part of the decision is symmetric in (i, j) (the neighbour set, the
 pair states, the probe segment cast in canonical order, the distance and size
@@ -141,7 +142,8 @@ def _probe(vis, R: np.ndarray, Cc: np.ndarray, state: np.ndarray) -> None:
         first_only = np.zeros((m, vis.samples), np.bool_)
         first_only[:, 0] = True
         o, d, t = np.empty((m, 3), np.float32), np.empty((m, 3), np.float32), np.empty(m, np.float32)
-        _fill_rays(vis.points, vis.partner, r_idx, c_idx, first_only, np.arange(m + 1, dtype=np.int64), o, d, t)
+        first = np.arange(m + 1, dtype=np.int64)
+        _fill_rays(vis.points, vis.partner, r_idx, c_idx, first_only, first, o, d, t)
         hit = vis.cast_segments(o, d, t)
         part.reshape(-1)[pending] = np.where(hit, np.int8(_BLOCKED), np.int8(_VISIBLE))
         vis.rays_probe += m

@@ -97,6 +97,11 @@ class Visibility:
         Rays per pair, a perfect square; 1 = centroid to centroid.
     cull : bool
         Skip pairs that no occluder can block (exact test, see module docstring).
+    refine_samples, refine_above : int, float
+        The second round for partly visible pairs (see module docstring).
+    probe : bool
+        One probe ray per pair first, every ray only where neighbouring pairs
+        disagree (see :mod:`hfrad.formfactors.probing`); off = every ray everywhere.
     """
 
     def __init__(self, scene, *, samples: int = DEFAULT_SAMPLES, cull: bool = True,
@@ -144,10 +149,10 @@ class Visibility:
         self.embree_seconds = 0.0
         # one probe ray per pair first, every ray only where neighbouring pairs disagree (probing.py)
         self.rays_probe = 0
+        self.probe_below = PROBE_BELOW
         self.neighbours = None
         if probe and self.samples > 1 and scene.n_patches > 1:
             self.neighbours = nearest_patches(self.centroids)  # centred: see module docstring
-            self.probe_below = PROBE_BELOW
 
     def _setup_culling(self, scene, tri: np.ndarray, cull: bool) -> None:
         occ = (np.asarray(scene.occluder_vertices, np.float64) - self.centre)[np.asarray(scene.occluder_faces)]
