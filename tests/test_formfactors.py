@@ -214,4 +214,5 @@ def test_kernel_settings_are_recorded_in_the_hfr(tmp_path):
     hfrad.save(fac, tmp_path / "f.hfr")
     recorded = hfrad.load(tmp_path / "f.hfr").params["form_factors"]
     assert recorded["tolerance"] == TOLERANCE and recorded["kernel_version"] == KERNEL_VERSION
-    assert recorded["refine_samples"] == 16
+    from hfrad.formfactors.visibility import BOUNDARY_SAMPLES, REFINE_SAMPLES
+    assert recorded["refine_samples"] == REFINE_SAMPLES and recorded["boundary_samples"] == BOUNDARY_SAMPLES

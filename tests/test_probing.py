@@ -7,6 +7,7 @@ import pytest
 
 from hfrad.formfactors.blocks import FormFactorEngine
 from hfrad.formfactors.probing import nearest_patches
+from hfrad.formfactors.visibility import BOUNDARY_SAMPLES
 from hfrad.scene.builtin import cornell_box
 from hfrad.scene.patches import subdivide
 
@@ -16,8 +17,8 @@ def both():
     scene = subdivide(cornell_box(), patches=1500)
     everything = np.arange(scene.n_patches)
     probed = FormFactorEngine(scene)
-    plain = FormFactorEngine(scene)
-    plain.visibility.neighbours = None  # every pair that needs rays gets all of them
+    plain = FormFactorEngine(scene, samples=BOUNDARY_SAMPLES)
+    plain.visibility.neighbours = None  # every pair that needs rays gets the flagged pairs' rays
     return scene, probed, probed.block(everything, everything), plain, plain.block(everything, everything)
 
 
@@ -25,11 +26,38 @@ def test_probing_casts_fewer_rays_for_the_same_row_sums(both):
     scene, probed, F, plain, G = both
     print(f"\nrays per pair: probed {probed.rays / F.size:.3f}, plain {plain.rays / G.size:.3f}")
     assert probed.visibility.rays_probe > 0
-    assert probed.rays < 0.97 * plain.rays                   # observed 0.946
+    assert probed.rays < 0.95 * plain.rays                   # observed 0.864
     e_probed, e_plain = np.abs(F.sum(axis=1) - 1), np.abs(G.sum(axis=1) - 1)
     print(f"row sums: mean {e_probed.mean():.3e} vs {e_plain.mean():.3e}, max {e_probed.max():.3e} vs {e_plain.max():.3e}")
-    assert e_probed.mean() <= 1.02 * e_plain.mean()          # observed 1.005
+    assert e_probed.mean() <= 1.02 * e_plain.mean()          # observed 0.998
     assert e_probed.max() <= 1.02 * e_plain.max()            # observed equal
+
+
+def test_cornell_rows_close(both):
+    """Every row of the closed Cornell box sums to 1 within 0.25% at 1,508 patches.
+
+    Observed: worst |sum - 1| 1.84e-3, mean 3.0e-4 (kernel v7: kernel-weighted rays, 16 for
+    the flagged pairs, 64 / 256 in the second round, centroid probes). Kernel v6 (4 + 16 plain
+    rays, corner probes, the far rule's straddling pairs at half) gave 9.3e-3 and 8.4e-4.
+    """
+    scene, _, F, _, _ = both
+    err = np.abs(F.sum(axis=1) - 1)
+    print(f"\nrow sums at {scene.n_patches} patches: worst {err.max():.3e}, mean {err.mean():.3e}, "
+          f"rows off by > 0.2%: {(err > 2e-3).sum()}")
+    assert err.max() < 2.5e-3
+    assert err.mean() < 4e-4
+
+
+@pytest.mark.slow
+def test_cornell_rows_close_at_3k():
+    """The issue's goal at 3K patches: every row within 0.2% (observed worst 1.65e-3)."""
+    from hfrad.formfactors.blocks import row_sums
+
+    scene = subdivide(cornell_box(), patches=3000)
+    err = np.abs(row_sums(scene) - 1)
+    print(f"\nrow sums at {scene.n_patches} patches: worst {err.max():.3e}, mean {err.mean():.3e}")
+    assert err.max() < 2e-3
+    assert err.mean() < 3.5e-4
 
 
 def test_probing_keeps_reciprocity_exact(both):

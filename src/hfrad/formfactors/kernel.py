@@ -75,8 +75,10 @@ import numpy as np
 from numba import njit, prange
 
 #: Bumped whenever the numbers produced by this module change (cache keys use it).
+#: 7: far pairs where one triangle straddles the other's plane integrate from the other's centroid;
+#: kernel-weighted rays, 16 for the flagged pairs and 64 / 256 in the second round (visibility.py).
 #: 6: probe rays first (probing.py); 5: point-to-point rule beyond FAR; 4: visibility's second round.
-KERNEL_VERSION = 6
+KERNEL_VERSION = 7
 
 #: Triangle pairs closer than NEAR * (D_t + D_u) (centroid distance) leave the centroid rule.
 NEAR = 3.0
@@ -374,8 +376,32 @@ def _behind(t, u, T, N, eps):
 
 
 @njit(cache=True, fastmath=False)
+def _sides(t, u, T, N, eps):
+    """(front, back): some corner of triangle t lies in front of u's plane (> eps), some behind (< -eps)."""
+    front = False
+    back = False
+    for k in range(3):
+        h = (N[u, 0] * (T[t, k, 0] - T[u, 0, 0]) + N[u, 1] * (T[t, k, 1] - T[u, 0, 1])
+             + N[u, 2] * (T[t, k, 2] - T[u, 0, 2]))
+        if h > eps:
+            front = True
+        elif h < -eps:
+            back = True
+    return front, back
+
+
+@njit(cache=True, fastmath=False)
 def _triangle_pair_area_ff(t, u, T, N, A, C, D, near, adaptive, eps, tol):
-    """A_t F_tu (unoccluded), eq. (2), by the rule for the pair's distance (symmetric in t, u)."""
+    """A_t F_tu (unoccluded), eq. (2), by the rule for the pair's distance (symmetric in t, u).
+
+    A triangle that straddles the other's plane (corners on both sides) is seen
+    only in part, and its centroid may lie behind the other triangle: the
+    centroid rules would count that side as 0 (half the symmetric rule, 100%
+    of the point-to-point one). Such far pairs take one evaluation of (1) from
+    the other triangle's centroid (that triangle is wholly in front, and (1)
+    clips the straddler exactly); pairs where both straddle take the 6-point rule.
+    Nearer pairs put their quadrature points on the triangle that does not straddle.
+    """
     if A[t] <= 0.0 or A[u] <= 0.0 or _behind(t, u, T, N, eps) or _behind(u, t, T, N, eps):
         return 0.0
     dx = C[t, 0] - C[u, 0]
@@ -383,20 +409,40 @@ def _triangle_pair_area_ff(t, u, T, N, A, C, D, near, adaptive, eps, tol):
     dz = C[t, 2] - C[u, 2]
     d2 = dx * dx + dy * dy + dz * dz
     s2 = (D[t] + D[u]) * (D[t] + D[u])
-    if d2 >= FAR * FAR * s2:  # distant: centroid to centroid (both cosines at the centroids)
+    straddle = False
+    if d2 >= near * near * s2:
+        # t can straddle u's plane only if its centroid is closer to that plane than D_t
+        h_t = N[u, 0] * dx + N[u, 1] * dy + N[u, 2] * dz
+        h_u = -(N[t, 0] * dx + N[t, 1] * dy + N[t, 2] * dz)
+        back_t = abs(h_t) < D[t] and _sides(t, u, T, N, eps)[1]
+        back_u = abs(h_u) < D[u] and _sides(u, t, T, N, eps)[1]
+        straddle = back_t or back_u
+        if straddle and not (back_t and back_u):
+            if back_t:  # t straddles u's plane: integrate from u's centroid (u is wholly in front of t)
+                return A[u] * _point_to_patch(C[u, 0], C[u, 1], C[u, 2], N[u, 0], N[u, 1], N[u, 2], T, N, t, eps)
+            return A[t] * _point_to_patch(C[t, 0], C[t, 1], C[t, 2], N[t, 0], N[t, 1], N[t, 2], T, N, u, eps)
+    if d2 >= FAR * FAR * s2 and d2 >= near * near * s2 and not straddle:
+        # distant: centroid to centroid (both cosines at the centroids); near > FAR forces the rules below
         cos_t = -(N[t, 0] * dx + N[t, 1] * dy + N[t, 2] * dz)
         cos_u = N[u, 0] * dx + N[u, 1] * dy + N[u, 2] * dz
         if cos_t <= 0.0 or cos_u <= 0.0:
             return 0.0
         # cos_t cos_u here carry d^2 (unnormalized directions), hence the extra d2 below
         return A[t] * A[u] * cos_t * cos_u / (d2 * (math.pi * d2 + 0.5 * (A[t] + A[u])))
-    if d2 >= near * near * s2:  # far: symmetric centroid rule
+    if d2 >= near * near * s2 and not straddle:  # far: symmetric centroid rule
         g_tu = _point_to_patch(C[t, 0], C[t, 1], C[t, 2], N[t, 0], N[t, 1], N[t, 2], T, N, u, eps)
         g_ut = _point_to_patch(C[u, 0], C[u, 1], C[u, 2], N[u, 0], N[u, 1], N[u, 2], T, N, t, eps)
         return 0.5 * (A[t] * g_tu + A[u] * g_ut)
-    # points on the smaller triangle (ties: the lower index): a choice symmetric in (t, u)
+    # points on the smaller triangle (ties: the lower index), but never on a triangle that
+    # straddles the other's plane when the other does not (its quadrature points could all
+    # fall behind and miss the part in front): a choice symmetric in (t, u)
     p, q = (t, u) if (A[t] < A[u] or (A[t] == A[u] and t < u)) else (u, t)
-    if d2 >= adaptive * adaptive * s2:  # middle distance: one degree-4 rule
+    if not straddle:
+        back_t = _sides(t, u, T, N, eps)[1]
+        back_u = _sides(u, t, T, N, eps)[1]
+        if back_t != back_u:
+            p, q = (u, t) if back_t else (t, u)
+    if d2 >= adaptive * adaptive * s2:  # middle distance (or both straddle): one degree-4 rule
         return _rules(T[p, 0], T[p, 1], T[p, 2], N[p, 0], N[p, 1], N[p, 2], T, N, q, eps)[0]
     return _adaptive_area_ff(p, q, T, N, A, eps, tol)
 

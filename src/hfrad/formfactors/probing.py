@@ -19,7 +19,7 @@ each other (a neighbour on another face, around an edge or a corner) counts as
 disagreeing: where an occluder meets a receiver (contact shadows), the pairs
 across the boundary do not exist, and the probe alone would miss a shadow that
 covers half of the patch. Close pairs (centroid distance below
-``refine_near`` (D_i + D_j)) and large pairs (F_ij or F_ji >= PROBE_BELOW)
+``PROBE_NEAR`` (D_i + D_j)) and large pairs (F_ij or F_ji >= PROBE_BELOW)
 always get every ray. Pairs no occluder can cut say "visible".
 
 Every part of the decision is symmetric in (i, j) (the neighbour set, the
@@ -48,8 +48,14 @@ from scipy.spatial import cKDTree
 #: few such pairs, so a probe that happens to agree with its neighbours must not decide them.
 PROBE_BELOW = 1e-3
 
+#: Pairs closer than PROBE_NEAR * (D_i + D_j) (centroid distance, longest edges) always get
+#: every ray: a probe between near patches says little about the pair.
+PROBE_NEAR = 2.0
+
 #: Nearest patches whose pairs a pair's probe is compared with (per side).
 NEIGHBOURS = 8
+
+_ZERO = np.zeros(1, np.int64)
 
 # neighbour-pair states
 _VISIBLE, _BLOCKED, _SILENT, _PENDING = 0, 1, 2, 3
@@ -124,8 +130,9 @@ def _pair_states(rows, cols, P, plane, front, back, below, above, cull, state):
 def _probe(vis, R: np.ndarray, Cc: np.ndarray, state: np.ndarray) -> None:
     """Cast one probe segment for every pending pair of ``state`` (len(R), len(Cc)) in place.
 
-    The probe is the first of the pair's usual segments (sample point 0 of the
-    lower-indexed patch to its partner), cast in canonical order. Rows go in
+    The probe joins the centroids of the two patches (the 1 x 1 design, moved
+    off the surfaces; for a clustered patch the point halfway through its area),
+    cast in canonical order. Rows go in
     chunks so that no more than about RAY_BATCH probes are held at once.
     """
     from .visibility import RAY_BATCH, _fill_rays
@@ -139,11 +146,11 @@ def _probe(vis, R: np.ndarray, Cc: np.ndarray, state: np.ndarray) -> None:
         if m == 0:
             continue
         r_idx, c_idx = R[r0:r0 + step][pending // nc], Cc[pending % nc]
-        first_only = np.zeros((m, vis.samples), np.bool_)
-        first_only[:, 0] = True
+        one = np.ones((m, 1), np.bool_)
         o, d, t = np.empty((m, 3), np.float32), np.empty((m, 3), np.float32), np.empty(m, np.float32)
+        w = np.empty(m, np.float64)
         first = np.arange(m + 1, dtype=np.int64)
-        _fill_rays(vis.points, vis.partner, r_idx, c_idx, first_only, first, o, d, t)
+        _fill_rays(vis.probe_points, vis.plane, _ZERO, r_idx, c_idx, one, first, o, d, t, w)
         hit = vis.cast_segments(o, d, t)
         part.reshape(-1)[pending] = np.where(hit, np.int8(_BLOCKED), np.int8(_VISIBLE))
         vis.rays_probe += m
@@ -170,7 +177,7 @@ def full_ray_pairs(vis, F: np.ndarray, rows: np.ndarray, cols: np.ndarray, need:
     col_pos = np.full(n, -1, np.int64)
     col_pos[Cc] = np.arange(len(Cc))
     full = np.empty((r, c), np.bool_)
-    _decide(state, row_pos, col_pos, rows, cols, nb, vis.centroids, vis.diameters, vis.refine_near,
+    _decide(state, row_pos, col_pos, rows, cols, nb, vis.centroids, vis.diameters, vis.probe_near,
             F, vis.areas, vis.probe_below, need, full)
     return full
 

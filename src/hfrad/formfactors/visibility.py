@@ -48,14 +48,22 @@ from numba import njit, prange
 
 from ..errors import InputError
 from .kernel import points_on_triangles, split_centroids
-from .probing import NEIGHBOURS, PROBE_BELOW, cuttable, full_ray_pairs, nearest_patches
+from .probing import NEIGHBOURS, PROBE_BELOW, PROBE_NEAR, cuttable, full_ray_pairs, nearest_patches
 from .raycast import RayCaster
 
-#: Rays per patch pair by default (a 2 x 2 split of each triangle).
+#: Rays per patch pair by default (a 2 x 2 split of each triangle); with probing on (the
+#: default) this design gives the probe ray, and the flagged pairs get BOUNDARY_SAMPLES.
 DEFAULT_SAMPLES = 4
 
-#: Rays of the second round for partially visible pairs (a 4 x 4 split of each triangle).
-REFINE_SAMPLES = 16
+#: Kernel-weighted rays for the pairs the probes flag (neighbouring probes disagree, close or
+#: large pairs): a 4 x 4 split of each triangle, paired by a fixed scramble (see ``pairing``).
+BOUNDARY_SAMPLES = 16
+
+#: Second round, kernel-weighted: where the first rays disagree or the patches are close
+#: (an 8 x 8 split), and a 16 x 16 split for large pairs (max(F_ij, F_ji) > REFINE_LARGE_ABOVE).
+REFINE_SAMPLES = 64
+REFINE_LARGE_SAMPLES = 256
+REFINE_LARGE_ABOVE = 3e-3
 
 #: Pairs whose first rays disagree, or closer than REFINE_NEAR * (D_i + D_j) (centroid
 #: distance, longest edges), get the second round if F_ij or F_ji exceeds REFINE_ABOVE.
@@ -73,8 +81,10 @@ _OFFSET = 1e-5  # end point offset, times the scene size
 
 def settings() -> dict:
     """The second-round visibility parameters, as recorded with results (.hfr files)."""
-    return {"refine_samples": REFINE_SAMPLES, "refine_above": REFINE_ABOVE, "refine_near": REFINE_NEAR,
-            "probe_neighbours": NEIGHBOURS, "probe_below": PROBE_BELOW}
+    return {"boundary_samples": BOUNDARY_SAMPLES, "refine_samples": REFINE_SAMPLES,
+            "refine_large_samples": REFINE_LARGE_SAMPLES, "refine_large_above": REFINE_LARGE_ABOVE,
+            "refine_above": REFINE_ABOVE, "refine_near": REFINE_NEAR, "weighted": True,
+            "probe_neighbours": NEIGHBOURS, "probe_below": PROBE_BELOW, "probe_near": PROBE_NEAR}
 
 
 def check_samples(samples: int) -> int:
@@ -84,6 +94,30 @@ def check_samples(samples: int) -> int:
         raise InputError(f"samples must be a perfect square (1, 4, 9, 16, ...) so the sample points "
                          f"are a stratified split of each triangle, got {samples}")
     return m
+
+
+def pairing(samples: int) -> np.ndarray:
+    """(samples,) int64: segment k joins point k of the lower-indexed patch to point pairing[k]
+    of the other one.
+
+    Up to 4 points, a fixed shift by half (so that parallel patches are not probed
+    only by parallel rays). From 9 on, a fixed scramble (Fisher-Yates driven by
+    a 64-bit linear congruential generator with a fixed seed: the same on every
+    platform), so that the segments spread over the 4-d space of pairs of points
+    instead of lying on a few parallel families: on the built-in Cornell box's
+    worst rows 64 scrambled kernel-weighted rays give a worst row sum of 1.9e-3
+    where the shift gives 2.0e-3, and 256 give 1.35e-3 vs 2.35e-3.
+    """
+    s = int(samples)
+    if s <= 4:
+        return np.ascontiguousarray((np.arange(s) + s // 2) % s, dtype=np.int64)
+    perm = list(range(s))
+    state = 0x2545F4914F6CDD1D
+    for k in range(s - 1, 0, -1):
+        state = (6364136223846793005 * state + 1442695040888963407) % (1 << 64)
+        j = (state >> 33) % (k + 1)
+        perm[k], perm[j] = perm[j], perm[k]
+    return np.asarray(perm, dtype=np.int64)
 
 
 class Visibility:
@@ -115,26 +149,25 @@ class Visibility:
         size = float(np.ptp(scene.bounds, axis=0).max()) if len(tri) else 1.0
         self.scale = size if size > 0 else 1.0
         self.offset = _OFFSET * self.scale
-        pts, pts_normals = sample_points(scene, m)
+        self._scene = scene
+        self._tri = tri
+        self._design_cache: dict = {}
         nrm = np.asarray(scene.normals, np.float64)
-        self.points = np.ascontiguousarray(pts - self.centre + self.offset * pts_normals)
         # patch planes n . x = n . v0, or through the centroid of a clustered patch
         # (sample points are `offset` in front of their own triangles)
         on_plane = scene.centroids - self.centre if scene.is_clustered else tri[:, 0]
         self.plane = np.ascontiguousarray(np.column_stack([nrm, np.einsum("nd,nd->n", nrm, on_plane)
                                                            if len(tri) else np.zeros(0)]))
-        self.partner = np.ascontiguousarray((np.arange(self.samples) + self.samples // 2) % self.samples,
-                                            dtype=np.int64)
-        # second round: a finer stratified set, only for pairs the first rays disagree on
+        self.points = self._points(m, None)
+        self.partner = pairing(self.samples)
+        # the flagged pairs' first round, and the second round (module docstring)
         self.refine_samples = int(refine_samples) if refine_samples > samples else 0
         self.refine_above = float(refine_above)
-        if self.refine_samples:
-            fine, fine_normals = sample_points(scene, check_samples(self.refine_samples))
-            self.fine_points = np.ascontiguousarray(fine - self.centre + self.offset * fine_normals)
-            self.fine_partner = np.ascontiguousarray(
-                (np.arange(self.refine_samples) + self.refine_samples // 2) % self.refine_samples, dtype=np.int64)
+        self.refine_large_samples = REFINE_LARGE_SAMPLES if self.refine_samples else 0
+        self.refine_large_above = REFINE_LARGE_ABOVE
         self.rays_refined = 0
         self.refine_near = REFINE_NEAR
+        self.probe_near = PROBE_NEAR
         self.centroids = np.ascontiguousarray(np.asarray(scene.centroids, np.float64) - self.centre)
         edges = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max(axis=1) if len(tri) else np.zeros(0)
         self.diameters = np.ascontiguousarray(edges)
@@ -151,8 +184,31 @@ class Visibility:
         self.rays_probe = 0
         self.probe_below = PROBE_BELOW
         self.neighbours = None
+        self.boundary_samples = self.samples
         if probe and self.samples > 1 and scene.n_patches > 1:
             self.neighbours = nearest_patches(self.centroids)  # centred: see module docstring
+            self.probe_points = self._points(1, None)
+            self.boundary_samples = max(self.samples, BOUNDARY_SAMPLES)
+        self.boundary_points = (self.points if self.boundary_samples == self.samples
+                                else self._points(check_samples(self.boundary_samples), None))
+        self.boundary_partner = pairing(self.boundary_samples)
+
+    def _points(self, m: int, patches) -> np.ndarray:
+        """(len(patches), m^2, 3) ray end points of an m x m design (all patches if None), centred
+        and moved ``offset`` off their surfaces."""
+        scene = self._scene
+        if patches is None or scene.is_clustered:
+            key = ("all", m)
+            if key not in self._design_cache:
+                pts, nrm = sample_points(scene, m)
+                self._design_cache[key] = np.ascontiguousarray(pts - self.centre + self.offset * nrm)
+                if patches is None:
+                    return self._design_cache.pop(key)
+            allp = self._design_cache[key]
+            return np.ascontiguousarray(allp[patches])
+        nrm = np.asarray(scene.normals, np.float64)[patches]
+        pts = points_on_triangles(self._tri[patches], split_centroids(m)) + self.offset * nrm[:, None, :]
+        return np.ascontiguousarray(pts)
 
     def _setup_culling(self, scene, tri: np.ndarray, cull: bool) -> None:
         occ = (np.asarray(scene.occluder_vertices, np.float64) - self.centre)[np.asarray(scene.occluder_faces)]
@@ -229,7 +285,10 @@ class Visibility:
         if self.neighbours is not None:
             need = full_ray_pairs(self, F, rows, cols, need)  # the others keep their probe
         flat = np.flatnonzero(need.ravel())
-        s = self.samples
+        # with probing, the pairs left here are the flagged ones: the boundary design
+        P, partner = (self.boundary_points, self.boundary_partner) if self.neighbours is not None \
+            else (self.points, self.partner)
+        s = partner.shape[0]
         per = max(1, RAY_BATCH // s)
         nc = len(cols)
         pool = buffers if buffers is not None else RayBuffers()
@@ -239,7 +298,7 @@ class Visibility:
             c_idx = cols[pairs % nc]
             valid = np.empty((len(pairs), s), np.bool_)
             counts = np.empty(len(pairs), np.int64)
-            _valid_rays(self.points, self.plane, self.partner, r_idx, c_idx, valid, counts)
+            _valid_rays(P, self.plane, partner, r_idx, c_idx, valid, counts)
             if self.one_ray_below > 0.0 and s > 1:
                 weak = np.flatnonzero(self.areas[r_idx] * F.ravel()[pairs] < self.one_ray_below)
                 first_valid = valid[weak].argmax(axis=1)
@@ -250,9 +309,9 @@ class Visibility:
             np.cumsum(counts, out=first[1:])
             r = int(first[-1])
             buf = pool.get(r)
-            o, d, t = buf[0][:r], buf[1][:r], buf[2][:r]
-            _fill_rays(self.points, self.partner, r_idx, c_idx, valid, first, o, d, t)
-            yield RayJob(pairs, first, o, d, t, buf, pool, r_idx, c_idx)
+            o, d, t, w = buf[0][:r], buf[1][:r], buf[2][:r], buf[3][:r]
+            _fill_rays(P, self.plane, partner, r_idx, c_idx, valid, first, o, d, t, w)
+            yield RayJob(pairs, first, o, d, t, w, buf, pool, r_idx, c_idx)
 
     def cast(self, job: "RayJob") -> np.ndarray:
         """(r,) bool: blocked segments of a job (Embree; holds the GIL, so one call at a time)."""
@@ -266,42 +325,56 @@ class Visibility:
         return hit
 
     def finish(self, F: np.ndarray, job: "RayJob", hit: np.ndarray) -> None:
-        """Scale F's pairs by their visible fractions and hand the buffers back.
+        """Scale F's pairs by their kernel-weighted visible fractions and hand the buffers back.
 
-        Pairs whose rays disagree (partly visible) and whose F_ij or F_ji exceeds
-        ``refine_above`` are re-cast with ``refine_samples`` rays between a finer
-        stratified set of points, and that fraction is used instead: the
-        deterministic analogue of "more samples where the first ones disagree".
+        Pairs whose rays disagree (partly visible) or whose patches are close, and
+        whose F_ij or F_ji exceeds ``refine_above``, are re-cast with
+        ``refine_samples`` rays (``refine_large_samples`` above
+        ``refine_large_above``) between finer stratified sets of points, and that
+        fraction is used instead: the deterministic analogue of "more samples
+        where the first ones disagree".
         """
         flat = F.reshape(-1)
-        again = np.zeros(len(job.pairs), np.bool_)
+        again = np.zeros(len(job.pairs), np.int8)
         if self.refine_samples:
             _partial_and_large(flat, job.pairs, job.first, hit, job.r_idx, job.c_idx, self.areas,
-                               self.centroids, self.diameters, self.refine_near, self.refine_above, again)
-        _scale_by_visibility(flat, job.pairs, job.first, hit, again)
+                               self.centroids, self.diameters, self.refine_near, self.refine_above,
+                               self.refine_large_above, again)
+        _scale_by_visibility(flat, job.pairs, job.first, hit, job.w, again != 0)
         self.rays_cast += len(job.t)
         job.pool.put(job.buf)
-        if again.any():
-            self._refine(flat, job.pairs[again], job.r_idx[again], job.c_idx[again])
+        for level, samples in ((1, self.refine_samples), (2, self.refine_large_samples)):
+            sel = again == level
+            if sel.any():
+                self._refine(flat, job.pairs[sel], job.r_idx[sel], job.c_idx[sel], samples)
 
-    def _refine(self, flat: np.ndarray, pairs: np.ndarray, r_idx: np.ndarray, c_idx: np.ndarray) -> None:
-        """Second round of rays for ``pairs`` (flat indices into F), cast here and applied."""
-        s = self.refine_samples
+    def _refine(self, flat: np.ndarray, pairs: np.ndarray, r_idx: np.ndarray, c_idx: np.ndarray,
+                s: int) -> None:
+        """Second round of ``s`` rays for ``pairs`` (flat indices into F), cast here and applied."""
+        m = check_samples(s)
+        partner = pairing(s)
         per = max(1, RAY_BATCH // s)
         for start in range(0, len(pairs), per):
             sl = slice(start, start + per)
-            valid = np.empty((len(pairs[sl]), s), np.bool_)
-            counts = np.empty(len(pairs[sl]), np.int64)
-            _valid_rays(self.fine_points, self.plane, self.fine_partner, r_idx[sl], c_idx[sl], valid, counts)
-            first = np.zeros(len(counts) + 1, np.int64)
+            # the points of the patches involved only (sorted, so canonical order is kept)
+            patches, inverse = np.unique(np.concatenate([r_idx[sl], c_idx[sl]]), return_inverse=True)
+            k = len(r_idx[sl])
+            ri, ci = inverse[:k].astype(np.int64), inverse[k:].astype(np.int64)
+            P = self._points(m, patches)
+            plane = np.ascontiguousarray(self.plane[patches])
+            valid = np.empty((k, s), np.bool_)
+            counts = np.empty(k, np.int64)
+            _valid_rays(P, plane, partner, ri, ci, valid, counts)
+            first = np.zeros(k + 1, np.int64)
             np.cumsum(counts, out=first[1:])
             r = int(first[-1])
             o = np.empty((r, 3), np.float32)
             d = np.empty((r, 3), np.float32)
             t = np.empty(r, np.float32)
-            _fill_rays(self.fine_points, self.fine_partner, r_idx[sl], c_idx[sl], valid, first, o, d, t)
+            w = np.empty(r, np.float64)
+            _fill_rays(P, plane, partner, ri, ci, valid, first, o, d, t, w)
             hit = self.cast_segments(o, d, t)
-            _scale_by_visibility(flat, pairs[sl], first, hit, np.zeros(len(counts), np.bool_))
+            _scale_by_visibility(flat, pairs[sl], first, hit, w, np.zeros(k, np.bool_))
             self.rays_cast += r
             self.rays_refined += r
 
@@ -310,12 +383,13 @@ class Visibility:
 
 
 class RayJob:
-    """One batch of segments: origins o, unit directions d, lengths t (float32)."""
+    """One batch of segments: origins o, unit directions d, lengths t (float32), kernel weights w."""
 
-    __slots__ = ("pairs", "first", "o", "d", "t", "buf", "pool", "r_idx", "c_idx")
+    __slots__ = ("pairs", "first", "o", "d", "t", "w", "buf", "pool", "r_idx", "c_idx")
 
-    def __init__(self, pairs, first, o, d, t, buf, pool, r_idx, c_idx) -> None:
-        self.pairs, self.first, self.o, self.d, self.t, self.buf, self.pool = pairs, first, o, d, t, buf, pool
+    def __init__(self, pairs, first, o, d, t, w, buf, pool, r_idx, c_idx) -> None:
+        self.pairs, self.first, self.o, self.d, self.t, self.w = pairs, first, o, d, t, w
+        self.buf, self.pool = buf, pool
         self.r_idx, self.c_idx = r_idx, c_idx  # patch indices of each pair
 
 
@@ -330,7 +404,8 @@ class RayBuffers:
             if len(buf[2]) >= r:
                 return self._free.pop(k)
         r = max(r, 1)
-        return (np.empty((r, 3), np.float32), np.empty((r, 3), np.float32), np.empty(r, np.float32))
+        return (np.empty((r, 3), np.float32), np.empty((r, 3), np.float32), np.empty(r, np.float32),
+                np.empty(r, np.float64))
 
     def put(self, buf) -> None:
         self._free.append(buf)
@@ -415,10 +490,11 @@ def _valid_rays(P, plane, partner, r_idx, c_idx, valid, counts):
 
 
 @njit(parallel=True, cache=True)
-def _partial_and_large(F, pairs, first, hit, r_idx, c_idx, areas, C, D, near, above, out):
-    """out[p]: the rays of pair p disagree, or the patches are close, and max(F_ij, F_ji) > above.
+def _partial_and_large(F, pairs, first, hit, r_idx, c_idx, areas, C, D, near, above, large, out):
+    """out[p]: 1 if the rays of pair p disagree, or the patches are close, and max(F_ij, F_ji) > above;
+    2 if moreover max(F_ij, F_ji) > large; else 0.
 
-    Close: centroid distance below near * (D_i + D_j); four rays between near
+    Close: centroid distance below near * (D_i + D_j); rays between near
     patches can all agree and still be wrong. Every test is symmetric in (i, j).
 
     A_i F_ij is the same number for (i, j) and (j, i), so max(F_ij, F_ji) =
@@ -436,27 +512,45 @@ def _partial_and_large(F, pairs, first, hit, r_idx, c_idx, areas, C, D, near, ab
         dy = C[i, 1] - C[j, 1]
         dz = C[i, 2] - C[j, 2]
         close = dx * dx + dy * dy + dz * dz < (near * (D[i] + D[j])) ** 2
+        out[p] = 0
         if (0 < blocked < total) or close:
-            out[p] = F[pairs[p]] * areas[i] > above * min(areas[i], areas[j])
+            a = F[pairs[p]] * areas[i]
+            m = min(areas[i], areas[j])
+            if a > large * m:
+                out[p] = 2
+            elif a > above * m:
+                out[p] = 1
 
 
 @njit(parallel=True, cache=True)
-def _scale_by_visibility(F, pairs, first, hit, skip):
-    """F[pairs[p]] *= fraction of the rays first[p]:first[p+1] that are not blocked (unless skip[p])."""
+def _scale_by_visibility(F, pairs, first, hit, w, skip):
+    """F[pairs[p]] *= the kernel-weighted fraction of the rays first[p]:first[p+1] that are not
+    blocked (sum of w over the free rays / sum of w), unless skip[p]; a pair with no blocked ray
+    keeps F as it is, and one whose weights are all 0 takes the plain fraction."""
     for p in prange(pairs.shape[0]):
         if skip[p]:
             continue
         blocked = 0
+        wall = 0.0
+        wfree = 0.0
         for k in range(first[p], first[p + 1]):
+            wall += w[k]
             if hit[k]:
                 blocked += 1
+            else:
+                wfree += w[k]
         total = first[p + 1] - first[p]
         if blocked:
-            F[pairs[p]] *= 1.0 - blocked / total
+            if wall > 0.0:
+                F[pairs[p]] *= wfree / wall
+            else:
+                F[pairs[p]] *= 1.0 - blocked / total
 
 
 @njit(parallel=True, cache=True)
-def _fill_rays(P, partner, r_idx, c_idx, valid, first, o, d, t):
+def _fill_rays(P, plane, partner, r_idx, c_idx, valid, first, o, d, t, w):
+    """The valid segments of each pair, lower patch index first (V_ij == V_ji exactly), and each
+    segment's weight w = cos_a cos_b / L^2 (the point-to-point kernel; patch plane normals)."""
     s = P.shape[1]
     for p in prange(r_idx.shape[0]):
         a = min(r_idx[p], c_idx[p])  # canonical direction: V_ij == V_ji exactly
@@ -469,7 +563,8 @@ def _fill_rays(P, partner, r_idx, c_idx, valid, first, o, d, t):
             dx = P[b, q, 0] - P[a, k, 0]
             dy = P[b, q, 1] - P[a, k, 1]
             dz = P[b, q, 2] - P[a, k, 2]
-            L = math.sqrt(dx * dx + dy * dy + dz * dz)
+            L2 = dx * dx + dy * dy + dz * dz
+            L = math.sqrt(L2)
             inv = 1.0 / L if L > 0.0 else 0.0
             o[row, 0] = P[a, k, 0]
             o[row, 1] = P[a, k, 1]
@@ -478,4 +573,7 @@ def _fill_rays(P, partner, r_idx, c_idx, valid, first, o, d, t):
             d[row, 1] = dy * inv
             d[row, 2] = dz * inv
             t[row] = L
+            ca = (plane[a, 0] * dx + plane[a, 1] * dy + plane[a, 2] * dz) * inv
+            cb = -(plane[b, 0] * dx + plane[b, 1] * dy + plane[b, 2] * dz) * inv
+            w[row] = max(ca, 0.0) * max(cb, 0.0) / L2 if L2 > 0.0 else 0.0
             row += 1
