@@ -1,7 +1,7 @@
 """Benchmark: form-factor accuracy against the closed forms, closure, and what it costs.
 
 Run:  PYTHONPATH=src python benchmarks/bench_accuracy.py [--patches 3000,10000] [--repeat 2]
-      [--baseline-ref 083c557]
+      [--baseline-ref 083c557] [--also-ref COMMIT,...] [--out accuracy]
 
 1. Convergence: error of F_1->2 against the catalogue's closed forms for the
    kernel tolerance 1e-2 ... 1e-5, with every pair forced onto the adaptive path
@@ -13,11 +13,11 @@ Run:  PYTHONPATH=src python benchmarks/bench_accuracy.py [--patches 3000,10000] 
    the smallest patch count with 4, 16, 36 and 64 rays per pair (every pair
    that needs rays), which shows what closing every row to 0.2% would cost.
 4. Cost: the full F at the largest patch count, streamed in Z-order column
-   blocks, with today's kernel (``--baseline-ref``, extracted with git archive)
-   and this one, alternating in subprocesses of the same run; the load average
-   is recorded with every timing.
+   blocks, with today's kernel (``--baseline-ref``, extracted with git archive),
+   any ``--also-ref`` commits and this one, alternating in subprocesses of the
+   same run; the load average is recorded with every timing.
 
-Writes benchmarks/results/accuracy.json. Not collected by pytest.
+Writes benchmarks/results/OUT.json (default accuracy.json). Not collected by pytest.
 """
 
 from __future__ import annotations
@@ -138,6 +138,9 @@ def main() -> None:
     p.add_argument("--patches", default="3000,10000")
     p.add_argument("--repeat", type=int, default=2)
     p.add_argument("--baseline-ref", default="083c557", help="git commit with today's kernel (v2)")
+    p.add_argument("--also-ref", default="", help="more git commits to time in the same alternation "
+                   "(comma separated; e.g. main before a change)")
+    p.add_argument("--out", default="accuracy", help="results/OUT.json")
     p.add_argument("--worker", type=int, help=argparse.SUPPRESS)
     p.add_argument("--skip-convergence", action="store_true")
     p.add_argument("--samples-sweep", action="store_true", help="only the row sums vs visibility rays table")
@@ -160,34 +163,46 @@ def main() -> None:
         print_table("error against the closed form vs kernel tolerance", out["convergence"],
                     ["case", "patches", "rules", "tolerance", "rel_error", "kernel_s"])
     with tempfile.TemporaryDirectory() as tmp:
-        archive = subprocess.run(["git", "archive", args.baseline_ref, "src"], cwd=ROOT, capture_output=True,
-                                 check=True).stdout
-        subprocess.run(["tar", "-x", "-C", tmp], input=archive, check=True)
+        arms = []
+        for ref in [args.baseline_ref] + [r for r in args.also_ref.split(",") if r]:
+            archive = subprocess.run(["git", "archive", ref, "src"], cwd=ROOT, capture_output=True,
+                                     check=True).stdout
+            (Path(tmp) / ref).mkdir()
+            subprocess.run(["tar", "-x", "-C", str(Path(tmp) / ref)], input=archive, check=True)
+            arms.append((("baseline " if ref == args.baseline_ref else "ref ") + ref, Path(tmp) / ref / "src"))
+        arms.append(("this kernel", ROOT / "src"))
         runs = []
         for n in sizes:
             for k in range(args.repeat if n == max(sizes) else 1):
-                for label, src in (("baseline " + args.baseline_ref, Path(tmp) / "src"), ("this kernel", ROOT / "src")):
+                for label, src in arms:
                     r = _run_worker(src, n)
                     r["kernel"] = label
                     r["requested"] = n
                     r["ns_per_pair"] = 1e9 * r["seconds"] / r["patches"] ** 2
                     runs.append(r)
                     print(f"{label:20s} n={r['patches']} total {r['seconds']:.1f} s (kernel {r['kernel_s']:.1f} s, "
-                          f"embree {r['embree_s']:.1f} s), row sums mean {r['row_sum_mean_err']:.2e} max "
-                          f"{r['row_sum_max_err']:.2e}, load {r['load_before']:.1f}->{r['load_after']:.1f}", flush=True)
+                          f"embree {r['embree_s']:.1f} s, {r['rays'] / 1e6:.1f} M rays), row sums mean "
+                          f"{r['row_sum_mean_err']:.2e} max {r['row_sum_max_err']:.2e} "
+                          f"({r['rows_off_by_0.2%']} rows > 0.2%), load {r['load_before']:.1f}->{r['load_after']:.1f}",
+                          flush=True)
     out["runs"] = runs
     print_table("full F of the Cornell box, baseline and this kernel alternating", runs,
-                ["kernel", "patches", "seconds", "ns_per_pair", "kernel_s", "embree_s", "row_sum_mean_err", "row_sum_max_err",
+                ["kernel", "patches", "seconds", "ns_per_pair", "kernel_s", "embree_s", "rays", "row_sum_mean_err",
+                 "row_sum_max_err",
                  "rows_off_by_0.2%", "load_before", "load_after"])
     big = [r for r in runs if r["requested"] == max(sizes)]
-    base = min(big, key=lambda r: r["seconds"] if r["kernel"].startswith("baseline") else np.inf)
-    new = min(big, key=lambda r: r["seconds"] if r["kernel"] == "this kernel" else np.inf)
-    # the new floor triangulation gives a few % more patches at the same request: compare per pair too
-    out["time_ratio_largest"] = new["seconds"] / base["seconds"]
-    out["time_ratio_per_pair_largest"] = new["ns_per_pair"] / base["ns_per_pair"]
-    print(f"time ratio at --patches {max(sizes)} (best of {args.repeat}): {out['time_ratio_largest']:.2f}x "
-          f"({new['patches']} vs {base['patches']} patches; per pair {out['time_ratio_per_pair_largest']:.2f}x)")
-    print("wrote", write_json("accuracy", out))
+    new = min((r for r in big if r["kernel"] == "this kernel"), key=lambda r: r["seconds"])
+    out["time_ratios_largest"] = {}
+    for label, _ in arms[:-1]:
+        old = min((r for r in big if r["kernel"] == label), key=lambda r: r["seconds"])
+        ratio, per_pair = new["seconds"] / old["seconds"], new["ns_per_pair"] / old["ns_per_pair"]
+        out["time_ratios_largest"][label] = {"ratio": ratio, "per_pair": per_pair}
+        if label.startswith("baseline"):
+            # the new floor triangulation gives a few % more patches at the same request: per pair too
+            out["time_ratio_largest"], out["time_ratio_per_pair_largest"] = ratio, per_pair
+        print(f"time ratio this / {label} at --patches {max(sizes)} (best of {args.repeat}): {ratio:.2f}x "
+              f"({new['patches']} vs {old['patches']} patches; per pair {per_pair:.2f}x)")
+    print("wrote", write_json(args.out, out))
 
 
 if __name__ == "__main__":

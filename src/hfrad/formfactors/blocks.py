@@ -35,6 +35,9 @@ __all__ = ["FormFactorEngine", "iter_column_blocks", "form_factor_matrix", "row_
 
 _MEMORY_FRACTION = 0.5
 
+#: Ray batches queued for the Embree thread at once (each holds up to RAY_BATCH rays).
+_IN_FLIGHT = 2
+
 
 class FormFactorEngine:
     """Computes sub-blocks F[rows][:, cols] of one scene.
@@ -106,36 +109,38 @@ class FormFactorEngine:
         if self._executor is None:
             self._executor = ThreadPoolExecutor(1, thread_name_prefix="hfrad-embree")
         vis = self.visibility
-        inflight = None  # (F, job, future) of the batch Embree is casting
+        inflight: deque = deque()  # [F, job, future, entry] of the batches Embree is casting, in order
         ready: deque = deque()  # [F, jobs still in flight] in block order
 
+        def submit(F, job, entry):
+            entry[1] += 1
+            inflight.append((F, job, self._executor.submit(vis.cast, job), entry))
+
         def drain():
-            F, job, fut = inflight
-            vis.finish(F, job, fut.result())
-            ready_entry = next(e for e in ready if e[0] is F)
-            ready_entry[1] -= 1
+            F, job, fut, entry = inflight.popleft()
+            for more in vis.finish(F, job, fut.result()):  # second-round rays go to Embree too
+                submit(F, more, entry)
+            entry[1] -= 1
 
         try:
             for cols in col_sets:
-                F = self._kernel(rows, cols)  # runs while Embree works on the previous batch
+                F = self._kernel(rows, cols)  # runs while Embree works on earlier batches
                 entry = [F, 0]
                 ready.append(entry)
                 for job in vis.jobs(F, rows, cols, self._buffers):
-                    if inflight is not None:
+                    while len(inflight) >= _IN_FLIGHT:
                         drain()
-                    entry[1] += 1
-                    inflight = (F, job, self._executor.submit(vis.cast, job))
+                    submit(F, job, entry)
                 # every block before the newest whose rays are all cast can go
                 while len(ready) > 1 and ready[0][1] == 0:
                     yield ready.popleft()[0]
-            if inflight is not None:
+            while inflight:
                 drain()
-                inflight = None
             while ready:
                 yield ready.popleft()[0]
         finally:
-            if inflight is not None:  # consumer stopped early: let Embree finish before reuse
-                inflight[2].result()
+            for _, _, fut, _ in inflight:  # consumer stopped early: let Embree finish before reuse
+                fut.result()
 
     def close(self) -> None:
         if self._executor is not None:

@@ -33,6 +33,13 @@ and diameters (longest edges) D_t, D_u:
   1/2 (A_t F_{c_t->u} + A_u F_{c_u->t}), two evaluations of (1), relative error
   O((D/d)^2) (median 0.2% at the switch for the default ``near`` = 3, and the
   far pairs carry a small share of any row's sum);
+- far or distant pairs where one triangle *straddles* the other's plane (corners
+  on both sides; along the lines where two planes of the scene meet) are seen
+  only in part, and the straddler's centroid may lie behind the other triangle:
+  one evaluation of (1) from the other triangle's centroid, which (1) clips
+  exactly (the symmetric rule counted such pairs at half: -1.5e-3 on the row sums
+  of left-wall patches of the 10K Cornell box); nearer pairs put their
+  quadrature points on the triangle that does not straddle;
 - *middle* pairs, adaptive * (D_t + D_u) <= d < near * (D_t + D_u): one
   6-point rule exact for polynomials of degree 4 (Dunavant) on the smaller
   triangle, error O((D/d)^6) (median 2e-6, 95th percentile 1e-3 at the inner

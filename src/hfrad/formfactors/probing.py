@@ -1,17 +1,18 @@
-"""One probe ray per pair first; all the rays only where the probes of neighbouring pairs disagree.
+"""One probe ray per pair first; more rays only where the probes of neighbouring pairs disagree.
 
 Visibility between two patches is piecewise constant over the space of pairs:
 a patch pair deep inside a shadow, or in full view, has the same visibility as
-the pairs around it. Casting ``samples`` rays for every pair spends most rays
-where one would do. Here each pair that needs rays (visibility.py: its
-unoccluded F is positive and an occluder may cut it) first gets one *probe*
-segment (the first of its usual ``samples`` segments). The pair (i, j) keeps
-the probe's answer (0 or 1) when the probes of its *neighbouring pairs*
+the pairs around it. Casting many rays for every pair spends most rays where
+one would do. Here each pair that needs rays (visibility.py: its unoccluded F
+is positive and an occluder may cut it) first gets one *probe* segment, from
+centroid to centroid (moved off the surfaces). The pair (i, j) keeps the
+probe's answer (0 or 1) when the probes of its *neighbouring pairs*
 
     (a, j) for a in nb(i)   and   (i, b) for b in nb(j)
 
 (nb = the ``NEIGHBOURS`` patches nearest by centroid, and any tied with them)
-all say the same, and is sent to the usual ``samples`` rays (and their second
+all say the same, and is sent to the boundary rays (visibility.py:
+max(samples, BOUNDARY_SAMPLES) kernel-weighted segments, and their second
 round) otherwise: the
 pairs along a shadow boundary, whose visibility is partial, are exactly the
 pairs whose neighbours disagree. A neighbour pair whose patches do not face
@@ -22,6 +23,11 @@ covers half of the patch. Close pairs (centroid distance below
 ``PROBE_NEAR`` (D_i + D_j)) and large pairs (F_ij or F_ji >= PROBE_BELOW)
 always get every ray. Pairs no occluder can cut say "visible".
 
+Probes join centroids, not a corner point of each triangle (kernel v6): with
+corner probes, the neighbours of a 10K Cornell floor patch that saw 43-88% of a
+ceiling patch all probed "blocked" (their corners sat in the block's shadow),
+the pair kept 0, and the row lost 2.2e-3.
+
 Every part of the decision is symmetric in (i, j) (the neighbour set, the
 pair states, the probe segment cast in canonical order, the distance and size
 tests), so V_ij == V_ji bit for bit, and it depends on the pair only, never on
@@ -30,9 +36,9 @@ The states of neighbour pairs are geometric (silent: the patches do not face
 each other; visible: no occluder can cut the pair; else the probe), so the
 block's border (neighbour columns outside it) costs probes but no kernel.
 
-Measured (2-core EPYC, idle): Cornell box at 19,596 patches, 8 Z-ordered
-blocks of 256 columns, one process: 67.9 M -> 38.8 M rays, 8.05 s -> 6.27 s
-(1.28x); at 1,508 patches (all of F) rays per pair 2.79 -> 2.64 and the row
+Measured with kernel v6 (4 plain rays per flagged pair; 2-core EPYC, idle):
+Cornell box at 19,596 patches, 8 Z-ordered blocks of 256 columns, one process:
+67.9 M -> 38.8 M rays, 8.05 s -> 6.27 s (1.28x); at 1,508 patches (all of F) rays per pair 2.79 -> 2.64 and the row
 sums unchanged (mean |sum - 1| 8.37e-4 -> 8.41e-4, worst 9.28e-3 both). With
 4 neighbours instead of 8 the worst row sum at 5,910 patches rose from 4.96e-3
 to 7.59e-3; with 8 it stayed at 4.96e-3.
@@ -111,7 +117,7 @@ def _in_front(P, plane, a, b):
     return False
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, nogil=True)
 def _pair_states(rows, cols, P, plane, front, back, below, above, cull, state):
     """state[r, c]: silent (the patches do not face each other), visible (no occluder can cut
     the pair) or pending (a probe decides); a function of the pair alone, symmetric."""
@@ -182,7 +188,7 @@ def full_ray_pairs(vis, F: np.ndarray, rows: np.ndarray, cols: np.ndarray, need:
     return full
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, nogil=True)
 def _decide(state, row_pos, col_pos, rows, cols, nb, C, D, near, F, areas, below, need, out):
     """out[r, c]: pair (r, c) needs rays and is close, or large (max(F_ij, F_ji) >= below), or
     unprobed, or a neighbour pair's state differs from its probe; a pair that keeps its
