@@ -26,7 +26,7 @@ def test_probing_casts_fewer_rays_for_the_same_row_sums(both):
     scene, probed, F, plain, G = both
     print(f"\nrays per pair: probed {probed.rays / F.size:.3f}, plain {plain.rays / G.size:.3f}")
     assert probed.visibility.rays_probe > 0
-    assert probed.rays < 0.95 * plain.rays                   # observed 0.864
+    assert probed.rays < 0.95 * plain.rays                   # observed 0.859
     e_probed, e_plain = np.abs(F.sum(axis=1) - 1), np.abs(G.sum(axis=1) - 1)
     print(f"row sums: mean {e_probed.mean():.3e} vs {e_plain.mean():.3e}, max {e_probed.max():.3e} vs {e_plain.max():.3e}")
     assert e_probed.mean() <= 1.02 * e_plain.mean()          # observed 0.998

@@ -22,16 +22,18 @@ Rounds (probing on, the default; probing.py):
    ``BOUNDARY_SAMPLES`` = 16 weighted segments (4 x 4 split);
 3. where those disagree (a partly visible pair) or the patches are close
    (centroid distance below REFINE_NEAR (D_i + D_j)), and the pair matters
-   (F_ij or F_ji above ``refine_above``), ``REFINE_SAMPLES`` = 64 segments
+   (F_ij or F_ji above ``refine_above``, 3e-4), ``REFINE_SAMPLES`` = 64 segments
    (8 x 8 split), ``REFINE_LARGE_SAMPLES`` = 256 (16 x 16) when F_ij or F_ji
    exceeds REFINE_LARGE_ABOVE, replace the estimate.
 
 With probing off every pair that needs rays gets ``samples`` segments, then round 3.
 
 Measured on the built-in Cornell box (2-core EPYC, one numba thread): worst row
-sum |sum_j F_ij - 1| 1.65e-3 at 2,974 patches and 1.82e-3 at 9,986, no row off
-by more than 0.2% (kernel v6: 5.5e-3 / 6.0e-3, 96 / 37 rows); rays 4.3x / 2.5x
-those of v6 (benchmarks/README.md, "Form-factor accuracy and its cost").
+sum |sum_j F_ij - 1| 1.65e-3 at 2,974 patches and 2.8e-3 at 9,986 (one row
+above 0.2%); kernel v6: 5.5e-3 / 6.0e-3, 96 / 37 rows above 0.2%. With
+``refine_above`` = 1e-4 every row of both closes within 0.2% (1.65e-3 / 1.83e-3)
+for 27% more rays at 10K, 1.9x the form-factor time of kernel v2 instead of
+about 1.5x (benchmarks/README.md, "Form-factor accuracy and its cost").
 
 There is no random jitter on purpose: Monte Carlo noise in F is full rank and
 destroys the low rank the hierarchical factorization relies on (docs/method.md, section 2).
@@ -80,7 +82,7 @@ REFINE_LARGE_ABOVE = 3e-3
 
 #: Pairs whose first rays disagree, or closer than REFINE_NEAR * (D_i + D_j) (centroid
 #: distance, longest edges), get the second round if F_ij or F_ji exceeds REFINE_ABOVE.
-REFINE_ABOVE = 1e-4
+REFINE_ABOVE = 3e-4
 REFINE_NEAR = 2.0
 
 #: Above this many occluder triangles the per-pair culling test costs more than it saves.
@@ -303,13 +305,16 @@ class Visibility:
         if self.neighbours is not None:
             need = full_ray_pairs(self, F, rows, cols, need)  # the others keep their probe
         flat = np.flatnonzero(need.ravel())
-        # with probing, the pairs left here are the flagged ones: the boundary design
+        pool = buffers if buffers is not None else RayBuffers()
+        # with probing the pairs left here are the flagged ones: the boundary design
         P, partner = (self.boundary_points, self.boundary_partner) if self.neighbours is not None \
             else (self.points, self.partner)
+        yield from self._jobs(F, rows, cols, flat, P, partner, pool)
+
+    def _jobs(self, F, rows, cols, flat, P, partner, pool):
         s = partner.shape[0]
         per = max(1, RAY_BATCH // s)
         nc = len(cols)
-        pool = buffers if buffers is not None else RayBuffers()
         for start in range(0, len(flat), per):
             pairs = flat[start:start + per]
             r_idx = rows[pairs // nc]
