@@ -23,7 +23,7 @@ covers half of the patch. Close pairs (centroid distance below
 ``PROBE_NEAR`` (D_i + D_j)) and large pairs (F_ij or F_ji >= PROBE_BELOW)
 always get every ray. Pairs no occluder can cut say "visible".
 
-Probes join centroids, not a corner point of each triangle (kernel v6): with
+Probes join centroids (kernel v6 used a point near a corner of each triangle): with
 corner probes, the neighbours of a 10K Cornell floor patch that saw 43-88% of a
 ceiling patch all probed "blocked" (their corners sat in the block's shadow),
 the pair kept 0, and the row lost 2.2e-3.
@@ -38,10 +38,11 @@ block's border (neighbour columns outside it) costs probes but no kernel.
 
 Measured with kernel v6 (4 plain rays per flagged pair; 2-core EPYC, idle):
 Cornell box at 19,596 patches, 8 Z-ordered blocks of 256 columns, one process:
-67.9 M -> 38.8 M rays, 8.05 s -> 6.27 s (1.28x); at 1,508 patches (all of F) rays per pair 2.79 -> 2.64 and the row
-sums unchanged (mean |sum - 1| 8.37e-4 -> 8.41e-4, worst 9.28e-3 both). With
-4 neighbours instead of 8 the worst row sum at 5,910 patches rose from 4.96e-3
-to 7.59e-3; with 8 it stayed at 4.96e-3.
+67.9 M -> 38.8 M rays, 8.05 s -> 6.27 s (1.28x); at 1,508 patches (all of F)
+rays per pair 2.79 -> 2.64 and the row sums unchanged (mean |sum - 1|
+8.37e-4 -> 8.41e-4, worst 9.28e-3 both). With 4 neighbours instead of 8 the
+worst row sum at 5,910 patches rose from 4.96e-3 to 7.59e-3; with 8 it stayed
+at 4.96e-3.
 """
 
 from __future__ import annotations
