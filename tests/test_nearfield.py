@@ -14,10 +14,16 @@ from hfrad.solve.nearfield import NearFieldFactorization
 
 
 @pytest.fixture(scope="module")
-def cornell():
-    """A ~2,000-patch Cornell box, its dense F and the exact radiosity (LAPACK, per channel)."""
+def dense():
+    """A ~2,000-patch Cornell box and its dense F."""
     scene = load_scene("cornell", patches=2000)
-    F = form_factor_matrix(scene)
+    return scene, form_factor_matrix(scene)
+
+
+@pytest.fixture(scope="module")
+def cornell(dense):
+    """The box, ``I - R_c F`` per channel and the exact radiosity (LAPACK, per channel)."""
+    scene, F = dense
     n = scene.n_patches
     systems = [np.eye(n) - scene.reflectance[:, c, None] * F for c in range(3)]
     exact = np.stack([np.linalg.solve(A, scene.emission[:, c]) for c, A in enumerate(systems)], axis=1)
@@ -143,14 +149,13 @@ def test_panel_solver_equals_superlu():
     assert rel <= 1e-5   # observed 1.9e-6
 
 
-def test_grey_channels_share_one_sparse_lu(cornell, pair):
+def test_grey_channels_share_one_sparse_lu(dense, pair):
     """Equal D_c: one LU and one K for all three channels, and still the exact radiosity."""
-    scene, _, _ = cornell
+    scene, F = dense
     grey = np.repeat(scene.reflectance.mean(axis=1, keepdims=True), 3, axis=1)
     fac = pair[1].with_reflectance(grey)
     assert fac._splu[0] is fac._splu[1] is fac._splu[2]
     assert (fac.capacitance_inv[0] == fac.capacitance_inv[2]).all()
-    F = form_factor_matrix(scene)
     exact = np.linalg.solve(np.eye(scene.n_patches) - grey[:, :1] * F, scene.emission)
     err = _err(fac.solve(scene.emission), exact)
     print(f"\ngrey: error {err}")
