@@ -62,3 +62,22 @@ def test_one_ray_rule_stays_within_its_share(scene):
 def test_bad_process_count(scene):
     with pytest.raises(ValueError, match="processes"):
         make_engine(scene, processes=0)
+
+
+def test_a_script_without_main_guard_fails_clearly(tmp_path):
+    """Spawned workers re-run an unguarded script and die: the parent raises WorkerError, not hang."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    import hfrad
+
+    script = tmp_path / "unguarded.py"
+    script.write_text("from hfrad.scene.load import load_scene\n"
+                      "from hfrad.pipeline import factorize\n"
+                      "factorize(load_scene('cornell', patches=200), eps=0.1, processes=2)\n")
+    src = str(Path(hfrad.__file__).resolve().parents[1])
+    run = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=240,
+                         env={**__import__("os").environ, "PYTHONPATH": src})
+    assert run.returncode != 0
+    assert "WorkerError" in run.stderr and "__main__" in run.stderr, run.stderr[-2000:]

@@ -33,5 +33,10 @@ class MemoryLimitError(MemoryError):
     """A requested array would not fit in the memory allowed for it."""
 
 
+class WorkerError(RuntimeError):
+    """A worker process died before handing back its work (killed, out of memory, or a script
+    that starts workers without an ``if __name__ == "__main__":`` guard)."""
+
+
 class AccuracyWarning(RuntimeWarning):
     """The result is usable but may be inaccurate (e.g. 1 - sigma_max is tiny)."""

@@ -13,6 +13,7 @@ import contextlib
 import hashlib
 import json
 import math
+import os
 import time
 from pathlib import Path
 from typing import Callable
@@ -243,8 +244,11 @@ def _factorize_scene(scene: Scene, *, eps: float, relative: bool, block_size: in
         if stream.blocks_done:
             split.restore(stream.extra)
     with _blas_threads(blas_threads):
-        lowrank, time_ff = _stream_blocks(blocks, stream, stats, rows_rho, n_blocks, checkpoint,
-                                          checkpoint_interval, key, progress, status, t0, split)
+        time_ff = _stream_blocks(blocks, stream, stats, rows_rho, n_blocks, checkpoint,
+                                 checkpoint_interval, key, progress, status, t0, split)
+    # the last merges (the largest: up to the root) once the form-factor engine has stopped,
+    # with every BLAS thread
+    lowrank = stream.finish()
     lowrank.info.update({"time_formfactors": time_ff, "time_precompute": time.perf_counter() - t0})
     warn_energy(scene, stats.row_sums[np.argsort(perm)])
     if split is None:
@@ -307,11 +311,31 @@ def _blas_threads(count: int | None):
         yield
 
 
+#: A push whose merges form a node of at least this share of all column blocks gets every BLAS thread.
+_LARGE_MERGE_SHARE = 0.25
+
+
+def _every_blas_thread_for_a_large_merge(blocks_done: int, n_blocks: int):
+    """Every BLAS thread for the push of block ``blocks_done`` when it merges a quarter of the blocks or more.
+
+    Such a merge (binary counter: the push of the c-th block forms a node of
+    ``c & -c`` blocks) is long - tens of seconds at rank ~5,000 - and the
+    form-factor workers, which are at most a few blocks ahead, stop within
+    seconds of its start; a single BLAS thread would leave a core idle for the
+    rest of it. Sponza at 20K patches, rank 4,889, two form-factor processes: HF 228 s -> 166 s
+    with this and the last merges on both cores (and the root's truncation without a product).
+    """
+    c = blocks_done + 1
+    if (c & -c) < max(_LARGE_MERGE_SHARE * n_blocks, 4):
+        return contextlib.nullcontext()
+    return _blas_threads(len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count())
+
+
 def _stream_blocks(blocks, stream: HFStream, stats: PassStatistics, rows_rho, n_blocks, checkpoint,
                    checkpoint_interval, key, progress, status, t0, split=None):
     """Push every column block into the stream and the statistics (checkpointing both).
 
-    Returns (LowRank, form-factor seconds). With a near-field ``split``, each
+    Returns the form-factor seconds (``stream.finish()`` is the caller's). With a near-field ``split``, each
     block's near entries are moved out before HF sees it, and the error budget
     stays relative to the block's full norm.
     """
@@ -323,11 +347,11 @@ def _stream_blocks(blocks, stream: HFStream, stats: PassStatistics, rows_rho, n_
         G = rows_rho * block  # G = diag(rho_max) F, rows in internal order
         stats.add(start, stop, block, rows_rho)
         del block
-        if split is None:
-            stream.push(G)
-        else:
+        if split is not None:
             norm2 = float(np.sum(np.square(G, dtype=np.float64)))
-            stream.push(split.split(G, start), norm2=norm2)
+            G = split.split(G, start)
+        with _every_blas_thread_for_a_large_merge(stream.blocks_done, n_blocks):
+            stream.push(G) if split is None else stream.push(G, norm2=norm2)
         del G
         report(progress, stream.blocks_done, n_blocks)
         if status is not None:
@@ -339,7 +363,7 @@ def _stream_blocks(blocks, stream: HFStream, stats: PassStatistics, rows_rho, n_
             save_checkpoint(stream, checkpoint, key)
             last_save = time.perf_counter()
         t_ff = time.perf_counter()
-    return stream.finish(), time_ff
+    return time_ff
 
 
 def _factorize_matrix(F, reflectance, *, eps: float, relative: bool, block_size: int, dtype, order,

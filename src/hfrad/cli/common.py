@@ -43,9 +43,9 @@ REPORT_TO = "the hfrad issue tracker (include the command line and this tracebac
 
 def _is_user_error(exc: BaseException) -> bool:
     """Errors caused by the input, not by hfrad: bad files, values, options, memory, missing extras."""
-    from ..errors import FileFormatError, InputError, MemoryLimitError, SceneError
+    from ..errors import FileFormatError, InputError, MemoryLimitError, SceneError, WorkerError
 
-    if isinstance(exc, (SceneError, FileFormatError, MemoryLimitError, InputError, FileNotFoundError,
+    if isinstance(exc, (SceneError, FileFormatError, MemoryLimitError, InputError, WorkerError, FileNotFoundError,
                         IsADirectoryError, NotADirectoryError, PermissionError)):
         return True
     # an optional dependency missing: hfrad raises ImportError("... pip install X") itself (no

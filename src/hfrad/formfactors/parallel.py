@@ -24,14 +24,17 @@ to the symmetric quantity ``A_i F_ij = A_j F_ji``, so reciprocity survives.
 from __future__ import annotations
 
 import os
+import pickle
 import time
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, TimeoutError as FutureTimeout
+from concurrent.futures.process import BrokenProcessPool
 from multiprocessing import get_context
 from multiprocessing.shared_memory import SharedMemory
 from typing import Iterator
 
 import numpy as np
 
+from ..errors import WorkerError
 from .clustered import block_function, kernel_for
 from .kernel import PatchGeometry
 from .visibility import DEFAULT_SAMPLES
@@ -169,12 +172,17 @@ def column_block(scene, cols, *, order=None, samples: int = DEFAULT_SAMPLES, one
 _W: dict = {}  # per worker process: scene, order, engine, shared-memory view
 
 
-def _init_worker(scene, order, samples, one_ray_below, shm_name, shape, dtype) -> None:
+def _init_worker(setup_name: str, setup_bytes: int, shm_name, shape, dtype) -> None:
     try:
         import numba
         numba.set_num_threads(1)
     except Exception:  # noqa: BLE001 - only a performance setting
         pass
+    setup = SharedMemory(name=setup_name)
+    try:
+        scene, order, samples, one_ray_below = pickle.loads(setup.buf[:setup_bytes])
+    finally:
+        setup.close()
     shm = SharedMemory(name=shm_name)
     _W.update(scene=scene, order=order, samples=samples, one_ray_below=one_ray_below, shm=shm,
               out=np.ndarray(shape, dtype=dtype, buffer=shm.buf))
@@ -188,6 +196,35 @@ def _work(slot: int, cols: np.ndarray) -> dict:
     _W["out"][slot, :, :len(cols)] = block
     return {"kernel_seconds": engine.kernel_seconds - k0, "embree_seconds": engine.embree_seconds - e0,
             "pairs": engine.pairs - p0, "rays": engine.rays - r0, "seconds": time.perf_counter() - t0}
+
+
+#: Seconds between checks that the workers are alive while waiting for a block.
+_ALIVE_CHECK = 1.0
+
+
+def _result(pool: ProcessPoolExecutor, fut):
+    """The future's result; WorkerError (saying what to do) if a worker process died.
+
+    The pool reports a dead worker as BrokenProcessPool; the wait is also cut
+    into short ones that check the workers' exit codes, in case a death goes
+    unreported.
+    """
+    while True:
+        try:
+            return fut.result(timeout=_ALIVE_CHECK)
+        except BrokenProcessPool:
+            raise WorkerError(_DEAD_WORKER.format(code="unknown")) from None
+        except FutureTimeout:
+            # the pool's own process table (stable across CPython 3.8-3.13)
+            dead = [p for p in getattr(pool, "_processes", {}).values() if p.exitcode is not None]
+            if dead:
+                raise WorkerError(_DEAD_WORKER.format(code=dead[0].exitcode)) from None
+
+
+_DEAD_WORKER = ("a form-factor worker process exited (exit code {code}) before finishing its block. If this "
+                "runs from a script, put the script's code under `if __name__ == \"__main__\":` (workers are "
+                "spawned and import the script again); otherwise it was killed (out of memory?): retry with "
+                "processes=1")
 
 
 class ProcessEngine:
@@ -225,12 +262,20 @@ class ProcessEngine:
         shape = (slots, n, self.block_size)
         shm = SharedMemory(create=True, size=max(1, int(np.prod(shape)) * self.dtype.itemsize))
         view = np.ndarray(shape, dtype=self.dtype, buffer=shm.buf)
+        # The scene reaches the workers through shared memory, not the spawn pipe: a worker that
+        # dies while starting (a script without a __main__ guard) would leave the parent blocked
+        # writing a large process object into that pipe, before any check could run.
+        payload = pickle.dumps((self.scene, np.asarray(rows, np.int64), self.samples, self.one_ray_below),
+                               protocol=pickle.HIGHEST_PROTOCOL)
+        setup_bytes = len(payload)
+        setup = SharedMemory(create=True, size=max(1, setup_bytes))
+        setup.buf[:setup_bytes] = payload
+        del payload
         saved = {k: os.environ.get(k) for k in _WORKER_ENV}
         os.environ.update(_WORKER_ENV)  # inherited by the spawned workers only
         try:
             pool = ProcessPoolExecutor(self.workers, mp_context=get_context("spawn"), initializer=_init_worker,
-                                       initargs=(self.scene, np.asarray(rows, np.int64), self.samples,
-                                                 self.one_ray_below, shm.name, shape, self.dtype))
+                                       initargs=(setup.name, setup_bytes, shm.name, shape, self.dtype))
         finally:
             for k, v in saved.items():
                 if v is None:
@@ -256,7 +301,7 @@ class ProcessEngine:
                 if not pending:
                     break
                 slot, width, fut = pending.pop(0)
-                stats = fut.result()
+                stats = _result(pool, fut)
                 self.kernel_seconds += stats["kernel_seconds"]
                 self.embree_seconds += stats["embree_seconds"]
                 self.pairs += stats["pairs"]
@@ -270,8 +315,9 @@ class ProcessEngine:
                 fut.cancel()
             pool.shutdown(wait=True, cancel_futures=True)
             del view
-            shm.close()
-            shm.unlink()
+            for segment in (shm, setup):
+                segment.close()
+                segment.unlink()
 
     def close(self) -> None:
         """Nothing to release between runs: the pool lives only while ``iter_blocks`` runs."""

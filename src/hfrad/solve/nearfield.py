@@ -13,7 +13,8 @@ Sherman-Morrison-Woodbury around ``A_c`` (factored once by SciPy's SuperLU,
 
 A solve reads Q and V once each (2nk words, for the three channels together)
 plus two sparse triangular solve pairs per channel; nothing else n x k is kept.
-Setting up K_c costs one sparse solve with k right-hand sides per channel.
+Setting up K_c costs one sparse solve with k right-hand sides per channel
+(:func:`~hfrad.solve.sparselu.lu_solve_many`: panels of columns through L and U).
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from scipy.sparse.linalg import splu
 
 from ..errors import FactorizationError
 from ..factorize.lowrank import LowRank
+from .sparselu import PanelSolver
 from .woodbury import N_CHANNELS, HFactorization, invert_capacitance, low_rank_correction
 
 __all__ = ["NearFieldFactorization", "SOLVER"]
@@ -82,11 +84,21 @@ class NearFieldFactorization(HFactorization):
         self._splu = self._factor_near()
         self.capacitance_inv = self._capacitance_inv(capacitance)
 
+    def _channel_sources(self) -> list[int]:
+        """For each channel, the first channel with the same ``D_c`` (grey scenes share one LU and K)."""
+        src = []
+        for c in range(N_CHANNELS):
+            src.append(next(s for s in range(c + 1) if np.array_equal(self._D[:, s], self._D[:, c])))
+        return src
+
     def _factor_near(self) -> list:
-        """SuperLU of ``A_c = I - D_c N`` per channel."""
+        """SuperLU of ``A_c = I - D_c N`` per distinct channel (shared by channels with equal ``D_c``)."""
         eye = sp.identity(self.n_patches, format="csr")
         lus = []
-        for c in range(N_CHANNELS):
+        for c, s in enumerate(self._channel_sources()):
+            if s != c:
+                lus.append(lus[s])
+                continue
             A = (eye - sp.diags(self._D[:, c]) @ self.N).tocsc()
             try:
                 # N's pattern is symmetric (near is a symmetric relation): minimum degree on A^T + A
@@ -99,10 +111,28 @@ class NearFieldFactorization(HFactorization):
         """(3, k, k) ``K_c^{-1}``, ``K_c = I_k - V^T A_c^{-1} D_c Q``: ``stored`` checked, or computed."""
         if stored is not None or self.rank == 0:
             return super()._capacitance_inv(stored)
-        Q64, V64 = self.Q.astype(np.float64), self.V.astype(np.float64)
-        return np.stack([invert_capacitance(np.eye(self.rank) - V64.T @ _lu_solve(self._splu[c], self._D[:, c:c + 1] * Q64),
-                                            f"channel {c}: I - V^T A_c^-1 D_c Q", self.dtype)
-                         for c in range(N_CHANNELS)])
+        out = np.empty((N_CHANNELS, self.rank, self.rank), self.dtype)
+        for c, s in enumerate(self._channel_sources()):
+            if s != c:
+                out[c] = out[s]
+                continue
+            K = np.eye(self.rank) - self._v_ainv_dq(c)
+            out[c] = invert_capacitance(K, f"channel {c}: I - V^T A_c^-1 D_c Q", self.dtype)
+        return out
+
+    def _v_ainv_dq(self, c: int, chunk: int = 1024) -> np.ndarray:
+        """(k, k) float64 ``V^T A_c^{-1} D_c Q``, k right-hand sides through the sparse LU in panels.
+
+        In the factors' precision (float32: ~1e-6 relative, far below the factorization's
+        eps), ``chunk`` columns at a time so that only n x chunk of ``A_c^{-1} D_c Q`` is held.
+        """
+        solver = PanelSolver(self._splu[c], self.dtype)
+        d = self._D[:, c:c + 1].astype(self.dtype)
+        out = np.empty((self.rank, self.rank))
+        for j in range(0, self.rank, chunk):
+            cols = slice(j, min(j + chunk, self.rank))
+            out[:, cols] = self.V.T @ solver.solve(d * self.Q[:, cols])
+        return out
 
     def _power_sigma(self, c: int, rtol: float = 1e-6, max_iter: int = 300) -> float:
         """sigma_max(D_c (N + Q V^T)) by power iteration on A^T A, O(nk + nnz(N)) per step."""
@@ -123,7 +153,10 @@ class NearFieldFactorization(HFactorization):
 
     def _sigma_estimates(self) -> np.ndarray:
         """(3,) sigma_max(D_c (N + Q V^T)) per channel, for eq. 5 (the achieved error is ``||G - N - Q V^T||_F``)."""
-        return np.array([self._power_sigma(c) for c in range(N_CHANNELS)])
+        sigma = np.empty(N_CHANNELS)
+        for c, s in enumerate(self._channel_sources()):
+            sigma[c] = sigma[s] if s != c else self._power_sigma(c)
+        return sigma
 
     def _solve(self, E: np.ndarray, adjoint: bool) -> np.ndarray:
         """Radiosity ``B_c = (I - R_c F)^{-1} E_c`` per channel (see module docstring); E (n, 3, m), user order."""
