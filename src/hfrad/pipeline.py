@@ -13,7 +13,6 @@ import contextlib
 import hashlib
 import json
 import math
-import os
 import time
 from pathlib import Path
 from typing import Callable
@@ -27,7 +26,7 @@ from .factorize.hf import HFStream
 from .factorize.nearfield import DEFAULT_NEAR_ENTRIES, NearFieldSplit, near_radius
 from .factorize.streaming import load_checkpoint, save_checkpoint
 from .formfactors.energy import warn_energy
-from .formfactors.parallel import default_one_ray_tol
+from .formfactors.parallel import default_one_ray_tol, default_workers
 from .progress import ProgressCallback, report
 from .scene.scene import Scene
 from .scene.zorder import patch_order
@@ -328,7 +327,7 @@ def _every_blas_thread_for_a_large_merge(blocks_done: int, n_blocks: int):
     c = blocks_done + 1
     if (c & -c) < max(_LARGE_MERGE_SHARE * n_blocks, 4):
         return contextlib.nullcontext()
-    return _blas_threads(len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count())
+    return _blas_threads(default_workers())   # the cores this process may use
 
 
 def _stream_blocks(blocks, stream: HFStream, stats: PassStatistics, rows_rho, n_blocks, checkpoint,
@@ -347,11 +346,12 @@ def _stream_blocks(blocks, stream: HFStream, stats: PassStatistics, rows_rho, n_
         G = rows_rho * block  # G = diag(rho_max) F, rows in internal order
         stats.add(start, stop, block, rows_rho)
         del block
+        norm2 = None  # the budget's norm: the block's own, or its norm before the near split
         if split is not None:
             norm2 = float(np.sum(np.square(G, dtype=np.float64)))
             G = split.split(G, start)
         with _every_blas_thread_for_a_large_merge(stream.blocks_done, n_blocks):
-            stream.push(G) if split is None else stream.push(G, norm2=norm2)
+            stream.push(G, norm2=norm2)
         del G
         report(progress, stream.blocks_done, n_blocks)
         if status is not None:

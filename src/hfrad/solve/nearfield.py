@@ -14,7 +14,7 @@ Sherman-Morrison-Woodbury around ``A_c`` (factored once by SciPy's SuperLU,
 A solve reads Q and V once each (2nk words, for the three channels together)
 plus two sparse triangular solve pairs per channel; nothing else n x k is kept.
 Setting up K_c costs one sparse solve with k right-hand sides per channel
-(:func:`~hfrad.solve.sparselu.lu_solve_many`: panels of columns through L and U).
+(:class:`~hfrad.solve.sparselu.PanelSolver`: panels of columns through L and U).
 """
 
 from __future__ import annotations
@@ -80,6 +80,7 @@ class NearFieldFactorization(HFactorization):
     def __init__(self, perm, Q, V, N, rho_max, reflectance, lowrank: LowRank, *, capacitance=None,
                  sigma_max=None, params: dict | None = None, scene=None, stats=None):
         self._set_state(perm, Q, V, rho_max, reflectance, lowrank, sigma_max, params, scene, stats)
+        self._sources = self._channel_sources()
         self.N = sp.csr_matrix(N, dtype=np.float64)
         self._splu = self._factor_near()
         self.capacitance_inv = self._capacitance_inv(capacitance)
@@ -95,7 +96,7 @@ class NearFieldFactorization(HFactorization):
         """SuperLU of ``A_c = I - D_c N`` per distinct channel (shared by channels with equal ``D_c``)."""
         eye = sp.identity(self.n_patches, format="csr")
         lus = []
-        for c, s in enumerate(self._channel_sources()):
+        for c, s in enumerate(self._sources):
             if s != c:
                 lus.append(lus[s])
                 continue
@@ -112,7 +113,7 @@ class NearFieldFactorization(HFactorization):
         if stored is not None or self.rank == 0:
             return super()._capacitance_inv(stored)
         out = np.empty((N_CHANNELS, self.rank, self.rank), self.dtype)
-        for c, s in enumerate(self._channel_sources()):
+        for c, s in enumerate(self._sources):
             if s != c:
                 out[c] = out[s]
                 continue
@@ -154,7 +155,7 @@ class NearFieldFactorization(HFactorization):
     def _sigma_estimates(self) -> np.ndarray:
         """(3,) sigma_max(D_c (N + Q V^T)) per channel, for eq. 5 (the achieved error is ``||G - N - Q V^T||_F``)."""
         sigma = np.empty(N_CHANNELS)
-        for c, s in enumerate(self._channel_sources()):
+        for c, s in enumerate(self._sources):
             sigma[c] = sigma[s] if s != c else self._power_sigma(c)
         return sigma
 

@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-__all__ = ["PANEL", "PanelSolver", "lu_solve_many"]
+__all__ = ["PANEL", "PanelSolver"]
 
 #: Right-hand sides per panel: a row of a panel is a few SIMD vectors, a panel of 20K rows
 #: 5 MB in float32 (near the cache). Measured on the Sponza 20K near field (15M entries in
@@ -111,10 +111,3 @@ class PanelSolver:
             out[:, cols] = panels[b][self._cols, : cols.stop - cols.start]
         return out
 
-
-def lu_solve_many(lu, X: np.ndarray, panel: int = PANEL, dtype=np.float64) -> np.ndarray:
-    """``A^{-1} X`` for a SuperLU factorization ``lu`` of A and many columns X (n, m).
-
-    One-off form of :class:`PanelSolver` (which see for ``panel`` and ``dtype``).
-    """
-    return PanelSolver(lu, dtype, panel).solve(X)
