@@ -52,7 +52,7 @@ def test_counter_tree_is_hfstream(m, monkeypatch):
     # "F" is A itself: the leaves read its columns instead of computing form factors
     monkeypatch.setattr(tasks, "column_block", lambda scene, cols, **kw: A[:, cols].copy())
     job = Job(scene=None, perm=np.arange(m * b), rows_rho=np.ones((n, 1)), block_size=b, n_blocks=m,
-              dtype="float64", eps=0.05, relative=True, leaf_share=0.5, samples=0, one_ray_below=0.0,
+              dtype="float64", eps=0.05, relative=True, leaf_share=0.5, samples=0, ray_budget=None,
               task_threads=None, token="t")
     parts = {j: tasks.leaf_task(job, j) for j in range(m)}
     for i, (left, right) in enumerate(counter_tree(m)):

@@ -232,8 +232,8 @@ def _factorize_scene(scene: Scene, *, eps: float, relative: bool, block_size: in
     t0 = time.perf_counter()
     ff_kwargs = {} if samples is None else {"samples": samples}
     if samples != 0:
-        from .formfactors.parallel import one_ray_threshold
-        ff_kwargs["one_ray_below"] = one_ray_threshold(scene, one_ray_tol)
+        from .formfactors.parallel import ray_budget
+        ff_kwargs["ray_budget"] = ray_budget(scene, one_ray_tol)
     blocks = iter_column_blocks(scene, block_size, order=perm, first_block=stream.blocks_done,
                                 processes=processes, dtype=dt, **ff_kwargs)
     rows_rho = rho_max[perm][:, None].astype(dt)

@@ -173,7 +173,7 @@ class _Tracker:
 
 
 def _run(cluster: Cluster, scene, options: dict, task_threads, progress, status, records_out) -> HFactorization:
-    from ..formfactors.parallel import one_ray_threshold
+    from ..formfactors.parallel import ray_budget
     from ..formfactors.visibility import DEFAULT_SAMPLES
 
     client = cluster.client
@@ -187,7 +187,7 @@ def _run(cluster: Cluster, scene, options: dict, task_threads, progress, status,
     job = Job(scene=scene, perm=np.asarray(perm, np.int64), rows_rho=rho_max[perm][:, None].astype(dt),
               block_size=int(block_size), n_blocks=m, dtype=dt.name, eps=float(options["eps"]),
               relative=bool(options["relative"]), leaf_share=float(options["leaf_share"]), samples=samples,
-              one_ray_below=one_ray_threshold(scene, options["one_ray_tol"]) if samples else 0.0,
+              ray_budget=ray_budget(scene, options["one_ray_tol"]) if samples else None,
               task_threads=task_threads if task_threads is not None else cluster.task_threads, token=token)
     t0 = time.perf_counter()
     [job_future] = client.scatter([job], broadcast=True, hash=False)  # the scene travels once per worker

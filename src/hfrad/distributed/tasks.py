@@ -42,8 +42,8 @@ class Job:
         The error budget, as in :class:`~hfrad.factorize.hf.HFStream`.
     samples : int
         Visibility rays per pair.
-    one_ray_below : float
-        Pairs with ``A_i F_ij`` below this get one ray (the local path's threshold).
+    ray_budget : RayBudget
+        Fewer rays for weak pairs (the local path's thresholds).
     task_threads : int or None
         Threads of the numba kernel inside one task (None: the worker's setting).
     token : str
@@ -60,7 +60,7 @@ class Job:
     relative: bool
     leaf_share: float
     samples: int
-    one_ray_below: float
+    ray_budget: object
     task_threads: int | None
     token: str
 
@@ -142,7 +142,7 @@ def leaf_task(job: Job, j: int) -> Part:
     cols = job.perm[j * job.block_size:(j + 1) * job.block_size]
     with _threads(job.task_threads):
         A = job.rows_rho * column_block(job.scene, cols, order=job.perm, samples=job.samples,
-                                        one_ray_below=job.one_ray_below, dtype=job.dtype)
+                                        ray_budget=job.ray_budget, dtype=job.dtype)
     t1, cpu1 = time.perf_counter(), time.process_time()
     node = compress_leaf(A, job.budget, j)
     del A

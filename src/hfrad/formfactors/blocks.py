@@ -28,7 +28,7 @@ from ..validation import check_permutation
 from .cache import BlockCache, array_hash, scene_hash
 from .clustered import kernel_for
 from .kernel import ADAPTIVE, KERNEL_VERSION, NEAR, TOLERANCE
-from .visibility import DEFAULT_SAMPLES, RayBuffers, Visibility, check_samples
+from .visibility import DEFAULT_SAMPLES, RayBudget, RayBuffers, Visibility, check_samples
 
 __all__ = ["FormFactorEngine", "iter_column_blocks", "form_factor_matrix", "row_sums",
            "available_memory", "DEFAULT_BLOCK_SIZE"]
@@ -53,9 +53,9 @@ class FormFactorEngine:
         Visibility rays per pair (1, 4, 9, ...); 0 disables visibility (F unoccluded).
     near, tolerance : see :mod:`hfrad.formfactors.kernel` (adaptive-path threshold and its
         relative tolerance).
-    one_ray_below : float
-        Pairs with ``A_i F_ij`` below this get one visibility ray instead of
-        ``samples`` (see :func:`hfrad.formfactors.parallel.one_ray_threshold`); 0 = off.
+    ray_budget : RayBudget, optional
+        Fewer rays for weak pairs (one, or ``samples`` instead of 16 where probes
+        disagree; see :func:`hfrad.formfactors.parallel.ray_budget`); default: off.
 
     Notes
     -----
@@ -66,13 +66,14 @@ class FormFactorEngine:
     """
 
     def __init__(self, scene, *, samples: int = DEFAULT_SAMPLES, near: float = NEAR,
-                 tolerance: float = TOLERANCE, one_ray_below: float = 0.0) -> None:
+                 tolerance: float = TOLERANCE, ray_budget: RayBudget | None = None) -> None:
         # patches that are clusters of triangles (hfrad.scene.cluster) have their own kernel
         self.geometry, self._unoccluded = kernel_for(scene, near=near, tolerance=tolerance)
         self.samples = int(samples)
         self.visibility = Visibility(scene, samples=samples) if samples else None
-        if self.visibility is not None:
-            self.visibility.one_ray_below = float(one_ray_below)
+        if self.visibility is not None and ray_budget is not None:
+            self.visibility.one_ray_below = float(ray_budget.one_ray_below)
+            self.visibility.few_rays_below = float(ray_budget.few_rays_below)
         self.kernel_seconds = 0.0
         self.pairs = 0
         self._executor = None
@@ -162,9 +163,9 @@ def _check_common(scene, samples, block_size) -> None:
 
 
 def cache_key(scene, *, samples: int, block_size: int, order: np.ndarray, dtype,
-              one_ray_below: float = 0.0) -> dict:
+              ray_budget: RayBudget | None = None) -> dict:
     """What a cached block depends on (see :mod:`hfrad.formfactors.cache`)."""
-    extra = {"one_ray_below": float(one_ray_below)} if one_ray_below else {}
+    extra = ray_budget.key() if ray_budget is not None else {}
     return extra | {"scene_sha256": scene_hash(scene), "samples": int(samples), "block_size": int(block_size),
             "order_sha256": array_hash(order.astype(np.int64)), "dtype": np.dtype(dtype).str,
             "kernel_version": KERNEL_VERSION, "near": NEAR, "adaptive": ADAPTIVE, "tolerance": TOLERANCE,
@@ -176,7 +177,7 @@ def iter_column_blocks(scene, block_size: int = DEFAULT_BLOCK_SIZE, *, order=Non
                        progress: ProgressCallback = None, cache=None,
                        engine: FormFactorEngine | None = None,
                        first_block: int = 0, processes: int | None = 1,
-                       one_ray_below: float = 0.0) -> Iterator[tuple[int, int, np.ndarray]]:
+                       ray_budget: RayBudget | None = None) -> Iterator[tuple[int, int, np.ndarray]]:
     """Stream F in column blocks, rows and columns in the internal ``order``.
 
     Yields ``(start, stop, block)`` with
@@ -211,9 +212,8 @@ def iter_column_blocks(scene, block_size: int = DEFAULT_BLOCK_SIZE, *, order=Non
         1 = this process (numba threads + one Embree thread); None = one per core
         when the scene has at least ``MIN_PARALLEL_PATCHES`` patches. The blocks
         are the same whatever the count.
-    one_ray_below : float
-        Pairs with ``A_i F_ij`` below this get one visibility ray (see
-        :func:`hfrad.formfactors.parallel.one_ray_threshold`); 0 = off.
+    ray_budget : RayBudget, optional
+        Fewer rays for weak pairs (see :func:`hfrad.formfactors.parallel.ray_budget`); default: off.
 
     Raises
     ------
@@ -235,7 +235,7 @@ def iter_column_blocks(scene, block_size: int = DEFAULT_BLOCK_SIZE, *, order=Non
     if cache is not None:
         store = cache if isinstance(cache, BlockCache) else BlockCache(cache)
         store.open(cache_key(scene, samples=samples, block_size=block_size, order=order, dtype=dtype,
-                             one_ray_below=one_ray_below),
+                             ray_budget=ray_budget),
                    n, block_size, dtype)
     starts = list(range(0, n, block_size))[first_block:]
     # Only flags are read up front: a cached block is read when its turn comes,
@@ -243,7 +243,7 @@ def iter_column_blocks(scene, block_size: int = DEFAULT_BLOCK_SIZE, *, order=Non
     todo = [k for k in range(first_block, first_block + len(starts)) if store is None or not store.has(k)]
     own_engine = engine is None
     if todo and engine is None:
-        engine = make_engine(scene, samples=samples, processes=processes, one_ray_below=one_ray_below,
+        engine = make_engine(scene, samples=samples, processes=processes, ray_budget=ray_budget,
                              block_size=block_size, dtype=dtype)
     computed = engine.iter_blocks(order, (order[k * block_size:(k + 1) * block_size] for k in todo)) \
         if todo else _empty()
@@ -269,8 +269,8 @@ def iter_column_blocks(scene, block_size: int = DEFAULT_BLOCK_SIZE, *, order=Non
             engine.close()
 
 
-def make_engine(scene, *, samples: int = DEFAULT_SAMPLES, processes: int | None = 1, one_ray_below: float = 0.0,
-                block_size: int = DEFAULT_BLOCK_SIZE, dtype=np.float64):
+def make_engine(scene, *, samples: int = DEFAULT_SAMPLES, processes: int | None = 1,
+                ray_budget: RayBudget | None = None, block_size: int = DEFAULT_BLOCK_SIZE, dtype=np.float64):
     """A FormFactorEngine (this process), or a ProcessEngine when ``processes`` > 1.
 
     ``processes=None`` picks one per core for scenes of at least
@@ -283,9 +283,9 @@ def make_engine(scene, *, samples: int = DEFAULT_SAMPLES, processes: int | None 
     if int(processes) != processes or int(processes) < 1:
         raise ValueError(f"processes must be a positive integer (or None for one per core), got {processes}")
     if int(processes) > 1:
-        return ProcessEngine(scene, workers=int(processes), samples=samples, one_ray_below=one_ray_below,
+        return ProcessEngine(scene, workers=int(processes), samples=samples, ray_budget=ray_budget,
                              block_size=block_size, dtype=dtype)
-    return FormFactorEngine(scene, samples=samples, one_ray_below=one_ray_below)
+    return FormFactorEngine(scene, samples=samples, ray_budget=ray_budget)
 
 
 def _empty() -> Iterator[np.ndarray]:

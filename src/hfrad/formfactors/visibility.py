@@ -19,7 +19,9 @@ Rounds (probing on, the default; probing.py):
 1. every pair that needs rays gets one *probe* segment, centroid to centroid;
    a pair whose neighbouring pairs' probes agree with its own keeps it (0 or 1);
 2. the others (shadow boundaries, contact shadows, close or large pairs) get
-   ``BOUNDARY_SAMPLES`` = 16 weighted segments (4 x 4 split);
+   ``BOUNDARY_SAMPLES`` = 16 weighted segments (4 x 4 split), or ``samples`` (4)
+   if the pair is too weak to matter at the factorization's error budget
+   (``RayBudget.few_rays_below``; off unless a budget is given);
 3. where those disagree (a partly visible pair) or the patches are close
    (centroid distance below REFINE_NEAR (D_i + D_j)), and the pair matters
    (F_ij or F_ji above ``refine_above``, 3e-4), ``REFINE_SAMPLES`` = 64 segments
@@ -57,6 +59,7 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import dataclass
 
 import numpy as np
 from numba import njit, prange
@@ -92,6 +95,32 @@ MAX_CULL_OCCLUDERS = 2048
 RAY_BATCH = 1 << 21
 
 _OFFSET = 1e-5  # end point offset, times the scene size
+
+
+@dataclass(frozen=True)
+class RayBudget:
+    """Fewer rays for pairs too weak to matter at the error budget (thresholds on ``A_i F_ij``, m^2).
+
+    ``A_i F_ij`` is the same number for (i, j) and (j, i), so both rules decide
+    alike from either side and V_ij == V_ji still holds. The thresholds come
+    from :func:`hfrad.formfactors.parallel.ray_budget` (a share of ``||F||_F``).
+
+    Attributes
+    ----------
+    one_ray_below : float
+        Pairs below this get one ray (the probe's, with probing); 0 = off.
+    few_rays_below : float
+        Flagged pairs (neighbouring probes disagree) below this get
+        ``samples`` rays (4 by default) instead of ``BOUNDARY_SAMPLES`` (16); 0 = off.
+    """
+
+    one_ray_below: float = 0.0
+    few_rays_below: float = 0.0
+
+    def key(self) -> dict:
+        """The nonzero thresholds, for cache keys (empty when both rules are off)."""
+        return {k: float(v) for k, v in (("one_ray_below", self.one_ray_below),
+                                         ("few_rays_below", self.few_rays_below)) if v}
 
 
 def settings() -> dict:
@@ -192,9 +221,9 @@ class Visibility:
                                 scene.occluder_faces, threads=1)
         self._setup_culling(scene, tri, cull)
         self.areas = np.ascontiguousarray(scene.areas, dtype=np.float64)
-        #: Pairs with A_i F_ij (symmetric, so V_ij == V_ji still) below this get one ray, not
-        #: ``samples`` (see hfrad.formfactors.parallel.one_ray_threshold); 0 = off.
+        #: Fewer rays for weak pairs (RayBudget); both rules off by default.
         self.one_ray_below = 0.0
+        self.few_rays_below = 0.0
         self.rays_cast = 0
         self.embree_seconds = 0.0
         # one probe ray per pair first, every ray only where neighbouring pairs disagree (probing.py)
@@ -306,10 +335,16 @@ class Visibility:
             need = full_ray_pairs(self, F, rows, cols, need)  # the others keep their probe
         flat = np.flatnonzero(need.ravel())
         pool = buffers if buffers is not None else RayBuffers()
-        # with probing the pairs left here are the flagged ones: the boundary design
-        P, partner = (self.boundary_points, self.boundary_partner) if self.neighbours is not None \
-            else (self.points, self.partner)
-        yield from self._jobs(F, rows, cols, flat, P, partner, pool)
+        if self.neighbours is None or self.boundary_samples == self.samples:
+            yield from self._jobs(F, rows, cols, flat, self.points, self.partner, pool)
+            return
+        # with probing the pairs left here are the flagged ones: the boundary design, except for
+        # those too weak to matter at the error budget (RayBudget.few_rays_below)
+        few = self.areas[rows[flat // len(cols)]] * F.ravel()[flat] < self.few_rays_below
+        if few.any():
+            yield from self._jobs(F, rows, cols, flat[few], self.points, self.partner, pool)
+            flat = flat[~few]
+        yield from self._jobs(F, rows, cols, flat, self.boundary_points, self.boundary_partner, pool)
 
     def _jobs(self, F, rows, cols, flat, P, partner, pool):
         s = partner.shape[0]
