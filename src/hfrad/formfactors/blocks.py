@@ -28,7 +28,7 @@ from ..validation import check_permutation
 from .cache import BlockCache, array_hash, scene_hash
 from .clustered import kernel_for
 from .kernel import ADAPTIVE, KERNEL_VERSION, NEAR, TOLERANCE
-from .visibility import DEFAULT_SAMPLES, RayBudget, RayBuffers, Visibility, check_samples
+from .visibility import DEFAULT_SAMPLES, RayBudget, Visibility, check_samples
 
 __all__ = ["FormFactorEngine", "iter_column_blocks", "form_factor_matrix", "row_sums",
            "available_memory", "DEFAULT_BLOCK_SIZE"]
@@ -77,7 +77,6 @@ class FormFactorEngine:
         self.kernel_seconds = 0.0
         self.pairs = 0
         self._executor = None
-        self._buffers = RayBuffers()
 
     @property
     def rays(self) -> int:
@@ -128,7 +127,7 @@ class FormFactorEngine:
                 F = self._kernel(rows, cols)  # runs while Embree works on earlier batches
                 entry = [F, 0]
                 ready.append(entry)
-                for job in vis.jobs(F, rows, cols, self._buffers):
+                for job in vis.jobs(F, rows, cols):
                     while len(inflight) >= _IN_FLIGHT:
                         drain()
                     submit(F, job, entry)

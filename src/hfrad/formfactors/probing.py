@@ -154,11 +154,12 @@ def _probe(vis, R: np.ndarray, Cc: np.ndarray, state: np.ndarray) -> None:
             continue
         r_idx, c_idx = R[r0:r0 + step][pending // nc], Cc[pending % nc]
         one = np.ones((m, 1), np.bool_)
-        o, d, t = np.empty((m, 3), np.float32), np.empty((m, 3), np.float32), np.empty(m, np.float32)
-        w = np.empty(m, np.float64)
+        buf = vis.buffers.get(m)  # reused: fresh pages cost page faults
+        o, d, t, w = buf[0][:m], buf[1][:m], buf[2][:m], buf[3][:m]
         first = np.arange(m + 1, dtype=np.int64)
         _fill_rays(vis.probe_points, vis.plane, _ZERO, r_idx, c_idx, one, first, o, d, t, w)
         hit = vis.cast_segments(o, d, t)
+        vis.buffers.put(buf)
         part.reshape(-1)[pending] = np.where(hit, np.int8(_BLOCKED), np.int8(_VISIBLE))
         vis.rays_probe += m
         vis.rays_cast += m

@@ -226,6 +226,8 @@ class Visibility:
         self.few_rays_below = 0.0
         self.rays_cast = 0
         self.embree_seconds = 0.0
+        # ray buffers reused from block to block (fresh pages cost page faults: ~10% of the time)
+        self.buffers = RayBuffers()
         # one probe ray per pair first, every ray only where neighbouring pairs disagree (probing.py)
         self.rays_probe = 0
         self.probe_below = PROBE_BELOW
@@ -324,7 +326,7 @@ class Visibility:
         """Ray jobs (at most RAY_BATCH rays each) for the pairs of ``F`` that need rays.
 
         A generator: each job is prepared (numba) when asked for, into buffers
-        taken from ``buffers`` (a ``RayBuffers`` pool; a private one by default).
+        taken from ``buffers`` (a ``RayBuffers`` pool; by default this object's own).
         """
         rows = np.ascontiguousarray(rows, np.int64)
         cols = np.ascontiguousarray(cols, np.int64)
@@ -334,7 +336,7 @@ class Visibility:
         if self.neighbours is not None:
             need = full_ray_pairs(self, F, rows, cols, need)  # the others keep their probe
         flat = np.flatnonzero(need.ravel())
-        pool = buffers if buffers is not None else RayBuffers()
+        pool = buffers if buffers is not None else self.buffers
         if self.neighbours is None or self.boundary_samples == self.samples:
             yield from self._jobs(F, rows, cols, flat, self.points, self.partner, pool)
             return
@@ -398,6 +400,7 @@ class Visibility:
         if job.final:
             _scale_by_visibility(flat, job.pairs, job.first, hit, job.w, np.zeros(len(job.pairs), np.bool_))
             self.rays_refined += len(job.t)
+            job.pool.put(job.buf)
             return []
         again = np.zeros(len(job.pairs), np.int8)
         if self.refine_samples:
@@ -405,17 +408,17 @@ class Visibility:
                                self.centroids, self.diameters, self.refine_near, self.refine_above,
                                self.refine_large_above, again)
         _scale_by_visibility(flat, job.pairs, job.first, hit, job.w, again != 0)
-        if job.pool is not None:
-            job.pool.put(job.buf)
+        job.pool.put(job.buf)
         more = []
         for level, samples in ((1, self.refine_samples), (2, self.refine_large_samples)):
             sel = again == level
             if sel.any():
-                more.extend(self._refine_jobs(job.pairs[sel], job.r_idx[sel], job.c_idx[sel], samples))
+                more.extend(self._refine_jobs(job.pairs[sel], job.r_idx[sel], job.c_idx[sel], samples, job.pool))
         return more
 
-    def _refine_jobs(self, pairs: np.ndarray, r_idx: np.ndarray, c_idx: np.ndarray, s: int) -> list:
-        """Second-round jobs of ``s`` rays for ``pairs`` (flat indices into F)."""
+    def _refine_jobs(self, pairs: np.ndarray, r_idx: np.ndarray, c_idx: np.ndarray, s: int,
+                     pool: "RayBuffers") -> list:
+        """Second-round jobs of ``s`` rays for ``pairs`` (flat indices into F), in buffers from ``pool``."""
         m = check_samples(s)
         partner = pairing(s)
         per = max(1, RAY_BATCH // s)
@@ -434,12 +437,10 @@ class Visibility:
             first = np.zeros(k + 1, np.int64)
             np.cumsum(counts, out=first[1:])
             r = int(first[-1])
-            o = np.empty((r, 3), np.float32)
-            d = np.empty((r, 3), np.float32)
-            t = np.empty(r, np.float32)
-            w = np.empty(r, np.float64)
+            buf = pool.get(r)
+            o, d, t, w = buf[0][:r], buf[1][:r], buf[2][:r], buf[3][:r]
             _fill_rays(P, plane, partner, ri, ci, valid, first, o, d, t, w)
-            out.append(RayJob(pairs[sl], first, o, d, t, w, None, None, r_idx[sl], c_idx[sl], True))
+            out.append(RayJob(pairs[sl], first, o, d, t, w, buf, pool, r_idx[sl], c_idx[sl], True))
         return out
 
     def close(self) -> None:
@@ -449,7 +450,7 @@ class Visibility:
 class RayJob:
     """One batch of segments: origins o, unit directions d, lengths t (float32), kernel weights w.
 
-    ``buf`` and ``pool``: the buffers to hand back (None for a second-round job, which owns its arrays).
+    ``buf`` and ``pool``: the buffers (o, d, t, w are views of them) and the pool to hand them back to.
     """
 
     __slots__ = ("pairs", "first", "o", "d", "t", "w", "buf", "pool", "r_idx", "c_idx", "final")
