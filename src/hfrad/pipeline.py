@@ -121,9 +121,10 @@ def factorize(scene_or_matrix, reflectance=None, *, areas=None, eps: float = 0.0
         (load ~25) two workers were 2x slower.
     one_ray_tol : float or None
         Scene only: pairs that together hold at most this share of ``||F||_F``
-        get one visibility ray instead of several
-        (:func:`hfrad.formfactors.parallel.one_ray_threshold`); None: ``eps / 4``
-        for a relative eps, 0 (off) for an absolute one.
+        get one visibility ray instead of several, and flagged pairs (probes
+        disagree) holding ``FEW_RAYS_FACTOR`` (4) times this share get 4 rays
+        instead of 16 (:func:`hfrad.formfactors.parallel.ray_budget`); None:
+        ``eps / 4`` for a relative eps, 0 (both rules off) for an absolute one.
     near_field : "auto", int or None
         Scene only: the near-field split (docs/method.md; :mod:`hfrad.factorize.nearfield`):
         pairs within a radius holding about this many neighbours per row go into
