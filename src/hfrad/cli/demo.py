@@ -51,7 +51,7 @@ def register(app: typer.Typer) -> None:
             B = fac.solve(scene.emission)
             t_solve = time.perf_counter() - t1
             with common.progress_bar("residual of the solution (form factors again)", quiet) as bar:
-                r = fac.residual(scene.emission, B, progress=bar)
+                r = fac.residual(scene.emission, B, progress=bar, processes=None)
             out("guaranteed bound on the relative radiosity error of this solution (R,G,B; "
                 f"{r.norm} norm, from its residual): " + ", ".join(f"{b:.3g}" for b in r.bound))
             save_png(render_image(scene, B, camera="front"), output / "cornell.png")

@@ -77,7 +77,7 @@ def register(app: typer.Typer) -> None:
             r = None
             if residual:
                 with common.progress_bar("residual (form factors)", quiet or as_json) as bar:
-                    r = fac.residual(E, B, progress=bar)
+                    r = fac.residual(E, B, progress=bar, processes=None)
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", AccuracyWarning)   # a missing bound is printed as "none"
                 figures = fac.error_estimate().as_dict()

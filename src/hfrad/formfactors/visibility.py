@@ -20,8 +20,8 @@ Rounds (probing on, the default; probing.py):
    a pair whose neighbouring pairs' probes agree with its own keeps it (0 or 1);
 2. the others (shadow boundaries, contact shadows, close or large pairs) get
    ``BOUNDARY_SAMPLES`` = 16 weighted segments (4 x 4 split), or ``samples`` (4)
-   if the pair is too weak to matter at the factorization's error budget
-   (``RayBudget.few_rays_below``; off unless a budget is given);
+   and no round 3 if the pair is too weak to matter at the factorization's error
+   budget (``RayBudget.few_rays_below``; off unless a budget is given);
 3. where those disagree (a partly visible pair) or the patches are close
    (centroid distance below REFINE_NEAR (D_i + D_j)), and the pair matters
    (F_ij or F_ji above ``refine_above``, 3e-4), ``REFINE_SAMPLES`` = 64 segments
@@ -341,14 +341,15 @@ class Visibility:
             yield from self._jobs(F, rows, cols, flat, self.points, self.partner, pool)
             return
         # with probing the pairs left here are the flagged ones: the boundary design, except for
-        # those too weak to matter at the error budget (RayBudget.few_rays_below)
+        # those too weak to matter at the error budget (RayBudget.few_rays_below): ``samples``
+        # rays and no second round
         few = self.areas[rows[flat // len(cols)]] * F.ravel()[flat] < self.few_rays_below
         if few.any():
-            yield from self._jobs(F, rows, cols, flat[few], self.points, self.partner, pool)
+            yield from self._jobs(F, rows, cols, flat[few], self.points, self.partner, pool, final=True)
             flat = flat[~few]
         yield from self._jobs(F, rows, cols, flat, self.boundary_points, self.boundary_partner, pool)
 
-    def _jobs(self, F, rows, cols, flat, P, partner, pool):
+    def _jobs(self, F, rows, cols, flat, P, partner, pool, final=False):
         s = partner.shape[0]
         per = max(1, RAY_BATCH // s)
         nc = len(cols)
@@ -371,7 +372,7 @@ class Visibility:
             buf = pool.get(r)
             o, d, t, w = buf[0][:r], buf[1][:r], buf[2][:r], buf[3][:r]
             _fill_rays(P, self.plane, partner, r_idx, c_idx, valid, first, o, d, t, w)
-            yield RayJob(pairs, first, o, d, t, w, buf, pool, r_idx, c_idx, False)
+            yield RayJob(pairs, first, o, d, t, w, buf, pool, r_idx, c_idx, final)
 
     def cast(self, job: "RayJob") -> np.ndarray:
         """(r,) bool: blocked segments of a job (Embree; holds the GIL, so one call at a time)."""
@@ -399,7 +400,6 @@ class Visibility:
         self.rays_cast += len(job.t)
         if job.final:
             _scale_by_visibility(flat, job.pairs, job.first, hit, job.w, np.zeros(len(job.pairs), np.bool_))
-            self.rays_refined += len(job.t)
             job.pool.put(job.buf)
             return []
         again = np.zeros(len(job.pairs), np.int8)
@@ -440,6 +440,7 @@ class Visibility:
             buf = pool.get(r)
             o, d, t, w = buf[0][:r], buf[1][:r], buf[2][:r], buf[3][:r]
             _fill_rays(P, plane, partner, ri, ci, valid, first, o, d, t, w)
+            self.rays_refined += r
             out.append(RayJob(pairs[sl], first, o, d, t, w, buf, pool, r_idx[sl], c_idx[sl], True))
         return out
 
@@ -458,7 +459,7 @@ class RayJob:
     def __init__(self, pairs, first, o, d, t, w, buf, pool, r_idx, c_idx, final) -> None:
         self.pairs, self.first, self.o, self.d, self.t, self.w = pairs, first, o, d, t, w
         self.buf, self.pool = buf, pool
-        self.final = final  # a second-round job: its fraction is the pair's V
+        self.final = final  # no second round: its fraction is the pair's V
         self.r_idx, self.c_idx = r_idx, c_idx  # patch indices of each pair
 
 

@@ -412,7 +412,8 @@ class HFactorization:
                               matmat=lambda X: apply(X, False), rmatmat=lambda X: apply(X, True),
                               dtype=np.float64)
 
-    def residual(self, exitance, radiosity, *, form_factors=None, progress=None) -> ResidualEstimate:
+    def residual(self, exitance, radiosity, *, form_factors=None, progress=None,
+                 processes: int | None = 1) -> ResidualEstimate:
         """The guaranteed figure of one solution: its residual with the exact F, and the error bound it gives.
 
         ``r = E - (I - R_c F) B~`` and ``||B~ - B|| <= ||r|| / (1 - ||R_c F||)``
@@ -425,8 +426,13 @@ class HFactorization:
         exitance, radiosity : (n, 3) float, W/m^2, user patch order
         form_factors : (n, n) float, optional
             The exact F (user order). Without it F is streamed again from the
-            factorization's scene (as slow as the precompute's form factors).
+            factorization's scene (every visibility ray: slower than the precompute's
+            form factors, which spend a share of eps on fewer rays for weak pairs).
         progress : callable (done, total), optional
+        processes : int or None
+            Form-factor worker processes when F is streamed (as in
+            :func:`hfrad.factorize`: None = one per core for large scenes; a
+            script then needs an ``if __name__ == "__main__":`` guard).
 
         Returns
         -------
@@ -451,7 +457,8 @@ class HFactorization:
 
         samples = self.params.get("samples")
         kwargs = {} if samples is None else {"samples": samples}
-        blocks = iter_column_blocks(self.scene, order=self.perm, progress=progress, **kwargs)
+        blocks = iter_column_blocks(self.scene, order=self.perm, progress=progress, processes=processes,
+                                    **kwargs)
         return residual_estimate(blocks, self.reflectance, E, B, perm=self.perm, areas=areas)
 
     @property
