@@ -34,9 +34,9 @@ def test_probing_casts_fewer_rays_for_the_same_row_sums(both):
 
 
 def test_cornell_rows_close(both):
-    """Every row of the closed Cornell box sums to 1 within 0.25% at 1,508 patches.
+    """Every row of the closed Cornell box sums to 1 within 0.2% at 1,508 patches.
 
-    Observed: worst |sum - 1| 1.84e-3, mean 3.0e-4 (kernel v7: kernel-weighted rays, 16 for
+    Observed: worst |sum - 1| 1.84e-3, mean 3.0e-4 (kernel v7/v8: kernel-weighted rays, 16 for
     the flagged pairs, 64 / 256 in the second round, centroid probes). Kernel v6 (4 + 16 plain
     rays, corner probes, the far rule's straddling pairs at half) gave 9.3e-3 and 8.4e-4.
     """
@@ -44,20 +44,25 @@ def test_cornell_rows_close(both):
     err = np.abs(F.sum(axis=1) - 1)
     print(f"\nrow sums at {scene.n_patches} patches: worst {err.max():.3e}, mean {err.mean():.3e}, "
           f"rows off by > 0.2%: {(err > 2e-3).sum()}")
-    assert err.max() < 2.5e-3
-    assert err.mean() < 4e-4
+    assert err.max() < 2e-3
+    assert err.mean() < 3.5e-4
 
 
 @pytest.mark.slow
-def test_cornell_rows_close_at_3k():
-    """The issue's goal at 3K patches: every row within 0.2% (observed worst 1.65e-3)."""
+@pytest.mark.parametrize("patches, mean", [(3000, 3.5e-4), (10000, 2.5e-4)])
+def test_cornell_rows_close_at_3k_and_10k(patches, mean):
+    """The accuracy goal: every row within 0.2% at 3K and 10K patches.
+
+    Observed (kernel v8): worst 1.65e-3 / 1.83e-3, mean 2.7e-4 / 1.8e-4; kernel v7 (second
+    round from 3e-4) left one 10K row at 2.8e-3.
+    """
     from hfrad.formfactors.blocks import row_sums
 
-    scene = subdivide(cornell_box(), patches=3000)
+    scene = subdivide(cornell_box(), patches=patches)
     err = np.abs(row_sums(scene) - 1)
     print(f"\nrow sums at {scene.n_patches} patches: worst {err.max():.3e}, mean {err.mean():.3e}")
     assert err.max() < 2e-3
-    assert err.mean() < 3.5e-4
+    assert err.mean() < mean
 
 
 def test_probing_keeps_reciprocity_exact(both):

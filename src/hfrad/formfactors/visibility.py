@@ -24,18 +24,18 @@ Rounds (probing on, the default; probing.py):
    budget (``RayBudget.few_rays_below``; off unless a budget is given);
 3. where those disagree (a partly visible pair) or the patches are close
    (centroid distance below REFINE_NEAR (D_i + D_j)), and the pair matters
-   (F_ij or F_ji above ``refine_above``, 3e-4), ``REFINE_SAMPLES`` = 64 segments
+   (F_ij or F_ji above ``refine_above``, 1e-4), ``REFINE_SAMPLES`` = 64 segments
    (8 x 8 split), ``REFINE_LARGE_SAMPLES`` = 256 (16 x 16) when F_ij or F_ji
    exceeds REFINE_LARGE_ABOVE, replace the estimate.
 
 With probing off every pair that needs rays gets ``samples`` segments, then round 3.
 
-Measured on the built-in Cornell box (2-core EPYC, one numba thread): worst row
-sum |sum_j F_ij - 1| 1.65e-3 at 2,974 patches and 2.8e-3 at 9,986 (one row
-above 0.2%); kernel v6: 5.5e-3 / 6.0e-3, 96 / 37 rows above 0.2%. With
-``refine_above`` = 1e-4 every row of both closes within 0.2% (1.65e-3 / 1.83e-3)
-for 27% more rays at 10K, 1.9x the form-factor time of kernel v2 instead of
-about 1.5x (benchmarks/README.md, "Form-factor accuracy and its cost").
+Measured on the built-in Cornell box (2-core EPYC): every row closes within
+0.2%, worst row sum |sum_j F_ij - 1| 1.65e-3 at 2,974 patches and 1.83e-3 at
+9,986, for 1.42x-1.48x the form-factor time of kernel v2 at 10K, side by side
+(benchmarks/README.md, "Form-factor accuracy and its cost"). With
+``refine_above`` = 3e-4 (kernel v7) one 10K row stayed at 2.8e-3; kernel v6:
+5.5e-3 / 6.0e-3, 96 / 37 rows above 0.2%.
 
 There is no random jitter on purpose: Monte Carlo noise in F is full rank and
 destroys the low rank the hierarchical factorization relies on (docs/method.md, section 2).
@@ -85,7 +85,7 @@ REFINE_LARGE_ABOVE = 3e-3
 
 #: Pairs whose first rays disagree, or closer than REFINE_NEAR * (D_i + D_j) (centroid
 #: distance, longest edges), get the second round if F_ij or F_ji exceeds REFINE_ABOVE.
-REFINE_ABOVE = 3e-4
+REFINE_ABOVE = 1e-4
 REFINE_NEAR = 2.0
 
 #: Above this many occluder triangles the per-pair culling test costs more than it saves.
