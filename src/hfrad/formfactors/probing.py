@@ -51,6 +51,8 @@ import numpy as np
 from numba import njit, prange
 from scipy.spatial import cKDTree
 
+from .segments import RAY_BATCH, fill_rays
+
 #: Pairs with F_ij or F_ji at least this large always get every ray: a row's sum is made of
 #: few such pairs, so a probe that happens to agree with its neighbours must not decide them.
 PROBE_BELOW = 1e-3
@@ -142,8 +144,6 @@ def _probe(vis, R: np.ndarray, Cc: np.ndarray, state: np.ndarray) -> None:
     cast in canonical order. Rows go in
     chunks so that no more than about RAY_BATCH probes are held at once.
     """
-    from .visibility import RAY_BATCH, _fill_rays
-
     nc = len(Cc)
     step = max(1, RAY_BATCH // max(nc, 1))
     for r0 in range(0, len(R), step):
@@ -157,7 +157,7 @@ def _probe(vis, R: np.ndarray, Cc: np.ndarray, state: np.ndarray) -> None:
         buf = vis.buffers.get(m)  # reused: fresh pages cost page faults
         o, d, t, w = buf[0][:m], buf[1][:m], buf[2][:m], buf[3][:m]
         first = np.arange(m + 1, dtype=np.int64)
-        _fill_rays(vis.probe_points, vis.plane, _ZERO, r_idx, c_idx, one, first, o, d, t, w)
+        fill_rays(vis.probe_points, vis.plane, _ZERO, r_idx, c_idx, one, first, o, d, t, w)
         hit = vis.cast_segments(o, d, t)
         vis.buffers.put(buf)
         part.reshape(-1)[pending] = np.where(hit, np.int8(_BLOCKED), np.int8(_VISIBLE))

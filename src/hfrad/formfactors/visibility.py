@@ -68,6 +68,7 @@ from ..errors import InputError
 from .kernel import points_on_triangles, split_centroids
 from .probing import NEIGHBOURS, PROBE_BELOW, PROBE_NEAR, cuttable, full_ray_pairs, nearest_patches
 from .raycast import RayCaster
+from .segments import RAY_BATCH, RayBuffers, RayJob, fill_rays, valid_rays
 
 #: Rays per patch pair by default (a 2 x 2 split of each triangle) with probing off; with
 #: probing on (the default) the flagged pairs get max(samples, BOUNDARY_SAMPLES).
@@ -90,9 +91,6 @@ REFINE_NEAR = 2.0
 
 #: Above this many occluder triangles the per-pair culling test costs more than it saves.
 MAX_CULL_OCCLUDERS = 2048
-
-#: Rays per Embree call and per temporary buffer (bounds memory: ~28 bytes a ray).
-RAY_BATCH = 1 << 21
 
 _OFFSET = 1e-5  # end point offset, times the scene size
 
@@ -359,7 +357,7 @@ class Visibility:
             c_idx = cols[pairs % nc]
             valid = np.empty((len(pairs), s), np.bool_)
             counts = np.empty(len(pairs), np.int64)
-            _valid_rays(P, self.plane, partner, r_idx, c_idx, valid, counts)
+            valid_rays(P, self.plane, partner, r_idx, c_idx, valid, counts)
             if self.one_ray_below > 0.0 and s > 1:
                 weak = np.flatnonzero(self.areas[r_idx] * F.ravel()[pairs] < self.one_ray_below)
                 first_valid = valid[weak].argmax(axis=1)
@@ -371,7 +369,7 @@ class Visibility:
             r = int(first[-1])
             buf = pool.get(r)
             o, d, t, w = buf[0][:r], buf[1][:r], buf[2][:r], buf[3][:r]
-            _fill_rays(P, self.plane, partner, r_idx, c_idx, valid, first, o, d, t, w)
+            fill_rays(P, self.plane, partner, r_idx, c_idx, valid, first, o, d, t, w)
             yield RayJob(pairs, first, o, d, t, w, buf, pool, r_idx, c_idx, final)
 
     def cast(self, job: "RayJob") -> np.ndarray:
@@ -433,52 +431,19 @@ class Visibility:
             plane = np.ascontiguousarray(self.plane[patches])
             valid = np.empty((k, s), np.bool_)
             counts = np.empty(k, np.int64)
-            _valid_rays(P, plane, partner, ri, ci, valid, counts)
+            valid_rays(P, plane, partner, ri, ci, valid, counts)
             first = np.zeros(k + 1, np.int64)
             np.cumsum(counts, out=first[1:])
             r = int(first[-1])
             buf = pool.get(r)
             o, d, t, w = buf[0][:r], buf[1][:r], buf[2][:r], buf[3][:r]
-            _fill_rays(P, plane, partner, ri, ci, valid, first, o, d, t, w)
+            fill_rays(P, plane, partner, ri, ci, valid, first, o, d, t, w)
             self.rays_refined += r
             out.append(RayJob(pairs[sl], first, o, d, t, w, buf, pool, r_idx[sl], c_idx[sl], True))
         return out
 
     def close(self) -> None:
         self.caster.close()
-
-
-class RayJob:
-    """One batch of segments: origins o, unit directions d, lengths t (float32), kernel weights w.
-
-    ``buf`` and ``pool``: the buffers (o, d, t, w are views of them) and the pool to hand them back to.
-    """
-
-    __slots__ = ("pairs", "first", "o", "d", "t", "w", "buf", "pool", "r_idx", "c_idx", "final")
-
-    def __init__(self, pairs, first, o, d, t, w, buf, pool, r_idx, c_idx, final) -> None:
-        self.pairs, self.first, self.o, self.d, self.t, self.w = pairs, first, o, d, t, w
-        self.buf, self.pool = buf, pool
-        self.final = final  # no second round: its fraction is the pair's V
-        self.r_idx, self.c_idx = r_idx, c_idx  # patch indices of each pair
-
-
-class RayBuffers:
-    """A free list of ray buffers: fresh pages are slow to fault in, so reuse them."""
-
-    def __init__(self) -> None:
-        self._free: list = []
-
-    def get(self, r: int):
-        for k, buf in enumerate(self._free):
-            if len(buf[2]) >= r:
-                return self._free.pop(k)
-        r = max(r, 1)
-        return (np.empty((r, 3), np.float32), np.empty((r, 3), np.float32), np.empty(r, np.float32),
-                np.empty(r, np.float64))
-
-    def put(self, buf) -> None:
-        self._free.append(buf)
 
 
 def sample_points(scene, m: int) -> tuple[np.ndarray, np.ndarray]:
@@ -530,33 +495,6 @@ def _needs_rays(F, rows, cols, front, back, below, above, cull, need):
         i = rows[r]
         for c in range(cols.shape[0]):
             need[r, c] = F[r, c] > 0.0 and (not cull or cuttable(i, cols[c], front, back, below, above))
-
-
-@njit(parallel=True, cache=True, nogil=True)
-def _valid_rays(P, plane, partner, r_idx, c_idx, valid, counts):
-    """A ray is valid if each end point is in front of the other patch's plane.
-
-    The kernel already gives zero weight to points behind the other patch, so
-    rays from them must not count as blocked a second time. A pair with no
-    valid ray (a sliver only the near-field rule sees) keeps all of its rays.
-    """
-    s = P.shape[1]
-    for p in prange(r_idx.shape[0]):
-        a = min(r_idx[p], c_idx[p])
-        b = max(r_idx[p], c_idx[p])
-        m = 0
-        for k in range(s):
-            q = partner[k]
-            fa = (plane[b, 0] * P[a, k, 0] + plane[b, 1] * P[a, k, 1] + plane[b, 2] * P[a, k, 2]) > plane[b, 3]
-            fb = (plane[a, 0] * P[b, q, 0] + plane[a, 1] * P[b, q, 1] + plane[a, 2] * P[b, q, 2]) > plane[a, 3]
-            valid[p, k] = fa and fb
-            if fa and fb:
-                m += 1
-        if m == 0:
-            for k in range(s):
-                valid[p, k] = True
-            m = s
-        counts[p] = m
 
 
 @njit(parallel=True, cache=True, nogil=True)
@@ -615,35 +553,3 @@ def _scale_by_visibility(F, pairs, first, hit, w, skip):
                 F[pairs[p]] *= wfree / wall
             else:
                 F[pairs[p]] *= 1.0 - blocked / total
-
-
-@njit(parallel=True, cache=True, nogil=True)
-def _fill_rays(P, plane, partner, r_idx, c_idx, valid, first, o, d, t, w):
-    """The valid segments of each pair, lower patch index first (V_ij == V_ji exactly), and each
-    segment's weight w = cos_a cos_b / L^2 (the point-to-point kernel; patch plane normals)."""
-    s = P.shape[1]
-    for p in prange(r_idx.shape[0]):
-        a = min(r_idx[p], c_idx[p])  # canonical direction: V_ij == V_ji exactly
-        b = max(r_idx[p], c_idx[p])
-        row = first[p]
-        for k in range(s):
-            if not valid[p, k]:
-                continue
-            q = partner[k]
-            dx = P[b, q, 0] - P[a, k, 0]
-            dy = P[b, q, 1] - P[a, k, 1]
-            dz = P[b, q, 2] - P[a, k, 2]
-            L2 = dx * dx + dy * dy + dz * dz
-            L = math.sqrt(L2)
-            inv = 1.0 / L if L > 0.0 else 0.0
-            o[row, 0] = P[a, k, 0]
-            o[row, 1] = P[a, k, 1]
-            o[row, 2] = P[a, k, 2]
-            d[row, 0] = dx * inv
-            d[row, 1] = dy * inv
-            d[row, 2] = dz * inv
-            t[row] = L
-            ca = (plane[a, 0] * dx + plane[a, 1] * dy + plane[a, 2] * dz) * inv
-            cb = -(plane[b, 0] * dx + plane[b, 1] * dy + plane[b, 2] * dz) * inv
-            w[row] = max(ca, 0.0) * max(cb, 0.0) / L2 if L2 > 0.0 else 0.0
-            row += 1

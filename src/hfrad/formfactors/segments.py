@@ -1,0 +1,108 @@
+"""Segments between sample points, ready for Embree: which are valid, their end points and
+kernel weights, and the reusable buffers that hold them.
+
+Shared by the visibility rounds (visibility.py) and the probes (probing.py), which need the
+same segments: one module below both, so neither imports the other.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+#: Rays per Embree call and per temporary buffer (bounds memory: 36 bytes a ray).
+RAY_BATCH = 1 << 21
+
+
+class RayJob:
+    """One batch of segments: origins o, unit directions d, lengths t (float32), kernel weights w.
+
+    ``buf`` and ``pool``: the buffers (o, d, t, w are views of them) and the pool to hand them back to.
+    """
+
+    __slots__ = ("pairs", "first", "o", "d", "t", "w", "buf", "pool", "r_idx", "c_idx", "final")
+
+    def __init__(self, pairs, first, o, d, t, w, buf, pool, r_idx, c_idx, final) -> None:
+        self.pairs, self.first, self.o, self.d, self.t, self.w = pairs, first, o, d, t, w
+        self.buf, self.pool = buf, pool
+        self.final = final  # no second round: its fraction is the pair's V
+        self.r_idx, self.c_idx = r_idx, c_idx  # patch indices of each pair
+
+
+class RayBuffers:
+    """A free list of ray buffers: fresh pages are slow to fault in, so reuse them."""
+
+    def __init__(self) -> None:
+        self._free: list = []
+
+    def get(self, r: int):
+        for k, buf in enumerate(self._free):
+            if len(buf[2]) >= r:
+                return self._free.pop(k)
+        r = max(r, 1)
+        return (np.empty((r, 3), np.float32), np.empty((r, 3), np.float32), np.empty(r, np.float32),
+                np.empty(r, np.float64))
+
+    def put(self, buf) -> None:
+        self._free.append(buf)
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def valid_rays(P, plane, partner, r_idx, c_idx, valid, counts):
+    """A ray is valid if each end point is in front of the other patch's plane.
+
+    The kernel already gives zero weight to points behind the other patch, so
+    rays from them must not count as blocked a second time. A pair with no
+    valid ray (a sliver only the near-field rule sees) keeps all of its rays.
+    """
+    s = P.shape[1]
+    for p in prange(r_idx.shape[0]):
+        a = min(r_idx[p], c_idx[p])
+        b = max(r_idx[p], c_idx[p])
+        m = 0
+        for k in range(s):
+            q = partner[k]
+            fa = (plane[b, 0] * P[a, k, 0] + plane[b, 1] * P[a, k, 1] + plane[b, 2] * P[a, k, 2]) > plane[b, 3]
+            fb = (plane[a, 0] * P[b, q, 0] + plane[a, 1] * P[b, q, 1] + plane[a, 2] * P[b, q, 2]) > plane[a, 3]
+            valid[p, k] = fa and fb
+            if fa and fb:
+                m += 1
+        if m == 0:
+            for k in range(s):
+                valid[p, k] = True
+            m = s
+        counts[p] = m
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def fill_rays(P, plane, partner, r_idx, c_idx, valid, first, o, d, t, w):
+    """The valid segments of each pair, lower patch index first (V_ij == V_ji exactly), and each
+    segment's weight w = cos_a cos_b / L^2 (the point-to-point kernel; patch plane normals)."""
+    s = P.shape[1]
+    for p in prange(r_idx.shape[0]):
+        a = min(r_idx[p], c_idx[p])  # canonical direction: V_ij == V_ji exactly
+        b = max(r_idx[p], c_idx[p])
+        row = first[p]
+        for k in range(s):
+            if not valid[p, k]:
+                continue
+            q = partner[k]
+            dx = P[b, q, 0] - P[a, k, 0]
+            dy = P[b, q, 1] - P[a, k, 1]
+            dz = P[b, q, 2] - P[a, k, 2]
+            L2 = dx * dx + dy * dy + dz * dz
+            L = math.sqrt(L2)
+            inv = 1.0 / L if L > 0.0 else 0.0
+            o[row, 0] = P[a, k, 0]
+            o[row, 1] = P[a, k, 1]
+            o[row, 2] = P[a, k, 2]
+            d[row, 0] = dx * inv
+            d[row, 1] = dy * inv
+            d[row, 2] = dz * inv
+            t[row] = L
+            ca = (plane[a, 0] * dx + plane[a, 1] * dy + plane[a, 2] * dz) * inv
+            cb = -(plane[b, 0] * dx + plane[b, 1] * dy + plane[b, 2] * dz) * inv
+            w[row] = max(ca, 0.0) * max(cb, 0.0) / L2 if L2 > 0.0 else 0.0
+            row += 1
