@@ -156,7 +156,7 @@ def run_one(args) -> dict:
 def ffprobe(args) -> dict:
     """Form-factor engine alone on a few blocks: 1 process vs workers, vs raw Embree on the same rays."""
     from hfrad.formfactors.blocks import FormFactorEngine, make_engine
-    from hfrad.formfactors.parallel import one_ray_threshold
+    from hfrad.formfactors.parallel import ray_budget
     from hfrad.scene.zorder import zorder_permutation
 
     scene = load(args.scene, args.ffprobe)
@@ -166,15 +166,15 @@ def ffprobe(args) -> dict:
     starts = list(range(0, n, max(b, n // args.blocks)))[: args.blocks]
     col_sets = [order[s:s + b] for s in starts]
     pairs = n * sum(len(c) for c in col_sets)
-    thr = one_ray_threshold(scene, 0.25 * args.eps)
+    budget = ray_budget(scene, 0.25 * args.eps)  # the pipeline's: one-ray and few-rays rules
     out = {"scene": args.scene, "n_patches": n, "blocks": len(col_sets), "pairs": pairs,
-           "one_ray_below": thr, "loadavg_start": os.getloadavg()[0], "cpu_seconds": {}}
+           "one_ray_below": budget.one_ray_below, "few_rays_below": budget.few_rays_below, "loadavg_start": os.getloadavg()[0], "cpu_seconds": {}}
     warm = FormFactorEngine(scene)
     warm.block(order[:64], order[:64])  # numba cache load outside the timings
-    for label, processes, orb in (("1 process", 1, 0.0), ("1 process, one-ray rule", 1, thr),
-                                  (f"{args.workers} processes", args.workers, 0.0),
-                                  (f"{args.workers} processes, one-ray rule", args.workers, thr)):
-        eng = make_engine(scene, processes=processes, one_ray_below=orb, dtype=np.float32)
+    for label, processes, rb in (("1 process", 1, None), ("1 process, ray budget", 1, budget),
+                                 (f"{args.workers} processes", args.workers, None),
+                                 (f"{args.workers} processes, ray budget", args.workers, budget)):
+        eng = make_engine(scene, processes=processes, ray_budget=rb, dtype=np.float32)
         c0 = os.times()
         t = time.perf_counter()
         for _ in eng.iter_blocks(order, col_sets):

@@ -20,6 +20,7 @@ import numpy as np
 from ..factorize.hf import ErrorBudget, compress_leaf, merge_nodes, root_lowrank
 from ..factorize.lowrank import LowRank
 from ..formfactors.parallel import column_block
+from ..formfactors.visibility import RayBudget
 
 
 @dataclass(frozen=True)
@@ -42,7 +43,7 @@ class Job:
         The error budget, as in :class:`~hfrad.factorize.hf.HFStream`.
     samples : int
         Visibility rays per pair.
-    ray_budget : RayBudget
+    ray_budget : RayBudget or None
         Fewer rays for weak pairs (the local path's thresholds).
     task_threads : int or None
         Threads of the numba kernel inside one task (None: the worker's setting).
@@ -60,7 +61,7 @@ class Job:
     relative: bool
     leaf_share: float
     samples: int
-    ray_budget: object
+    ray_budget: RayBudget | None
     task_threads: int | None
     token: str
 

@@ -70,10 +70,7 @@ class FormFactorEngine:
         # patches that are clusters of triangles (hfrad.scene.cluster) have their own kernel
         self.geometry, self._unoccluded = kernel_for(scene, near=near, tolerance=tolerance)
         self.samples = int(samples)
-        self.visibility = Visibility(scene, samples=samples) if samples else None
-        if self.visibility is not None and ray_budget is not None:
-            self.visibility.one_ray_below = float(ray_budget.one_ray_below)
-            self.visibility.few_rays_below = float(ray_budget.few_rays_below)
+        self.visibility = Visibility(scene, samples=samples, ray_budget=ray_budget) if samples else None
         self.kernel_seconds = 0.0
         self.pairs = 0
         self._executor = None

@@ -180,11 +180,13 @@ class Visibility:
     probe : bool
         One probe ray per pair first, more only where neighbouring pairs
         disagree (see :mod:`hfrad.formfactors.probing`); off = ``samples`` rays everywhere.
+    ray_budget : RayBudget, optional
+        Fewer rays for weak pairs (default: off, every pair gets all its rays).
     """
 
     def __init__(self, scene, *, samples: int = DEFAULT_SAMPLES, cull: bool = True,
                  refine_samples: int = REFINE_SAMPLES, refine_above: float = REFINE_ABOVE,
-                 probe: bool = True) -> None:
+                 probe: bool = True, ray_budget: RayBudget | None = None) -> None:
         m = check_samples(samples)
         self.samples = int(samples)
         # everything below is relative to the scene's centre (float32 rays, see module docstring)
@@ -219,9 +221,7 @@ class Visibility:
                                 scene.occluder_faces, threads=1)
         self._setup_culling(scene, tri, cull)
         self.areas = np.ascontiguousarray(scene.areas, dtype=np.float64)
-        #: Fewer rays for weak pairs (RayBudget); both rules off by default.
-        self.one_ray_below = 0.0
-        self.few_rays_below = 0.0
+        self.budget = ray_budget if ray_budget is not None else RayBudget()
         self.rays_cast = 0
         self.embree_seconds = 0.0
         # ray buffers reused from block to block (fresh pages cost page faults: ~10% of the time)
@@ -341,7 +341,7 @@ class Visibility:
         # with probing the pairs left here are the flagged ones: the boundary design, except for
         # those too weak to matter at the error budget (RayBudget.few_rays_below): ``samples``
         # rays and no second round
-        few = self.areas[rows[flat // len(cols)]] * F.ravel()[flat] < self.few_rays_below
+        few = self.areas[rows[flat // len(cols)]] * F.ravel()[flat] < self.budget.few_rays_below
         if few.any():
             yield from self._jobs(F, rows, cols, flat[few], self.points, self.partner, pool, final=True)
             flat = flat[~few]
@@ -358,8 +358,8 @@ class Visibility:
             valid = np.empty((len(pairs), s), np.bool_)
             counts = np.empty(len(pairs), np.int64)
             valid_rays(P, self.plane, partner, r_idx, c_idx, valid, counts)
-            if self.one_ray_below > 0.0 and s > 1:
-                weak = np.flatnonzero(self.areas[r_idx] * F.ravel()[pairs] < self.one_ray_below)
+            if self.budget.one_ray_below > 0.0 and s > 1:
+                weak = np.flatnonzero(self.areas[r_idx] * F.ravel()[pairs] < self.budget.one_ray_below)
                 first_valid = valid[weak].argmax(axis=1)
                 valid[weak] = False
                 valid[weak, first_valid] = True
