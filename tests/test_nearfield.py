@@ -149,14 +149,35 @@ def test_panel_solver_equals_superlu():
     assert rel <= 1e-5   # observed 1.9e-6
 
 
-def test_grey_channels_share_one_sparse_lu(dense, pair):
-    """Equal D_c: one LU and one K for all three channels, and still the exact radiosity."""
+def test_grey_channels_share_one_near_solution(dense, pair):
+    """Equal D_c: one Z and one K for all three channels, and still the exact radiosity."""
     scene, F = dense
     grey = np.repeat(scene.reflectance.mean(axis=1, keepdims=True), 3, axis=1)
     fac = pair[1].with_reflectance(grey)
-    assert fac._splu[0] is fac._splu[1] is fac._splu[2]
+    assert fac.distinct_channels == [0] and fac.Z.shape == (1, scene.n_patches, fac.rank)
+    assert pair[1].Z.shape[0] == 3      # the box's red and green walls: three distinct channels
     assert (fac.capacitance_inv[0] == fac.capacitance_inv[2]).all()
     exact = np.linalg.solve(np.eye(scene.n_patches) - grey[:, :1] * F, scene.emission)
     err = _err(fac.solve(scene.emission), exact)
     print(f"\ngrey: error {err}")
     assert (err < 0.005).all()   # observed 0.0022, as the coloured channels (0.002-0.0024)
+
+
+def test_neumann_series_equals_the_sparse_lu(cornell, pair, monkeypatch):
+    """The relighting solve's Neumann series gives SuperLU's answer to its stopping tolerance,
+    forward and adjoint; where the series fails the solver falls back to SuperLU."""
+    import hfrad.solve.nearfield as nearfield
+    from hfrad.solve.neumann import NEUMANN_TOL
+
+    scene = cornell[0]
+    near = pair[1]
+    g = np.random.default_rng(5).random((scene.n_patches, 3))
+    series = {t: near.solve(g, trans=t) for t in "NT"}
+    sweeps = near.last_sweeps
+    monkeypatch.setattr(nearfield, "neumann_solve", lambda *a, **k: (None, 0))
+    for t in "NT":
+        lu = near.solve(g, trans=t)
+        assert near.last_sweeps == 0
+        rel = np.abs(series[t] - lu).max() / np.abs(lu).max()
+        print(f"\ntrans={t}: series vs SuperLU {rel:.2e} (adjoint sweeps {sweeps})")
+        assert rel <= NEUMANN_TOL        # observed 7.3e-6 (N) / 7.0e-6 (T)

@@ -19,6 +19,10 @@ version 1 files have no checksums and pass statistics)::
     /factors/near_data, near_indices, near_indptr
                        the near field N (CSR, internal order) when the
                        near-field split was used (attr solver says which)
+    /factors/near_solution
+                       (d, n, k) ``A_c^-1 D_c Q`` for the d channels with
+                       distinct ``D_c`` (near field only): loading needs no
+                       sparse LU (recomputed if absent, as in older files)
     /factors/rho_max   (n,) float64, user order
     /factors/reflectance (n, 3) float64, user order
     /stats/...         row_sums, col_sums, sketch (n, p), weights: what the
@@ -135,6 +139,7 @@ def save_hfr(factorization: HFactorization, path, *, scene=None, timings: dict |
                 _dataset(g, "near_data", N.data)
                 _dataset(g, "near_indices", N.indices)
                 _dataset(g, "near_indptr", N.indptr)
+                _dataset(g, "near_solution", fac.Z)
             if fac.stats is not None:
                 _write_stats(f.create_group("stats"), fac.stats)
             if scene is not None:
@@ -283,6 +288,8 @@ def load_hfr(path) -> HFactorization:
             cap = _read(g, "capacitance_inverse", path) if "capacitance_inverse" in g else None
             near = tuple(_read(g, k, path) for k in ("near_data", "near_indices", "near_indptr")) \
                 if "near_data" in g else None
+            # older files stored no Z: it is recomputed (a sparse LU per distinct channel)
+            near_Z = _read(g, "near_solution", path) if "near_solution" in g else None
             scene = _read_scene(f["patches"], path) if "patches" in f else None
             stats = _read_stats(f["stats"], path) if "stats" in f else None
         except FileFormatError:
@@ -301,7 +308,7 @@ def load_hfr(path) -> HFactorization:
                              params=meta["parameters"], scene=scene, stats=stats)
     else:
         N = sp.csr_matrix(near, shape=(n, n))
-        fac = NearFieldFactorization(perm, Q, V, N, rho_max, rho, lr, capacitance=cap,
+        fac = NearFieldFactorization(perm, Q, V, N, rho_max, rho, lr, capacitance=cap, near_solution=near_Z,
                                      sigma_max=meta["sigma_max"], params=meta["parameters"], scene=scene,
                                      stats=stats)
     fac.timings = meta["timings"]

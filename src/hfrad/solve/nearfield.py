@@ -1,20 +1,25 @@
-"""Solves with the near-field split: Woodbury around a sparse LU of ``I - D_c N``.
+"""Solves with the near-field split: Woodbury around the sparse ``I - D_c N``.
 
 With ``G = N + Q V^T`` (N sparse near field, :mod:`hfrad.factorize.nearfield`)
 and ``D_c = diag(rho_c / rho_max)``, channel c solves
 
     (A_c - U_c V^T) B_c = E_c,    A_c = I - D_c N  (sparse),  U_c = D_c Q.
 
-Sherman-Morrison-Woodbury around ``A_c`` (factored once by SciPy's SuperLU,
-``scipy.sparse.linalg.splu``):
+Sherman-Morrison-Woodbury around ``A_c``:
 
-    B_c = x_c + A_c^{-1} U_c K_c^{-1} V^T x_c,   x_c = A_c^{-1} E_c,
-    K_c = I_k - V^T A_c^{-1} U_c                 (k x k, inverted once).
+    B_c = x_c + Z_c K_c^{-1} V^T x_c,   x_c = A_c^{-1} E_c,
+    Z_c = A_c^{-1} D_c Q  (n x k),      K_c = I_k - V^T Z_c  (k x k, inverted once).
 
-A solve reads Q and V once each (2nk words, for the three channels together)
-plus two sparse triangular solve pairs per channel; nothing else n x k is kept.
-Setting up K_c costs one sparse solve with k right-hand sides per channel
-(:class:`~hfrad.solve.sparselu.PanelSolver`: panels of columns through L and U).
+Set-up (once): SciPy's SuperLU factors ``A_c`` (``scipy.sparse.linalg.splu``)
+and takes the k columns of ``D_c Q`` in panels
+(:class:`~hfrad.solve.sparselu.PanelSolver`) to give ``Z_c`` and ``K_c``; the
+LU is then dropped. A relighting solve applies ``A_c^{-1}`` once, by the
+Neumann series of ``D_c N`` (:mod:`hfrad.solve.neumann`: every channel and
+emission in one pass over N per sweep, on every core), and reads V and
+``Z_c`` once. Channels with equal ``D_c`` (grey reflectances) share one
+``Z``. A series that does not converge falls back to SuperLU (factored then).
+The adjoint solve (``trans="T"``) applies ``A_c^{-T}`` twice instead
+(``B = x + A^{-T} V K^{-T} Q^T D x``) and keeps no second n x k matrix.
 """
 
 from __future__ import annotations
@@ -25,13 +30,15 @@ from scipy.sparse.linalg import splu
 
 from ..errors import FactorizationError
 from ..factorize.lowrank import LowRank
+from . import thin
+from .neumann import neumann_solve
 from .sparselu import PanelSolver
 from .woodbury import N_CHANNELS, HFactorization, invert_capacitance, low_rank_correction
 
 __all__ = ["NearFieldFactorization", "SOLVER"]
 
 #: How the solve works, as recorded in .hfr files and reports.
-SOLVER = "woodbury+splu(I - D_c N)"
+SOLVER = "woodbury+neumann(I - D_c N)"
 
 
 def _lu_solve(lu, X: np.ndarray, trans: str = "N") -> np.ndarray:
@@ -65,74 +72,89 @@ class NearFieldFactorization(HFactorization):
     rho_max, reflectance, lowrank, sigma_max, params, scene
         As for :class:`HFactorization`.
     capacitance : (3, k, k) float, optional
-        The inverses ``K_c^{-1}`` (as stored in an .hfr file); computed
-        (one sparse solve with k right-hand sides per channel) when not given.
+        The inverses ``K_c^{-1}`` (as stored in an .hfr file).
+    near_solution : (d, n, k) float, optional
+        ``Z_c = A_c^{-1} D_c Q`` for the d distinct channels (as stored in an
+        .hfr file). With ``capacitance`` it skips the set-up; otherwise both are
+        computed (a sparse LU and a solve with k right-hand sides per distinct channel).
 
     Notes
     -----
-    Memory: Q, V (2 n k in the factor dtype), N, its three sparse LU factors
-    and the three k x k inverses ``K_c^{-1}`` (in the factors' dtype).
-    Per solve O(n k + nnz(LU)) per right-hand side and channel.
+    Memory: Q, V and one ``Z`` per distinct channel (n k each, the factors'
+    dtype), N (float64 and a copy in the factors' dtype) and the three k x k
+    inverses ``K_c^{-1}``. Set-up holds one channel's SuperLU factors and
+    their panel copy at a time. A forward solve reads V, each distinct Z
+    once, and N once per sweep of the series for all channels and emissions.
     """
 
     solver = SOLVER
 
     def __init__(self, perm, Q, V, N, rho_max, reflectance, lowrank: LowRank, *, capacitance=None,
-                 sigma_max=None, params: dict | None = None, scene=None, stats=None):
+                 near_solution=None, sigma_max=None, params: dict | None = None, scene=None, stats=None):
         self._set_state(perm, Q, V, rho_max, reflectance, lowrank, sigma_max, params, scene, stats)
         self._sources = self._channel_sources()
         self.N = sp.csr_matrix(N, dtype=np.float64)
-        self._splu = self._factor_near()
-        self.capacitance_inv = self._capacitance_inv(capacitance)
+        # the sweeps read N in the factors' precision (float32: half the traffic)
+        self._sweep_N = self.N.astype(self.dtype)
+        self._sweep_NT = None
+        self._lus: dict[int, object] = {}
+        #: sweeps of the Neumann series in the last solve (0 when SuperLU solved it)
+        self.last_sweeps = 0
+        self.Z, self.capacitance_inv = self._near_solution(near_solution, capacitance)
+
+    @property
+    def distinct_channels(self) -> list[int]:
+        """The channels with their own ``D_c`` (one ``Z`` each; grey scenes have one)."""
+        return sorted(set(self._sources))
 
     def _channel_sources(self) -> list[int]:
-        """For each channel, the first channel with the same ``D_c`` (grey scenes share one LU and K)."""
+        """For each channel, the first channel with the same ``D_c`` (grey scenes share one Z and K)."""
         src = []
         for c in range(N_CHANNELS):
             src.append(next(s for s in range(c + 1) if np.array_equal(self._D[:, s], self._D[:, c])))
         return src
 
-    def _factor_near(self) -> list:
-        """SuperLU of ``A_c = I - D_c N`` per distinct channel (shared by channels with equal ``D_c``)."""
-        eye = sp.identity(self.n_patches, format="csr")
-        lus = []
+    def _factor(self, c: int):
+        """SuperLU of ``A_c = I - D_c N`` (a fresh factorization; callers keep or drop it)."""
+        A = (sp.identity(self.n_patches, format="csr") - sp.diags(self._D[:, c]) @ self.N).tocsc()
+        try:
+            # N's pattern is symmetric (near is a symmetric relation): minimum degree on A^T + A
+            return splu(A, permc_spec="MMD_AT_PLUS_A")
+        except RuntimeError as exc:
+            raise FactorizationError(f"channel {c}: I - D_c N is singular ({exc})") from exc
+
+    def _near_solution(self, stored_Z, stored_K) -> tuple[np.ndarray, np.ndarray]:
+        """``Z`` (distinct channels, n, k) and ``K_c^{-1}`` (3, k, k): as stored, or computed."""
+        distinct = self.distinct_channels
+        shape = (len(distinct), self.n_patches, self.rank)
+        if stored_Z is not None and stored_K is not None:
+            Z = np.asarray(stored_Z, self.dtype)
+            if Z.shape != shape:
+                raise FactorizationError(f"near_solution must have shape {shape}; got {Z.shape}")
+            return Z, super()._capacitance_inv(stored_K)
+        Z = np.empty(shape, self.dtype)
+        K_inv = np.empty((N_CHANNELS, self.rank, self.rank), self.dtype)
+        for z, c in enumerate(distinct):
+            if self.rank:
+                Z[z] = self._ainv_dq(c)
+                K = np.eye(self.rank) - self.V.T.astype(np.float64) @ Z[z].astype(np.float64)
+                K_inv[c] = invert_capacitance(K, f"channel {c}: I - V^T A_c^-1 D_c Q", self.dtype)
         for c, s in enumerate(self._sources):
-            if s != c:
-                lus.append(lus[s])
-                continue
-            A = (eye - sp.diags(self._D[:, c]) @ self.N).tocsc()
-            try:
-                # N's pattern is symmetric (near is a symmetric relation): minimum degree on A^T + A
-                lus.append(splu(A, permc_spec="MMD_AT_PLUS_A"))
-            except RuntimeError as exc:
-                raise FactorizationError(f"channel {c}: I - D_c N is singular ({exc})") from exc
-        return lus
+            K_inv[c] = K_inv[s]
+        return Z, K_inv
 
-    def _capacitance_inv(self, stored) -> np.ndarray:
-        """(3, k, k) ``K_c^{-1}``, ``K_c = I_k - V^T A_c^{-1} D_c Q``: ``stored`` checked, or computed."""
-        if stored is not None or self.rank == 0:
-            return super()._capacitance_inv(stored)
-        out = np.empty((N_CHANNELS, self.rank, self.rank), self.dtype)
-        for c, s in enumerate(self._sources):
-            if s != c:
-                out[c] = out[s]
-                continue
-            K = np.eye(self.rank) - self._v_ainv_dq(c)
-            out[c] = invert_capacitance(K, f"channel {c}: I - V^T A_c^-1 D_c Q", self.dtype)
-        return out
+    def _ainv_dq(self, c: int, chunk: int = 1024) -> np.ndarray:
+        """(n, k) ``A_c^{-1} D_c Q`` in the factors' dtype: k right-hand sides through SuperLU in panels.
 
-    def _v_ainv_dq(self, c: int, chunk: int = 1024) -> np.ndarray:
-        """(k, k) float64 ``V^T A_c^{-1} D_c Q``, k right-hand sides through the sparse LU in panels.
-
-        In the factors' precision (float32: ~1e-6 relative, far below the factorization's
-        eps), ``chunk`` columns at a time so that only n x chunk of ``A_c^{-1} D_c Q`` is held.
+        The LU and its panel copy live only for this call (one channel at a time).
+        In float32 the panels are ~1e-6 relative, far below the factorization's eps.
         """
-        solver = PanelSolver(self._splu[c], self.dtype)
+        solver = PanelSolver(self._factor(c), self.dtype)
         d = self._D[:, c:c + 1].astype(self.dtype)
-        out = np.empty((self.rank, self.rank))
+        out = np.empty((self.n_patches, self.rank), self.dtype)
         for j in range(0, self.rank, chunk):
             cols = slice(j, min(j + chunk, self.rank))
-            out[:, cols] = self.V.T @ solver.solve(d * self.Q[:, cols])
+            out[:, cols] = solver.solve(d * self.Q[:, cols])
         return out
 
     def _power_sigma(self, c: int, rtol: float = 1e-6, max_iter: int = 300) -> float:
@@ -159,17 +181,55 @@ class NearFieldFactorization(HFactorization):
             sigma[c] = sigma[s] if s != c else self._power_sigma(c)
         return sigma
 
+    def _near_inverse(self, X: np.ndarray, adjoint: bool) -> np.ndarray:
+        """``A_c^{-1} X_c`` (or ``A_c^{-T} X_c``) for X (n, 3, m), every channel: the Neumann series,
+        SuperLU where it does not converge."""
+        n, C, m = X.shape
+        scale = np.repeat(self._D, m, axis=1)                    # (n, 3 m), column c * m + j
+        b = X.reshape(n, C * m)
+        if adjoint:
+            if self._sweep_NT is None:
+                self._sweep_NT = self._sweep_N.T.tocsr()
+            x, sweeps = neumann_solve(self._sweep_NT, b, pre=scale)
+        else:
+            x, sweeps = neumann_solve(self._sweep_N, b, post=scale)
+        if x is not None:
+            self.last_sweeps = sweeps
+            return x.reshape(n, C, m)
+        self.last_sweeps = 0
+        trans = "T" if adjoint else "N"
+        out = np.empty((n, C, m))
+        for c, s in enumerate(self._sources):
+            if s not in self._lus:
+                self._lus[s] = self._factor(s)
+            out[:, c, :] = _lu_solve(self._lus[s], X[:, c, :], trans).reshape(n, m)
+        return out
+
+    def _far_correction(self, x: np.ndarray) -> np.ndarray:
+        """``Z_c K_c^{-1} V^T x_c`` for x (n, 3, m): V read once, each distinct ``Z`` once."""
+        n, C, m = x.shape
+        T = thin.tmatmul(self.V, x.reshape(n, C * m)).reshape(self.rank, C, m)
+        S = np.stack([self.capacitance_inv[c] @ T[:, c, :] for c in range(C)], axis=1)   # (k, 3, m)
+        out = np.empty((n, C, m))
+        for z, s in enumerate(self.distinct_channels):
+            chans = [c for c in range(C) if self._sources[c] == s]
+            W = thin.matmul(self.Z[z], S[:, chans, :].reshape(self.rank, len(chans) * m))
+            out[:, chans, :] = W.reshape(n, len(chans), m)
+        return out
+
     def _solve(self, E: np.ndarray, adjoint: bool) -> np.ndarray:
         """Radiosity ``B_c = (I - R_c F)^{-1} E_c`` per channel (see module docstring); E (n, 3, m), user order."""
-        trans = "T" if adjoint else "N"
         Ei = E[self.perm]                                                  # (n, 3, m), internal order
-        # x_c = A_c^{-1} E_c (or A_c^{-T}); forward B = x + A^{-1} D Q K^{-1} V^T x,
-        # adjoint B = x + A^{-T} V K^{-T} Q^T D x
-        x = np.stack([_lu_solve(self._splu[c], Ei[:, c, :], trans) for c in range(N_CHANNELS)], axis=1)
+        x = self._near_inverse(Ei, adjoint)
         if self.rank == 0:
             return x[self.inv_perm]
-        W = low_rank_correction(self.Q, self.V, self._D, self.capacitance_inv, x, adjoint)
-        out = x + np.stack([_lu_solve(self._splu[c], W[:, c, :], trans) for c in range(N_CHANNELS)], axis=1)
+        if adjoint:   # B = x + A^{-T} V K^{-T} Q^T D x
+            W = low_rank_correction(self.Q, self.V, self._D, self.capacitance_inv, x, adjoint=True)
+            sweeps = self.last_sweeps
+            out = x + self._near_inverse(W, adjoint=True)
+            self.last_sweeps += sweeps
+        else:         # B = x + Z K^{-1} V^T x
+            out = x + self._far_correction(x)
         return out[self.inv_perm]
 
     def with_reflectance(self, reflectance) -> "NearFieldFactorization":
