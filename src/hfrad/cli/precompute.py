@@ -28,7 +28,7 @@ def register(app: typer.Typer) -> None:
         samples: Optional[int] = typer.Option(None, "--samples", help="Visibility rays per patch pair."),
         order: str = typer.Option("zorder", "--order", help="Internal patch order: zorder, hilbert, random, input."),
         processes: Optional[int] = typer.Option(None, "--processes", help="Form-factor worker processes, each with its own Embree scene. Default: one per core from 4,000 patches on (idle 2 cores, 10K patches: form factors 9.9 s vs 18.4 s in one process), else this process."),
-        near_field: str = typer.Option("auto", "--near-field", help="Near-field split: pairs within the radius holding ~this many facing neighbours (nonzeros of a row of N) go into a sparse N, HF factors the smooth rest, the solver is Woodbury around a sparse LU. 'auto' (default): 120 from 2,000 patches on (Cornell box, 5K patches, eps 0.05: rank 1,081 -> 195 at lower radiosity error); 'off' or 0: plain Woodbury."),
+        near_field: str = typer.Option("auto", "--near-field", help="Near-field split: pairs within the radius holding ~this many facing neighbours (nonzeros of a row of N) go into a sparse N, HF factors the smooth rest, the solver is Woodbury around I - D_c N (Neumann series per solve, sparse LU in the set-up). 'auto' (default): 120 from 2,000 patches on (Cornell box, 5K patches, eps 0.05: rank 1,081 -> 195 at lower radiosity error); 'off' or 0: plain Woodbury."),
         unit_scale: float = common.UnitScaleOption,
         emission: Optional[List[str]] = common.EmissionOption,
         area_light: Optional[str] = common.AreaLightOption,

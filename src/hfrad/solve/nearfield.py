@@ -14,8 +14,8 @@ Set-up (once): SciPy's SuperLU factors ``A_c`` (``scipy.sparse.linalg.splu``)
 and takes the k columns of ``D_c Q`` in panels
 (:class:`~hfrad.solve.sparselu.PanelSolver`) to give ``Z_c`` and ``K_c``; the
 LU is then dropped. A relighting solve applies ``A_c^{-1}`` once, by the
-Neumann series of ``D_c N`` (:mod:`hfrad.solve.neumann`: every channel and
-emission in one pass over N per sweep, on every core), and reads V and
+Chebyshev-accelerated Neumann series of ``D_c N`` (:mod:`hfrad.solve.neumann`:
+every channel and emission in one pass over N per sweep, on every core), and reads V and
 ``Z_c`` once. Channels with equal ``D_c`` (grey reflectances) share one
 ``Z``. A series that does not converge falls back to SuperLU (factored then).
 The adjoint solve (``trans="T"``) applies ``A_c^{-T}`` twice instead
@@ -31,7 +31,7 @@ from scipy.sparse.linalg import splu
 from ..errors import FactorizationError
 from ..factorize.lowrank import LowRank
 from . import thin
-from .neumann import neumann_solve
+from .neumann import neumann_solve, spectral_bound
 from .sparselu import PanelSolver
 from .woodbury import N_CHANNELS, HFactorization, invert_capacitance, low_rank_correction
 
@@ -98,6 +98,7 @@ class NearFieldFactorization(HFactorization):
         self._sweep_N = self.N.astype(self.dtype)
         self._sweep_NT = None
         self._lus: dict[int, object] = {}
+        self._rho: float | None = None
         #: sweeps of the Neumann series in the last solve (0 when SuperLU solved it)
         self.last_sweeps = 0
         self.Z, self.capacitance_inv = self._near_solution(near_solution, capacitance)
@@ -181,6 +182,13 @@ class NearFieldFactorization(HFactorization):
             sigma[c] = sigma[s] if s != c else self._power_sigma(c)
         return sigma
 
+    @property
+    def near_spectral_bound(self) -> float:
+        """Upper bound on the spectral radius of every ``D_c N`` (that of N; computed once)."""
+        if self._rho is None:
+            self._rho = spectral_bound(self.N)
+        return self._rho
+
     def _near_inverse(self, X: np.ndarray, adjoint: bool) -> np.ndarray:
         """``A_c^{-1} X_c`` (or ``A_c^{-T} X_c``) for X (n, 3, m), every channel: the Neumann series,
         SuperLU where it does not converge."""
@@ -190,9 +198,9 @@ class NearFieldFactorization(HFactorization):
         if adjoint:
             if self._sweep_NT is None:
                 self._sweep_NT = self._sweep_N.T.tocsr()
-            x, sweeps = neumann_solve(self._sweep_NT, b, pre=scale)
+            x, sweeps = neumann_solve(self._sweep_NT, b, rho=self.near_spectral_bound, pre=scale)
         else:
-            x, sweeps = neumann_solve(self._sweep_N, b, post=scale)
+            x, sweeps = neumann_solve(self._sweep_N, b, rho=self.near_spectral_bound, post=scale)
         if x is not None:
             self.last_sweeps = sweeps
             return x.reshape(n, C, m)
