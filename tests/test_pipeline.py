@@ -109,3 +109,29 @@ def test_bad_arguments(kwargs, match):
     scene = load_scene("furnace")
     with pytest.raises(ValueError, match=match):
         factorize(scene, **kwargs)
+
+
+def test_checkpoints_cost_a_bounded_share_of_the_run(tmp_path, monkeypatch):
+    """A checkpoint that is slow to write is written less often (at most ~1/CHECKPOINT_COST_RATIO of the time)."""
+    import time
+
+    import hfrad.pipeline as pipeline
+
+    writes = []
+
+    def slow_save(stream, path, key=""):
+        time.sleep(0.05)
+        writes.append(stream.blocks_done)
+
+    monkeypatch.setattr(pipeline, "save_checkpoint", slow_save)
+    scene = load_scene("cornell", patches=600)
+    kw = dict(eps=0.05, block_size=32, dtype="float64", checkpoint=tmp_path / "run.partial")
+    t = time.perf_counter()
+    factorize(scene, checkpoint_interval=1e-9, **kw)
+    seconds = time.perf_counter() - t
+    n_blocks = -(-scene.n_patches // 32)
+    # one write per 50 x 0.05 s = 2.5 s of run at most (the first comes after the first block)
+    assert 1 <= len(writes) <= 1 + seconds / (pipeline.CHECKPOINT_COST_RATIO * 0.05)
+    writes.clear()
+    factorize(scene, checkpoint_interval=0.0, **kw)         # 0: after every block but the last
+    assert writes == list(range(1, n_blocks))
