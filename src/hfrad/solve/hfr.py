@@ -298,9 +298,11 @@ def load_hfr(path) -> HFactorization:
             raise FileFormatError(f"{path}: truncated or corrupted .hfr file: {exc}") from exc
     n, k = meta["n_patches"], meta["rank"]
     if Q.shape != (n, k) or V.shape != (n, k) or perm.shape != (n,) \
-            or (cap is not None and cap.shape != (3, k, k)):
+            or (cap is not None and cap.shape != (3, k, k)) \
+            or (near_Z is not None and (near_Z.ndim != 3 or near_Z.shape[1:] != (n, k))):
         raise FileFormatError(f"{path}: inconsistent arrays (Q {Q.shape}, V {V.shape}, capacitance_inverse "
-                              f"{None if cap is None else cap.shape}, rank {k})")
+                              f"{None if cap is None else cap.shape}, near_solution "
+                              f"{None if near_Z is None else near_Z.shape}, rank {k})")
     lr = LowRank(Q=Q, V=V, achieved_error=meta["achieved_error"], norm=meta["norm"], eps=meta["eps"],
                  relative=meta["relative"], method=meta["method"], info=meta["lowrank_info"])
     if near is None:
