@@ -84,6 +84,16 @@ def test_with_reflectance_and_hfr_round_trip(cornell, pair, tmp_path):
     back = load_hfr(path)
     assert isinstance(back, NearFieldFactorization) and back.N.nnz == near.N.nnz
     np.testing.assert_allclose(back.solve(scene.emission), near.solve(scene.emission), rtol=1e-12)
+    # a stored Z of the wrong shape is refused by name, not used
+    import h5py
+
+    from hfrad.errors import FileFormatError
+    with h5py.File(path, "r+") as f:
+        Z = f["factors/near_solution"][...]
+        del f["factors/near_solution"]
+        f["factors"].create_dataset("near_solution", data=Z[:, :-1])
+    with pytest.raises(FileFormatError, match="near_solution"):
+        load_hfr(path)
 
 
 def test_split_moves_exactly_the_near_pairs():
