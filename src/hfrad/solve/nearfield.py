@@ -33,7 +33,8 @@ from ..factorize.lowrank import LowRank
 from . import thin
 from .neumann import neumann_solve, spectral_bound
 from .sparselu import PanelSolver
-from .woodbury import N_CHANNELS, HFactorization, invert_capacitance, low_rank_correction
+from .woodbury import (N_CHANNELS, HFactorization, capacitance_applied, invert_capacitance,
+                       low_rank_correction)
 
 __all__ = ["NearFieldFactorization", "SOLVER"]
 
@@ -135,10 +136,11 @@ class NearFieldFactorization(HFactorization):
             return Z, super()._capacitance_inv(stored_K)
         Z = np.empty(shape, self.dtype)
         K_inv = np.empty((N_CHANNELS, self.rank, self.rank), self.dtype)
+        Vt = self.V.T.astype(np.float64)
         for z, c in enumerate(distinct):
             if self.rank:
                 Z[z] = self._ainv_dq(c)
-                K = np.eye(self.rank) - self.V.T.astype(np.float64) @ Z[z].astype(np.float64)
+                K = np.eye(self.rank) - Vt @ Z[z].astype(np.float64)
                 K_inv[c] = invert_capacitance(K, f"channel {c}: I - V^T A_c^-1 D_c Q", self.dtype)
         for c, s in enumerate(self._sources):
             K_inv[c] = K_inv[s]
@@ -216,8 +218,7 @@ class NearFieldFactorization(HFactorization):
     def _far_correction(self, x: np.ndarray) -> np.ndarray:
         """``Z_c K_c^{-1} V^T x_c`` for x (n, 3, m): V read once, each distinct ``Z`` once."""
         n, C, m = x.shape
-        T = thin.tmatmul(self.V, x.reshape(n, C * m)).reshape(self.rank, C, m)
-        S = np.stack([self.capacitance_inv[c] @ T[:, c, :] for c in range(C)], axis=1)   # (k, 3, m)
+        S = capacitance_applied(self.V, self.capacitance_inv, x)                         # (k, 3, m)
         out = np.empty((n, C, m))
         for z, s in enumerate(self.distinct_channels):
             chans = [c for c in range(C) if self._sources[c] == s]

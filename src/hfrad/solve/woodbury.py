@@ -103,6 +103,22 @@ def invert_capacitance(M: np.ndarray, what: str, dtype=np.float64) -> np.ndarray
     return np.ascontiguousarray(inv, dtype)
 
 
+def capacitance_applied(factor: np.ndarray, inverse: np.ndarray, X: np.ndarray, transpose: bool = False):
+    """(k, C, m) ``M_c^{-1} factor^T X_c`` (``M_c^{-T}`` with ``transpose``) for every channel c.
+
+    The first half of every Woodbury term: one streaming product with all ``C m``
+    right-hand sides stacked (:mod:`hfrad.solve.thin`, reading ``factor`` once),
+    then C products with the k x k inverses, in the factor's dtype.
+    """
+    n, C, m = X.shape
+    k = factor.shape[1]
+    T = thin.tmatmul(factor, X.reshape(n, C * m)).reshape(k, C, m)
+    S = np.empty((k, C, m), factor.dtype)
+    for c in range(C):
+        S[:, c, :] = (inverse[c].T if transpose else inverse[c]) @ T[:, c, :]
+    return S
+
+
 def low_rank_correction(Q: np.ndarray, V: np.ndarray, D: np.ndarray, inverse: np.ndarray, X: np.ndarray,
                         adjoint: bool) -> np.ndarray:
     """The Woodbury term for every channel and right-hand side at once, reading Q and V once each.
@@ -138,10 +154,7 @@ def low_rank_correction(Q: np.ndarray, V: np.ndarray, D: np.ndarray, inverse: np
     first, second = (Q, V) if adjoint else (V, Q)
     if adjoint:
         X = D[:, :, None] * X
-    T = thin.tmatmul(first, X.reshape(n, C * m)).reshape(k, C, m)
-    S = np.empty((k, C, m), second.dtype)
-    for c in range(C):
-        S[:, c, :] = (inverse[c].T if adjoint else inverse[c]) @ T[:, c, :]
+    S = capacitance_applied(first, inverse, X, transpose=adjoint)
     W = thin.matmul(second, S.reshape(k, C * m)).reshape(n, C, m)
     return W.astype(np.float64) if adjoint else D[:, :, None] * W
 
