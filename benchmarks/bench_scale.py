@@ -114,7 +114,17 @@ def run_one(args) -> dict:
            "time_load": t_load, "time_formfactors": info["time_formfactors"],
            "time_hf": info["time_total"], "time_hf_leaf": info["time_leaf"], "time_hf_merge": info["time_merge"],
            "time_woodbury": t_total - info["time_precompute"], "time_precompute": t_total,
+           # the stream's own work besides form factors and HF: statistics, near split, checkpoints
+           "time_stream_other": info["time_precompute"] - info["time_formfactors"] - info["time_total"],
+           "time_checkpoints": info.get("time_checkpoints", 0.0),
+           "time_nearfield_setup": info.get("time_nearfield_setup", 0.0),
            "loadavg_start": load0}
+    if args.save:
+        from hfrad.solve.hfr import save_hfr
+        t = time.perf_counter()
+        save_hfr(fac, args.save, scene=scene)
+        row["time_save"] = time.perf_counter() - t
+        row["saved"] = str(args.save)
     E = scene.emission
     if not (E > 0).any():
         E = np.zeros((n, 3))
@@ -261,6 +271,7 @@ def main() -> None:
     p.add_argument("--near-field", type=int, default=0)
     p.add_argument("--residual", action="store_true", help="also stream F once more for the residual")
     p.add_argument("--image", default=None, help="render the solution to this PNG (one size)")
+    p.add_argument("--save", default=None, help="also write the factorization to this .hfr (one size)")
     p.add_argument("--camera", default="auto")
     p.add_argument("--ffprobe", type=int, default=0, help="probe the form-factor engine at this patch count")
     p.add_argument("--blocks", type=int, default=6)
@@ -291,6 +302,7 @@ def main() -> None:
         cmd += ["--processes", str(args.processes)] if args.processes else []
         cmd += ["--residual"] if args.residual else []
         cmd += ["--image", args.image] if args.image else []
+        cmd += ["--save", args.save] if args.save else []
         cmd += ["--checkpoint", args.checkpoint] if args.checkpoint else []
         print(f"running {args.scene} at {size:,} patches (load {os.getloadavg()[0]:.1f}) ...", flush=True)
         proc = subprocess.run(cmd, stdout=subprocess.PIPE, text=True)  # its progress goes to stderr
