@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from hfrad.solve.neumann import neumann_solve, spectral_bound
+from hfrad.solve.neumann import ALL_ROWS_SHARE, _Support, neumann_solve, spectral_bound
 
 
 def _system(rate: float, n: int = 300, seed: int = 0):
@@ -68,3 +68,47 @@ def test_no_answer_where_the_series_cannot_converge():
     assert neumann_solve(M, b, rho=rho, post=D) == (None, 0)
     x, sweeps = neumann_solve(M, b, rho=0.99, post=D)       # a wrong bound: refused, not a wrong answer
     assert x is None and sweeps < 200
+
+
+def _chain(n: int = 400, rate: float = 0.8):
+    """A reciprocal near field on a line of patches: each linked to the two on either side."""
+    rng = np.random.default_rng(3)
+    w = rng.uniform(0.5, 1.0, n - 1)
+    S = sp.diags([w, w], [-1, 1]) + sp.diags([w[:-1] / 2, w[:-1] / 2], [-2, 2])
+    M = (sp.diags(1.0 / rng.uniform(0.5, 2.0, n)) @ S).tocsr()
+    return (M * (rate / spectral_bound(M, iterations=500, rtol=1e-6))).tocsr()
+
+
+@pytest.mark.parametrize("adjoint", [False, True])
+def test_sweeping_only_the_reached_rows_gives_the_same_solution(adjoint):
+    """A lamp (two emitting rows) on a 400-row chain: the tracked support starts at the lamp's
+    neighbours and grows one ring a sweep; the answer is the exact solve's, like the full sweeps'."""
+    M = _chain()
+    D = np.random.default_rng(4).uniform(0.6, 1.0, (400, 3))
+    b = np.zeros((400, 3))
+    b[200:202] = [5.0, 4.0, 3.0]
+    MT = M.T.tocsr()
+    A, pattern = (MT, M) if adjoint else (M, MT)
+    scales = {"pre": D} if adjoint else {"post": D}
+    full, sweeps = neumann_solve(A, b, rho=spectral_bound(M), tol=1e-12, **scales)
+    local, local_sweeps = neumann_solve(A, b, rho=spectral_bound(M), tol=1e-12,
+                                        reach=(pattern.indptr, pattern.indices), **scales)
+    exact = _exact(M, D, b, adjoint=adjoint)
+    assert local_sweeps == sweeps
+    assert np.abs(local - exact).max() <= 1e-11 * np.abs(exact).max()
+    assert np.abs(local - full).max() <= 1e-13 * np.abs(full).max()
+
+
+def test_the_support_grows_one_ring_a_sweep_then_covers_every_row():
+    M = _chain()
+    MT = M.T.tocsr()
+    b = np.zeros((400, 1))
+    b[200] = 1.0
+    support = _Support((MT.indptr, MT.indices), b)
+    assert support.rows().tolist() == list(range(198, 203))      # the lamp and two on either side
+    assert support.rows().tolist() == list(range(196, 205))
+    sweeps = 2
+    while (rows := support.rows()).size < 400:
+        sweeps += 1
+        assert rows.size == 1 + 4 * sweeps                       # two more rows on either side
+    assert 4 * sweeps + 1 >= ALL_ROWS_SHARE * 400 - 4            # all rows once half are reached

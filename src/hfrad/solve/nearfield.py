@@ -191,18 +191,24 @@ class NearFieldFactorization(HFactorization):
             self._rho = spectral_bound(self.N)
         return self._rho
 
+    def _sweep_transposed(self) -> sp.csr_matrix:
+        """N^T in the sweeps' precision (the adjoint's sweeps; its pattern guides the forward ones), made once."""
+        if self._sweep_NT is None:
+            self._sweep_NT = self._sweep_N.T.tocsr()
+        return self._sweep_NT
+
     def _near_inverse(self, X: np.ndarray, adjoint: bool) -> np.ndarray:
         """``A_c^{-1} X_c`` (or ``A_c^{-T} X_c``) for X (n, 3, m), every channel: the Neumann series,
         SuperLU where it does not converge."""
         n, C, m = X.shape
         scale = np.repeat(self._D, m, axis=1)                    # (n, 3 m), column c * m + j
         b = X.reshape(n, C * m)
+        N, NT = self._sweep_N, self._sweep_transposed()
+        # the rows reached from row j by a sweep with M are the nonzeros of M's column j: M^T's pattern
         if adjoint:
-            if self._sweep_NT is None:
-                self._sweep_NT = self._sweep_N.T.tocsr()
-            x, sweeps = neumann_solve(self._sweep_NT, b, rho=self.near_spectral_bound, pre=scale)
+            x, sweeps = neumann_solve(NT, b, rho=self.near_spectral_bound, pre=scale, reach=(N.indptr, N.indices))
         else:
-            x, sweeps = neumann_solve(self._sweep_N, b, rho=self.near_spectral_bound, post=scale)
+            x, sweeps = neumann_solve(N, b, rho=self.near_spectral_bound, post=scale, reach=(NT.indptr, NT.indices))
         if x is not None:
             self.last_sweeps = sweeps
             return x.reshape(n, C, m)

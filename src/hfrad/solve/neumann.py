@@ -45,30 +45,110 @@ NEUMANN_TOL = 1e-5
 #: Sweeps before giving up (the caller then uses a sparse LU).
 MAX_SWEEPS = 200
 
+#: Once the iterate's support holds this share of the rows, every row is swept (no more tracking).
+ALL_ROWS_SHARE = 0.5
+
 
 @njit(cache=True, parallel=True, fastmath=True)
-def _sweep(indptr, indices, data, src, x, prev, b, scale, omega, out, change, size):  # pragma: no cover
-    """One sweep for (n, w) columns: ``y = b + scale * (M src)``, ``out = prev + omega (y - prev)``;
-    per row the largest residual ``|y - x|`` and the largest ``|out|``."""
-    n, w = x.shape
-    for i in prange(n):
-        for c in range(w):
-            out[i, c] = 0.0
-        for p in range(indptr[i], indptr[i + 1]):
-            v = data[p]
-            j = indices[p]
-            for c in range(w):
-                out[i, c] += v * src[j, c]
+def _sweep(indptr, indices, data, rows, src, x, prev, b, scale, omega, out, change, size):  # pragma: no cover
+    """One sweep over the listed rows, (n, w) columns: ``y = b + scale * (M src)``,
+    ``out = prev + omega (y - prev)``; per listed row the largest residual ``|y - x|`` and ``|out|``.
+
+    Columns go in groups of four with the sums in registers: accumulating into
+    ``out[i, c]`` made every entry a store and a reload (1.3-1.9x slower, 3.8x
+    with one column, measured at 40K patches).
+    """
+    w = x.shape[1]
+    for r in prange(rows.shape[0]):
+        i = rows[r]
+        lo, hi = indptr[i], indptr[i + 1]
         big = 0.0
         top = 0.0
-        for c in range(w):
-            y = b[i, c] + scale[i, c] * out[i, c]
-            z = prev[i, c] + omega * (y - prev[i, c])
-            out[i, c] = z
-            big = max(big, abs(y - x[i, c]))
-            top = max(top, abs(z))
-        change[i] = big
-        size[i] = top
+        for c0 in range(0, w, 4):
+            m = min(4, w - c0)
+            a0 = 0.0
+            a1 = 0.0
+            a2 = 0.0
+            a3 = 0.0
+            if m == 4:
+                for p in range(lo, hi):
+                    v, j = data[p], indices[p]
+                    a0 += v * src[j, c0]
+                    a1 += v * src[j, c0 + 1]
+                    a2 += v * src[j, c0 + 2]
+                    a3 += v * src[j, c0 + 3]
+            elif m == 3:
+                for p in range(lo, hi):
+                    v, j = data[p], indices[p]
+                    a0 += v * src[j, c0]
+                    a1 += v * src[j, c0 + 1]
+                    a2 += v * src[j, c0 + 2]
+            elif m == 2:
+                for p in range(lo, hi):
+                    v, j = data[p], indices[p]
+                    a0 += v * src[j, c0]
+                    a1 += v * src[j, c0 + 1]
+            else:
+                for p in range(lo, hi):
+                    a0 += data[p] * src[indices[p], c0]
+            for t in range(m):
+                c = c0 + t
+                acc = a0 if t == 0 else (a1 if t == 1 else (a2 if t == 2 else a3))
+                y = b[i, c] + scale[i, c] * acc
+                z = prev[i, c] + omega * (y - prev[i, c])
+                out[i, c] = z
+                big = max(big, abs(y - x[i, c]))
+                top = max(top, abs(z))
+        change[r] = big
+        size[r] = top
+
+
+@njit(cache=True)
+def _reach(indptr, indices, frontier, reached, added):  # pragma: no cover
+    """Mark in ``reached`` every row linked to a frontier row by the pattern; the newly marked
+    rows go to ``added`` (returns how many)."""
+    count = 0
+    for j in frontier:
+        for p in range(indptr[j], indptr[j + 1]):
+            i = indices[p]
+            if not reached[i]:
+                reached[i] = True
+                added[count] = i
+                count += 1
+    return count
+
+
+class _Support:
+    """The rows an iterate can be nonzero on, grown by one ring of neighbours per sweep.
+
+    ``A^{-1} b`` for a local emission (a lamp) is local too: the near field only
+    links patches within its radius, so after t sweeps the iterate lives on
+    the emitters and t rings of their neighbours. Sweeping just those rows
+    makes a lamp's solve cost its neighbourhood instead of all of N; once
+    they are half the rows (:data:`ALL_ROWS_SHARE`), every row is swept.
+    """
+
+    def __init__(self, reach: tuple[np.ndarray, np.ndarray] | None, b: np.ndarray):
+        n = b.shape[0]
+        self._reach = reach
+        self._all = np.arange(n)
+        self._reached = np.any(b != 0, axis=1)
+        self._frontier = np.flatnonzero(self._reached)
+        self._added = np.empty(n, np.int64)
+        if reach is None or self._frontier.size > ALL_ROWS_SHARE * n:
+            self._reach = None
+
+    def rows(self) -> np.ndarray:
+        """The rows the next sweep must compute: the support so far and its frontier's neighbours."""
+        if self._reach is None:
+            return self._all
+        count = _reach(self._reach[0], self._reach[1], self._frontier, self._reached, self._added)
+        self._frontier = self._added[:count].copy()
+        rows = np.flatnonzero(self._reached)
+        if rows.size > ALL_ROWS_SHARE * self._all.size:
+            self._reach = None
+            return self._all
+        return rows
 
 
 def spectral_bound(M: sp.csr_matrix, iterations: int = 60, rtol: float = 0.01) -> float:
@@ -107,8 +187,8 @@ def _omegas(rho: float):
 
 
 def neumann_solve(M: sp.csr_matrix, b: np.ndarray, *, rho: float, pre: np.ndarray | None = None,
-                  post: np.ndarray | None = None, tol: float = NEUMANN_TOL,
-                  max_sweeps: int = MAX_SWEEPS) -> tuple[np.ndarray | None, int]:
+                  post: np.ndarray | None = None, tol: float = NEUMANN_TOL, max_sweeps: int = MAX_SWEEPS,
+                  reach: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray | None, int]:
     """Solve ``(I - post M pre) x = b`` by Chebyshev-accelerated sweeps.
 
     Parameters
@@ -125,6 +205,11 @@ def neumann_solve(M: sp.csr_matrix, b: np.ndarray, *, rho: float, pre: np.ndarra
     tol : float
         Stop when ``max |b + T x_t - x_t| <= tol max |x_{t+1}|``.
     max_sweeps : int
+    reach : (indptr, indices) of the pattern of ``M^T``, optional
+        With it, each sweep computes only the rows the iterate can reach so far
+        (the emitters and one more ring of neighbours per sweep) until they are
+        half of all rows: a lamp's solve then costs its neighbourhood, not all of M.
+        The result is the same.
 
     Returns
     -------
@@ -139,14 +224,18 @@ def neumann_solve(M: sp.csr_matrix, b: np.ndarray, *, rho: float, pre: np.ndarra
     n, w = b.shape
     post = np.ones((n, w)) if post is None else np.ascontiguousarray(post, np.float64)
     pre = None if pre is None else np.ascontiguousarray(pre, np.float64)
-    prev, x, out = b.copy(), b.copy(), np.empty_like(b)
+    # every iterate is zero off the rows swept so far (out too, before its first sweep)
+    prev, x, out = b.copy(), b.copy(), np.zeros_like(b)
     change, size = np.empty(n), np.empty(n)
+    support = _Support(reach, b)
     smallest = np.inf
     for sweep, omega in zip(range(1, max_sweeps + 1), _omegas(rho)):
+        rows = support.rows()
         src = x if pre is None else pre * x
-        _sweep(M.indptr, M.indices, M.data, src, x, prev, b, post, omega, out, change, size)
+        _sweep(M.indptr, M.indices, M.data, rows, src, x, prev, b, post, omega, out, change, size)
         prev, x, out = x, out, prev
-        step, top = float(change.max(initial=0.0)), float(size.max(initial=0.0))
+        step = float(change[:rows.size].max(initial=0.0))
+        top = float(size[:rows.size].max(initial=0.0))
         if step <= tol * top:
             return x, sweep
         # a wrong bound on rho shows as residuals growing well past their smallest
