@@ -228,7 +228,7 @@ def near_points(T: np.ndarray, TN: np.ndarray, TA: np.ndarray, start: np.ndarray
     return P, PN, W
 
 
-@njit(cache=True, fastmath=False)
+@njit(cache=True, fastmath=False, inline="always")
 def _point_to_cluster(x, y, z, nx, ny, nz, T, N, s0, s1, eps):
     """Eq. (3): F from dA at (x, y, z) with normal n to triangles s0..s1-1."""
     g = 0.0
@@ -237,7 +237,7 @@ def _point_to_cluster(x, y, z, nx, ny, nz, T, N, s0, s1, eps):
     return g
 
 
-@njit(cache=True, fastmath=False)
+@njit(cache=True, fastmath=False, inline="always")
 def _points_to_cluster(P, PN, W, i, T, N, s0, s1, eps):
     """sum_k W[i, k] F_{dA(P[i, k], PN[i, k]) -> triangles s0..s1-1}: patch i's weighted points, eq. (3)."""
     g = 0.0
@@ -248,7 +248,7 @@ def _points_to_cluster(P, PN, W, i, T, N, s0, s1, eps):
     return g
 
 
-@njit(cache=True, fastmath=False)
+@njit(cache=True, fastmath=False, inline="always")
 def _points_area_ff(xi, yi, zi, Si, xj, yj, zj, Sj):
     """A_i F_ij of two small patches as points with area vectors S (projected areas)."""
     rx = xj - xi
@@ -262,7 +262,7 @@ def _points_area_ff(xi, yi, zi, Si, xj, yj, zj, Sj):
     return ci * cj * _INV_PI / (d2 * d2)
 
 
-@njit(cache=True, fastmath=False)
+@njit(cache=True, fastmath=False, inline="always")
 def _cluster_pair_area_ff(i, j, T, N, start, K, A, S, C, D, M, MN, MS, MW, Q, QN, W, far, near, eps,
                           TA, TC, TD, TI, tol, exact, exact_near):
     """A_i F_ij (unoccluded) between two patches, symmetric in (i, j)."""

@@ -297,18 +297,20 @@ _RULE_W = (0.223381589678011, 0.109951743655322)
 
 
 @njit(cache=True, fastmath=False)
-def _rules(c0, c1, c2, nx, ny, nz, T, N, u, eps):
-    """area(S) x quadratures of F_{dx->u} over the triangle S = (c0, c1, c2).
+def _rules(x0, y0, z0, x1, y1, z1, x2, y2, z2, nx, ny, nz, T, N, u, eps):
+    """area(S) x quadratures of F_{dx->u} over the triangle S with corners (x_k, y_k, z_k).
 
     Returns (Q6, Q3): Dunavant's 6-point rule (exact to degree 4) and the
     3-point rule (2/3, 1/6, 1/6) (exact to degree 2). |Q6 - Q3| estimates the
     error of Q3 and bounds that of Q6 (much smaller for a smooth integrand).
+    Corners come as scalars: the adaptive path calls this once per sub-triangle,
+    and small arrays there cost a heap allocation each.
     """
-    e1 = c1 - c0
-    e2 = c2 - c0
-    cx = e1[1] * e2[2] - e1[2] * e2[1]
-    cy = e1[2] * e2[0] - e1[0] * e2[2]
-    cz = e1[0] * e2[1] - e1[1] * e2[0]
+    e1x, e1y, e1z = x1 - x0, y1 - y0, z1 - z0
+    e2x, e2y, e2z = x2 - x0, y2 - y0, z2 - z0
+    cx = e1y * e2z - e1z * e2y
+    cy = e1z * e2x - e1x * e2z
+    cz = e1x * e2y - e1y * e2x
     area = 0.5 * math.sqrt(cx * cx + cy * cy + cz * cz)
     q6 = 0.0
     q3 = 0.0
@@ -320,9 +322,9 @@ def _rules(c0, c1, c2, nx, ny, nz, T, N, u, eps):
             w0 = b if k == 0 else a
             w1 = b if k == 1 else a
             w2 = b if k == 2 else a
-            x = w0 * c0[0] + w1 * c1[0] + w2 * c2[0]
-            y = w0 * c0[1] + w1 * c1[1] + w2 * c2[1]
-            z = w0 * c0[2] + w1 * c1[2] + w2 * c2[2]
+            x = w0 * x0 + w1 * x1 + w2 * x2
+            y = w0 * y0 + w1 * y1 + w2 * y2
+            z = w0 * z0 + w1 * z1 + w2 * z2
             acc += _point_to_patch(x, y, z, nx, ny, nz, T, N, u, eps)
         if g < 2:
             q6 += _RULE_W[g] * acc
@@ -335,10 +337,12 @@ def _rules(c0, c1, c2, nx, ny, nz, T, N, u, eps):
 def _adaptive_area_ff(p, u, T, N, A, eps, tol):
     """A_p F_pu: adaptive 4-split of triangle p against the exact polygon integral over u."""
     nx, ny, nz = N[p, 0], N[p, 1], N[p, 2]
-    size = 3 * MAX_DEPTH + 8  # depth-first stack of sub-triangles and their depths
-    corners = np.empty((size, 3, 3))
+    size = 3 * MAX_DEPTH + 8  # depth-first stack of sub-triangles (9 coordinates) and their depths
+    stack = np.empty((size, 9))
     depth = np.empty(size, np.int64)
-    corners[0] = T[p]
+    for k in range(3):
+        for d in range(3):
+            stack[0, 3 * k + d] = T[p, k, d]
     depth[0] = 0
     top = 1
     budget = -1.0  # tolerance x max(|A_p F_pu|, FLOOR A_p), set from the first estimate
@@ -346,30 +350,38 @@ def _adaptive_area_ff(p, u, T, N, A, eps, tol):
     while top > 0:
         top -= 1
         lvl = depth[top]
-        c0 = corners[top, 0].copy()
-        c1 = corners[top, 1].copy()
-        c2 = corners[top, 2].copy()
-        q6, q3 = _rules(c0, c1, c2, nx, ny, nz, T, N, u, eps)
+        s = stack[top]
+        x0, y0, z0, x1, y1, z1, x2, y2, z2 = s[0], s[1], s[2], s[3], s[4], s[5], s[6], s[7], s[8]
+        q6, q3 = _rules(x0, y0, z0, x1, y1, z1, x2, y2, z2, nx, ny, nz, T, N, u, eps)
         if budget < 0.0:
             budget = tol * max(abs(q6), FLOOR * A[p])
         # accept when the two rules agree within this sub-triangle's share (area 4^-lvl) of the budget
         if abs(q6 - q3) <= budget * 0.25 ** lvl or lvl + 1 >= MAX_DEPTH:
             total += q6
             continue
-        m01 = 0.5 * (c0 + c1)
-        m12 = 0.5 * (c1 + c2)
-        m20 = 0.5 * (c2 + c0)
-        corners[top, 0], corners[top, 1], corners[top, 2] = c0, m01, m20
-        corners[top + 1, 0], corners[top + 1, 1], corners[top + 1, 2] = m01, c1, m12
-        corners[top + 2, 0], corners[top + 2, 1], corners[top + 2, 2] = m20, m12, c2
-        corners[top + 3, 0], corners[top + 3, 1], corners[top + 3, 2] = m12, m20, m01
+        # the four midpoint children: (c0, m01, m20), (m01, c1, m12), (m20, m12, c2), (m12, m20, m01)
+        ax, ay, az = 0.5 * (x0 + x1), 0.5 * (y0 + y1), 0.5 * (z0 + z1)    # m01
+        bx, by, bz = 0.5 * (x1 + x2), 0.5 * (y1 + y2), 0.5 * (z1 + z2)    # m12
+        cx, cy, cz = 0.5 * (x2 + x0), 0.5 * (y2 + y0), 0.5 * (z2 + z0)    # m20
+        _put(stack[top], x0, y0, z0, ax, ay, az, cx, cy, cz)
+        _put(stack[top + 1], ax, ay, az, x1, y1, z1, bx, by, bz)
+        _put(stack[top + 2], cx, cy, cz, bx, by, bz, x2, y2, z2)
+        _put(stack[top + 3], bx, by, bz, cx, cy, cz, ax, ay, az)
         for k in range(4):
             depth[top + k] = lvl + 1
         top += 4
     return total
 
 
-@njit(cache=True, fastmath=False)
+@njit(cache=True, fastmath=False, inline="always")
+def _put(row, x0, y0, z0, x1, y1, z1, x2, y2, z2):
+    """Write a sub-triangle's nine coordinates into a stack row."""
+    row[0], row[1], row[2] = x0, y0, z0
+    row[3], row[4], row[5] = x1, y1, z1
+    row[6], row[7], row[8] = x2, y2, z2
+
+
+@njit(cache=True, fastmath=False, inline="always")
 def _behind(t, u, T, N, eps):
     """True if triangle t lies wholly on or behind the plane of u: then F_tu = F_ut = 0 exactly.
 
@@ -383,7 +395,7 @@ def _behind(t, u, T, N, eps):
     return True
 
 
-@njit(cache=True, fastmath=False)
+@njit(cache=True, fastmath=False, inline="always")
 def _sides(t, u, T, N, eps):
     """(front, back): some corner of triangle t lies in front of u's plane (> eps), some behind (< -eps)."""
     front = False
@@ -398,7 +410,7 @@ def _sides(t, u, T, N, eps):
     return front, back
 
 
-@njit(cache=True, fastmath=False)
+@njit(cache=True, fastmath=False, inline="always")
 def _triangle_pair_area_ff(t, u, T, N, A, C, D, near, adaptive, eps, tol):
     """A_t F_tu (unoccluded), eq. (2), by the rule for the pair's distance (symmetric in t, u).
 
@@ -451,11 +463,12 @@ def _triangle_pair_area_ff(t, u, T, N, A, C, D, near, adaptive, eps, tol):
         if back_t != back_u:
             p, q = (u, t) if back_t else (t, u)
     if d2 >= adaptive * adaptive * s2:  # middle distance (or both straddle): one degree-4 rule
-        return _rules(T[p, 0], T[p, 1], T[p, 2], N[p, 0], N[p, 1], N[p, 2], T, N, q, eps)[0]
+        return _rules(T[p, 0, 0], T[p, 0, 1], T[p, 0, 2], T[p, 1, 0], T[p, 1, 1], T[p, 1, 2],
+                      T[p, 2, 0], T[p, 2, 1], T[p, 2, 2], N[p, 0], N[p, 1], N[p, 2], T, N, q, eps)[0]
     return _adaptive_area_ff(p, q, T, N, A, eps, tol)
 
 
-@njit(cache=True, fastmath=False)
+@njit(cache=True, fastmath=False, inline="always")
 def _pair_area_ff(i, j, T, N, A, C, D, start, index, near, adaptive, eps, tol):
     """A_i F_ij (unoccluded): sum over the triangle pairs of patches i and j, in canonical order."""
     if i == j:

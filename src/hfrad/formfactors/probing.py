@@ -95,7 +95,7 @@ def nearest_patches(centroids: np.ndarray, k: int = NEIGHBOURS) -> np.ndarray:
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def cuttable(i, j, front, back, below, above):
     """Some occluder may cut a segment between patches i and j (symmetric bitwise test).
 
@@ -111,7 +111,7 @@ def cuttable(i, j, front, back, below, above):
     return False
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _in_front(P, plane, a, b):
     """Some sample point of patch a lies in front of patch b's plane."""
     for k in range(P.shape[1]):
