@@ -173,8 +173,7 @@ def full_ray_pairs(vis, F: np.ndarray, rows: np.ndarray, cols: np.ndarray, need:
     """
     nb = vis.neighbours
     r, c = len(rows), len(cols)
-    R = np.concatenate([rows, np.setdiff1d(nb[rows].ravel(), np.r_[rows, -1])])
-    Cc = np.concatenate([cols, np.setdiff1d(nb[cols].ravel(), np.r_[cols, -1])])
+    R, Cc = _with_neighbours(rows, nb), _with_neighbours(cols, nb)
     state = np.empty((len(R), len(Cc)), np.int8)
     _pair_states(R, Cc, vis.points, vis.plane, vis.front_bits, vis.back_bits, vis.below_bits, vis.above_bits,
                  vis.cull, state)
@@ -188,6 +187,14 @@ def full_ray_pairs(vis, F: np.ndarray, rows: np.ndarray, cols: np.ndarray, need:
     _decide(state, row_pos, col_pos, rows, cols, nb, vis.centroids, vis.diameters, vis.probe_near,
             F, vis.areas, vis.probe_below, need, full)
     return full
+
+
+def _with_neighbours(patches: np.ndarray, nb: np.ndarray) -> np.ndarray:
+    """``patches`` followed by their neighbours that are not among them (probe states are needed for both)."""
+    n = len(nb)
+    if len(patches) == n and np.bincount(patches, minlength=n).all():
+        return patches   # every patch (a column block's rows): no neighbour is missing
+    return np.concatenate([patches, np.setdiff1d(nb[patches].ravel(), np.r_[patches, -1])])
 
 
 @njit(parallel=True, cache=True, nogil=True)
