@@ -22,7 +22,7 @@ import numpy as np
 from .defaults import DEFAULT_BLOCK_SIZE
 from .errors import InputError, SceneError
 from .factorize.api import check_method, lowrank_from_blocks, lowrank_from_matrix
-from .factorize.hf import HFStream
+from .factorize.hf import HFStream, frobenius2
 from .factorize.nearfield import DEFAULT_NEAR_ENTRIES, NearFieldSplit, near_radius
 from .factorize.streaming import load_checkpoint, save_checkpoint
 from .formfactors.energy import warn_energy
@@ -357,7 +357,7 @@ def _stream_blocks(blocks, stream: HFStream, stats: PassStatistics, rows_rho, n_
         del block
         norm2 = None  # the budget's norm: the block's own, or its norm before the near split
         if split is not None:
-            norm2 = sum_of_squares(G)
+            norm2 = frobenius2(G)
             G = split.split(G, start)
         with _every_blas_thread_for_a_large_merge(stream.blocks_done, n_blocks):
             stream.push(G, norm2=norm2)
@@ -376,12 +376,6 @@ def _stream_blocks(blocks, stream: HFStream, stats: PassStatistics, rows_rho, n_
             time_ckpt += save_seconds
         t_ff = time.perf_counter()
     return time_ff, time_ckpt
-
-
-def sum_of_squares(G: np.ndarray, slab: int = 4096) -> float:
-    """``||G||_F^2`` accumulated in float64, slab by slab of rows (no n x b float64 copy: fresh memory
-    every block, whose page faults cost more than the sum)."""
-    return float(sum(np.square(G[a:a + slab], dtype=np.float64).sum() for a in range(0, G.shape[0], slab)))
 
 
 def _factorize_matrix(F, reflectance, *, eps: float, relative: bool, block_size: int, dtype, order,
