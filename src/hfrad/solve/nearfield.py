@@ -15,7 +15,8 @@ and takes the k columns of ``D_c Q`` in panels
 (:class:`~hfrad.solve.sparselu.PanelSolver`) to give ``Z_c`` and ``K_c``; the
 LU is then dropped. A relighting solve applies ``A_c^{-1}`` once, by the
 Chebyshev-accelerated Neumann series of ``D_c N`` (:mod:`hfrad.solve.neumann`:
-every channel and emission in one pass over N per sweep, on every core), and reads V and
+every channel and emission in one pass over N per sweep, on every core; only the rows a
+local emission has reached so far), and reads V (its rows under a nonzero ``x``) and
 ``Z_c`` once. Channels with equal ``D_c`` (grey reflectances) share one
 ``Z``. A series that does not converge falls back to SuperLU (factored then).
 The adjoint solve (``trans="T"``) applies ``A_c^{-T}`` twice instead

@@ -7,6 +7,8 @@ through L and U (8-9x the entries of N on the gallery scenes): 30-40 ms per
 channel at 20K patches, six of them per RGB solve. Here ``T = D_c N`` (forward)
 or ``T = N^T D_c`` (adjoint) is applied in sweeps, each reading N once for
 every channel and emission together on every core (numba ``prange`` over rows).
+While the iterate is local (a lamp: its emitters and, after t sweeps, t rings of
+near neighbours), a sweep computes only those rows (:class:`_Support`).
 
 The plain series ``x_{t+1} = b + T x_t`` converges at the spectral radius
 rho of T. T's eigenvalues are real: reciprocity (``A_i F_ij = A_j F_ji``)
