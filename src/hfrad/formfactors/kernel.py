@@ -212,7 +212,9 @@ class PatchGeometry:
 
 
 # ---------------------------------------------------------------------------
-# numba kernels (trust their input; validation happens in blocks.py)
+# numba kernels (trust their input; validation happens in blocks.py). The helpers called once
+# per pair are inline="always": called as functions with a dozen array arguments, numba paid
+# their reference counts on every pair (one 164,988 x 256 block: 113-126 -> 27-32 ns a pair).
 
 
 @njit(cache=True, fastmath=False)
