@@ -79,7 +79,12 @@ _GRAM_MIN_ASPECT = 8
 _GRAM_MARGIN = 0.9  # the rank is chosen within this share of the budget, for rounding
 
 
-def frobenius2(A: np.ndarray, slab: int = 4096) -> float:
+#: Rows of a column block taken to float64 at a time (8 MB at 256 columns: heap memory that is
+#: reused, where a float64 copy of a whole block is fresh pages every block).
+SLAB_ROWS = 4096
+
+
+def frobenius2(A: np.ndarray, slab: int = SLAB_ROWS) -> float:
     """``||A||_F^2`` accumulated in float64, slab by slab of rows.
 
     Not ``np.square(A, dtype=np.float64)``: that is an n x b float64 copy of every column

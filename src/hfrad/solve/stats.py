@@ -12,6 +12,7 @@ import math
 
 import numpy as np
 
+from ..factorize.hf import SLAB_ROWS
 from .bounds import contraction_bound
 
 __all__ = ["PassStatistics", "PROBES", "FAILURE_PROBABILITY", "probe_alpha", "probe_vectors"]
@@ -22,8 +23,6 @@ PROBES = 20
 #: Probability that the probe-based figure is not an upper bound (Halko et al. 2011, Lemma 4.1).
 FAILURE_PROBABILITY = 1e-6
 PROBE_SEED = 20161
-#: Rows of a column block converted to float64 at a time (8 MB slabs at 256 columns: reused heap memory).
-SLAB_ROWS = 4096
 
 
 def probe_alpha(probes: int, failure: float = FAILURE_PROBABILITY) -> float:
