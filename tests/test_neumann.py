@@ -95,8 +95,8 @@ def test_sweeping_only_the_reached_rows_gives_the_same_solution(adjoint):
                                         reach=(pattern.indptr, pattern.indices), **scales)
     exact = _exact(M, D, b, adjoint=adjoint)
     assert local_sweeps == sweeps
-    assert np.abs(local - exact).max() <= 1e-11 * np.abs(exact).max()
-    assert np.abs(local - full).max() <= 1e-13 * np.abs(full).max()
+    assert np.abs(local - exact).max() <= 2e-12 * np.abs(exact).max()       # observed 4-5e-13
+    assert np.abs(local - full).max() <= 1e-13 * np.abs(full).max()        # observed 0: the same sums
 
 
 def test_the_support_grows_one_ring_a_sweep_then_covers_every_row():
