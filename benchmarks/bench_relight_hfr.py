@@ -1,12 +1,15 @@
-"""Benchmark: one RGB relighting of a saved ``.hfr``, with its own reflectance and a grey one.
+"""Benchmark: one RGB relighting of a saved ``.hfr``: float32 or 16-bit ``Z_c``, own or grey reflectance.
 
 The near-field solver reads one ``Z_c`` per distinct channel (``D_c = rho_c /
-rho_max``), so a coloured scene reads 3nk words where a grey one reads nk. This
-loads a factorization (e.g. the one ``bench_scale.py --save`` kept), re-sets it
-up with grey reflectances ``rho_max`` (``with_reflectance``: one channel's
-sparse LU and Z), and times the scene's own emission on both, best and median
-of 9, against the copy-bandwidth limit of reading 2nk words measured right
-after each. Not collected by pytest; not in CI.
+rho_max``), so a coloured scene reads 3nk words of Z where a grey one reads
+nk; stored in 16 bits (``QuantizedRows``, the default for float32 factors where
+the error allows) they are half the bytes. This loads a factorization (e.g. the
+one ``bench_scale.py --save`` kept), times it as stored, then re-sets it up
+(sparse LU and Z per distinct channel) with its own reflectance and with grey
+reflectances ``rho_max``, each with float32 and with 16-bit ``Z_c``, and times
+the scene's own emission on each, best and median of 9, against the
+copy-bandwidth limit of reading 2nk words measured right after each. Not
+collected by pytest; not in CI.
 
     PYTHONPATH=src python benchmarks/bench_relight_hfr.py /tmp/c163k.hfr --out relight-163k
 """
@@ -53,6 +56,7 @@ def main() -> None:
     p.add_argument("--out", default="relight-hfr")
     args = p.parse_args()
     from hfrad.solve.hfr import load_hfr
+    from hfrad.solve.nearfield import NearFieldFactorization
 
     machine = common.header("bench_relight_hfr: one RGB relighting, own and grey reflectance", 1)
     t = time.perf_counter()
@@ -60,14 +64,27 @@ def main() -> None:
     row = {"file": args.hfr, "n_patches": fac.n_patches, "rank": fac.rank, "solver": fac.solver,
            "time_load": time.perf_counter() - t}
     E = fac.scene.emission
-    row["own"] = time_solve(fac, E)
-    t = time.perf_counter()
-    grey = fac.with_reflectance(np.repeat(fac.rho_max[:, None], 3, axis=1))
-    row["time_grey_setup"] = time.perf_counter() - t
-    row["grey"] = time_solve(grey, E)
-    for name in ("own", "grey"):
-        r = row[name]
-        print(f"{name:5s} reflectance: {r['distinct_channels']} distinct channel(s), best {1e3 * r['best_s']:.1f} ms, "
+    row["stored"] = time_solve(fac, E)
+    row["stored"]["near_solution"] = fac.near_solution_storage
+    grey = np.repeat(fac.rho_max[:, None], 3, axis=1)
+    for name, rho in (("own", fac.reflectance), ("grey", grey)):
+        for storage, quantize in (("float32", False), ("int16", True)):
+            t = time.perf_counter()
+            other = NearFieldFactorization(fac.perm, fac.Q, fac.V, fac.N, fac.rho_max, rho, fac.lowrank,
+                                           quantize=quantize, stats=fac.stats, scene=fac.scene)
+            key = f"{name}_{storage}"
+            row[f"time_setup_{key}"] = time.perf_counter() - t
+            row[key] = time_solve(other, E)
+            row[key]["quantization_share"] = float(other.quantization_error.max() / other.achieved_error)
+            B = other.solve(E)
+            if quantize:     # the 16-bit Z's radiosity against the float32 Z's (relative, per channel)
+                row[key]["moved_vs_float32"] = (np.linalg.norm(B - B_float, axis=0)
+                                                / np.linalg.norm(B_float, axis=0)).tolist()
+            B_float = B
+            del other
+    for key in ("stored", "own_float32", "own_int16", "grey_float32", "grey_int16"):
+        r = row[key]
+        print(f"{key:13s}: {r['distinct_channels']} distinct channel(s), best {1e3 * r['best_s']:.1f} ms, "
               f"median {1e3 * r['median_s']:.1f} ms, {r['sweeps']} sweep(s); 2nk limit {1e3 * r['limit_2nk_s']:.1f} ms "
               f"({r['copy_bandwidth_gbs']:.1f} GB/s): best {r['best_over_2nk']:.2f}x, median {r['median_over_2nk']:.2f}x")
     common.write_json(args.out, {"runs": [row], "machine": machine})

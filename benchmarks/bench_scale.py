@@ -161,7 +161,8 @@ def run_one(args) -> dict:
         # the near-field solve reads V, each distinct Z_c and, per sweep, N (value + column index)
         row["near_nnz"] = int(N.nnz)
         row["near_sweeps"] = own_sweeps
-        once = (1 + fac.Z.shape[0]) * n * k * itemsize + N.nnz * (itemsize + 4)
+        once = n * k * itemsize + fac.Z.nbytes + N.nnz * (itemsize + 4)      # Z_c may be 16-bit
+        row["near_solution_storage"] = fac.near_solution_storage
         row["limit_read_once_seconds"] = once / bw
         row["solve_over_read_once_limit"] = row["solve_rgb_best"] / max(row["limit_read_once_seconds"], 1e-12)
     if args.residual:

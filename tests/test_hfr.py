@@ -9,7 +9,7 @@ import pytest
 import hfrad.solve.hfr as hfr
 from hfrad.errors import FileFormatError
 from hfrad import factorize
-from hfrad.solve.hfr import load_hfr, read_hfr_metadata, save_hfr
+from hfrad.solve.hfr import FORMAT_VERSION, load_hfr, read_hfr_metadata, save_hfr
 from hfrad.scene.scene import Material, Scene
 
 
@@ -74,7 +74,7 @@ def test_round_trip(saved):
     np.testing.assert_array_equal(s.emission, scene.emission)
     assert s.material_names == ("floor", "lamp") and s.groups == ("floor", "ceiling")
     meta = read_hfr_metadata(path)
-    assert meta["format_version"] == 3 and meta["rank"] == fac.rank and meta["has_patches"]
+    assert meta["format_version"] == FORMAT_VERSION == 4 and meta["rank"] == fac.rank and meta["has_patches"]
     with h5py.File(path) as f:
         np.testing.assert_array_equal(f["patches/areas"][()], scene.areas)
 
@@ -142,7 +142,7 @@ def test_reads_version_2_file(tmp_path):
     Bt_old = np.stack([e[perm][:, c] - V @ (Y[c].T @ e[perm][:, c]) for c in range(3)], axis=1)[np.argsort(perm)]
     np.testing.assert_allclose(fac.solve(e, trans="T"), Bt_old, rtol=0, atol=2e-8 * np.abs(Bt_old).max())  # 3.4e-9
     new = save_hfr(fac, tmp_path / "plates-v3.hfr")
-    assert read_hfr_metadata(new)["format_version"] == 3
+    assert read_hfr_metadata(new)["format_version"] == FORMAT_VERSION
     with h5py.File(new) as f:
         assert "Y" not in f["factors"] and f["factors/capacitance_inverse"].shape == (3, fac.rank, fac.rank)
     np.testing.assert_array_equal(load_hfr(new).solve(E), B)

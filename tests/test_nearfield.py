@@ -191,3 +191,40 @@ def test_neumann_series_equals_the_sparse_lu(cornell, pair, monkeypatch):
         rel = np.abs(series[t] - lu).max() / np.abs(lu).max()
         print(f"\ntrans={t}: series vs SuperLU {rel:.2e} (adjoint sweeps {sweeps})")
         assert rel <= NEUMANN_TOL        # observed 1.9e-6 (N) / 2.5e-6 (T)
+
+
+def test_quantized_near_solution(dense, cornell, tmp_path):
+    """float32 factors store Z_c in 16 bits: the same radiosity within the stated bound, half the bytes,
+    and the error figures still bound the error against the exact solve."""
+    from hfrad.solve.nearfield import QUANTIZE_SHARE
+    from hfrad.solve.quantized import QuantizedRows
+
+    scene, _, exact = cornell
+    F = dense[1]
+    fac = factorize(scene, near_field=96, eps=0.03, block_size=128, one_ray_tol=0, processes=1)
+    assert fac.dtype == np.float32 and isinstance(fac.Z, QuantizedRows)
+    assert fac.near_solution_storage == "int16 rows" and "int16 rows" in repr(fac)
+    share = fac.quantization_error / fac.achieved_error
+    plain = NearFieldFactorization(fac.perm, fac.Q, fac.V, fac.N, fac.rho_max, fac.reflectance, fac.lowrank,
+                                   quantize=False, stats=fac.stats, scene=scene)
+    assert plain.Z.dtype == np.float32 and not plain.quantization_error.any()
+    assert fac.Z.nbytes < 0.51 * plain.Z.nbytes
+    B, B_plain = fac.solve(scene.emission), plain.solve(scene.emission)
+    moved, err = _err(B, B_plain), _err(B, exact)
+    print(f"\nquantization: operator bound {share} of the achieved error, radiosity moved {moved}, "
+          f"error {err} (float Z {_err(B_plain, exact)}), bound {fac.error_bound} (float Z {plain.error_bound})")
+    assert (share <= QUANTIZE_SHARE).all()            # observed 2.4-2.8e-3
+    assert (moved <= 2e-5).all()                      # observed 3.8-4.5e-6
+    # the a-posteriori figure against the exact F bounds the error, and is as tight as with float Z
+    res, res_plain = fac.residual(scene.emission, B, form_factors=F), plain.residual(scene.emission, B_plain,
+                                                                                   form_factors=F)
+    print(f"residual bound {res.bound} (float Z {res_plain.bound})")
+    assert (err <= res.bound).all() and (res.bound <= 1.01 * res_plain.bound).all()
+    np.testing.assert_allclose(fac.error_bound, plain.error_bound, rtol=5e-4)   # observed 1e-4
+    # forced either way
+    assert isinstance(plain.with_reflectance(scene.reflectance).Z, np.ndarray)
+    # the file keeps the codes: the same solve after loading, and the figures recomputed from the scales
+    back = load_hfr(save_hfr(fac, tmp_path / "q.hfr"))
+    assert isinstance(back.Z, QuantizedRows)
+    np.testing.assert_array_equal(back.solve(scene.emission), B)
+    np.testing.assert_allclose(back.quantization_error, fac.quantization_error, rtol=1e-6)

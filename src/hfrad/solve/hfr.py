@@ -1,6 +1,6 @@
 """The ``.hfr`` factorization file (HDF5): everything needed to solve again without F.
 
-Layout (format version 3; versions 1 and 2, which stored three n x k
+Layout (format version 4; versions 1 and 2, which stored three n x k
 Woodbury matrices ``Y`` instead of the k x k inverses, are still read: their
 ``Y`` is not read and the inverses are recomputed from Q and V, O(n k^2 + k^3);
 version 1 files have no checksums and pass statistics)::
@@ -22,7 +22,10 @@ version 1 files have no checksums and pass statistics)::
     /factors/near_solution
                        (d, n, k) ``A_c^-1 D_c Q`` for the d channels with
                        distinct ``D_c`` (near field only): loading needs no
-                       sparse LU (recomputed if absent, as in older files)
+                       sparse LU (recomputed if absent, as in older files);
+                       or, stored in 16 bits (version 4), near_solution_codes
+                       (d, n, k) int16 and near_solution_scale (d, n) float32
+                       (:class:`~hfrad.solve.quantized.QuantizedRows`)
     /factors/rho_max   (n,) float64, user order
     /factors/reflectance (n, 3) float64, user order
     /stats/...         row_sums, col_sums, sketch (n, p), weights: what the
@@ -56,11 +59,12 @@ from ..errors import FileFormatError
 from ..factorize.lowrank import LowRank
 from ..validation import object_first
 from .nearfield import NearFieldFactorization
+from .quantized import QuantizedRows
 from .stats import PassStatistics
 from .woodbury import HFactorization
 
 FORMAT = "hfrad-factorization"
-FORMAT_VERSION = 3
+FORMAT_VERSION = 4
 DIGEST = "attrs_sha256"
 
 __all__ = ["save_hfr", "load_hfr", "read_hfr_metadata", "FORMAT_VERSION"]
@@ -139,7 +143,11 @@ def save_hfr(factorization: HFactorization, path, *, scene=None, timings: dict |
                 _dataset(g, "near_data", N.data)
                 _dataset(g, "near_indices", N.indices)
                 _dataset(g, "near_indptr", N.indptr)
-                _dataset(g, "near_solution", fac.Z)
+                if isinstance(fac.Z, QuantizedRows):
+                    _dataset(g, "near_solution_codes", fac.Z.codes)
+                    _dataset(g, "near_solution_scale", fac.Z.scale)
+                else:
+                    _dataset(g, "near_solution", fac.Z)
             if fac.stats is not None:
                 _write_stats(f.create_group("stats"), fac.stats)
             if scene is not None:
@@ -290,6 +298,12 @@ def load_hfr(path) -> HFactorization:
                 if "near_data" in g else None
             # older files stored no Z: it is recomputed (a sparse LU per distinct channel)
             near_Z = _read(g, "near_solution", path) if "near_solution" in g else None
+            if "near_solution_codes" in g:
+                codes, scale = (_read(g, k, path) for k in ("near_solution_codes", "near_solution_scale"))
+                if codes.ndim != 3 or scale.shape != codes.shape[:2]:
+                    raise FileFormatError(f"{path}: near_solution_codes {codes.shape} and near_solution_scale "
+                                          f"{scale.shape} do not match")
+                near_Z = QuantizedRows(codes, scale)
             scene = _read_scene(f["patches"], path) if "patches" in f else None
             stats = _read_stats(f["stats"], path) if "stats" in f else None
         except FileFormatError:
@@ -299,7 +313,7 @@ def load_hfr(path) -> HFactorization:
     n, k = meta["n_patches"], meta["rank"]
     if Q.shape != (n, k) or V.shape != (n, k) or perm.shape != (n,) \
             or (cap is not None and cap.shape != (3, k, k)) \
-            or (near_Z is not None and (near_Z.ndim != 3 or near_Z.shape[1:] != (n, k))):
+            or (near_Z is not None and (len(near_Z.shape) != 3 or near_Z.shape[1:] != (n, k))):
         raise FileFormatError(f"{path}: inconsistent arrays (Q {Q.shape}, V {V.shape}, capacitance_inverse "
                               f"{None if cap is None else cap.shape}, near_solution "
                               f"{None if near_Z is None else near_Z.shape}, rank {k})")

@@ -94,21 +94,36 @@ class PassStatistics:
         stats.sketch = sketch
         return stats
 
-    def operator_error(self, Q: np.ndarray, V: np.ndarray, D: np.ndarray, *, near=None) -> np.ndarray:
+    def operator_error(self, Q: np.ndarray, V: np.ndarray, D: np.ndarray, *, near=None,
+                       low_rank=None) -> np.ndarray:
         """(3,) upper bound on ``||R_c F - Q_c V^T||`` per channel, failing with probability FAILURE_PROBABILITY.
 
         ``(G - Q V^T) Omega' = sketch - Q (V^T Omega')`` (minus ``near Omega'`` for the
         near-field split's sparse N, internal order); channel c scales rows
         by ``D_c = rho_c / rho_max``, and ``||M|| <= alpha sqrt(2/pi) max_i ||M omega_i||``
         (Halko, Martinsson & Tropp 2011, Lemma 4.1) with ``M`` the weighted error.
+
+        Parameters
+        ----------
+        Q, V : (n, k)
+        D : (n, 3)
+        near : (n, n) sparse, optional
+        low_rank : callable, optional
+            ``low_rank(c, W)``: channel c's low-rank part applied to ``W = V^T Omega'``
+            (n, p), where the solve inverts ``D_c N + U_c V^T`` with another ``U_c`` than
+            ``D_c Q`` (the near-field solver's stored ``A_c Z_c``).
         """
-        R = self.sketch - Q.astype(np.float64) @ (V.astype(np.float64).T @ self._omega)
-        if near is not None:           # the near-field split: G~ = N + Q V^T
-            R = R - near @ self._omega
-        if self.weights is not None:
-            R = np.sqrt(self.weights)[:, None] * R
+        W = V.astype(np.float64).T @ self._omega
+        base = self.sketch if near is None else self.sketch - near @ self._omega
+        QW = None if low_rank is not None else Q.astype(np.float64) @ W
         scale = probe_alpha(self.probes) * math.sqrt(2.0 / math.pi)
-        return np.array([scale * np.linalg.norm(D[:, c:c + 1] * R, axis=0).max() for c in range(D.shape[1])])
+        out = np.empty(D.shape[1])
+        for c in range(D.shape[1]):
+            R = D[:, c:c + 1] * (base - QW) if low_rank is None else D[:, c:c + 1] * base - low_rank(c, W)
+            if self.weights is not None:
+                R = np.sqrt(self.weights)[:, None] * R
+            out[c] = scale * np.linalg.norm(R, axis=0).max()
+        return out
 
     def contraction(self, reflectance_int: np.ndarray) -> np.ndarray:
         """(3,) upper bound on ``||R_c F||`` in this norm (:func:`~hfrad.solve.bounds.contraction_bound`)."""

@@ -294,12 +294,11 @@ class HFactorization:
         if self._estimate is None:
             if self._sigma is None:
                 self._sigma = self._sigma_estimates()
+            error = self.achieved_error + float(np.max(self._storage_error()))
             if self.stats is None:
-                est = estimate_errors(self.achieved_error, self._sigma)
+                est = estimate_errors(error, self._sigma)
             else:
-                est = estimate_errors(self.achieved_error, self._sigma,
-                                      operator_error=self.stats.operator_error(self.Q, self.V, self._D,
-                                                                               near=getattr(self, "N", None)),
+                est = estimate_errors(error, self._sigma, operator_error=self._operator_error(),
                                       contraction=self.stats.contraction(self.reflectance[self.perm]),
                                       norm=self.stats.norm, failure_probability=FAILURE_PROBABILITY)
             bad = ~np.isfinite(est.bound)
@@ -311,6 +310,14 @@ class HFactorization:
                               "fac.residual(E, B) gives the per-solution figure", AccuracyWarning, stacklevel=2)
             self._estimate = est
         return self._estimate
+
+    def _storage_error(self) -> np.ndarray:
+        """(3,) bound on what the stored solve matrices add to the operator error (none here)."""
+        return np.zeros(N_CHANNELS)
+
+    def _operator_error(self) -> np.ndarray:
+        """(3,) probed ``||R_c F - Q_c V^T||`` of the operator this solve inverts (:meth:`PassStatistics.operator_error`)."""
+        return self.stats.operator_error(self.Q, self.V, self._D)
 
     def _sigma_estimates(self) -> np.ndarray:
         """(3,) power-iteration estimates of sigma_max(Q_c V^T), for eq. 5."""
@@ -392,9 +399,19 @@ class HFactorization:
 
     def _solve(self, E: np.ndarray, adjoint: bool) -> np.ndarray:
         """The solve of validated (n, 3, m) exitance in the user's order (the body of :meth:`solve`)."""
-        Ei = E[self.perm]                                                 # (n, 3, m), internal order
+        Ei = self._to_internal(E)                                         # (n, 3, m)
         B = Ei + low_rank_correction(self.Q, self.V, self._D, self.capacitance_inv, Ei, adjoint)   # eq. (4)
-        return B[self.inv_perm]
+        return self._to_user(B)
+
+    # np.take gathers whole rows: 4-5x faster than fancy indexing of (n, 3, m) arrays
+    # (0.4 vs 1.9 ms at 164,988 patches, a tenth of a lamp's solve)
+    def _to_internal(self, X: np.ndarray) -> np.ndarray:
+        """Rows of X (user patch order) in the internal order."""
+        return np.take(X, self.perm, axis=0)
+
+    def _to_user(self, X: np.ndarray) -> np.ndarray:
+        """Rows of X (internal order) in the user's patch order."""
+        return np.take(X, self.inv_perm, axis=0)
 
     def as_linear_operator(self, channel: int):
         """``(I - R_c F)^{-1}`` of one channel as a :class:`scipy.sparse.linalg.LinearOperator`.
