@@ -28,6 +28,7 @@ from ..validation import check_permutation
 from .cache import BlockCache, array_hash, scene_hash
 from .clustered import kernel_for
 from .kernel import ADAPTIVE, KERNEL_VERSION, NEAR, TOLERANCE
+from .mirror import MIRROR_SHARE, ReciprocityMirror
 from .visibility import DEFAULT_SAMPLES, RayBudget, Visibility, check_samples
 
 __all__ = ["FormFactorEngine", "iter_column_blocks", "form_factor_matrix", "row_sums",
@@ -98,16 +99,22 @@ class FormFactorEngine:
         return F
 
     def iter_blocks(self, rows: np.ndarray, col_sets) -> Iterator[np.ndarray]:
-        """F[rows][:, cols] for each ``cols`` of ``col_sets``, in order, pipelined (see Notes)."""
+        """F[rows][:, cols] for each ``cols`` of ``col_sets``, in order, pipelined (see Notes).
+
+        An item of ``col_sets`` may be ``(cols, skip)`` with ``skip`` a slice of
+        positions in ``rows`` that are not computed (left unspecified in the
+        block: the caller fills them, see :mod:`hfrad.formfactors.mirror`).
+        """
         if self.visibility is None:
-            for cols in col_sets:
-                yield self._kernel(rows, cols)
+            for item in col_sets:
+                cols, skip = block_request(item)
+                yield _full_height(self._kernel(computed_rows(rows, skip), cols), skip, len(rows))
             return
         if self._executor is None:
             self._executor = ThreadPoolExecutor(1, thread_name_prefix="hfrad-embree")
         vis = self.visibility
         inflight: deque = deque()  # [F, job, future, entry] of the batches Embree is casting, in order
-        ready: deque = deque()  # [F, jobs still in flight] in block order
+        ready: deque = deque()  # [F, jobs still in flight, skip] in block order
 
         def submit(F, job, entry):
             entry[1] += 1
@@ -119,22 +126,27 @@ class FormFactorEngine:
                 submit(F, more, entry)
             entry[1] -= 1
 
+        def done(entry):
+            return _full_height(entry[0], entry[2], len(rows))
+
         try:
-            for cols in col_sets:
-                F = self._kernel(rows, cols)  # runs while Embree works on earlier batches
-                entry = [F, 0]
+            for item in col_sets:
+                cols, skip = block_request(item)
+                part = computed_rows(rows, skip)
+                F = self._kernel(part, cols)  # runs while Embree works on earlier batches
+                entry = [F, 0, skip]
                 ready.append(entry)
-                for job in vis.jobs(F, rows, cols):
+                for job in vis.jobs(F, part, cols):
                     while len(inflight) >= _IN_FLIGHT:
                         drain()
                     submit(F, job, entry)
                 # every block before the newest whose rays are all cast can go
                 while len(ready) > 1 and ready[0][1] == 0:
-                    yield ready.popleft()[0]
+                    yield done(ready.popleft())
             while inflight:
                 drain()
             while ready:
-                yield ready.popleft()[0]
+                yield done(ready.popleft())
         finally:
             for _, _, fut, _ in inflight:  # consumer stopped early: let Embree finish before reuse
                 fut.result()
@@ -145,6 +157,31 @@ class FormFactorEngine:
             self._executor = None
         if self.visibility is not None:
             self.visibility.close()
+
+
+def block_request(item) -> tuple[np.ndarray, slice]:
+    """``(cols, skip)`` of an item of an engine's ``col_sets``: columns, or columns and rows to skip."""
+    if isinstance(item, tuple):
+        cols, skip = item
+        return np.asarray(cols, np.int64), skip
+    return np.asarray(item, np.int64), slice(0, 0)
+
+
+def computed_rows(rows: np.ndarray, skip: slice) -> np.ndarray:
+    """``rows`` without the positions ``skip`` (a contiguous range)."""
+    if skip.stop <= skip.start:
+        return rows
+    return np.concatenate([rows[:skip.start], rows[skip.stop:]])
+
+
+def _full_height(F: np.ndarray, skip: slice, n: int) -> np.ndarray:
+    """The block of all n rows from the computed ones (rows ``skip`` left unspecified)."""
+    if skip.stop <= skip.start:
+        return F
+    out = np.empty((n, F.shape[1]), F.dtype)
+    out[:skip.start] = F[:skip.start]
+    out[skip.stop:] = F[skip.start:]
+    return out
 
 
 def _check_common(scene, samples, block_size) -> None:
@@ -173,7 +210,8 @@ def iter_column_blocks(scene, block_size: int = DEFAULT_BLOCK_SIZE, *, order=Non
                        progress: ProgressCallback = None, cache=None,
                        engine: FormFactorEngine | None = None,
                        first_block: int = 0, processes: int | None = 1,
-                       ray_budget: RayBudget | None = None) -> Iterator[tuple[int, int, np.ndarray]]:
+                       ray_budget: RayBudget | None = None,
+                       mirror: bool = True) -> Iterator[tuple[int, int, np.ndarray]]:
     """Stream F in column blocks, rows and columns in the internal ``order``.
 
     Yields ``(start, stop, block)`` with
@@ -210,6 +248,11 @@ def iter_column_blocks(scene, block_size: int = DEFAULT_BLOCK_SIZE, *, order=Non
         are the same whatever the count.
     ray_budget : RayBudget, optional
         Fewer rays for weak pairs (see :func:`hfrad.formfactors.parallel.ray_budget`); default: off.
+    mirror : bool
+        Take the rows of earlier blocks by reciprocity, ``F_ij = A_j F_ji / A_i``
+        (:mod:`hfrad.formfactors.mirror`): about half of the pairs are then copies.
+        Holds up to ``MIRROR_SHARE`` of the available memory (about n^2/4 entries of
+        ``dtype`` at most); blocks beyond that compute every row.
 
     Raises
     ------
@@ -220,8 +263,9 @@ def iter_column_blocks(scene, block_size: int = DEFAULT_BLOCK_SIZE, *, order=Non
 
     Notes
     -----
-    Cost: O(n b) kernel pairs and at most ``samples`` rays per pair per block;
-    memory O(n b) plus the ray batch.
+    Cost: O(n b) kernel pairs and at most ``samples`` rays per pair per block
+    (about half of them with ``mirror``); memory O(n b) plus the ray batch, and the
+    mirror's tiles.
     """
     n = scene.n_patches
     _check_common(scene, samples, block_size)
@@ -241,16 +285,29 @@ def iter_column_blocks(scene, block_size: int = DEFAULT_BLOCK_SIZE, *, order=Non
     if todo and engine is None:
         engine = make_engine(scene, samples=samples, processes=processes, ray_budget=ray_budget,
                              block_size=block_size, dtype=dtype)
-    computed = engine.iter_blocks(order, (order[k * block_size:(k + 1) * block_size] for k in todo)) \
-        if todo else _empty()
+    copies = _mirror_for(scene, order, block_size, first_block, dtype) if mirror else None
+    skips: dict[int, slice] = {}
+
+    def request(k: int):
+        cols = order[k * block_size:(k + 1) * block_size]
+        if copies is None:
+            return cols
+        skips[k] = copies.copied_rows(k)          # decided when the block is handed out
+        return cols, skips[k]
+
+    computed = engine.iter_blocks(order, (request(k) for k in todo)) if todo else _empty()
     try:
         for index, start in enumerate(starts, first_block):
             stop = min(n, start + block_size)
             block = store.get(index, start, stop) if store is not None else None
             if block is None:
                 block = next(computed).astype(dtype, copy=False)
+                if copies is not None:
+                    copies.fill(index, block, skips.pop(index))
                 if store is not None:
                     store.put(index, start, stop, block)
+            if copies is not None:
+                copies.keep(index, block)
             report(progress, stop, n)
             yield start, stop, block
             del block
@@ -263,6 +320,14 @@ def iter_column_blocks(scene, block_size: int = DEFAULT_BLOCK_SIZE, *, order=Non
             store.close()
         if own_engine and engine is not None:
             engine.close()
+
+
+def _mirror_for(scene, order: np.ndarray, block_size: int, first_block: int, dtype) -> ReciprocityMirror:
+    """The reciprocity mirror of a pass (its tiles may take MIRROR_SHARE of the available memory)."""
+    n = scene.n_patches
+    starts = np.r_[np.arange(0, n, block_size), n]
+    return ReciprocityMirror(np.asarray(scene.areas, np.float64)[order], starts, first=first_block,
+                             budget_bytes=int(MIRROR_SHARE * available_memory()))
 
 
 def make_engine(scene, *, samples: int = DEFAULT_SAMPLES, processes: int | None = 1,

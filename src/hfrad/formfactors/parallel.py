@@ -218,12 +218,19 @@ def _init_worker(setup_name: str, setup_bytes: int, shm_name, shape, dtype) -> N
               out=np.ndarray(shape, dtype=dtype, buffer=shm.buf))
 
 
-def _work(slot: int, cols: np.ndarray) -> dict:
+def _work(slot: int, cols: np.ndarray, skip: slice) -> dict:
+    from .blocks import computed_rows
+
     engine = _engine_for(_W["scene"], _W["samples"], _W["ray_budget"])
     k0, e0, p0, r0 = engine.kernel_seconds, engine.embree_seconds, engine.pairs, engine.rays
     t0 = time.perf_counter()
-    block = engine.block(_W["order"], cols)
-    _W["out"][slot, :, :len(cols)] = block
+    block = engine.block(computed_rows(_W["order"], skip), cols)
+    out = _W["out"][slot, :, :len(cols)]
+    if skip.stop > skip.start:      # rows ``skip`` are filled by the parent (reciprocity mirror)
+        out[:skip.start] = block[:skip.start]
+        out[skip.stop:] = block[skip.start:]
+    else:
+        out[:] = block
     return {"kernel_seconds": engine.kernel_seconds - k0, "embree_seconds": engine.embree_seconds - e0,
             "pairs": engine.pairs - p0, "rays": engine.rays - r0, "seconds": time.perf_counter() - t0}
 
@@ -286,7 +293,10 @@ class ProcessEngine:
         self.worker_seconds = 0.0
 
     def iter_blocks(self, rows: np.ndarray, col_sets) -> Iterator[np.ndarray]:
-        """F[rows][:, cols] for each ``cols`` of ``col_sets``, in order (copies, ``dtype``)."""
+        """F[rows][:, cols] for each ``cols`` (or ``(cols, skip)``, as for
+        :meth:`FormFactorEngine.iter_blocks`) of ``col_sets``, in order (copies, ``dtype``)."""
+        from .blocks import block_request
+
         n = len(rows)
         slots = self.workers + 2
         shape = (slots, n, self.block_size)
@@ -319,15 +329,15 @@ class ProcessEngine:
             exhausted = False
             while True:
                 while not exhausted and len(pending) < self.workers + 1 and free:
-                    cols = next(col_iter, None)
-                    if cols is None:
+                    item = next(col_iter, None)
+                    if item is None:
                         exhausted = True
                         break
-                    cols = np.asarray(cols, np.int64)
+                    cols, skip = block_request(item)
                     if len(cols) > self.block_size:
                         raise ValueError(f"column block of {len(cols)} > block_size {self.block_size}")
                     slot = free.pop(0)
-                    pending.append((slot, len(cols), pool.submit(_work, slot, cols)))
+                    pending.append((slot, len(cols), pool.submit(_work, slot, cols, skip)))
                 if not pending:
                     break
                 slot, width, fut = pending.pop(0)
