@@ -7,7 +7,7 @@ import pytest
 
 from hfrad.formfactors import iter_column_blocks
 from hfrad.formfactors.blocks import FormFactorEngine
-from hfrad.formfactors.mirror import MIRROR_LAG, ReciprocityMirror
+from hfrad.formfactors.mirror import MIRROR_LAG, ReciprocityMirror, band_for
 from hfrad.scene.builtin import cornell_box
 from hfrad.scene.patches import subdivide
 from hfrad.scene.zorder import zorder_permutation
@@ -63,25 +63,35 @@ def test_processes_and_resumed_passes_agree(box, computed):
     np.testing.assert_allclose(resumed, F[:, first * BLOCK:], rtol=0, atol=2e-15 * F.max())
 
 
-def test_budget_and_tiles():
-    """A reciprocal F = S / A (S symmetric) through keep/fill; tiles beyond the budget are not kept."""
+def test_bands_and_budgets():
+    """A reciprocal F = S / A (S symmetric) through keep/fill: each band copies its rows exactly,
+    holds no more than its budget, and uses every tile it keeps."""
     rng = np.random.default_rng(0)
-    n, b = 700, 50
+    n, b, lag = 700, 50, 2
     S = rng.random((n, n))
     S = S + S.T
     areas = rng.uniform(0.5, 2.0, n)
     F = S / areas[:, None]
     starts = np.r_[np.arange(0, n, b), n]
-    for budget, kept in ((1 << 30, 14), (0, 0)):
-        m = ReciprocityMirror(areas, starts, budget_bytes=budget, lag=2)
-        for k in range(len(starts) - 1):
-            cols = slice(starts[k], starts[k + 1])
+    blocks = len(starts) - 1
+    full = band_for(blocks, b, 8, 1 << 40, lag=lag)
+    assert full == blocks - lag - 1
+    assert band_for(blocks, b, 8, 0, lag=lag) == 0
+    for budget in (1 << 40, 12 * b * b * 8, 0):
+        band = band_for(blocks, b, 8, budget, lag=lag)
+        m = ReciprocityMirror(areas, starts, band=band, lag=lag)
+        for k in range(blocks):
             rows = m.copied_rows(k)
-            assert rows.start == 0 and rows.stop == (starts[min(k - 2, kept)] if k > 2 and kept else 0)
-            block = F[:, cols].copy()
+            lo = max(0, k - lag - band)
+            assert (rows.start, rows.stop) == ((starts[lo], starts[k - lag]) if k - lag > lo else (0, 0))
+            block = F[:, starts[k]:starts[k + 1]].copy()
             block[rows] = np.nan
             m.fill(k, block, rows)
-            np.testing.assert_allclose(block, F[:, cols], rtol=1e-14)
+            np.testing.assert_allclose(block, F[:, starts[k]:starts[k + 1]], rtol=1e-14)
             m.keep(k, block)
-            assert m.bytes <= budget
-        assert m.kept == kept and not m.tiles          # every kept tile was used
+        print(f"\nbudget {budget}: band {band}, peak {m.peak_bytes} bytes, {m.copied_pairs} pairs copied")
+        assert m.peak_bytes <= budget and not m.tiles
+        assert (m.copied_pairs > 0) == (band > 0)
+    assert 0 < band_for(blocks, b, 8, 12 * b * b * 8, lag=lag) < full
+    with pytest.raises(ValueError, match="in order"):
+        m.keep(0, F[:, :b])

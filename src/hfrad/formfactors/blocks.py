@@ -28,7 +28,7 @@ from ..validation import check_permutation
 from .cache import BlockCache, array_hash, scene_hash
 from .clustered import kernel_for
 from .kernel import ADAPTIVE, KERNEL_VERSION, NEAR, TOLERANCE
-from .mirror import MIRROR_SHARE, ReciprocityMirror
+from .mirror import ReciprocityMirror, band_for, mirror_bytes
 from .visibility import DEFAULT_SAMPLES, RayBudget, Visibility, check_samples
 
 __all__ = ["FormFactorEngine", "iter_column_blocks", "form_factor_matrix", "row_sums",
@@ -251,8 +251,9 @@ def iter_column_blocks(scene, block_size: int = DEFAULT_BLOCK_SIZE, *, order=Non
     mirror : bool
         Take the rows of earlier blocks by reciprocity, ``F_ij = A_j F_ji / A_i``
         (:mod:`hfrad.formfactors.mirror`): about half of the pairs are then copies.
-        Holds up to ``MIRROR_SHARE`` of the available memory (about n^2/4 entries of
-        ``dtype`` at most); blocks beyond that compute every row.
+        Holds n^2/4 entries of ``dtype`` at most, and at most ``MIRROR_SHARE`` of the
+        available memory (:func:`~hfrad.formfactors.mirror.mirror_bytes`): with less, each
+        block copies from fewer earlier blocks.
 
     Raises
     ------
@@ -323,11 +324,12 @@ def iter_column_blocks(scene, block_size: int = DEFAULT_BLOCK_SIZE, *, order=Non
 
 
 def _mirror_for(scene, order: np.ndarray, block_size: int, first_block: int, dtype) -> ReciprocityMirror:
-    """The reciprocity mirror of a pass (its tiles may take MIRROR_SHARE of the available memory)."""
+    """The reciprocity mirror of a pass, its band sized for MIRROR_SHARE of the available memory."""
     n = scene.n_patches
     starts = np.r_[np.arange(0, n, block_size), n]
-    return ReciprocityMirror(np.asarray(scene.areas, np.float64)[order], starts, first=first_block,
-                             budget_bytes=int(MIRROR_SHARE * available_memory()))
+    itemsize = np.dtype(dtype).itemsize
+    band = band_for(len(starts) - 1, block_size, itemsize, mirror_bytes(n, itemsize, available_memory()))
+    return ReciprocityMirror(np.asarray(scene.areas, np.float64)[order], starts, band=band, first=first_block)
 
 
 def make_engine(scene, *, samples: int = DEFAULT_SAMPLES, processes: int | None = 1,

@@ -12,20 +12,22 @@ computation can be a copy: block a keeps its rows of later blocks,
 
 computing only the other rows. About half of F's pairs are then copies.
 
-Which rows a block copies is a function of the block alone (the blocks before
-it by at least ``MIRROR_LAG`` whose tiles are kept), not of the number of
-processes or their timing, so a run gives the same F with any process count.
-Tiles live in memory (about ``n^2 / 4`` entries at the peak of a full pass);
-they are kept only while they fit ``budget_bytes``: beyond it, blocks compute
-every row as before. A pass resumed at block ``first`` copies only from blocks
-it computed itself.
+Which rows a block copies is a function of the block alone (the ``band``
+blocks before it by more than ``MIRROR_LAG``), not of the number of processes
+or their timing, so a run gives the same F with any process count. Tiles live
+in memory: a block keeps its tiles for the ``band`` blocks that will copy them,
+and ``band`` is the widest whose peak fits ``budget_bytes`` (every earlier block
+when n^2/4 entries fit: 1.6 GB at 39,482 patches in float32). A band holds a
+tile only for ``band`` blocks, so a budget too small for all of them still
+copies much: at 164,988 patches, a 5 GB budget copies ~60% of what all of them
+would. A pass resumed at block ``first`` copies only from the blocks it computed.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["ReciprocityMirror", "MIRROR_LAG", "MIRROR_SHARE"]
+__all__ = ["ReciprocityMirror", "MIRROR_LAG", "MIRROR_SHARE", "band_for", "mirror_bytes"]
 
 #: Block b copies rows only from blocks before b - MIRROR_LAG: those are finished when b is
 #: handed to a worker (up to workers + 1 blocks are in flight), for any count up to 7 processes.
@@ -33,6 +35,39 @@ MIRROR_LAG = 8
 
 #: Share of the available memory that the kept tiles may take (iter_column_blocks' default).
 MIRROR_SHARE = 0.25
+
+
+def mirror_bytes(n: int, itemsize: int, available: int | None = None) -> int:
+    """Most bytes a pass's kept tiles may take: MIRROR_SHARE of ``available`` (default: the memory
+    available now), and never more than all the tiles of a full pass need (about n^2/4 values)."""
+    if available is None:
+        from ..memory import available_bytes
+        available = available_bytes()
+    return int(min(1.01 * n * n * itemsize / 4, MIRROR_SHARE * available))
+
+
+def _peak_tiles(blocks: int, lag: int, band: int) -> int:
+    """Most tiles held at once when block a keeps tiles for blocks a + lag + 1 .. a + lag + band."""
+    source = np.arange(blocks)
+    peak = 0
+    for a in range(blocks):         # after block a is kept: tiles of blocks <= a for blocks > a
+        lo = np.maximum(a + 1, source[:a + 1] + lag + 1)
+        hi = np.minimum(blocks - 1, source[:a + 1] + lag + band)
+        peak = max(peak, int(np.clip(hi - lo + 1, 0, None).sum()))
+    return peak
+
+
+def band_for(blocks: int, block_size: int, itemsize: int, budget_bytes: int, lag: int = MIRROR_LAG) -> int:
+    """The widest band (blocks copied from, per block) whose tiles fit ``budget_bytes`` at their peak."""
+    tile = block_size * block_size * itemsize
+    lo, hi = 0, max(0, blocks - lag - 1)
+    while lo < hi:                  # the peak grows with the band: bisect
+        mid = (lo + hi + 1) // 2
+        if _peak_tiles(blocks, lag, mid) * tile <= budget_bytes:
+            lo = mid
+        else:
+            hi = mid - 1
+    return lo
 
 
 class ReciprocityMirror:
@@ -45,47 +80,49 @@ class ReciprocityMirror:
     starts : (B + 1,) int
         Block boundaries in the internal order: block b is columns (and rows)
         ``starts[b]:starts[b + 1]``.
+    band : int
+        Block b copies the rows of blocks ``b - lag - band .. b - lag - 1`` (from ``first`` on);
+        :func:`band_for` sizes it for a memory budget.
     first : int
         The first block of this pass (resumed passes start later).
-    budget_bytes : int
-        Most bytes the kept tiles may hold at once.
     lag : int
-        Block b copies from blocks ``first .. b - lag - 1`` only.
     """
 
-    def __init__(self, areas, starts, *, first: int = 0, budget_bytes: int, lag: int = MIRROR_LAG) -> None:
+    def __init__(self, areas, starts, *, band: int, first: int = 0, lag: int = MIRROR_LAG) -> None:
         self.areas = np.asarray(areas, dtype=np.float64)
         self.starts = np.asarray(starts, dtype=np.int64)
-        self.first, self.lag = int(first), int(lag)
-        self.budget_bytes = int(budget_bytes)
+        self.band, self.first, self.lag = int(band), int(first), int(lag)
         self.tiles: dict[tuple[int, int], np.ndarray] = {}
         self.bytes = 0
-        self.kept = self.first   # blocks first .. kept - 1 have kept all their tiles
+        self.peak_bytes = 0
+        self.kept = self.first   # blocks first .. kept - 1 have kept their tiles
         self.copied_pairs = 0
 
     @property
     def n_blocks(self) -> int:
         return len(self.starts) - 1
 
-    def _source_blocks(self, b: int) -> range:
-        return range(self.first, max(self.first, min(b - self.lag, self.kept)))
-
     def copied_rows(self, b: int) -> slice:
-        """The rows (internal order) block b takes from kept tiles: one contiguous range, maybe empty."""
-        src = self._source_blocks(b)
-        if not len(src):
+        """The rows (internal order) block b takes from kept tiles: one contiguous range, maybe empty.
+
+        Asked when block b is handed out: the blocks it copies from must have been
+        kept by then (true while fewer than ``lag`` blocks are in flight).
+        """
+        lo = max(self.first, b - self.lag - self.band)
+        hi = min(b - self.lag, self.kept)
+        if hi <= lo:
             return slice(0, 0)
-        return slice(int(self.starts[src.start]), int(self.starts[src.stop]))
+        return slice(int(self.starts[lo]), int(self.starts[hi]))
 
     def fill(self, b: int, block: np.ndarray, rows: slice) -> None:
         """Write ``rows`` (as :meth:`copied_rows` gave when b was handed out) of block b from kept tiles."""
         if rows.stop <= rows.start:
             return
         cols = slice(int(self.starts[b]), int(self.starts[b + 1]))
-        for a in range(self.n_blocks):
+        first = int(np.searchsorted(self.starts, rows.start))
+        last = int(np.searchsorted(self.starts, rows.stop))
+        for a in range(first, last):
             lo, hi = int(self.starts[a]), int(self.starts[a + 1])
-            if hi <= rows.start or lo >= rows.stop:
-                continue
             tile = self.tiles.pop((b, a))                               # F[J_b, J_a]
             self.bytes -= tile.nbytes
             ratio = self.areas[cols][None, :] / self.areas[lo:hi, None]    # A_j / A_i
@@ -93,18 +130,12 @@ class ReciprocityMirror:
             self.copied_pairs += tile.size
 
     def keep(self, a: int, block: np.ndarray) -> None:
-        """Keep the tiles of block a that later blocks will copy, if they fit the budget."""
-        if a != self.kept:                 # only an unbroken run of kept blocks is usable
-            return
-        later = range(a + self.lag + 1, self.n_blocks)
-        if not len(later):
-            self.kept += 1
-            return
-        lo = int(self.starts[later.start])
-        need = (block.shape[0] - lo) * block.shape[1] * block.itemsize
-        if self.bytes + need > self.budget_bytes:
-            return
-        for x in later:
-            self.tiles[(x, a)] = block[self.starts[x]:self.starts[x + 1]].copy()
-        self.bytes += need
+        """Keep the tiles of block a that the next blocks will copy (``band`` of them)."""
+        if a != self.kept:
+            raise ValueError(f"blocks must be kept in order: expected block {self.kept}, got {a}")
+        for x in range(a + self.lag + 1, min(self.n_blocks, a + self.lag + self.band + 1)):
+            tile = block[self.starts[x]:self.starts[x + 1]].copy()
+            self.tiles[(x, a)] = tile
+            self.bytes += tile.nbytes
+        self.peak_bytes = max(self.peak_bytes, self.bytes)
         self.kept += 1
