@@ -32,7 +32,7 @@ def _F(scene, order, **kw):
 @pytest.fixture(scope="module")
 def computed(box):
     """F with every pair computed, and the pairs the kernel saw."""
-    return _F(*box, mirror=False)
+    return _F(*box, reciprocity=False)
 
 
 def test_copies_equal_the_computed_pairs(box, computed):

@@ -72,7 +72,7 @@ def factorize(scene_or_matrix, reflectance=None, *, areas=None, eps: float = 0.0
               samples: int | None = None, leaf_share: float = 0.5,
               checkpoint: str | Path | None = None, checkpoint_interval: float = 30.0,
               blas_threads: int | None = 1, processes: int | None = 1, one_ray_tol: float | None = None,
-              near_field: int | str | None = "auto", rng=None,
+              near_field: int | str | None = "auto", reciprocity: bool = True, rng=None,
               progress: ProgressCallback = None, status: StatusCallback = None) -> HFactorization:
     """Factor a radiosity system once: ``diag(rho_max) F ~= Q V^T``, then solve it for any light in O(nk).
 
@@ -142,6 +142,12 @@ def factorize(scene_or_matrix, reflectance=None, *, areas=None, eps: float = 0.0
         Woodbury). Measured on the Cornell box (rank, radiosity error vs the exact
         solve): 5K patches, eps 0.05: 1,081 -> 195 and 0.83% -> 0.55%; eps 0.02:
         1,362 -> 1,307 and 0.19% -> 0.10%; 10K, eps 0.05: rank 1,641 -> 537.
+    reciprocity : bool
+        Scene only: a column block copies its pairs with the columns of earlier blocks,
+        ``F_ij = A_j F_ji / A_i``, instead of computing them again
+        (:mod:`hfrad.formfactors.mirror`; about half the form-factor work, F equal
+        to rounding; its tiles take at most a quarter of the available memory).
+        False computes every pair, as the Dask backend does (its blocks bit for bit).
     rng : None, int or numpy Generator
         Seed of the randomized baselines ("rsvd", "sketch").
     progress : callable (done, total), optional
@@ -187,6 +193,7 @@ def factorize(scene_or_matrix, reflectance=None, *, areas=None, eps: float = 0.0
                                 leaf_share=leaf_share, checkpoint=checkpoint,
                                 checkpoint_interval=checkpoint_interval, blas_threads=blas_threads,
                                 processes=processes, one_ray_tol=one_ray_tol, near_field=near_field,
+                                reciprocity=reciprocity,
                                 progress=progress, status=status)
     if isinstance(scene_or_matrix, (str, Path)):
         raise InputError(f"factorize takes a Scene or a matrix; load the file first: "
@@ -206,7 +213,7 @@ def factorize(scene_or_matrix, reflectance=None, *, areas=None, eps: float = 0.0
 
 def _factorize_scene(scene: Scene, *, eps: float, relative: bool, block_size: int | None, dtype, samples,
                      order, leaf_share: float, checkpoint, checkpoint_interval: float, blas_threads,
-                     processes, one_ray_tol, near_field, progress: ProgressCallback,
+                     processes, one_ray_tol, near_field, reciprocity: bool, progress: ProgressCallback,
                      status: StatusCallback) -> HFactorization:
     """The scene branch of :func:`factorize` (arguments as there): streamed form factors into HF."""
     if block_size is None:
@@ -235,6 +242,7 @@ def _factorize_scene(scene: Scene, *, eps: float, relative: bool, block_size: in
               # kernel version and tolerance: recorded in the .hfr, part of the checkpoint key
               "form_factors": {**kernel_settings(), **visibility_settings()}}
     key = _scene_key(scene, params)
+    params["reciprocity"] = bool(reciprocity)    # F equal to rounding either way: not part of the key
     stream = _open_stream(checkpoint, key, n, n_blocks, eps, relative, dt, leaf_share)
     stats = _open_stats(stream, n, scene.areas[perm])
     t0 = time.perf_counter()
@@ -243,7 +251,7 @@ def _factorize_scene(scene: Scene, *, eps: float, relative: bool, block_size: in
         from .formfactors.parallel import ray_budget
         ff_kwargs["ray_budget"] = ray_budget(scene, one_ray_tol)
     blocks = iter_column_blocks(scene, block_size, order=perm, first_block=stream.blocks_done,
-                                processes=processes, dtype=dt, **ff_kwargs)
+                                processes=processes, dtype=dt, reciprocity=reciprocity, **ff_kwargs)
     rows_rho = rho_max[perm][:, None].astype(dt)
     split = None
     if params["near_field"]:

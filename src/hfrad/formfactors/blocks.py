@@ -211,7 +211,7 @@ def iter_column_blocks(scene, block_size: int = DEFAULT_BLOCK_SIZE, *, order=Non
                        engine: FormFactorEngine | None = None,
                        first_block: int = 0, processes: int | None = 1,
                        ray_budget: RayBudget | None = None,
-                       mirror: bool = True) -> Iterator[tuple[int, int, np.ndarray]]:
+                       reciprocity: bool = True) -> Iterator[tuple[int, int, np.ndarray]]:
     """Stream F in column blocks, rows and columns in the internal ``order``.
 
     Yields ``(start, stop, block)`` with
@@ -248,7 +248,7 @@ def iter_column_blocks(scene, block_size: int = DEFAULT_BLOCK_SIZE, *, order=Non
         are the same whatever the count.
     ray_budget : RayBudget, optional
         Fewer rays for weak pairs (see :func:`hfrad.formfactors.parallel.ray_budget`); default: off.
-    mirror : bool
+    reciprocity : bool
         Take the rows of earlier blocks by reciprocity, ``F_ij = A_j F_ji / A_i``
         (:mod:`hfrad.formfactors.mirror`): about half of the pairs are then copies.
         Holds n^2/4 entries of ``dtype`` at most, and at most ``MIRROR_SHARE`` of the
@@ -265,7 +265,7 @@ def iter_column_blocks(scene, block_size: int = DEFAULT_BLOCK_SIZE, *, order=Non
     Notes
     -----
     Cost: O(n b) kernel pairs and at most ``samples`` rays per pair per block
-    (about half of them with ``mirror``); memory O(n b) plus the ray batch, and the
+    (about half of them with ``reciprocity``); memory O(n b) plus the ray batch, and the
     mirror's tiles.
     """
     n = scene.n_patches
@@ -286,7 +286,7 @@ def iter_column_blocks(scene, block_size: int = DEFAULT_BLOCK_SIZE, *, order=Non
     if todo and engine is None:
         engine = make_engine(scene, samples=samples, processes=processes, ray_budget=ray_budget,
                              block_size=block_size, dtype=dtype)
-    copies = _mirror_for(scene, order, block_size, first_block, dtype) if mirror else None
+    copies = _mirror_for(scene, order, block_size, first_block, dtype) if reciprocity else None
     skips: dict[int, slice] = {}
 
     def request(k: int):
