@@ -53,8 +53,9 @@ def register(app: typer.Typer) -> None:
         the available memory (beyond it, blocks compute those rows). With the near field (default from
         2,000 patches): N (~120 entries a row, ~40 bytes each while collected),
         one n x k Z per distinct colour channel, and during the set-up one
-        channel's sparse LU (~9x N's entries). Measured peaks (built-in box,
-        eps 0.05): 1.8 GB at 39,482 patches, 5.5 GB plus 2.3 GB in the two
+        channel's sparse LU (~9x N's entries). Measured peaks (built-in box):
+        5.6 GB at 39,482 patches and eps 0.02 (1.5 GB of it reciprocity
+        tiles); at eps 0.05 without the tiles, 5.5 GB plus 2.3 GB in the two
         form-factor workers at 164,988.
         A checkpoint (OUTPUT.partial) is written every 30 s (less often when a write is slow: at most ~2% of the run); rerun the same
         command to resume after an interruption. With --scheduler or --workers

@@ -33,21 +33,6 @@ DECODE_ROWS = 4096
 
 
 @njit(parallel=True, fastmath=True, cache=True)
-def _rows_dot(codes, scale, ST, out):  # pragma: no cover - compiled
-    """``out[i, c] = scale[i] * sum_j codes[i, j] ST[c, j]``: row i of codes is read once."""
-    n, k = codes.shape
-    r = ST.shape[0]
-    for i in prange(n):
-        row = codes[i]
-        for c in range(r):
-            s = ST[c]
-            acc = np.float32(0)
-            for j in range(k):
-                acc += np.float32(row[j]) * s[j]
-            out[i, c] = scale[i] * acc
-
-
-@njit(parallel=True, fastmath=True, cache=True)
 def _add_stack_dot(codes, scale, which, ST, out):  # pragma: no cover - compiled
     """``out[i, c, j] += scale[w, i] * sum_l codes[w, i, l] ST[c, j, l]`` with ``w = which[c]``.
 
@@ -131,16 +116,15 @@ class QuantizedRows:
         """``decode() @ S`` for S (k, r), float32 (n, r), without decoding the matrix at once."""
         n, k = self.codes.shape
         r = S.shape[1]
+        if r <= THIN_MAX:           # the streaming kernel, on a stack of one
+            out = np.zeros((n, 1, r))
+            QuantizedRows(self.codes[None], self.scale[None]).add_products(out, S[:, None, :], [0])
+            return out[:, 0, :].astype(np.float32)
         out = np.empty((n, r), np.float32)
-        if k == 0:
-            out.fill(0)
-        elif r <= THIN_MAX:
-            _rows_dot(self.codes, self.scale, np.ascontiguousarray(S.T, dtype=np.float32), out)
-        else:
-            S32 = S.astype(np.float32)
-            for a in range(0, n, DECODE_ROWS):
-                rows = slice(a, min(a + DECODE_ROWS, n))
-                out[rows] = self.decode(rows) @ S32
+        S32 = S.astype(np.float32)
+        for a in range(0, n, DECODE_ROWS):
+            rows = slice(a, min(a + DECODE_ROWS, n))
+            out[rows] = self.decode(rows) @ S32
         return out
 
     def add_products(self, out: np.ndarray, S: np.ndarray, which) -> None:
