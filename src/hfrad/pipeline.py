@@ -27,6 +27,7 @@ from .factorize.nearfield import DEFAULT_NEAR_ENTRIES, NearFieldSplit, near_radi
 from .factorize.streaming import load_checkpoint, save_checkpoint
 from .formfactors.energy import warn_energy
 from .formfactors.parallel import default_one_ray_tol, default_workers
+from .memory import precompute_bytes
 from .progress import ProgressCallback, report
 from .scene.scene import Scene
 from .scene.zorder import patch_order
@@ -250,8 +251,10 @@ def _factorize_scene(scene: Scene, *, eps: float, relative: bool, block_size: in
     if samples != 0:
         from .formfactors.parallel import ray_budget
         ff_kwargs["ray_budget"] = ray_budget(scene, one_ray_tol)
+    # the reciprocity tiles leave free what the rest of the run is estimated to need
     blocks = iter_column_blocks(scene, block_size, order=perm, first_block=stream.blocks_done,
-                                processes=processes, dtype=dt, reciprocity=reciprocity, **ff_kwargs)
+                                processes=processes, dtype=dt, reciprocity=reciprocity,
+                                reserved_bytes=precompute_bytes(n, block_size, itemsize=dt.itemsize), **ff_kwargs)
     rows_rho = rho_max[perm][:, None].astype(dt)
     split = None
     if params["near_field"]:

@@ -50,7 +50,8 @@ def register(app: typer.Typer) -> None:
         The n x n matrix is never stored; the form-factor pass keeps blocks'
         rows for later blocks to copy by reciprocity (n^2/4 values of the
         dtype at most, 1.6 GB at 39,482 patches in float32), up to a quarter of
-        the available memory (beyond it, blocks compute those rows). With the near field (default from
+        the available memory and within 80% of it with the estimate below
+        (beyond it, blocks compute those rows). With the near field (default from
         2,000 patches): N (~120 entries a row, ~40 bytes each while collected),
         one n x k Z per distinct colour channel, and during the set-up one
         channel's sparse LU (~9x N's entries). Measured peaks (built-in box):
@@ -88,7 +89,7 @@ def register(app: typer.Typer) -> None:
                 from ..memory import human, precompute_bytes
                 estimate = precompute_bytes(s.n_patches, block or DEFAULT_BLOCK_SIZE,
                                             itemsize=common.check_dtype(dtype).itemsize)
-                mirror = mirror_bytes(s.n_patches, common.check_dtype(dtype).itemsize)
+                mirror = mirror_bytes(s.n_patches, common.check_dtype(dtype).itemsize, reserved=estimate)
                 common.console.print(f"memory estimate: about {human(estimate)} for {s.n_patches:,} patches "
                                      "(rank guessed; refused above 80% of the available memory), plus up to "
                                      f"{human(mirror)} of form factors kept for reciprocity", highlight=False)

@@ -28,7 +28,7 @@ from ..validation import check_permutation
 from .cache import BlockCache, array_hash, scene_hash
 from .clustered import kernel_for
 from .kernel import ADAPTIVE, KERNEL_VERSION, NEAR, TOLERANCE
-from .mirror import ReciprocityMirror, band_for, mirror_bytes
+from .mirror import ReciprocityMirror, band_for, block_request, computed_rows, full_height, mirror_bytes
 from .visibility import DEFAULT_SAMPLES, RayBudget, Visibility, check_samples
 
 __all__ = ["FormFactorEngine", "iter_column_blocks", "form_factor_matrix", "row_sums",
@@ -108,7 +108,7 @@ class FormFactorEngine:
         if self.visibility is None:
             for item in col_sets:
                 cols, skip = block_request(item)
-                yield _full_height(self._kernel(computed_rows(rows, skip), cols), skip, len(rows))
+                yield full_height(self._kernel(computed_rows(rows, skip), cols), skip, len(rows))
             return
         if self._executor is None:
             self._executor = ThreadPoolExecutor(1, thread_name_prefix="hfrad-embree")
@@ -127,7 +127,7 @@ class FormFactorEngine:
             entry[1] -= 1
 
         def done(entry):
-            return _full_height(entry[0], entry[2], len(rows))
+            return full_height(entry[0], entry[2], len(rows))
 
         try:
             for item in col_sets:
@@ -159,31 +159,6 @@ class FormFactorEngine:
             self.visibility.close()
 
 
-def block_request(item) -> tuple[np.ndarray, slice]:
-    """``(cols, skip)`` of an item of an engine's ``col_sets``: columns, or columns and rows to skip."""
-    if isinstance(item, tuple):
-        cols, skip = item
-        return np.asarray(cols, np.int64), skip
-    return np.asarray(item, np.int64), slice(0, 0)
-
-
-def computed_rows(rows: np.ndarray, skip: slice) -> np.ndarray:
-    """``rows`` without the positions ``skip`` (a contiguous range)."""
-    if skip.stop <= skip.start:
-        return rows
-    return np.concatenate([rows[:skip.start], rows[skip.stop:]])
-
-
-def _full_height(F: np.ndarray, skip: slice, n: int) -> np.ndarray:
-    """The block of all n rows from the computed ones (rows ``skip`` left unspecified)."""
-    if skip.stop <= skip.start:
-        return F
-    out = np.empty((n, F.shape[1]), F.dtype)
-    out[:skip.start] = F[:skip.start]
-    out[skip.stop:] = F[skip.start:]
-    return out
-
-
 def _check_common(scene, samples, block_size) -> None:
     if samples != 0:
         check_samples(samples)
@@ -211,7 +186,8 @@ def iter_column_blocks(scene, block_size: int = DEFAULT_BLOCK_SIZE, *, order=Non
                        engine: FormFactorEngine | None = None,
                        first_block: int = 0, processes: int | None = 1,
                        ray_budget: RayBudget | None = None,
-                       reciprocity: bool = True) -> Iterator[tuple[int, int, np.ndarray]]:
+                       reciprocity: bool = True,
+                       reserved_bytes: int = 0) -> Iterator[tuple[int, int, np.ndarray]]:
     """Stream F in column blocks, rows and columns in the internal ``order``.
 
     Yields ``(start, stop, block)`` with
@@ -254,6 +230,9 @@ def iter_column_blocks(scene, block_size: int = DEFAULT_BLOCK_SIZE, *, order=Non
         Holds n^2/4 entries of ``dtype`` at most, and at most ``MIRROR_SHARE`` of the
         available memory (:func:`~hfrad.formfactors.mirror.mirror_bytes`): with less, each
         block copies from fewer earlier blocks.
+    reserved_bytes : int
+        Memory the caller needs beside this pass (its estimate): the mirror's tiles
+        leave it free.
 
     Raises
     ------
@@ -286,7 +265,7 @@ def iter_column_blocks(scene, block_size: int = DEFAULT_BLOCK_SIZE, *, order=Non
     if todo and engine is None:
         engine = make_engine(scene, samples=samples, processes=processes, ray_budget=ray_budget,
                              block_size=block_size, dtype=dtype)
-    copies = _mirror_for(scene, order, block_size, first_block, dtype) if reciprocity else None
+    copies = _mirror_for(scene, order, block_size, first_block, dtype, reserved_bytes) if reciprocity else None
     skips: dict[int, slice] = {}
 
     def request(k: int):
@@ -323,12 +302,14 @@ def iter_column_blocks(scene, block_size: int = DEFAULT_BLOCK_SIZE, *, order=Non
             engine.close()
 
 
-def _mirror_for(scene, order: np.ndarray, block_size: int, first_block: int, dtype) -> ReciprocityMirror:
-    """The reciprocity mirror of a pass, its band sized for MIRROR_SHARE of the available memory."""
+def _mirror_for(scene, order: np.ndarray, block_size: int, first_block: int, dtype,
+                reserved: int) -> ReciprocityMirror:
+    """The reciprocity mirror of a pass, its band sized by :func:`~hfrad.formfactors.mirror.mirror_bytes`."""
     n = scene.n_patches
     starts = np.r_[np.arange(0, n, block_size), n]
     itemsize = np.dtype(dtype).itemsize
-    band = band_for(len(starts) - 1, block_size, itemsize, mirror_bytes(n, itemsize, available_memory()))
+    budget = mirror_bytes(n, itemsize, available_memory(), reserved)
+    band = band_for(len(starts) - 1, block_size, itemsize, budget)
     return ReciprocityMirror(np.asarray(scene.areas, np.float64)[order], starts, band=band, first=first_block)
 
 

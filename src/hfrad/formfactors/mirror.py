@@ -27,7 +27,8 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["ReciprocityMirror", "MIRROR_LAG", "MIRROR_SHARE", "band_for", "mirror_bytes"]
+__all__ = ["ReciprocityMirror", "MIRROR_LAG", "MIRROR_SHARE", "RUN_FRACTION", "band_for", "mirror_bytes", "block_request",
+           "computed_rows", "put_computed_rows", "full_height"]
 
 #: Block b copies rows only from blocks before b - MIRROR_LAG: those are finished when b is
 #: handed to a worker (up to workers + 1 blocks are in flight), for any count up to 7 processes.
@@ -37,13 +38,59 @@ MIRROR_LAG = 8
 MIRROR_SHARE = 0.25
 
 
-def mirror_bytes(n: int, itemsize: int, available: int | None = None) -> int:
-    """Most bytes a pass's kept tiles may take: MIRROR_SHARE of ``available`` (default: the memory
-    available now), and never more than all the tiles of a full pass need (about n^2/4 values)."""
+# -- block requests: the engines compute a column block without the rows a mirror fills -----------
+
+def block_request(item) -> tuple[np.ndarray, slice]:
+    """``(cols, skip)`` of an item of an engine's ``col_sets``: columns, or columns and rows to skip."""
+    if isinstance(item, tuple):
+        cols, skip = item
+        return np.asarray(cols, np.int64), skip
+    return np.asarray(item, np.int64), slice(0, 0)
+
+
+def computed_rows(rows: np.ndarray, skip: slice) -> np.ndarray:
+    """``rows`` without the positions ``skip`` (a contiguous range)."""
+    if skip.stop <= skip.start:
+        return rows
+    return np.concatenate([rows[:skip.start], rows[skip.stop:]])
+
+
+def put_computed_rows(out: np.ndarray, F: np.ndarray, skip: slice) -> None:
+    """Write the computed rows ``F`` into the all-row block ``out``, around the positions ``skip``."""
+    if skip.stop <= skip.start:
+        out[:] = F
+        return
+    out[:skip.start] = F[:skip.start]
+    out[skip.stop:] = F[skip.start:]
+
+
+def full_height(F: np.ndarray, skip: slice, n: int) -> np.ndarray:
+    """The block of all n rows from the computed ones (rows ``skip`` left unspecified)."""
+    if skip.stop <= skip.start:
+        return F
+    out = np.empty((n, F.shape[1]), F.dtype)
+    put_computed_rows(out, F, skip)
+    return out
+
+
+#: A run is refused above this share of the available memory (:func:`hfrad.memory.require`); the
+#: tiles may take what the run's own estimate leaves of it.
+RUN_FRACTION = 0.8
+
+
+def mirror_bytes(n: int, itemsize: int, available: int | None = None, reserved: int = 0) -> int:
+    """Most bytes a pass's kept tiles may take.
+
+    MIRROR_SHARE of ``available`` (default: the memory available now), no more
+    than ``RUN_FRACTION`` of it minus ``reserved`` (what the rest of the run is
+    estimated to need), and never more than all the tiles of a full pass need
+    (about n^2/4 values).
+    """
     if available is None:
         from ..memory import available_bytes
         available = available_bytes()
-    return int(min(1.01 * n * n * itemsize / 4, MIRROR_SHARE * available))
+    return int(max(0.0, min(1.01 * n * n * itemsize / 4, MIRROR_SHARE * available,
+                            RUN_FRACTION * available - reserved)))
 
 
 def _peak_tiles(blocks: int, lag: int, band: int) -> int:

@@ -40,6 +40,7 @@ import numpy as np
 from ..errors import WorkerError
 from .clustered import block_function, kernel_for
 from .kernel import PatchGeometry
+from .mirror import block_request, computed_rows, put_computed_rows
 from .visibility import DEFAULT_SAMPLES, RayBudget
 
 __all__ = ["ProcessEngine", "column_block", "one_ray_threshold", "ray_budget", "default_workers",
@@ -219,18 +220,12 @@ def _init_worker(setup_name: str, setup_bytes: int, shm_name, shape, dtype) -> N
 
 
 def _work(slot: int, cols: np.ndarray, skip: slice) -> dict:
-    from .blocks import computed_rows
-
     engine = _engine_for(_W["scene"], _W["samples"], _W["ray_budget"])
     k0, e0, p0, r0 = engine.kernel_seconds, engine.embree_seconds, engine.pairs, engine.rays
     t0 = time.perf_counter()
     block = engine.block(computed_rows(_W["order"], skip), cols)
-    out = _W["out"][slot, :, :len(cols)]
-    if skip.stop > skip.start:      # rows ``skip`` are filled by the parent (reciprocity mirror)
-        out[:skip.start] = block[:skip.start]
-        out[skip.stop:] = block[skip.start:]
-    else:
-        out[:] = block
+    # rows ``skip`` are left for the parent to fill (reciprocity mirror)
+    put_computed_rows(_W["out"][slot, :, :len(cols)], block, skip)
     return {"kernel_seconds": engine.kernel_seconds - k0, "embree_seconds": engine.embree_seconds - e0,
             "pairs": engine.pairs - p0, "rays": engine.rays - r0, "seconds": time.perf_counter() - t0}
 
@@ -295,7 +290,6 @@ class ProcessEngine:
     def iter_blocks(self, rows: np.ndarray, col_sets) -> Iterator[np.ndarray]:
         """F[rows][:, cols] for each ``cols`` (or ``(cols, skip)``, as for
         :meth:`FormFactorEngine.iter_blocks`) of ``col_sets``, in order (copies, ``dtype``)."""
-        from .blocks import block_request
 
         n = len(rows)
         slots = self.workers + 2

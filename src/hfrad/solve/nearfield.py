@@ -309,6 +309,8 @@ class NearFieldFactorization(HFactorization):
         x = self._near_inverse(Ei, adjoint)
         if self.rank == 0:
             return self._to_user(x)
+        # the adjoint uses D_c Q where the forward solve's operator has A_c Z_c: they differ by the
+        # stored Z_c's rounding (quantization_error bounds it), far below the factorization error
         if adjoint:   # B = x + A^{-T} V K^{-T} Q^T D x
             W = low_rank_correction(self.Q, self.V, self._D, self.capacitance_inv, x, adjoint=True)
             sweeps = self.last_sweeps
