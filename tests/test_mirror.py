@@ -93,5 +93,10 @@ def test_bands_and_budgets():
         assert m.peak_bytes <= budget and not m.tiles
         assert (m.copied_pairs > 0) == (band > 0)
     assert 0 < band_for(blocks, b, 8, 12 * b * b * 8, lag=lag) < full
+    m = ReciprocityMirror(areas, starts, band=full, lag=lag)
+    for k in range(6):
+        m.keep(k, F[:, starts[k]:starts[k + 1]])
+    m.discard(lag + 2)                                   # a block read from a cache: its tiles go
+    assert (lag + 2, 0) not in m.tiles and m.bytes == sum(t.nbytes for t in m.tiles.values())
     with pytest.raises(ValueError, match="in order"):
         m.keep(0, F[:, :b])

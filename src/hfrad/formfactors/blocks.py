@@ -280,6 +280,8 @@ def iter_column_blocks(scene, block_size: int = DEFAULT_BLOCK_SIZE, *, order=Non
         for index, start in enumerate(starts, first_block):
             stop = min(n, start + block_size)
             block = store.get(index, start, stop) if store is not None else None
+            if block is not None and copies is not None:
+                copies.discard(index)                  # read, not computed: its tiles are not needed
             if block is None:
                 block = next(computed).astype(dtype, copy=False)
                 if copies is not None:
