@@ -110,6 +110,8 @@ class NearFieldFactorization(HFactorization):
                  scene=None, stats=None):
         self._set_state(perm, Q, V, rho_max, reflectance, lowrank, sigma_max, params, scene, stats)
         self._sources = self._channel_sources()
+        #: for each channel, its Z in the stack of distinct channels
+        self._stored = [self.distinct_channels.index(s) for s in self._sources]
         self.N = sp.csr_matrix(N, dtype=np.float64)
         # the sweeps read N in the factors' precision (float32: half the traffic)
         self._sweep_N = self.N.astype(self.dtype)
@@ -182,7 +184,7 @@ class NearFieldFactorization(HFactorization):
         norm_N = float(np.sqrt(absN.sum(axis=1).max() * absN.sum(axis=0).max())) if self.N.nnz else 0.0
         norm_V = 1.01 * power_sigma_max(self.V, np.eye(self.rank, dtype=self.dtype))
         per_z = [(1 + norm_N) * coded[z].error_bound() * norm_V for z in range(coded.shape[0])]
-        return np.array([per_z[self.distinct_channels.index(s)] for s in self._sources])
+        return np.array([per_z[z] for z in self._stored])
 
     @property
     def quantization_error(self) -> np.ndarray:
@@ -224,7 +226,7 @@ class NearFieldFactorization(HFactorization):
     def _applied_low_rank(self, c: int, W: np.ndarray) -> np.ndarray:
         """``A_c Z_c W`` (n, p), float64: the low-rank part ``U_c = A_c Z_c`` (``D_c Q`` up to rounding
         or quantization) applied to W (k, p)."""
-        Zz = self.Z[self.distinct_channels.index(self._sources[c])]
+        Zz = self.Z[self._stored[c]]
         Y = (Zz.matmul(W) if isinstance(Zz, QuantizedRows) else Zz @ W.astype(self.dtype)).astype(np.float64)
         return Y - self._D[:, c:c + 1] * (self.N @ Y)
 
@@ -293,7 +295,7 @@ class NearFieldFactorization(HFactorization):
         """``x_c + Z_c K_c^{-1} V^T x_c`` for x (n, 3, m), in place: V read once, each distinct ``Z`` once."""
         n, C, m = x.shape
         S = capacitance_applied(self.V, self.capacitance_inv, x)                         # (k, 3, m)
-        which = [self.distinct_channels.index(s) for s in self._sources[:C]]
+        which = self._stored[:C]
         if isinstance(self.Z, QuantizedRows):
             self.Z.add_products(x, S, which)
             return x
