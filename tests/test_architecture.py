@@ -30,6 +30,7 @@ LAYERS: list[tuple[int, str, tuple[str, ...]]] = [
     (6, "pipeline", ("hfrad.pipeline",)),
     (6, "render", ("hfrad.render",)),
     (7, "io", ("hfrad.io",)),
+    (7, "lighting", ("hfrad.lighting",)),
     (8, "viewer", ("hfrad.viewer",)),
     (8, "inverse", ("hfrad.inverse",)),
     (9, "cli", ("hfrad.cli", "hfrad.__main__")),

@@ -1,0 +1,124 @@
+"""Per-grid illuminance statistics (EN 12464-1 terms), CSV / JSON tables and a false-colour plan.
+
+For the m sensors of a grid: ``average`` (the arithmetic mean: grid cells are
+equal), ``minimum``, ``maximum``, ``U0 = Emin / Eavg`` (EN 12464-1's
+uniformity) and ``Ud = Emin / Emax``.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from ..atomic import atomic_path
+from ..errors import InputError
+from ..render.falsecolor import colorbar_width, falsecolor_image
+from .sensors import SensorSet
+
+__all__ = ["grid_stats", "write_csv", "write_json", "plan_image", "save_plan"]
+
+
+def grid_stats(lux: np.ndarray) -> dict:
+    """``{"average", "minimum", "maximum", "U0", "Ud", "sensors"}`` of (m,) illuminances (lux).
+
+    U0 and Ud are None when the average (maximum) is 0.
+    """
+    E = np.asarray(lux, np.float64).reshape(-1)
+    if not len(E):
+        raise InputError("no sensors to summarise")
+    avg, lo, hi = float(E.mean()), float(E.min()), float(E.max())
+    return {"sensors": int(len(E)), "average": avg, "minimum": lo, "maximum": hi,
+            "U0": lo / avg if avg > 0 else None, "Ud": lo / hi if hi > 0 else None}
+
+
+def write_csv(path: "str | Path", sensors: SensorSet, lux: np.ndarray, *, direct: np.ndarray | None = None) -> Path:
+    """One row per sensor: ``grid,x,y,z,nx,ny,nz,lux`` (and ``direct_lux``), atomically."""
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(["grid", "x", "y", "z", "nx", "ny", "nz", "lux"] + (["direct_lux"] if direct is not None else []))
+    for i, (p, n) in enumerate(zip(sensors.points, sensors.normals)):
+        row = [sensors.name, *(f"{v:.6g}" for v in p), *(f"{v:.6g}" for v in n), f"{lux[i]:.6g}"]
+        if direct is not None:
+            row.append(f"{direct[i]:.6g}")
+        w.writerow(row)
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        tmp.write_text(buf.getvalue(), encoding="utf-8")
+    return path
+
+
+def _clean(x):
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    if isinstance(x, dict):
+        return {k: _clean(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_clean(v) for v in x]
+    return x
+
+
+def write_json(path: "str | Path", report: dict) -> Path:
+    """``report`` as indented JSON (non-finite numbers as null), atomically."""
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(_clean(report), indent=2, allow_nan=False) + "\n", encoding="utf-8")
+    return path
+
+
+def plan_image(sensors: SensorSet, lux: np.ndarray, *, pixels_per_cell: int | None = None, vmax: float | None = None,
+               title: str | None = None) -> np.ndarray:
+    """(h, w, 3) uint8: the grid seen from above in false colour (viridis), with a lux colour bar.
+
+    x runs to the right, z downwards (a plan of a y-up scene seen from
+    above); cells without a sensor are black. The statistics of
+    :func:`grid_stats` are printed on top.
+
+    Raises
+    ------
+    InputError
+        The sensors are not a grid (a sensor file has no plan).
+    """
+    from PIL import Image, ImageDraw
+
+    from ..render.falsecolor import _font
+
+    if not sensors.is_grid:
+        raise InputError(f"sensors {sensors.name!r} are not a grid; a plan image needs a work-plane grid")
+    nx, nz = sensors.shape
+    ppc = pixels_per_cell or max(4, min(40, 480 // max(nx, nz)))
+    values = np.zeros((nz, nx))
+    valid = np.zeros((nz, nx), bool)
+    values[sensors.cells[:, 1], sensors.cells[:, 0]] = lux
+    valid[sensors.cells[:, 1], sensors.cells[:, 0]] = True
+    values = np.repeat(np.repeat(values, ppc, axis=0), ppc, axis=1)
+    valid = np.repeat(np.repeat(valid, ppc, axis=0), ppc, axis=1)
+    head = 22
+    h, w = values.shape
+    values = np.vstack([np.zeros((head, w)), values])
+    valid = np.vstack([np.zeros((head, w), bool), valid])
+    width = w + colorbar_width(max(w, 360))
+    img = falsecolor_image(values, valid, width=width, unit="lux", vmax=vmax)
+    st = grid_stats(lux)
+    text = title or (f"{sensors.name}: avg {st['average']:.0f} lx, min {st['minimum']:.0f}, "
+                     f"max {st['maximum']:.0f}, U0 {st['U0']:.2f}" if st["U0"] is not None else sensors.name)
+    pic = Image.fromarray(img)
+    ImageDraw.Draw(pic).text((4, 4), text, fill=(255, 255, 255), font=_font(12))
+    return np.asarray(pic)
+
+
+def save_plan(path: "str | Path", sensors: SensorSet, lux: np.ndarray, **options) -> Path:
+    """Write :func:`plan_image` as a PNG, atomically."""
+    from PIL import Image
+
+    path = Path(path)
+    if path.suffix.lower() != ".png":
+        raise InputError(f"plan image must be a .png file, got '{path}'")
+    img = plan_image(sensors, lux, **options)
+    with atomic_path(path) as tmp:
+        Image.fromarray(img).save(tmp, format="PNG")
+    return path
