@@ -77,16 +77,17 @@ def direct_illuminance(luminaires, points: np.ndarray, normals: np.ndarray, *, c
         near = (d_centre < near_ratio * size) if size > 0 else np.zeros(len(P), bool)
         if (~near).any():
             far = np.flatnonzero(~near)
-            out[far, j] = _from_sources(lum, lum.position[None], P[far], N[far], caster, eps)
+            out[far, j] = _from_sources(lum, lum.position[None], np.ones(1), P[far], N[far], caster, eps)
         if near.any():
             idx = np.flatnonzero(near)
-            out[idx, j] = _from_sources(lum, lum.emission_points(spacing), P[idx], N[idx], caster, eps)
+            out[idx, j] = _from_sources(lum, *lum.emission_points(spacing), P[idx], N[idx], caster, eps)
         report(progress, j + 1, len(luminaires))
     return out
 
 
-def _from_sources(lum, sources: np.ndarray, P: np.ndarray, N: np.ndarray, caster, eps: float) -> np.ndarray:
-    """(p,) lux at P from ``sources`` (k, 3) sharing the luminaire's intensity equally."""
+def _from_sources(lum, sources: np.ndarray, weights: np.ndarray, P: np.ndarray, N: np.ndarray, caster,
+                  eps: float) -> np.ndarray:
+    """(p,) lux at P from ``sources`` (k, 3), each with ``weights`` (k,) of the luminaire's intensity."""
     k = len(sources)
     total = np.zeros(len(P))
     frame = lum.frame
@@ -104,7 +105,7 @@ def _from_sources(lum, sources: np.ndarray, P: np.ndarray, N: np.ndarray, caster
         E = np.zeros(d.shape)
         if live.any():
             I = lum.photometry.intensity(u[live] @ frame)
-            E[live] = I * cos_r[live] / d2[live] / k
+            E[live] = I * cos_r[live] / d2[live] * np.broadcast_to(weights, E.shape)[live]
             live &= E > 0
             if caster is not None and live.any():
                 bi, ki = np.nonzero(live)

@@ -129,23 +129,34 @@ class Luminaire:
         length, width, height = (abs(x) for x in self.photometry.size)
         return float(max(length, width, height))
 
-    def emission_points(self, spacing: float) -> np.ndarray:
-        """(k, 3) scene points spread over the luminous opening, about ``spacing`` apart.
+    def emission_points(self, spacing: float) -> tuple[np.ndarray, np.ndarray]:
+        """Points spread over the luminous opening, about ``spacing`` apart, and their shares of the intensity.
 
-        A rectangle length x width (C0 x C90) or a disk of diameter |length|
-        (negative length, or zero width with a length) in the luminaire's
-        local x-y plane; just the centre for a point source. Each point
-        carries 1/k of the intensity.
+        A rectangle length x width (C0 x C90): the centres of an even grid of
+        cells. A disk of diameter |length| (negative length, or a length with
+        zero width): equal-width rings, each cut into cells about ``spacing``
+        long, a point at each cell's centre of area, weighted by the cell's
+        area. A point source: its centre.
+
+        Returns
+        -------
+        points : (k, 3) float, scene coordinates
+        weights : (k,) float, summing to 1
         """
         length, width, _ = self.photometry.size
         frame = self.frame
         if length < 0 or (width == 0 and length > 0):
-            d = abs(length)
-            n = max(1, int(math.ceil(d / spacing)))
-            u = (np.arange(n) + 0.5) / n - 0.5
-            X, Y = np.meshgrid(u * d, u * d, indexing="ij")
-            keep = X ** 2 + Y ** 2 <= (0.5 * d) ** 2
-            local = np.stack([X[keep], Y[keep]], axis=1) if keep.any() else np.zeros((1, 2))
+            r = 0.5 * abs(length)
+            rings = max(1, int(math.ceil(r / spacing)))
+            local, weights = [], []
+            for j in range(rings):
+                r0, r1 = r * j / rings, r * (j + 1) / rings
+                mid = math.sqrt(0.5 * (r0 * r0 + r1 * r1))
+                count = 1 if j == 0 and rings == 1 else max(3, int(round(2 * math.pi * mid / spacing)))
+                a = (np.arange(count) + 0.5) * 2 * math.pi / count
+                local.append(np.column_stack([mid * np.cos(a), mid * np.sin(a)]) if count > 1 else np.zeros((1, 2)))
+                weights.append(np.full(count, (r1 * r1 - r0 * r0) / (r * r) / count))
+            local, weights = np.vstack(local), np.concatenate(weights)
         elif length > 0 or width > 0:
             nx = max(1, int(math.ceil(length / spacing)))
             ny = max(1, int(math.ceil(width / spacing)))
@@ -153,9 +164,10 @@ class Luminaire:
             uy = ((np.arange(ny) + 0.5) / ny - 0.5) * width
             X, Y = np.meshgrid(ux, uy, indexing="ij")
             local = np.stack([X.ravel(), Y.ravel()], axis=1)
+            weights = np.full(len(local), 1.0 / len(local))
         else:
-            local = np.zeros((1, 2))
-        return self.position + local @ frame[:, :2].T
+            local, weights = np.zeros((1, 2)), np.ones(1)
+        return self.position + local @ frame[:, :2].T, weights
 
     @property
     def watts(self) -> float:

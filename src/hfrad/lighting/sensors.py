@@ -58,7 +58,10 @@ class SensorSet:
         if (length == 0).any():
             raise InputError(f"sensors {self.name!r}: sensor {int(np.flatnonzero(length == 0)[0])} has a zero normal")
         object.__setattr__(self, "points", P)
-        object.__setattr__(self, "normals", N / length[:, None])
+        off = np.abs(length - 1.0) > 1e-12                 # unit normals are kept bit for bit (file round trips)
+        N = N.copy()
+        N[off] /= length[off, None]
+        object.__setattr__(self, "normals", N)
 
     def __len__(self) -> int:
         return len(self.points)
