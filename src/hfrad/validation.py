@@ -11,7 +11,111 @@ import numpy as np
 from .errors import InputError
 
 __all__ = ["check_permutation", "check_reflectance", "check_areas", "check_trans", "check_finite", "object_first",
-           "check_factorize_options"]
+           "check_factorize_options", "as_real_array", "check_exitance", "check_form_factors", "MAX_EXITANCE",
+           "clip_token"]
+
+#: The largest exitance (W/m^2) accepted anywhere: 1e30, far above any light (the sun's surface emits
+#: 6.3e7 W/m^2) and 3e8 below float32's largest number (3.4e38), in which radiosity is stored and
+#: pictures are computed; the margin covers the 1 / (1 - rho) gain of many bounces and the sums of
+#: a picture's exposure. Larger values would turn into inf/NaN radiosity and an all-black picture.
+MAX_EXITANCE = 1e30
+
+#: Characters of an offending token quoted in an error message.
+QUOTE_CHARS = 200
+
+
+def clip_token(text, limit: int = QUOTE_CHARS) -> str:
+    """``repr`` of ``text`` cut to about ``limit`` characters (with the length left out), for error lines.
+
+    A bad token in a file can be megabytes long; an error line quotes its
+    start only, e.g. ``'1111...' (100,005 characters)``.
+    """
+    text = str(text)
+    if len(text) <= limit:
+        return repr(text)
+    return f"{text[:limit]!r}... ({len(text):,} characters)"
+
+
+def as_real_array(array, name: str) -> np.ndarray:
+    """``array`` as a float64 ndarray of real numbers; refuses what numpy would convert silently.
+
+    ``np.asarray(x, dtype=float)`` drops the imaginary part of a complex
+    array (a ComplexWarning at most), turns booleans into 0/1 and parses
+    strings; none of these is a physical quantity, so each is refused.
+
+    Raises
+    ------
+    InputError (a ValueError)
+        A complex, boolean, string, object (``None``, ragged lists, mixed
+        types) or date array, naming ``name`` and the dtype received.
+    """
+    a = array if isinstance(array, np.ndarray) else np.asarray(array)
+    kind = a.dtype.kind
+    if kind in "iuf":
+        return np.asarray(a, dtype=np.float64)
+    if kind == "c":
+        raise InputError(f"{name} must be real numbers; got a complex array ({a.dtype}). hfrad does not "
+                         f"drop imaginary parts silently: pass {name}.real if the imaginary part is meant to be 0")
+    if kind == "b":
+        raise InputError(f"{name} must be real numbers; got a boolean array (convert a mask with "
+                         f".astype(float) if 1.0 and 0.0 are meant)")
+    what = {"O": "Python objects (None, ragged lists or mixed types?)", "U": "strings", "S": "bytes",
+            "M": "dates", "m": "time differences", "V": "structured records"}.get(kind, str(a.dtype))
+    raise InputError(f"{name} must be an array of real numbers; got an array of {what} (dtype {a.dtype})")
+
+
+def check_exitance(exitance, name: str = "exitance", *, signed: bool = False) -> np.ndarray:
+    """``exitance`` as a float64 array of finite values, >= 0 (unless ``signed``) and at most MAX_EXITANCE.
+
+    Shapes are the caller's to check. ``signed`` allows negative entries
+    (the right-hand side of an adjoint solve); the magnitude limit holds either way.
+
+    Raises
+    ------
+    InputError (a ValueError)
+        Not real numbers (see :func:`as_real_array`), NaN/inf, a negative
+        value, or one above ``MAX_EXITANCE`` W/m^2 (index named).
+    """
+    E = as_real_array(exitance, name)
+    flat = E.reshape(-1)
+    bad = ~np.isfinite(flat)
+    if bad.any():
+        where = np.unravel_index(int(np.flatnonzero(bad)[0]), E.shape)
+        raise InputError(f"{name} has a NaN or infinite value at index {tuple(int(i) for i in where)}")
+    if not signed and (flat < 0).any():
+        where = np.unravel_index(int(np.flatnonzero(flat < 0)[0]), E.shape)
+        raise InputError(f"{name} must be >= 0 (W/m^2); index {tuple(int(i) for i in where)} "
+                         f"has {float(E[where]):g}")
+    big = np.abs(flat) > MAX_EXITANCE
+    if big.any():
+        where = np.unravel_index(int(np.flatnonzero(big)[0]), E.shape)
+        raise InputError(f"{name} {float(E[where]):g} W/m^2 at index {tuple(int(i) for i in where)} is "
+                         f"above the largest exitance hfrad computes with, {MAX_EXITANCE:g} W/m^2 "
+                         "(radiosity is stored in float32 and would overflow); express it in a larger "
+                         "unit, e.g. divide every emission by 1e6")
+    return E
+
+
+def check_form_factors(form_factors, name: str = "form factors") -> np.ndarray:
+    """``form_factors`` as a square (n, n) float64 matrix of finite entries >= 0.
+
+    Raises
+    ------
+    InputError (a ValueError)
+        Not real numbers (complex, strings, objects...), not square, NaN/inf,
+        or a negative entry (a form factor is a fraction of energy, never negative).
+    """
+    F = as_real_array(form_factors, name)
+    if F.ndim != 2 or F.shape[0] != F.shape[1]:
+        raise InputError(f"{name} must be a square (n, n) matrix; got {F.shape}")
+    if not np.isfinite(F).all():
+        i, j = np.argwhere(~np.isfinite(F))[0]
+        raise InputError(f"{name} have a NaN or infinite value at F[{i}, {j}]")
+    if (F < 0).any():
+        i, j = np.argwhere(F < 0)[0]
+        raise InputError(f"{name} must be >= 0 (a fraction of the energy leaving a patch); "
+                         f"F[{i}, {j}] = {F[i, j]:g}")
+    return F
 
 
 def check_permutation(order, n: int, name: str = "order") -> np.ndarray:
@@ -41,7 +145,7 @@ def check_reflectance(reflectance, n: int, name: str = "reflectance") -> np.ndar
     ValueError
         Wrong shape, NaN/inf, or a value outside [0, 1) (names the first bad patch).
     """
-    rho = np.asarray(reflectance, dtype=np.float64)
+    rho = as_real_array(reflectance, name)
     if rho.shape != (n, 3):
         raise InputError(f"{name} must have shape ({n}, 3); got {rho.shape}")
     bad = ~(np.isfinite(rho) & (rho >= 0) & (rho < 1)).all(axis=1)
@@ -54,7 +158,7 @@ def check_reflectance(reflectance, n: int, name: str = "reflectance") -> np.ndar
 
 def check_areas(areas, n: int, name: str = "areas") -> np.ndarray:
     """``areas`` as an (n,) float64 array of finite positive values (m^2)."""
-    a = np.asarray(areas, dtype=np.float64)
+    a = as_real_array(areas, name)
     if a.shape != (n,):
         raise InputError(f"{name} must have shape ({n},); got {a.shape}")
     bad = ~(np.isfinite(a) & (a > 0))
@@ -72,8 +176,9 @@ def check_trans(trans) -> bool:
 
 
 def check_finite(array, name: str) -> np.ndarray:
-    """``array`` as a float64 array; InputError naming the first NaN/inf entry (LAPACK runs unchecked)."""
-    a = np.asarray(array, dtype=np.float64)
+    """``array`` as a float64 array; InputError naming the first NaN/inf entry (LAPACK runs unchecked),
+    or a complex/non-numeric array (:func:`as_real_array`)."""
+    a = as_real_array(array, name)
     if not np.isfinite(a).all():
         where = tuple(int(i) for i in np.argwhere(~np.isfinite(a))[0])
         raise InputError(f"{name} has a NaN or infinite value at index {where}")

@@ -6,6 +6,15 @@ engine gets its parallelism by overlapping Embree with the numba kernel,
 which does release the GIL. ``embreex`` is imported at first use so that a missing
 install gives a clear message with the pip command, not an import failure of
 hfrad itself.
+
+Embree works in float32 and silently misses every hit when coordinates are
+very large or very small (measured with embreex: a 2-unit triangle is hit up
+to a size of 1e12 and missed from 1e13 on, and missed below 1e-20), and
+float32 cannot resolve a 1 m room 1e13 m from the origin at all. So the
+caster works in its own frame: the triangles are moved to the centre of their
+bounding box and divided by its size (metres per unit) before they reach
+Embree; the ray origins and lengths of each query are mapped the same way in
+float64, and the distances of hits mapped back. Directions are unchanged.
 """
 
 from __future__ import annotations
@@ -45,11 +54,30 @@ class RayCaster:
     faces : (m, 3) int
     threads : int, optional
         Worker threads per batch; default: all cores available.
+    normalise : bool
+        Cast in the triangles' own frame (centred on their bounding box, in
+        units of its size; module docstring), whatever the scale and offset
+        of the coordinates. False for a caller whose coordinates already are
+        centred and of size about 1 (the visibility engine): no per-query mapping.
+
+    Attributes
+    ----------
+    centre : (3,) float, unit : float
+        The frame: Embree sees ``(x - centre) / unit``.
     """
 
-    def __init__(self, vertices: np.ndarray, faces: np.ndarray, threads: int | None = None) -> None:
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, threads: int | None = None, *,
+                 normalise: bool = True) -> None:
         rtcore_scene, TriangleMesh = _embree()
-        self.triangles = np.ascontiguousarray(np.asarray(vertices)[np.asarray(faces)], dtype=np.float32)
+        tri = np.asarray(vertices, dtype=np.float64)[np.asarray(faces, dtype=np.int64)].reshape(-1, 3, 3)
+        self.centre, self.unit = np.zeros(3), 1.0
+        if normalise and len(tri):
+            lo, hi = tri.min(axis=(0, 1)), tri.max(axis=(0, 1))
+            size = float((hi - lo).max())
+            self.centre, self.unit = 0.5 * (lo + hi), (size if size > 0 else 1.0)
+        self._mapped = bool(self.centre.any() or self.unit != 1.0)
+        self.triangles = np.ascontiguousarray((tri - self.centre) / self.unit if self._mapped else tri,
+                                              dtype=np.float32)
         self._scene = rtcore_scene.EmbreeScene()
         if len(self.triangles):
             TriangleMesh(self._scene, self.triangles)
@@ -80,6 +108,9 @@ class RayCaster:
 
         Contiguous float32 arrays are passed to Embree without a copy.
         """
+        if self._mapped:  # into the caster's frame in float64, then float32 (module docstring)
+            origins = (np.asarray(origins, np.float64) - self.centre) / self.unit
+            distances = np.asarray(distances, np.float64) / self.unit
         o = np.ascontiguousarray(origins, dtype=np.float32)
         d = np.ascontiguousarray(directions, dtype=np.float32)
         t = np.ascontiguousarray(distances, dtype=np.float32)
@@ -104,6 +135,8 @@ class RayCaster:
         distance : (r,) float, ray parameter of the hit (inf where none)
         barycentric : (r, 2) float, (u, v) weights of corners 1 and 2 of the hit face
         """
+        if self._mapped:  # into the caster's frame in float64, then float32 (module docstring)
+            origins = (np.asarray(origins, np.float64) - self.centre) / self.unit
         origins = np.ascontiguousarray(origins, dtype=np.float32)
         directions = np.ascontiguousarray(directions, dtype=np.float32)
         r = len(origins)
@@ -122,6 +155,8 @@ class RayCaster:
             uv[s] = np.stack([res["u"], res["v"]], axis=1)
 
         self._map(run, r)
+        if self._mapped:
+            dist *= self.unit  # inf stays inf
         return face, dist, uv
 
     def close(self) -> None:

@@ -42,9 +42,13 @@ destroys the low rank the hierarchical factorization relies on (docs/method.md, 
 
 End points are moved off their surfaces along the patch normals by
 ``1e-5 x scene size`` so that a ray never hits the face it starts or ends on.
-Rays are cast in coordinates relative to the centre of the scene's bounding
-box: Embree works in float32, whose resolution far from the origin (site or
-georeferenced coordinates: 0.06 m at 1e6 m) would swallow the offset.
+Rays are cast in the scene's own frame: coordinates relative to the centre of
+its bounding box, in units of its size. Embree works in float32, whose
+resolution far from the origin (site or georeferenced coordinates: 0.06 m at
+1e6 m) would swallow the offset, and which misses every hit at sizes of 1e13
+and more or 1e-20 and less (see :mod:`hfrad.formfactors.raycast`); in this
+frame every scene is about 1 across, so its form factors do not depend on
+where it lies or on its unit (checked from 1e-40 to 1e40 m).
 Rays are cast only for pairs with a nonzero unoccluded form factor that *can*
 be blocked: an occluder triangle can cut a segment only if the segment's end
 points lie on opposite sides of its plane and the pair's bounding box meets the
@@ -189,11 +193,13 @@ class Visibility:
                  probe: bool = True, ray_budget: RayBudget | None = None) -> None:
         m = check_samples(samples)
         self.samples = int(samples)
-        # everything below is relative to the scene's centre (float32 rays, see module docstring)
+        # everything below is in the scene's frame: centred, in units of its size (module docstring);
+        # only `areas` stays in m^2 (it weighs form factors, which have no unit)
         self.centre = 0.5 * (scene.bounds[0] + scene.bounds[1]) if scene.n_patches else np.zeros(3)
-        tri = np.asarray(scene.triangles, dtype=np.float64) - self.centre
-        size = float(np.ptp(scene.bounds, axis=0).max()) if len(tri) else 1.0
-        self.scale = size if size > 0 else 1.0
+        size = float(np.ptp(scene.bounds, axis=0).max()) if scene.n_patches else 1.0
+        self.unit = size if size > 0 else 1.0  # metres per unit of the frame
+        tri = self._frame(scene.triangles)
+        self.scale = 1.0  # the scene's size in the frame
         self.offset = _OFFSET * self.scale
         self._scene = scene
         self._tri = tri
@@ -201,7 +207,7 @@ class Visibility:
         nrm = np.asarray(scene.normals, np.float64)
         # patch planes n . x = n . v0, or through the centroid of a clustered patch
         # (sample points are `offset` in front of their own triangles)
-        on_plane = scene.centroids - self.centre if scene.is_clustered else tri[:, 0]
+        on_plane = self._frame(scene.centroids) if scene.is_clustered else tri[:, 0]
         self.plane = np.ascontiguousarray(np.column_stack([nrm, np.einsum("nd,nd->n", nrm, on_plane)
                                                            if len(tri) else np.zeros(0)]))
         self.points = self._points(m, None)
@@ -214,11 +220,11 @@ class Visibility:
         self.rays_refined = 0
         self.refine_near = REFINE_NEAR
         self.probe_near = PROBE_NEAR
-        self.centroids = np.ascontiguousarray(np.asarray(scene.centroids, np.float64) - self.centre)
+        self.centroids = np.ascontiguousarray(self._frame(scene.centroids))
         edges = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max(axis=1) if len(tri) else np.zeros(0)
         self.diameters = np.ascontiguousarray(edges)
-        self.caster = RayCaster(np.asarray(scene.occluder_vertices, np.float64) - self.centre,
-                                scene.occluder_faces, threads=1)
+        self.caster = RayCaster(self._frame(scene.occluder_vertices), scene.occluder_faces, threads=1,
+                                normalise=False)  # already in the frame
         self._setup_culling(scene, tri, cull)
         self.areas = np.ascontiguousarray(scene.areas, dtype=np.float64)
         self.budget = ray_budget if ray_budget is not None else RayBudget()
@@ -239,6 +245,10 @@ class Visibility:
                                 else self._points(check_samples(self.boundary_samples), None))
         self.boundary_partner = pairing(self.boundary_samples)
 
+    def _frame(self, x) -> np.ndarray:
+        """Points in metres -> the visibility frame (centred, in units of the scene's size), float64."""
+        return (np.asarray(x, dtype=np.float64) - self.centre) / self.unit
+
     def _points(self, m: int, patches) -> np.ndarray:
         """(len(patches), m^2, 3) ray end points of an m x m design (all patches if None), centred
         and moved ``offset`` off their surfaces."""
@@ -247,7 +257,7 @@ class Visibility:
             key = ("all", m)
             if key not in self._design_cache:
                 pts, nrm = sample_points(scene, m)
-                self._design_cache[key] = np.ascontiguousarray(pts - self.centre + self.offset * nrm)
+                self._design_cache[key] = np.ascontiguousarray(self._frame(pts) + self.offset * nrm)
                 if patches is None:
                     return self._design_cache.pop(key)
             allp = self._design_cache[key]
@@ -257,7 +267,7 @@ class Visibility:
         return np.ascontiguousarray(pts)
 
     def _setup_culling(self, scene, tri: np.ndarray, cull: bool) -> None:
-        occ = (np.asarray(scene.occluder_vertices, np.float64) - self.centre)[np.asarray(scene.occluder_faces)]
+        occ = self._frame(scene.occluder_vertices)[np.asarray(scene.occluder_faces)]
         m = len(occ)
         self.n_occluders = m
         n = scene.n_patches

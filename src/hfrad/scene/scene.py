@@ -14,6 +14,19 @@ from functools import cached_property
 import numpy as np
 
 from ..errors import SceneError
+from ..validation import MAX_EXITANCE
+
+#: Sizes (largest side of the bounding box, metres) a scene may have. Form factors are checked
+#: to be independent of the unit from 1e-40 to 1e40 m (tests/test_robust_inputs.py) and break
+#: beyond 1e75 (areas and distances squared leave float64's range); outside this range a
+#: scene is refused with the size it has, rather than reported as "every face is degenerate".
+SIZE_RANGE = (1e-30, 1e30)
+
+#: How far from the origin, in multiples of its size, a scene may lie. Patch meshing merges
+#: points closer than 1e-9 times the largest coordinate (hfrad.scene.patches); from 5e5 sizes
+#: away that cuts zero-area patches into a Cornell box (measured). 1e4 keeps that merging
+#: distance under 1e-5 of the scene's size: a 100 m site in coordinates of 1e6 m still loads.
+MAX_OFFSET_RATIO = 1e4
 
 
 @dataclass(frozen=True)
@@ -153,10 +166,12 @@ class Scene:
         for m in self.materials:
             rho, em = np.asarray(m.reflectance), np.asarray(m.emission)
             if not (np.isfinite(rho).all() and (rho >= 0).all() and (rho < 1).all()):
-                raise SceneError(f"{self.name}: material '{m.name}' reflectance {tuple(rho)} "
+                raise SceneError(f"{self.name}: material '{m.name}' reflectance {rho.tolist()} "
                                  "must be in [0, 1) (a reflectance of 1 or more creates energy)")
             if not (np.isfinite(em).all() and (em >= 0).all()):
-                raise SceneError(f"{self.name}: material '{m.name}' emission {tuple(em)} must be finite and >= 0")
+                raise SceneError(f"{self.name}: material '{m.name}' emission {em.tolist()} must be finite and >= 0")
+        self._check_extent()
+        self._check_exitance()
         # per-patch overrides are checked too: a NaN would reach LAPACK (which runs unchecked)
         bad = ~(np.isfinite(self.reflectance) & (self.reflectance >= 0) & (self.reflectance < 1)).all(axis=1)
         if bad.any():
@@ -167,6 +182,39 @@ class Scene:
         if bad.any():
             i = int(np.flatnonzero(bad)[0])
             raise SceneError(f"{self.name}: patch {i} emission {self.emission[i].tolist()} must be finite and >= 0")
+
+    def _check_extent(self) -> None:
+        """Refuse a scene too small, too large or too far from the origin to compute with (with the reason)."""
+        if not len(self.faces):
+            return
+        used = self.vertices[self.faces].reshape(-1, 3)
+        lo, hi = used.min(axis=0), used.max(axis=0)
+        size = float((hi - lo).max())
+        if size == 0.0:
+            return  # a point: every face is degenerate, which the loader reports
+        if not (SIZE_RANGE[0] <= size <= SIZE_RANGE[1]):
+            raise SceneError(f"{self.name}: the scene is {size:.3g} m across; hfrad computes with scenes "
+                             f"between {SIZE_RANGE[0]:g} and {SIZE_RANGE[1]:g} m (areas and distances "
+                             "squared would leave the range of floating point numbers): give the "
+                             "coordinates' unit (--unit-scale / unit_scale) or rescale the file")
+        far = float(np.abs(np.concatenate([lo, hi])).max())
+        if far > MAX_OFFSET_RATIO * size:
+            centre = 0.5 * (lo + hi)
+            raise SceneError(f"{self.name}: the scene is {size:.3g} m across but lies {far:.3g} m from the "
+                             f"origin ({far / size:.3g} times its size; at most {MAX_OFFSET_RATIO:g}): its "
+                             f"patches would be meshed to a precision of about {1e-9 * far:.2g} m. Move it near "
+                             f"the origin (subtract ({', '.join(f'{c:.6g}' for c in centre)}) from every vertex)")
+
+    def _check_exitance(self) -> None:
+        """Refuse emission above MAX_EXITANCE: float32 radiosity would overflow into inf/NaN (a black picture)."""
+        over = self.emission.max(axis=1, initial=0.0) > MAX_EXITANCE if len(self.emission) else np.zeros(0, bool)
+        if over.any():
+            i = int(np.flatnonzero(over)[0])
+            m = self.materials[int(self.material[i])].name if len(self.materials) else "?"
+            raise SceneError(f"{self.name}: patch {i} (material '{m}') emits {self.emission[i].tolist()} W/m^2, "
+                             f"above the largest exitance hfrad computes with, {MAX_EXITANCE:g} W/m^2 "
+                             "(radiosity is stored in float32 and would overflow); express the emission "
+                             "in a larger unit")
 
     # -- sizes -------------------------------------------------------------
     @property

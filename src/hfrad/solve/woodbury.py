@@ -14,7 +14,7 @@ import scipy.linalg as sla
 
 from ..errors import AccuracyWarning, FactorizationError, InputError
 from ..factorize.lowrank import LowRank
-from ..validation import check_finite, check_reflectance, check_trans
+from ..validation import as_real_array, check_exitance, check_finite, check_reflectance, check_trans
 from .bounds import ErrorEstimate, ResidualEstimate, estimate_errors, power_sigma_max, residual_estimate
 from . import thin
 from .stats import FAILURE_PROBABILITY, PassStatistics
@@ -341,18 +341,14 @@ class HFactorization:
 
     # -- solving -------------------------------------------------------------
     def _validate(self, exitance, adjoint: bool) -> np.ndarray:
-        E = np.asarray(exitance, dtype=np.float64)
+        E = as_real_array(exitance, "exitance")  # complex, bool, strings, objects: refused, not cast
         n = self.n_patches
         if E.ndim not in (1, 2, 3) or E.shape[0] != n or (E.ndim >= 2 and E.shape[1] != N_CHANNELS):
             raise InputError(f"exitance must have shape ({n},), ({n}, 3) or ({n}, 3, m) "
                              f"(patches in the scene's order); got {E.shape}")
-        if not np.isfinite(E).all():
-            bad = int(np.flatnonzero(~np.isfinite(E.reshape(n, -1)).all(axis=1))[0])
-            raise InputError(f"exitance has a NaN or infinite value at patch {bad}")
-        if not adjoint and (E < 0).any():
-            bad = int(np.flatnonzero((E.reshape(n, -1) < 0).any(axis=1))[0])
-            raise InputError(f"exitance must be >= 0 (W/m^2); patch {bad} has a negative value")
-        return E
+        # finite, >= 0 unless adjoint, and at most MAX_EXITANCE (float32 radiosity would overflow);
+        # the first index named is the patch
+        return check_exitance(E, "exitance", signed=adjoint)
 
     def solve(self, exitance, trans: str = "N", *, transpose: bool | None = None) -> np.ndarray:
         """Radiosity ``B_c = (I - R_c F)^{-1} E_c`` for every channel (eq. 4).
