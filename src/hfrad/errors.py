@@ -33,6 +33,11 @@ class MemoryLimitError(MemoryError):
     """A requested array would not fit in the memory allowed for it."""
 
 
+class WriteError(OSError):
+    """A file could not be written (no space left, read-only or missing folder, permission, I/O error);
+    the message names the file the user asked for, not the temporary name."""
+
+
 class WorkerError(RuntimeError):
     """A worker process died before handing back its work (killed, out of memory, or a script
     that starts workers without an ``if __name__ == "__main__":`` guard)."""
