@@ -22,12 +22,29 @@ to the symmetric quantity ``A_i F_ij = A_j F_ji``, so reciprocity survives.
 A second threshold, for ``FEW_RAYS_FACTOR`` times that share, gives the pairs
 whose probe rays disagree with their neighbours' 4 rays instead of 16
 (:func:`ray_budget`, :class:`~hfrad.formfactors.visibility.RayBudget`).
+
+Faults: a worker dies with its parent. On Linux it asks the kernel for
+SIGKILL when the parent exits (``prctl(PR_SET_PDEATHSIG)``; the pool is driven
+from the thread that created it, as ``iter_blocks`` does), and on every system
+a thread checks ``os.getppid()`` twice a second, so ``kill -9`` of the parent
+leaves no orphaned worker computing blocks nobody will read. Workers ignore
+SIGINT: Ctrl-C reaches the whole process group, and the parent alone stops the
+pool (its workers terminated, not waited for). Shared-memory segments are named
+``hfrad_<parent pid>_<random>``; Python's resource tracker unlinks those of a
+killed parent once its workers are gone, and a new pool removes any such
+segment whose creator is no longer running (:func:`remove_stale_segments`), in
+case the tracker was killed too.
 """
 
 from __future__ import annotations
 
 import os
 import pickle
+import re
+import secrets
+import signal
+import sys
+import threading
 import time
 from concurrent.futures import ProcessPoolExecutor, TimeoutError as FutureTimeout
 from concurrent.futures.process import BrokenProcessPool
@@ -44,7 +61,7 @@ from .mirror import block_request, computed_rows, put_computed_rows
 from .visibility import DEFAULT_SAMPLES, RayBudget
 
 __all__ = ["ProcessEngine", "column_block", "one_ray_threshold", "ray_budget", "default_workers",
-           "MIN_PARALLEL_PATCHES"]
+           "MIN_PARALLEL_PATCHES", "remove_stale_segments", "SEGMENT_PREFIX"]
 
 #: Below this many patches the workers' start-up (~2 s) costs more than it saves.
 MIN_PARALLEL_PATCHES = 4000
@@ -202,8 +219,93 @@ def column_block(scene, cols, *, order=None, samples: int = DEFAULT_SAMPLES,
 
 _W: dict = {}  # per worker process: scene, order, engine, shared-memory view
 
+#: Shared-memory segments of the pool are named ``SEGMENT_PREFIX<creator pid>_<random hex>``.
+SEGMENT_PREFIX = "hfrad_"
+_SEGMENT_NAME = re.compile(re.escape(SEGMENT_PREFIX) + r"(\d+)_[0-9a-f]+$")
+#: Where POSIX shared memory appears as files (Linux); elsewhere nothing is swept.
+_SHM_DIR = "/dev/shm"
+#: A segment of a dead creator is removed only when older than this (seconds): a process of another
+#: PID namespace sharing /dev/shm (a container) may look dead while its segment is in use.
+STALE_SEGMENT_AGE = 60.0
+#: Seconds between a worker's checks that its parent is alive.
+_PARENT_CHECK = 0.5
+_PR_SET_PDEATHSIG = 1
 
-def _init_worker(setup_name: str, setup_bytes: int, shm_name, shape, dtype) -> None:
+
+def _new_segment(size: int) -> SharedMemory:
+    """A new shared-memory segment named after this process (see :func:`remove_stale_segments`)."""
+    while True:
+        try:
+            return SharedMemory(name=f"{SEGMENT_PREFIX}{os.getpid()}_{secrets.token_hex(6)}", create=True,
+                                size=max(1, int(size)))
+        except FileExistsError:  # pragma: no cover - 48 random bits collided
+            continue
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # PermissionError: someone else's live process
+        return True
+    return True
+
+
+def remove_stale_segments(shm_dir: str = _SHM_DIR, min_age: float = STALE_SEGMENT_AGE) -> list[str]:
+    """Unlink the pool segments left by processes that no longer run; returns their names.
+
+    A parent killed with SIGKILL cannot unlink its segments; Python's resource
+    tracker does once the parent's workers have exited, unless it was killed
+    too (``kill -9`` of the whole process group). A segment is removed when
+    its name carries :data:`SEGMENT_PREFIX`, its creator's PID is not a running
+    process, and it is older than ``min_age`` seconds. Segments of other users
+    are left alone (they cannot be unlinked).
+    """
+    try:
+        names = os.listdir(shm_dir)
+    except OSError:  # no /dev/shm (macOS, Windows): nothing to sweep
+        return []
+    removed, now = [], time.time()
+    for name in names:
+        m = _SEGMENT_NAME.match(name)
+        if m is None or _pid_alive(int(m.group(1))):
+            continue
+        path = os.path.join(shm_dir, name)
+        try:
+            if now - os.stat(path).st_mtime < min_age:
+                continue
+            os.unlink(path)
+        except OSError:
+            continue
+        removed.append(name)
+    return removed
+
+
+def _die_with_parent(parent_pid: int) -> None:
+    """End this worker when ``parent_pid`` exits: SIGKILL from the kernel (Linux), and a watching thread."""
+    if sys.platform.startswith("linux"):
+        try:
+            import ctypes
+            libc = ctypes.CDLL(None, use_errno=True)
+            libc.prctl(_PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0)
+        except (OSError, AttributeError):  # pragma: no cover - no prctl: the thread below remains
+            pass
+    if os.getppid() != parent_pid:  # the parent died before the request above
+        os._exit(1)
+
+    def watch() -> None:
+        while os.getppid() == parent_pid:
+            time.sleep(_PARENT_CHECK)
+        os._exit(1)  # orphaned: nobody reads our blocks
+
+    threading.Thread(target=watch, name="hfrad-parent-watch", daemon=True).start()
+
+
+def _init_worker(parent_pid: int, setup_name: str, setup_bytes: int, shm_name, shape, dtype) -> None:
+    # Ctrl-C goes to the whole process group: the parent alone decides (it stops the pool)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _die_with_parent(parent_pid)
     try:
         import numba
         numba.set_num_threads(1)
@@ -294,31 +396,40 @@ class ProcessEngine:
         n = len(rows)
         slots = self.workers + 2
         shape = (slots, n, self.block_size)
-        shm = SharedMemory(create=True, size=max(1, int(np.prod(shape)) * self.dtype.itemsize))
-        view = np.ndarray(shape, dtype=self.dtype, buffer=shm.buf)
+        remove_stale_segments()
         # The scene reaches the workers through shared memory, not the spawn pipe: a worker that
         # dies while starting (a script without a __main__ guard) would leave the parent blocked
         # writing a large process object into that pipe, before any check could run.
         payload = pickle.dumps((self.scene, np.asarray(rows, np.int64), self.samples, self.ray_budget),
                                protocol=pickle.HIGHEST_PROTOCOL)
         setup_bytes = len(payload)
-        setup = SharedMemory(create=True, size=max(1, setup_bytes))
-        setup.buf[:setup_bytes] = payload
-        del payload
+        setup = _new_segment(setup_bytes)
+        try:
+            setup.buf[:setup_bytes] = payload
+            del payload
+            shm = _new_segment(int(np.prod(shape)) * self.dtype.itemsize)
+        except BaseException:
+            _release(setup)
+            raise
         saved = {k: os.environ.get(k) for k in _WORKER_ENV}
         os.environ.update(_WORKER_ENV)  # inherited by the spawned workers only
         try:
             pool = ProcessPoolExecutor(self.workers, mp_context=get_context("spawn"), initializer=_init_worker,
-                                       initargs=(setup.name, setup_bytes, shm.name, shape, self.dtype))
+                                       initargs=(os.getpid(), setup.name, setup_bytes, shm.name, shape, self.dtype))
+        except BaseException:
+            _release(shm, setup)
+            raise
         finally:
             for k, v in saved.items():
                 if v is None:
                     os.environ.pop(k, None)
                 else:
                     os.environ[k] = v
+        view = np.ndarray(shape, dtype=self.dtype, buffer=shm.buf)
         free = list(range(slots))
         pending: list = []  # (slot, width, future) in block order
         col_iter = iter(col_sets)
+        finished = False
         try:
             exhausted = False
             while True:
@@ -344,14 +455,29 @@ class ProcessEngine:
                 block = view[slot, :, :width].copy()
                 free.append(slot)
                 yield block
+            finished = True
         finally:
             for _, _, fut in pending:
                 fut.cancel()
+            if not finished:
+                # an error, Ctrl-C or an abandoned generator: the blocks in flight are not wanted,
+                # so the workers are stopped now rather than waited for
+                for p in list((getattr(pool, "_processes", None) or {}).values()):
+                    p.terminate()
             pool.shutdown(wait=True, cancel_futures=True)
             del view
-            for segment in (shm, setup):
-                segment.close()
-                segment.unlink()
+            _release(shm, setup)
 
     def close(self) -> None:
         """Nothing to release between runs: the pool lives only while ``iter_blocks`` runs."""
+
+
+def _release(*segments: SharedMemory) -> None:
+    """Close and unlink shared-memory segments (one already removed is skipped)."""
+    for segment in segments:
+        segment.close()
+        try:
+            segment.unlink()
+        except FileNotFoundError:
+            pass
+

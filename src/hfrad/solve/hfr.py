@@ -38,14 +38,19 @@ version 1 files have no checksums and pass statistics)::
 
 Every dataset carries HDF5's Fletcher-32 checksum and the attributes a
 SHA-256 digest (``attrs_sha256``), so a damaged file is refused with the name
-of the damaged dataset instead of giving an answer from garbage. The file is
+of the damaged dataset instead of giving an answer from garbage. Both are
+required on read from format version 2 on (every such file was written with
+them): a file whose digest was deleted, or a dataset rewritten without its
+checksum, is refused. Files written now also list their datasets (root
+attribute ``datasets``, covered by the digest), so a deleted dataset or group
+(the near field, the statistics) is refused too rather than silently
+recomputed or dropped. The file is
 written under a temporary name in the same folder and renamed when complete,
 so a crash never leaves a partial ``.hfr`` behind.
 """
 
 from __future__ import annotations
 
-import hashlib
 import json
 from pathlib import Path
 
@@ -57,6 +62,7 @@ from .._version import __version__
 from ..atomic import atomic_path
 from ..errors import FileFormatError
 from ..factorize.lowrank import LowRank
+from ..formfactors.cache import DIGEST, attrs_digest, checked_dataset, integrity_problem, seal
 from ..validation import object_first
 from .nearfield import NearFieldFactorization
 from .quantized import QuantizedRows
@@ -65,7 +71,11 @@ from .woodbury import HFactorization
 
 FORMAT = "hfrad-factorization"
 FORMAT_VERSION = 4
-DIGEST = "attrs_sha256"
+#: From this format version on, checksums and the attributes' digest are required on read.
+CHECKSUMS_SINCE = 2
+#: Datasets that are recomputed, exactly, when absent (older files lack them): no damage when missing.
+_RECOMPUTED = ("factors/capacitance_inverse", "factors/near_solution", "factors/near_solution_codes",
+               "factors/near_solution_scale")
 
 __all__ = ["save_hfr", "load_hfr", "read_hfr_metadata", "FORMAT_VERSION"]
 
@@ -152,17 +162,13 @@ def save_hfr(factorization: HFactorization, path, *, scene=None, timings: dict |
                 _write_stats(f.create_group("stats"), fac.stats)
             if scene is not None:
                 _write_scene(f.create_group("patches"), scene)
-            f.attrs[DIGEST] = _attrs_digest(f)
+            seal(f)
     return path
 
 
 def _dataset(g: h5py.Group, name: str, data) -> None:
     """A dataset with HDF5's Fletcher-32 checksum (chunked; an empty array has nothing to check)."""
-    a = np.asarray(data)
-    if a.size and a.ndim:
-        g.create_dataset(name, data=a, fletcher32=True, chunks=True)
-    else:
-        g.create_dataset(name, data=a)
+    checked_dataset(g, name, data)
 
 
 def _write_stats(g: h5py.Group, stats) -> None:
@@ -171,21 +177,6 @@ def _write_stats(g: h5py.Group, stats) -> None:
         if name in state:
             _dataset(g, name, state[name])
     g.attrs["probes"], g.attrs["seed"] = state["probes"], state["seed"]
-
-
-def _attrs_digest(f: h5py.File) -> str:
-    """SHA-256 over every attribute of every group (as stored), except the digest itself."""
-    h = hashlib.sha256()
-    groups = []
-    f.visititems(lambda name, obj: groups.append((name, obj)) if isinstance(obj, h5py.Group) else None)
-    for name, obj in [("/", f), *sorted(groups, key=lambda t: t[0])]:
-        for key in sorted(obj.attrs):
-            if obj is f and key == DIGEST:
-                continue
-            value = np.asarray(obj.attrs[key])
-            h.update(f"{name}/{key}:{value.dtype.str}:{value.shape}:".encode())
-            h.update(value.tobytes() if value.dtype.kind != "O" else repr(value.tolist()).encode())
-    return h.hexdigest()
 
 
 def _read(g: h5py.Group, name: str, path: Path):
@@ -223,6 +214,18 @@ def _open(path: Path) -> h5py.File:
     return f
 
 
+def _check_integrity(f: h5py.File, path: Path) -> None:
+    """FileFormatError unless the digest, checksums and dataset list are intact (format 2 and later)."""
+    if int(f.attrs["format_version"]) < CHECKSUMS_SINCE:  # format 1: nothing to check against
+        if DIGEST in f.attrs and str(f.attrs[DIGEST]) != attrs_digest(f):
+            raise FileFormatError(f"{path}: the header attributes are damaged (their SHA-256 digest does not match)")
+        return
+    problem = integrity_problem(f, manifest_required=False,   # files of hfrad <= 0.1 list no datasets
+                                may_be_missing=_RECOMPUTED)
+    if problem is not None:
+        raise FileFormatError(f"{path}: damaged .hfr file: {problem}")
+
+
 def _metadata(f: h5py.File) -> dict:
     a = f.attrs
     return {"format_version": int(a["format_version"]), "hfrad_version": str(a["hfrad_version"]),
@@ -247,7 +250,10 @@ def read_hfr_metadata(path) -> dict:
     path = Path(path)
     with _open(path) as f:
         try:
+            _check_integrity(f, path)
             return _metadata(f)
+        except FileFormatError:
+            raise
         except (KeyError, ValueError, OSError) as exc:
             raise FileFormatError(f"{path}: corrupted .hfr header: {exc}") from exc
 
@@ -286,9 +292,7 @@ def load_hfr(path) -> HFactorization:
     path = Path(path)
     with _open(path) as f:
         try:
-            if DIGEST in f.attrs and str(f.attrs[DIGEST]) != _attrs_digest(f):
-                raise FileFormatError(f"{path}: the header attributes are damaged (their SHA-256 digest "
-                                      "does not match)")
+            _check_integrity(f, path)
             meta = _metadata(f)
             g = f["factors"]
             perm, Q, V, rho_max, rho = (_read(g, k, path) for k in ("perm", "Q", "V", "rho_max", "reflectance"))
