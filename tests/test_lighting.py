@@ -243,3 +243,75 @@ def test_layout_file_defaults_paths_and_errors(tmp_path):
         parse_layout({"luminaires": [{"aimm": [0, -1, 0]}]})
     with pytest.raises(LayoutError, match="aim"):
         parse_layout({"luminaires": [{"photometry": lums[0].photometry, "position": [0, 0, 0], "aim": [0, 0, 0]}]})
+
+
+_DOWNLIGHT_IES = """IESNA:LM-63-2002\r
+[TEST] T-1\r
+[LUMCAT] DL-1\r
+TILT=NONE\r
+1 2000 1.0 7 1 1 2 -0.1 -0.1 0.0\r
+1.0 1.0 18\r
+0 15 30 45 60 75 90\r
+0\r
+900 860 740 560 340 140 0\r
+"""
+
+
+def _layout(tmp_path) -> dict:
+    (tmp_path / "dl.ies").write_text(_DOWNLIGHT_IES)
+    lums = [{"name": f"L{i}", "position": [x, 1.95, z]}
+            for i, (x, z) in enumerate([(-0.5, -0.5), (0.5, -0.5), (-0.5, 0.5), (0.5, 0.5)])]
+    return {"defaults": {"photometry": "dl.ies", "max": 2.0}, "luminaires": lums}
+
+
+def test_design_lighting_meets_grid_goals_at_least_power(tmp_path, cornell):
+    from hfrad.inverse.luminaires import design_lighting
+    spec = {"luminaires": _layout(tmp_path),
+            "grids": [{"name": "plane", "rectangle": [[-0.9, 0.9], [-0.9, 0.9]], "height": 1.3, "spacing": 0.2,
+                       "mean": 150, "uniformity": 0.5}]}
+    from hfrad.inverse.luminaires import parse_lighting_spec
+    parsed = parse_lighting_spec(spec, cornell.scene, base=tmp_path)
+    r = design_lighting(cornell, parsed)
+    assert r.feasible, r.report["message"]
+    a = r.report["grids"][0]["achieved"]
+    assert a["average"] >= 150 * (1 - 1e-4) and a["U0"] >= 0.5 * (1 - 1e-4)
+    v = r.report["verified"]
+    assert v["goals_met"] and v["max_relative_deviation"] < 1e-3
+    # least power: the average is binding (a uniform 1% cut of every dimming breaks it)
+    lux = r.responses[0].illuminance(0.99 * r.dimming)
+    assert lux.mean() < 150
+    assert r.report["total_power_W"] == pytest.approx(18 * r.dimming.sum())
+    # an impossible goal is reported, not raised
+    spec["grids"][0]["mean"] = 1e6
+    bad = design_lighting(cornell, parse_lighting_spec(spec, cornell.scene, base=tmp_path),
+                          model=r.model, responses=r.responses)
+    assert not bad.feasible and bad.report["conflicts"]
+
+
+def test_cli_lux_and_design_with_luminaires(tmp_path, cornell):
+    from tests.conftest import run_cli
+    hfr = cornell.save(tmp_path / "box.hfr")
+    (tmp_path / "layout.json").write_text(json.dumps(_layout(tmp_path)))
+    sensors = SensorSet("pts", [[0, 0.5, 0], [0.3, 1.0, -0.2]], [[0, 1, 0], [0, 1, 0]])
+    write_sensors(tmp_path / "pts.txt", sensors)
+    res = run_cli("lux", hfr, "--layout", tmp_path / "layout.json", "--floor", "white", "--height", "1.3",
+                  "--spacing", "0.25", "--sensors", tmp_path / "pts.txt", "-o", tmp_path / "lux.json",
+                  "--csv", tmp_path / "lux.csv", "--plan", tmp_path / "plan.png", "--quiet")
+    assert res.exit_code == 0, res.output
+    out = json.loads((tmp_path / "lux.json").read_text())
+    assert [g["name"] for g in out["grids"]] == ["workplane", "pts"] and out["grids"][0]["average"] > 0
+    rows = (tmp_path / "lux.csv").read_text().splitlines()
+    assert len(rows) == 1 + out["grids"][0]["sensors"] + 2
+    assert (tmp_path / "plan.png").stat().st_size > 1000
+    spec = {"luminaires": "layout.json", "grids": [{"name": "plane", "floor": "white", "height": 1.3,
+                                                    "spacing": 0.25, "mean": 100, "uniformity": 0.4}]}
+    (tmp_path / "spec.json").write_text(json.dumps(spec))
+    res = run_cli("design", tmp_path / "spec.json", hfr, "-o", tmp_path / "d.json", "--plan", tmp_path / "d.png",
+                  "--quiet")
+    assert res.exit_code == 0, res.output
+    d = json.loads((tmp_path / "d.json").read_text())
+    assert d["feasible"] and d["grids"][0]["achieved"]["average"] >= 100 * (1 - 1e-4)
+    spec["grids"][0]["spacing"] = -1
+    (tmp_path / "spec.json").write_text(json.dumps(spec))
+    res = run_cli("design", tmp_path / "spec.json", hfr, "-o", tmp_path / "d.json", "--quiet")
+    assert res.exit_code == 2 and "grids[0].spacing" in res.output

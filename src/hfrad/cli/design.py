@@ -34,6 +34,8 @@ def register(app: typer.Typer) -> None:
         height: int = typer.Option(480, "--height", min=1, help="--render height, pixels."),
         method: str = typer.Option("auto", "--method", help="auto (fewer solves), forward (one solve per "
                                    "emitter) or adjoint (one transposed solve per target row the goals need)."),
+        plan: Optional[Path] = typer.Option(None, "--plan", help="Luminaire specs: also draw the first grid's "
+                                            "designed illuminance in false colour (.png)."),
         quiet: bool = common.QuietOption,
     ) -> None:
         """Find the least-power (or best-fitting) emitter intensities that meet the spec's goals.
@@ -42,7 +44,9 @@ def register(app: typer.Typer) -> None:
         (O(m n k) for m emitters; or one transposed solve per goal row, when
         fewer), then SciPy solves an LP (HiGHS) or a bounded least-squares
         problem; the answer is checked with an independent solve. Spec format:
-        docs/design.md.
+        docs/design.md. A spec with "luminaires" (a layout of catalogue
+        luminaires) and "grids" (work planes with lux goals) designs their
+        dimming instead: docs/lighting.md.
         Exit codes: 0 designed, 1 no design meets the spec (RESULT.json names the
         conflicting goals), 2 bad input (the message names the file or field).
         """
@@ -67,7 +71,21 @@ def register(app: typer.Typer) -> None:
                 if show not in ("radiosity", "irradiance"):
                     raise InputError(f"--show must be radiosity or irradiance, got {show!r}")
                 Camera.parse(camera, np.array([[0.0, 0, 0], [1, 1, 1]]))  # fail on a bad camera before solving
+            if plan is not None and plan.suffix.lower() != ".png":
+                raise InputError(f"--plan must be a .png file, got '{plan}'")
             fac = common.load_factorization(factorization)
+            from ..inverse.luminaires import is_lighting_spec
+            from ..inverse.spec import read_spec
+            if is_lighting_spec(read_spec(spec)):
+                if emission_out is not None or (render is not None and show != "radiosity"):
+                    raise InputError("a luminaire spec takes --plan and --render (radiosity); --emission-out "
+                                     "and --show irradiance are for patch emitters")
+                result = _design_luminaires(spec, fac, output, plan, render, camera, falsecolor, unit, width,
+                                            height, quiet)
+                _lighting_summary(result.report, output, plan)
+                if not result.feasible:
+                    raise typer.Exit(EXIT_INFEASIBLE)
+                return
             parsed = parse_spec(spec, fac.scene)
             if emission_out is not None:
                 from ..inverse.emission import check_nameable
@@ -91,6 +109,55 @@ def register(app: typer.Typer) -> None:
         _summary(result.report, output, render)
         if not result.feasible:
             raise typer.Exit(EXIT_INFEASIBLE)
+
+
+def _design_luminaires(spec: Path, fac, output: Path, plan, render, camera, falsecolor, unit, width, height,
+                       quiet: bool):
+    """The luminaire design of a spec with "luminaires" (inside user_errors)."""
+    from ..atomic import atomic_path
+    from ..inverse.luminaires import design_lighting, parse_lighting_spec
+
+    parsed = parse_lighting_spec(spec, fac.scene)
+    with common.progress_bar("luminaires", quiet) as bar:
+        result = design_lighting(fac, parsed, progress=bar)
+    with atomic_path(output) as tmp:
+        tmp.write_text(result.to_json() + "\n", encoding="utf-8")
+    if result.feasible and plan is not None:
+        from ..lighting import save_plan
+        grids = [(g.sensors, lux) for g, lux in zip(parsed.grids, result.illuminance()) if g.sensors.is_grid]
+        if not grids:
+            raise InputError("--plan needs a grid (floor or rectangle) in the spec")
+        save_plan(plan, *grids[0])
+    if result.feasible and render is not None:
+        from ..render import render_image, save_png
+        image = render_image(fac.scene, result.model.radiosity(result.dimming), camera=camera, width=width,
+                             height=height, falsecolor=falsecolor, unit=unit)
+        save_png(image, render)
+    return result
+
+
+def _lighting_summary(r: dict, output: Path, plan: Optional[Path]) -> None:
+    say = common.console.print
+    if r["total_power_W"] is not None:
+        for e in r["luminaires"][:12]:
+            say(f"  {e['name']} ({e['catalogue']}): dimming {e['dimming']:.3f}, {e['power_W']:.3g} W",
+                highlight=False)
+        if len(r["luminaires"]) > 12:
+            say(f"  ... {len(r['luminaires']) - 12} more luminaires", highlight=False)
+        for g in r["grids"]:
+            a = g["achieved"]
+            u = "-" if a["U0"] is None else f"{a['U0']:.3f}"
+            say(f"  {g['name']} ({g['sensors']} sensors): average {a['average']:.1f} lx, min {a['minimum']:.1f}, "
+                f"max {a['maximum']:.1f}, U0 {u}", highlight=False)
+    head = "designed" if r["feasible"] else f"[bold red]not feasible[/] ({r['status']})"
+    say(f"{head}: {r['message']}", highlight=False)
+    t = r["timings"]
+    v = r.get("verified") or {}
+    check = f"; verified by a full solve (max deviation {v['max_relative_deviation']:.1e})" if v else ""
+    total = "" if r["total_power_W"] is None else f"{r['total_power_W']:.4g} W of {r['full_power_W']:.4g} W; "
+    say(f"wrote {output}" + (f" and {plan}" if plan is not None and r["feasible"] else "")
+        + f": {total}precompute {t['precompute_s']:.2f} s, design {t['design_s'] * 1e3:.1f} ms"
+        + (f", relighting {t['relight_s'] * 1e3:.3f} ms" if t.get("relight_s") else "") + check, highlight=False)
 
 
 def _summary(r: dict, output: Path, render: Optional[Path]) -> None:

@@ -36,16 +36,23 @@ def grid_stats(lux: np.ndarray) -> dict:
             "U0": lo / avg if avg > 0 else None, "Ud": lo / hi if hi > 0 else None}
 
 
-def write_csv(path: "str | Path", sensors: SensorSet, lux: np.ndarray, *, direct: np.ndarray | None = None) -> Path:
-    """One row per sensor: ``grid,x,y,z,nx,ny,nz,lux`` (and ``direct_lux``), atomically."""
+def write_csv(path: "str | Path", sensors, lux, *, direct=None) -> Path:
+    """One row per sensor: ``grid,x,y,z,nx,ny,nz,lux`` (and ``direct_lux``), atomically.
+
+    ``sensors`` is a :class:`SensorSet` with its (m,) ``lux`` (and ``direct``),
+    or lists of them (several grids in one table).
+    """
+    if isinstance(sensors, SensorSet):
+        sensors, lux, direct = [sensors], [lux], None if direct is None else [direct]
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(["grid", "x", "y", "z", "nx", "ny", "nz", "lux"] + (["direct_lux"] if direct is not None else []))
-    for i, (p, n) in enumerate(zip(sensors.points, sensors.normals)):
-        row = [sensors.name, *(f"{v:.6g}" for v in p), *(f"{v:.6g}" for v in n), f"{lux[i]:.6g}"]
-        if direct is not None:
-            row.append(f"{direct[i]:.6g}")
-        w.writerow(row)
+    for k, (s, E) in enumerate(zip(sensors, lux)):
+        for i, (p, n) in enumerate(zip(s.points, s.normals)):
+            row = [s.name, *(f"{v:.6g}" for v in p), *(f"{v:.6g}" for v in n), f"{E[i]:.6g}"]
+            if direct is not None:
+                row.append(f"{direct[k][i]:.6g}")
+            w.writerow(row)
     path = Path(path)
     with atomic_path(path) as tmp:
         tmp.write_text(buf.getvalue(), encoding="utf-8")
