@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
+import pytest
 
 import hfrad
 
@@ -24,9 +27,17 @@ def test_factorize_works_twice_after_the_subpackage_is_imported():
     np.testing.assert_array_equal(B1, B2)
 
 
-def test_exports_resolve():
+def test_exports_resolve_to_documented_objects_of_that_name():
+    # the API reference (docs/reference.md) is generated from these names and their docstrings
     for name in hfrad.__all__:
-        assert getattr(hfrad, name) is not None, name
+        obj = getattr(hfrad, name)
+        if name == "__version__":
+            assert re.fullmatch(r"\d+\.\d+\.\d+\S*", obj), obj
+            continue
+        assert callable(obj) and obj.__name__ == name, name              # a function or class, not an alias
+        assert (obj.__doc__ or "").strip(), f"hfrad.{name} has no docstring"
+    with pytest.raises(AttributeError, match="no attribute 'not_a_name'"):
+        hfrad.not_a_name  # noqa: B018
 
 
 def _small_system():
