@@ -37,13 +37,6 @@ def area_error(B, Bx, areas):
     return np.linalg.norm(w * (B - Bx), axis=0) / np.linalg.norm(w * Bx, axis=0)
 
 
-def test_system_is_physical(system):
-    F, areas, rho, _ = system
-    assert (F >= 0).all()
-    np.testing.assert_allclose(F.sum(1), 1.0, atol=1e-12)
-    np.testing.assert_allclose(areas[:, None] * F, (areas[:, None] * F).T, rtol=1e-6, atol=1e-12)
-
-
 def test_solve_error_and_its_figures(system):
     F, areas, rho, fac = system
     E = np.random.default_rng(1).random((300, 3))
