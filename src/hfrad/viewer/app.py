@@ -14,6 +14,7 @@ import dataclasses
 import datetime
 import logging
 import math
+import os
 import threading
 import time
 import warnings
@@ -22,12 +23,14 @@ from typing import Callable
 
 import numpy as np
 
+from .. import memory
 from ..errors import AccuracyWarning, InputError
 from ..io.emission import emission_json, loads_emission, write_emission
 from ..render.camera import Camera
 from ..render.falsecolor import UNITS
 from .coalesce import LatestWins
 from .display import MeshColors, MeshGLB, colorbar, precompensate_aces
+from .guard import PageGuard, UploadLimit, check_bindable, guarded_server, is_loopback, self_test, url_host
 from .lighting import DEFAULT_INTENSITY, Emitter, Lighting, scene_emitters
 
 log = logging.getLogger(__name__)
@@ -37,6 +40,13 @@ DEFAULT_HOST = "127.0.0.1"
 DEFAULT_PORT = 8080
 #: Height in pixels of pictures saved from the page (width follows the tab's aspect ratio).
 PNG_HEIGHT = 720
+#: Largest side, pixels, of a picture rendered for the page (the tab reports its aspect ratio).
+MAX_PICTURE_SIDE = 8192
+#: Peak memory of a render per pixel, bytes (measured ~200 for 2000 x 2000 of a Cornell box: rays,
+#: hits, barycentrics, radiance in float64).
+RENDER_BYTES_PER_PIXEL = 256
+#: Largest file the page's "load emission" accepts, bytes (an emission file is ~100 bytes per emitter).
+MAX_UPLOAD_BYTES = 1 << 20
 _EV_RANGE = (-12.0, 12.0)
 
 
@@ -46,6 +56,21 @@ def _import_viser():
     except ImportError as exc:
         raise ImportError(f"hfrad view needs viser ({exc}); install it with `pip install viser`") from None
     return viser
+
+
+def _start_server(viser, guard: PageGuard, host: str, port: int, verbose: bool):
+    """A ``viser.ViserServer`` on ``host:port`` whose every request passes ``guard``'s checks."""
+    import rich
+
+    console = rich.get_console()
+    quiet = console.quiet
+    if not verbose:
+        console.quiet = True    # viser's banner shows the address without the token: a link that gets 403
+    try:
+        with guarded_server(guard):
+            return viser.ViserServer(host=host, port=port, verbose=verbose)
+    finally:
+        console.quiet = quiet
 
 
 def _error_estimate(fac) -> np.ndarray:
@@ -85,27 +110,48 @@ class ViewerApp:
     fac : HFactorization
         With its scene (``hfrad.load`` of a file from ``hfrad precompute``).
     host : str
-        Address to bind; the default serves this machine only.
+        Address to bind; the default serves this machine only. An address that
+        cannot be bound raises InputError at once.
     port : int
+        The next free port is taken if it is busy.
     save_dir : path
         Where the page's "save" buttons write files (they are also sent to the browser).
     direct : bool
         Re-solve ``fac.solve(E)`` on every change instead of combining unit solutions.
     verbose : bool
         Let viser print its banner and connection log.
+    token : str, optional
+        The secret the page's URL carries; a fresh random one by default.
 
     Attributes
     ----------
     server : viser.ViserServer
+    url : str
+        The page's address, with its token: ``http://127.0.0.1:8080/?token=...``.
+    guard : PageGuard
+        The checks on every request (Host, Origin, token; see :mod:`hfrad.viewer.guard`).
     last : UpdateStats or None
         The latest update.
+
+    Notes
+    -----
+    The server answers only its own page: a request whose ``Host`` does not
+    name this machine, a websocket opened from another site's page (foreign
+    ``Origin``) and a request without the token are refused with 403.
     """
 
     def __init__(self, fac, *, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, save_dir: "str | Path" = ".",
-                 direct: bool = False, verbose: bool = False) -> None:
+                 direct: bool = False, verbose: bool = False, token: str | None = None) -> None:
         if fac.scene is None:
             raise InputError("the factorization has no patches stored; re-run `hfrad precompute` (it stores them)")
+        host = str(host).strip()
+        if host.startswith("[") and host.endswith("]"):
+            host = host[1:-1]                      # [::1] as written in URLs
+        if isinstance(port, bool) or int(port) != port or not 0 <= port < 65536:
+            raise InputError(f"port must be a whole number in [0, 65535], got {port!r}")
+        check_bindable(host, int(port))
         viser = _import_viser()
+        self.guard = PageGuard(host, token)
         self.fac, self.scene = fac, fac.scene
         self.save_dir = Path(save_dir)
         self.direct = direct
@@ -122,8 +168,15 @@ class ViewerApp:
         self._error = None
         self._mesh = None
 
-        self.server = viser.ViserServer(host=host, port=port, verbose=verbose)
+        self._names_lock = threading.Lock()
+        self.server = _start_server(viser, self.guard, host, int(port), verbose)
         self.host, self.port = host, self.server.get_port()
+        try:
+            self_test(host, self.port)
+            self._lock_down()
+        except Exception:
+            self.server.stop()
+            raise
         self._frame_camera()
         self._build_gui()
         self._worker: LatestWins[float] = LatestWins(self._update, self._update_failed, name="hfrad-view")
@@ -133,7 +186,13 @@ class ViewerApp:
     # -- public ----------------------------------------------------------------
     @property
     def url(self) -> str:
-        return f"http://{self.host}:{self.port}"
+        """The page's address with its token (for a wildcard bind: this machine's loopback address)."""
+        return f"http://{url_host(self.host)}:{self.port}/?token={self.guard.token}"
+
+    @property
+    def loopback_only(self) -> bool:
+        """True if the server is reachable from this machine only."""
+        return is_loopback(self.host)
 
     def submit(self) -> float:
         """Schedule an update for the current state; returns its change time (perf_counter)."""
@@ -184,6 +243,25 @@ class ViewerApp:
     def close(self) -> None:
         self._worker.close()
         self.server.stop()
+
+    def _lock_down(self) -> None:
+        """What a connected tab may ask of the server: no share tunnel, uploads capped in size."""
+        from viser import _messages as msgs
+
+        ws = self.server._websock_server
+        # viser's "share" asks the server to open a public tunnel to share.viser.studio: not here
+        if msgs.ShareUrlRequest in getattr(ws, "_incoming_handlers", {}):
+            ws.unregister_handler(msgs.ShareUrlRequest)
+        self.uploads: UploadLimit | None = UploadLimit(MAX_UPLOAD_BYTES, on_refused=self._notify_id)
+        try:
+            self.uploads.install(ws)
+        except RuntimeError as exc:      # a viser that uploads differently: no upload button
+            log.warning("%s; the page offers no 'load emission' button", exc)
+            self.uploads = None
+
+    def _notify_id(self, client_id: int, text: str) -> None:
+        client = self.server.get_clients().get(client_id)
+        self._notify(client, "Not done", text, error=True)
 
     # -- the update path -----------------------------------------------------------
     def _update(self, changed: float) -> None:
@@ -287,7 +365,7 @@ class ViewerApp:
 
     def _build_gui(self) -> None:
         gui = self.server.gui
-        gui.configure_theme(control_width="large")
+        gui.configure_theme(control_width="large", show_share_button=False)
         gui.add_markdown(f"**hfrad view** · {self.scene.name}")
         self._readout = gui.add_markdown("starting...")
         self._lights_folder = gui.add_folder("Lights")
@@ -322,8 +400,10 @@ class ViewerApp:
         with gui.add_folder("Files"):
             gui.add_button("save PNG").on_click(self._guard(self._save_png))
             gui.add_button("save emission").on_click(self._guard(self._save_emission))
-            gui.add_upload_button("load emission", mime_type="application/json").on_upload(
-                self._guard(self._load_upload))
+            self._upload_button = None
+            if self.uploads is not None:
+                self._upload_button = gui.add_upload_button("load emission", mime_type="application/json")
+                self._upload_button.on_upload(self._guard(self._load_upload))
         if self.warnings:
             gui.add_markdown("  \n".join(f"warning: {w}" for w in self.warnings))
 
@@ -358,43 +438,101 @@ class ViewerApp:
         raise ValueError(f"no emitter named '{name}'")
 
     # -- files -----------------------------------------------------------------------
-    def _stamp(self) -> str:
-        return datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
+    def new_file_name(self, prefix: str, suffix: str) -> Path:
+        """A file in ``save_dir`` named ``prefix-YYYYmmdd-HHMMSS[-N]suffix`` that no other save uses.
+
+        The name is reserved by creating the file exclusively (``O_EXCL``), so two
+        saves in one second, from two tabs or two viewers sharing the folder,
+        get distinct names; the writer then replaces the empty file atomically.
+        """
+        stamp = datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
+        with self._names_lock:
+            for i in range(1, 10_000):
+                path = self.save_dir / f"{prefix}-{stamp}{'' if i == 1 else f'-{i}'}{suffix}"
+                try:
+                    os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))
+                except FileExistsError:
+                    continue
+                return path
+        raise InputError(f"{self.save_dir}: 10,000 files named {prefix}-{stamp}-N{suffix} already; clean up")
 
     def save_png(self, camera: Camera, path: "str | Path", *, height: int = PNG_HEIGHT,
                  aspect: float = 4 / 3) -> Path:
-        """Render what the page shows through ``hfrad render``'s renderer, from ``camera``."""
+        """Render what the page shows through ``hfrad render``'s renderer, from ``camera``.
+
+        Parameters
+        ----------
+        camera : Camera
+        path : path of the PNG
+        height : int, pixels, at most ``MAX_PICTURE_SIDE``
+        aspect : float
+            Width / height; the width ``round(height * aspect)`` is at most ``MAX_PICTURE_SIDE``.
+
+        Raises
+        ------
+        InputError
+            A side outside [1, MAX_PICTURE_SIDE] or a non-finite aspect.
+        MemoryLimitError
+            The render would not fit in the memory available.
+        """
         from ..render import render_image, save_png
 
+        if isinstance(height, bool) or not isinstance(height, (int, np.integer)) or \
+                not 1 <= height <= MAX_PICTURE_SIDE:
+            raise InputError(f"picture height must be a whole number in [1, {MAX_PICTURE_SIDE}] pixels, "
+                             f"got {height!r}")
+        aspect = float(aspect)
+        width = round(height * aspect) if math.isfinite(aspect) and aspect > 0 else 0
+        if not 1 <= width <= MAX_PICTURE_SIDE:
+            raise InputError(f"picture width {height} x {aspect:.4g} (aspect) must be in [1, {MAX_PICTURE_SIDE}] "
+                             "pixels; make the browser window less wide or tall")
+        memory.require(RENDER_BYTES_PER_PIXEL * width * height, f"a {width} x {height} picture")
         with self._lock:
             B, E, exposure, falsecolor, unit = self._shown
-        width = max(1, int(round(height * aspect)))
-        image = render_image(self.scene.replace(emission=E), B, camera=camera, width=width, height=height,
+        image = render_image(self.scene.replace(emission=E), B, camera=camera, width=width, height=int(height),
                              exposure=exposure, falsecolor=falsecolor, unit=unit)
         return save_png(image, path)
 
     def _client_camera(self, client) -> tuple[Camera, float]:
+        """The tab's camera and aspect ratio, as the browser reports them (checked: it may report anything)."""
         cam = client.camera
         up = cam.up_direction if cam.up_direction is not None else (0.0, 1.0, 0.0)
+        w, h = cam.image_width, cam.image_height
+        if not all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) and 0 < v <= 1 << 20 for v in (w, h)):
+            raise InputError(f"the browser reported a view of {w!r} x {h!r} pixels; reload the page")
         camera = Camera(tuple(map(float, cam.position)), tuple(map(float, cam.look_at)),
                         tuple(map(float, up)), math.degrees(float(cam.fov)))
-        return camera, float(cam.aspect)
+        return camera, w / h
 
     def _save_png(self, event) -> None:
         client = event.client
         camera, aspect = self._client_camera(client)
-        path = self.save_png(camera, self.save_dir / f"hfrad-view-{self._stamp()}.png", aspect=aspect)
+        path = self.new_file_name("hfrad-view", ".png")
+        try:
+            self.save_png(camera, path, aspect=aspect)
+        except BaseException:
+            path.unlink(missing_ok=True)           # the reserved, still empty name
+            raise
         client.send_file_download(path.name, path.read_bytes(), save_immediately=True)
         self._notify(client, "Saved picture", str(path.resolve()))
 
     def _save_emission(self, event) -> None:
         with self._lock:
             settings = [e.setting() for e in self.state.emitters]
-        path = write_emission(self.save_dir / f"hfrad-emission-{self._stamp()}.json", settings)
+        path = self.new_file_name("hfrad-emission", ".json")
+        try:
+            write_emission(path, settings)
+        except BaseException:
+            path.unlink(missing_ok=True)
+            raise
         event.client.send_file_download(path.name, path.read_bytes(), save_immediately=True)
         self._notify(event.client, "Saved emission", f"{path.resolve()} (use with --emission-file)")
 
     def _load_upload(self, event) -> None:
         upload = event.target.value
-        self.load_emission(upload.content.decode("utf-8", errors="replace"), upload.name)
-        self._notify(event.client, "Loaded emission", upload.name)
+        name = str(upload.name)[:200]
+        if len(upload.content) > MAX_UPLOAD_BYTES:     # UploadLimit refuses these before they arrive
+            raise InputError(f"{name}: {len(upload.content):,} bytes; an emission file is at most "
+                             f"{MAX_UPLOAD_BYTES:,}")
+        self.load_emission(upload.content.decode("utf-8", errors="replace"), name)
+        self._notify(event.client, "Loaded emission", name)
