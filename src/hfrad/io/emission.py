@@ -37,6 +37,10 @@ from pathlib import Path
 from typing import Sequence
 
 from ..errors import FileFormatError
+from ..validation import MAX_EXITANCE, clip_token
+
+#: Longest emitter name accepted (material and group names are short; a longer one is a broken file).
+MAX_NAME = 1000
 
 FORMAT = "hfrad-emission"
 VERSION = 1
@@ -74,10 +78,36 @@ def _fail(path, where: str, message: str) -> FileFormatError:
 def _exitance(path, where: str, value) -> tuple[float, float, float]:
     ok = (isinstance(value, list) and len(value) == 3
           and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in value)
-          and all(math.isfinite(x) and x >= 0 for x in value))
+          and all(_finite(x) and x >= 0 for x in value))
     if not ok:
-        raise _fail(path, where, f"expected three finite numbers >= 0 (R, G, B in W/m^2), got {value!r}")
-    return tuple(float(x) for x in value)
+        raise _fail(path, where, f"expected three finite numbers >= 0 (R, G, B in W/m^2), got {_quote(value)}")
+    out = tuple(float(x) for x in value)
+    if max(out) > MAX_EXITANCE:
+        raise _fail(path, where, f"{max(out):g} W/m^2 is above the largest exitance hfrad computes with, "
+                                 f"{MAX_EXITANCE:g} W/m^2 (radiosity is stored in float32 and would overflow)")
+    return out
+
+
+def _field(name: str) -> str:
+    """A field name for an error line, cut to about 200 characters."""
+    return name if len(name) <= 200 else f"{name[:200]}... ({len(name):,} characters)"
+
+
+def _finite(x) -> bool:
+    """A JSON number that is a finite float (an integer of 400 digits is not: float() overflows)."""
+    try:
+        return math.isfinite(float(x))
+    except OverflowError:
+        return False
+
+
+def _quote(value) -> str:
+    """A JSON value for an error line, at most about 200 characters of it."""
+    try:
+        text = json.dumps(value)
+    except (TypeError, ValueError, RecursionError):
+        text = type(value).__name__
+    return clip_token(text)
 
 
 def parse_emission(data, path: "str | os.PathLike" = "<emission>") -> list[EmitterSetting]:
@@ -105,32 +135,34 @@ def parse_emission(data, path: "str | os.PathLike" = "<emission>") -> list[Emitt
                                        f"got {type(data).__name__}")
     unknown = sorted(set(data) - set(_TOP_FIELDS))
     if unknown:
-        raise _fail(path, unknown[0], f"unknown field; allowed: {', '.join(_TOP_FIELDS)}")
+        raise _fail(path, _field(unknown[0]), f"unknown field; allowed: {', '.join(_TOP_FIELDS)}")
     if data.get("format") != FORMAT:
-        raise _fail(path, "format", f"expected {FORMAT!r}, got {data.get('format')!r}")
+        raise _fail(path, "format", f"expected {FORMAT!r}, got {_quote(data.get('format'))}")
     version = data.get("version")
     if version != VERSION:
-        raise _fail(path, "version", f"expected {VERSION} (this hfrad reads version {VERSION}), got {version!r}")
+        raise _fail(path, "version", f"expected {VERSION} (this hfrad reads version {VERSION}), got {_quote(version)}")
     emitters = data.get("emitters")
     if not isinstance(emitters, list):
         raise _fail(path, "emitters", f"expected a list of {{\"name\": ..., \"exitance\": [R, G, B]}}, "
-                                      f"got {emitters!r}")
+                                      f"got {_quote(emitters)}")
     out = []
     for i, item in enumerate(emitters):
         where = f"emitters[{i}]"
         if not isinstance(item, dict):
-            raise _fail(path, where, f"expected an object with 'name' and 'exitance', got {item!r}")
+            raise _fail(path, where, f"expected an object with 'name' and 'exitance', got {_quote(item)}")
         unknown = sorted(set(item) - set(_EMITTER_FIELDS))
         if unknown:
-            raise _fail(path, f"{where}.{unknown[0]}", f"unknown field; allowed: {', '.join(_EMITTER_FIELDS)}")
+            raise _fail(path, f"{where}.{_field(unknown[0])}",
+                        f"unknown field; allowed: {', '.join(_EMITTER_FIELDS)}")
         name = item.get("name")
-        if not isinstance(name, str) or not name:
-            raise _fail(path, f"{where}.name", f"expected a material or group name, got {name!r}")
+        if not isinstance(name, str) or not name or len(name) > MAX_NAME:
+            raise _fail(path, f"{where}.name", f"expected a material or group name (at most {MAX_NAME} "
+                                               f"characters), got {_quote(name)}")
         if "exitance" not in item:
             raise _fail(path, f"{where}.exitance", "missing (three numbers, W/m^2)")
         on = item.get("on", True)
         if not isinstance(on, bool):
-            raise _fail(path, f"{where}.on", f"expected true or false, got {on!r}")
+            raise _fail(path, f"{where}.on", f"expected true or false, got {_quote(on)}")
         out.append(EmitterSetting(name, _exitance(path, f"{where}.exitance", item["exitance"]), on))
     return out
 

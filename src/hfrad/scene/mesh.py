@@ -3,24 +3,82 @@
 Each reader returns the same plain dict as :func:`hfrad.scene.obj.read_obj`, so
 the scene builder does not care where a mesh came from.
 
-PLY: per-face float properties ``reflectance_r/g/b`` and ``emission_r/g/b``
-are used when present, else per-face ``red/green/blue`` colours (uchar,
-/255) as reflectance; faces with neither get the default reflectance.
+PLY (ASCII or binary): per-face float properties ``reflectance_r/g/b`` and
+``emission_r/g/b`` are used when present, else per-face ``red/green/blue``
+colours (uchar, /255) as reflectance; faces with neither get the default
+reflectance. Polygons are fan-triangulated here (each triangle keeps its
+polygon's properties). A file holding fewer elements than its header
+declares (truncated), a non-finite property or a vertex index out of range
+is refused with one line naming the file and the element.
 
 glTF/GLB: each primitive's material gives reflectance = baseColorFactor (RGB)
-and emission = emissiveFactor x KHR_materials_emissive_strength (W/m^2).
-Node transforms are applied.
+and emission = emissiveFactor x KHR_materials_emissive_strength (W/m^2),
+read from the file's JSON (a non-numeric or non-finite factor is refused).
+Node transforms are applied. Buffers and images are read only from the
+file's folder and below (trimesh's resolver refuses ``../`` escapes).
 """
 
 from __future__ import annotations
 
 import json
+import math
 import struct
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import SceneError
+from ..validation import QUOTE_CHARS, clip_token
+
+
+def _short(text) -> str:
+    """An error text from a library cut to about QUOTE_CHARS characters (it may quote file data)."""
+    text = " ".join(str(text).split())
+    return text if len(text) <= QUOTE_CHARS else text[:QUOTE_CHARS] + f"... ({len(text):,} characters)"
+
+
+def _check_file(path: Path) -> None:
+    if path.is_dir():
+        raise SceneError(f"{path}: is a directory, not a scene file")
+    try:
+        with open(path, "rb"):
+            pass
+    except OSError as exc:
+        raise SceneError(f"{path}: cannot read: {exc.strerror or exc}") from None
+
+
+def _ply_columns(element: dict) -> dict:
+    """{property: array} of one element of trimesh's raw PLY (a structured array when binary, a dict when ASCII)."""
+    data = element.get("data")
+    if data is None:
+        return {}
+    if isinstance(data, dict):
+        return dict(data)
+    return {name: data[name] for name in (data.dtype.names or ())}
+
+
+def _ply_polygons(indices, path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Fan triangles ``(t, 3)`` of PLY ``vertex_indices`` and the polygon ``(t,)`` each comes from."""
+    arr = np.asarray(indices) if not isinstance(indices, np.ndarray) else indices
+    if arr.dtype.names and len(arr.dtype.names) == 2:  # binary, one length for all: (count, indices) records
+        arr = arr[arr.dtype.names[1]]
+    if arr.dtype != object and arr.ndim == 1 and len(arr):
+        raise SceneError(f"{path}: faces have 1 vertex each; a face needs at least 3")
+    if arr.dtype != object and arr.ndim == 2:
+        k = arr.shape[1]
+        if k < 3:
+            raise SceneError(f"{path}: faces have {k} vertices; a face needs at least 3")
+        tris = np.stack([np.stack([arr[:, 0], arr[:, j], arr[:, j + 1]], axis=1) for j in range(1, k - 1)], axis=1)
+        return tris.reshape(-1, 3).astype(np.int64), np.repeat(np.arange(len(arr)), k - 2)
+    tris, owner = [], []
+    for i, row in enumerate(arr):
+        row = np.asarray(row).reshape(-1)
+        if len(row) < 3:
+            raise SceneError(f"{path}: face {i} has {len(row)} vertices; a face needs at least 3")
+        for j in range(1, len(row) - 1):
+            tris.append((row[0], row[j], row[j + 1]))
+            owner.append(i)
+    return np.asarray(tris, np.int64).reshape(-1, 3), np.asarray(owner, np.int64)
 
 
 def _trimesh():
@@ -32,27 +90,65 @@ def _trimesh():
 
 
 def read_ply(path: Path) -> dict:
-    """Parse a PLY file (triangles or polygons) with trimesh."""
+    """Parse a PLY file (ASCII or binary; triangles or polygons) with trimesh's PLY parser.
+
+    Raises
+    ------
+    SceneError
+        Not a PLY file, truncated (fewer elements than the header declares),
+        a non-finite vertex or face property, a vertex index out of range,
+        no faces; the message names the file and the element.
+    """
     trimesh = _trimesh()
+    _check_file(path)
     try:
         mesh = trimesh.load(str(path), process=False, force="mesh")
     except Exception as exc:
-        raise SceneError(f"{path}: could not read as PLY: {exc}") from None
-    faces = np.asarray(mesh.faces, dtype=np.int64)
+        raise SceneError(f"{path}: could not read as PLY: {_short(exc)}") from None
+    raw = mesh.metadata.get("_ply_raw", {})
+    for element, props in raw.items():  # an ASCII file cut short parses without complaint
+        declared = props.get("length")
+        for name, column in _ply_columns(props).items():
+            if declared is not None and len(column) != declared:
+                raise SceneError(f"{path}: truncated or malformed PLY: the header declares {declared:,} "
+                                 f"'{element}' elements, the file holds {len(column):,} "
+                                 f"(property {clip_token(name)})")
+    columns = _ply_columns(raw.get("face", {}))
+    vertices = np.asarray(mesh.vertices, dtype=np.float64).reshape(-1, 3)
+    if "vertex_indices" in columns or "vertex_index" in columns:
+        faces, owner = _ply_polygons(columns.get("vertex_indices", columns.get("vertex_index")), path)
+    else:  # not a PLY layout we know: trimesh's triangles, one per face
+        faces = np.asarray(mesh.faces, dtype=np.int64).reshape(-1, 3)
+        owner = np.arange(len(faces))
     if not len(faces):
         raise SceneError(f"{path}: no faces found")
-    raw = mesh.metadata.get("_ply_raw", {}).get("face", {}).get("data")
-    names = raw.dtype.names if raw is not None and raw.dtype.names else ()
-    rho = emission = None
+    if not np.isfinite(vertices).all():
+        bad = int(np.flatnonzero(~np.isfinite(vertices).all(axis=1))[0])
+        raise SceneError(f"{path}: vertex {bad} has a non-finite coordinate {vertices[bad].tolist()}")
+    bad = (faces < 0) | (faces >= len(vertices))
+    if bad.any():
+        t = int(np.flatnonzero(bad.any(axis=1))[0])
+        raise SceneError(f"{path}: face {int(owner[t])} uses vertex {int(faces[t][bad[t]][0])}, "
+                         f"but the file has {len(vertices):,} vertices (0..{len(vertices) - 1})")
+
+    def per_face(names, scale=1.0):
+        if not all(n in columns for n in names):
+            return None
+        values = np.stack([np.asarray(columns[n], np.float64).reshape(-1) for n in names], axis=1) / scale
+        finite = np.isfinite(values).all(axis=1)
+        if not finite.all():
+            i = int(np.flatnonzero(~finite)[0])
+            raise SceneError(f"{path}: face {i} has a non-finite {'/'.join(names)}: {values[i].tolist()} "
+                             "(a PLY 'float' holds at most 3.4e38)")
+        return values[owner]
+
+    rho = per_face([f"reflectance_{c}" for c in "rgb"])
     from_colour = False
-    if all(f"reflectance_{c}" in names for c in "rgb") and len(raw) == len(faces):
-        rho = np.stack([raw[f"reflectance_{c}"] for c in "rgb"], axis=1).astype(np.float64).reshape(-1, 3)
-    elif all(c in names for c in ("red", "green", "blue")) and len(raw) == len(faces):
-        rho = np.stack([raw[c] for c in ("red", "green", "blue")], axis=1).astype(np.float64).reshape(-1, 3) / 255.0
-        from_colour = True
-    if all(f"emission_{c}" in names for c in "rgb") and len(raw) == len(faces):
-        emission = np.stack([raw[f"emission_{c}"] for c in "rgb"], axis=1).astype(np.float64).reshape(-1, 3)
-    return _per_face_materials(mesh.vertices, faces, rho, emission, from_colour)
+    if rho is None:
+        rho = per_face(["red", "green", "blue"], 255.0)
+        from_colour = rho is not None
+    emission = per_face([f"emission_{c}" for c in "rgb"])
+    return _per_face_materials(vertices, faces, rho, emission, from_colour)
 
 
 def _per_face_materials(vertices, faces, rho, emission, from_colour: bool) -> dict:
@@ -82,8 +178,28 @@ def _per_face_materials(vertices, faces, rho, emission, from_colour: bool) -> di
     }
 
 
-def _emissive_strengths(path: Path) -> dict[str, float]:
-    """KHR_materials_emissive_strength per material name (trimesh ignores it)."""
+def _number_list(value, size: tuple[int, ...], where: str) -> tuple[float, ...]:
+    ok = (isinstance(value, list) and len(value) in size
+          and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in value)
+          and all(math.isfinite(x) for x in value))
+    if not ok:
+        raise SceneError(f"{where}: expected {' or '.join(map(str, size))} finite numbers, got "
+                         f"{clip_token(json.dumps(value)[:10 * QUOTE_CHARS])}")
+    return tuple(float(x) for x in value)
+
+
+def _gltf_materials(path: Path) -> dict[str, dict]:
+    """Per material name, the factors as the file's JSON states them (trimesh ignores
+    KHR_materials_emissive_strength and turns baseColorFactor into 8-bit colours, NaN into 0).
+
+    Returns ``{name: {"base": (4,) or None, "emissive": (3,) or None, "strength": float}}``.
+
+    Raises
+    ------
+    SceneError
+        A factor that is not a list of finite numbers, or a strength that is
+        not a finite number >= 0 (material and field named).
+    """
     try:
         data = path.read_bytes()
         if data[:4] == b"glTF":
@@ -91,23 +207,41 @@ def _emissive_strengths(path: Path) -> dict[str, float]:
             doc = json.loads(data[20:20 + length])
         else:
             doc = json.loads(data)
-    except Exception:
+    except Exception:  # trimesh read the file: its JSON is fine; anything odd here is not ours to judge
         return {}
+    mats = doc.get("materials", []) if isinstance(doc, dict) else []
     out = {}
-    for k, mat in enumerate(doc.get("materials", [])):
-        ext = mat.get("extensions", {}).get("KHR_materials_emissive_strength", {})
-        out[mat.get("name", f"material_{k}")] = float(ext.get("emissiveStrength", 1.0))
+    for k, mat in enumerate(mats if isinstance(mats, list) else []):
+        if not isinstance(mat, dict):
+            continue
+        name = mat.get("name", f"material_{k}")
+        where = f"{path}: material {clip_token(name)}"
+        pbr = mat.get("pbrMetallicRoughness", {})
+        base = pbr.get("baseColorFactor") if isinstance(pbr, dict) else None
+        emissive = mat.get("emissiveFactor")
+        ext = mat.get("extensions", {})
+        strength = (ext.get("KHR_materials_emissive_strength", {}) if isinstance(ext, dict) else {})
+        strength = strength.get("emissiveStrength", 1.0) if isinstance(strength, dict) else 1.0
+        if isinstance(strength, bool) or not isinstance(strength, (int, float)) or not (
+                math.isfinite(strength) and strength >= 0):
+            raise SceneError(f"{where}: emissiveStrength must be a finite number >= 0, got "
+                             f"{clip_token(json.dumps(strength)[:10 * QUOTE_CHARS])}")
+        out[name] = {"base": None if base is None else _number_list(base, (4,), f"{where}: baseColorFactor"),
+                     "emissive": None if emissive is None else _number_list(emissive, (3,),
+                                                                             f"{where}: emissiveFactor"),
+                     "strength": float(strength)}
     return out
 
 
 def read_gltf(path: Path) -> dict:
     """Parse a glTF/GLB file with trimesh, keeping one material per primitive."""
     trimesh = _trimesh()
+    _check_file(path)
     try:
         scene = trimesh.load(str(path), force="scene")
     except Exception as exc:
-        raise SceneError(f"{path}: could not read as glTF: {exc}") from None
-    strengths = _emissive_strengths(path)
+        raise SceneError(f"{path}: could not read as glTF: {_short(exc)}") from None
+    strengths = _gltf_materials(path)
     vertices, faces, face_material, face_group = [], [], [], []
     material_names: list[str] = []
     materials: dict[str, dict] = {}
@@ -145,13 +279,20 @@ def _material_entry(mesh, materials: dict, strengths: dict, index: int) -> str:
     if name in materials:
         return name
     entry: dict = {}
+    stated = strengths.get(name, {})
     base = getattr(mat, "baseColorFactor", None)
-    if base is not None:
+    if stated.get("base") is not None:
+        base = np.asarray(stated["base"], dtype=np.float64)[:3]  # the file's floats, not 8-bit colours
+    elif base is not None:
         base = np.asarray(base, dtype=np.float64)[:3]
-        entry["reflectance"] = tuple(base / 255.0 if base.max() > 1.0 else base)
+        base = base / 255.0 if base.max() > 1.0 else base
+    if base is not None:
+        entry["reflectance"] = tuple(float(x) for x in base)
         entry["from_colour"] = True  # a colour of 1.0 is common: clamp it, don't reject it
     emissive = getattr(mat, "emissiveFactor", None)
+    if stated.get("emissive") is not None:
+        emissive = stated["emissive"]
     if emissive is not None:
-        entry["emission"] = tuple(np.asarray(emissive, np.float64)[:3] * strengths.get(name, 1.0))
+        entry["emission"] = tuple(float(x) for x in np.asarray(emissive, np.float64)[:3] * stated.get("strength", 1.0))
     materials[name] = entry
     return name

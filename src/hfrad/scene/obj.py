@@ -5,7 +5,15 @@ Own parser rather than trimesh's because trimesh 5.2 resolves relative
 zero-area faces and a wrong bounding box) and drops ``Ke`` emission. The
 parser keeps what radiosity needs: positions, polygons (fan-triangulated),
 ``usemtl`` materials (Kd = reflectance, Ke = emitted exitance) and ``g``/``o``
-groups. Every error names the file and line.
+groups. Every error names the file and line, and quotes at most
+``QUOTE_CHARS`` characters of the offending text.
+
+Lines are UTF-8; a line that is not (an exporter writing Latin-1 names) is
+read as Latin-1, so material and file names with accented letters work
+either way. ``mtllib`` takes the rest of the line as one file name when
+such a file exists (names with spaces), else a list of names. Material
+libraries must lie in the scene's folder or below it, as glTF buffer files
+must: ``mtllib ../../etc/passwd`` is refused, never read.
 """
 
 from __future__ import annotations
@@ -15,6 +23,57 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import SceneError
+from ..validation import clip_token
+
+#: Longest material or group name accepted (a longer one is a broken file, not a name).
+MAX_NAME = 1000
+
+
+def _lines(path: Path):
+    """``(number, text)`` of each line of a text scene file: UTF-8, else Latin-1 per line.
+
+    Raises
+    ------
+    SceneError
+        A directory, an unreadable file, or UTF-16/32 text (named, with the fix).
+    """
+    try:
+        f = open(path, "rb")
+    except IsADirectoryError:
+        raise SceneError(f"{path}: is a directory, not a scene file") from None
+    except OSError as exc:
+        raise SceneError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    with f:
+        head = f.read(4)
+        if head[:2] in (b"\xff\xfe", b"\xfe\xff") or head[:4] in (b"\x00\x00\xfe\xff", b"\xff\xfe\x00\x00"):
+            raise SceneError(f"{path}: UTF-16/32 text; save the file as UTF-8 (or ASCII)")
+        f.seek(0)
+        for number, raw in enumerate(f, 1):
+            try:
+                yield number, raw.decode("utf-8")
+            except UnicodeDecodeError:
+                yield number, raw.decode("latin-1")
+
+
+def _name(text: str, what: str, where: str) -> str:
+    if len(text) > MAX_NAME:
+        raise SceneError(f"{where}: {what} of {len(text):,} characters (at most {MAX_NAME}): {clip_token(text)}")
+    return text
+
+
+def _confined(folder: Path, name: str, where: str) -> Path:
+    """``folder / name``, refused when it leaves ``folder`` (``..``, an absolute path, a symbolic link)."""
+    target = folder / name
+    root = folder.resolve()
+    try:
+        resolved = target.resolve()
+    except (OSError, RuntimeError):  # a symbolic link loop
+        raise SceneError(f"{where}: cannot resolve the file name {clip_token(name)}") from None
+    if resolved != root and root not in resolved.parents:
+        raise SceneError(f"{where}: material library {clip_token(name)} lies outside the scene's folder "
+                         f"{clip_token(str(root))}; hfrad reads material files only from the scene's folder "
+                         "and below it (copy the file next to the scene)")
+    return target
 
 
 def _floats(values: list[str], count: int, where: str) -> tuple[float, ...]:
@@ -23,9 +82,9 @@ def _floats(values: list[str], count: int, where: str) -> tuple[float, ...]:
     try:
         out = tuple(float(v) for v in values[:count])
     except ValueError:
-        raise SceneError(f"{where}: not a number in {' '.join(values[:count])!r}") from None
+        raise SceneError(f"{where}: not a number in {clip_token(' '.join(values[:count]))}") from None
     if not all(np.isfinite(out)):
-        raise SceneError(f"{where}: non-finite value in {' '.join(values[:count])!r}")
+        raise SceneError(f"{where}: non-finite value in {clip_token(' '.join(values[:count]))}")
     return out
 
 
@@ -38,22 +97,24 @@ def read_mtl(path: Path) -> dict[str, dict]:
     """Materials of an MTL file: name -> {'reflectance': Kd, 'emission': Ke, 'line': n}."""
     materials: dict[str, dict] = {}
     current = None
-    with open(path, encoding="utf-8", errors="replace") as f:
-        for number, raw in enumerate(f, 1):
-            line = _strip_comment(raw)  # also strips indentation (one McGuire MTL indents newmtl)
-            if not line:
-                continue
-            key, *rest = line.split()
-            where = f"{path}:{number}"
-            if key == "newmtl":
-                current = " ".join(rest)
-                materials[current] = {"reflectance": (0.0, 0.0, 0.0), "emission": (0.0, 0.0, 0.0),
-                                      "line": number}
-            elif key in ("Kd", "Ke"):
-                if current is None:
-                    raise SceneError(f"{where}: {key} before any newmtl")
-                rgb = rest if len(rest) >= 3 else rest * 3  # 'Kd 0.5' means grey
-                materials[current]["reflectance" if key == "Kd" else "emission"] = _floats(rgb, 3, where)
+    for number, raw in _lines(path):
+        line = _strip_comment(raw)  # also strips indentation (one McGuire MTL indents newmtl)
+        if not line:
+            continue
+        key, *rest = line.split()
+        where = f"{path}:{number}"
+        if key == "newmtl":
+            current = _name(" ".join(rest), "material name", where)
+            materials[current] = {"reflectance": (0.0, 0.0, 0.0), "emission": (0.0, 0.0, 0.0),
+                                  "line": number}
+        elif key in ("Kd", "Ke"):
+            if current is None:
+                raise SceneError(f"{where}: {key} before any newmtl")
+            if len(rest) == 2:
+                raise SceneError(f"{where}: {key} needs one number (grey) or three (R G B), got two: "
+                                 f"{clip_token(' '.join(rest))}")
+            rgb = rest if len(rest) >= 3 else rest * 3  # 'Kd 0.5' means grey
+            materials[current]["reflectance" if key == "Kd" else "emission"] = _floats(rgb, 3, where)
     return materials
 
 
@@ -77,41 +138,44 @@ def read_obj(path: Path) -> dict:
     materials: dict[str, dict] = {}
     missing_mtl: list[str] = []
     mat_index, group_index = -1, 0
-    with open(path, encoding="utf-8", errors="replace") as f:
-        for number, raw in enumerate(f, 1):
-            line = _strip_comment(raw)
-            if not line:
-                continue
-            key, *tail = line.split(None, 1)  # fields may be separated by tabs
-            rest = tail[0] if tail else ""
-            where = f"{path}:{number}"
-            if key == "v":
-                vertices.append(_floats(rest.split(), 3, where))
-            elif key == "f":
-                corners = [_vertex_index(tok, len(vertices), where) for tok in rest.split()]
-                if len(corners) < 3:
-                    raise SceneError(f"{where}: a face needs at least 3 vertices, got {len(corners)}")
-                for k in range(1, len(corners) - 1):  # fan triangulation
-                    faces.append((corners[0], corners[k], corners[k + 1]))
-                    face_material.append(mat_index)
-                    face_group.append(group_index)
-            elif key == "usemtl":
-                name = rest.strip()
-                if name not in material_names:
-                    material_names.append(name)
-                mat_index = material_names.index(name)
-            elif key in ("g", "o"):
-                name = rest.strip() or "default"
-                if name not in group_names:
-                    group_names.append(name)
-                group_index = group_names.index(name)
-            elif key == "mtllib":
-                for lib in rest.split():
-                    mtl = path.parent / lib
-                    if mtl.is_file():
-                        materials.update(read_mtl(mtl))
-                    else:
-                        missing_mtl.append(str(mtl))
+    material_index: dict[str, int] = {}
+    group_index_of: dict[str, int] = {"default": 0}
+    for number, raw in _lines(path):
+        line = _strip_comment(raw)
+        if not line:
+            continue
+        key, *tail = line.split(None, 1)  # fields may be separated by tabs
+        rest = tail[0] if tail else ""
+        where = f"{path}:{number}"
+        if key == "v":
+            vertices.append(_floats(rest.split(), 3, where))
+        elif key == "f":
+            corners = [_vertex_index(tok, len(vertices), where) for tok in rest.split()]
+            if len(corners) < 3:
+                raise SceneError(f"{where}: a face needs at least 3 vertices, got {len(corners)}")
+            for k in range(1, len(corners) - 1):  # fan triangulation
+                faces.append((corners[0], corners[k], corners[k + 1]))
+                face_material.append(mat_index)
+                face_group.append(group_index)
+        elif key == "usemtl":
+            name = _name(rest.strip(), "material name", where)
+            if name not in material_index:
+                material_index[name] = len(material_names)
+                material_names.append(name)
+            mat_index = material_index[name]
+        elif key in ("g", "o"):
+            name = _name(rest.strip() or "default", "group name", where)
+            if name not in group_index_of:
+                group_index_of[name] = len(group_names)
+                group_names.append(name)
+            group_index = group_index_of[name]
+        elif key == "mtllib":
+            for lib in _library_names(path.parent, rest.strip()):
+                mtl = _confined(path.parent, lib, where)
+                if _is_file(mtl):
+                    materials.update(read_mtl(mtl))
+                else:
+                    missing_mtl.append(str(mtl))
     if not faces:
         raise SceneError(f"{path}: no faces found (is this an OBJ file?)")
     return {
@@ -127,6 +191,24 @@ def read_obj(path: Path) -> dict:
     }
 
 
+def _is_file(path: Path) -> bool:
+    try:
+        return path.is_file()
+    except OSError:  # a name too long for the file system, say
+        return False
+
+
+def _library_names(folder: Path, rest: str) -> list[str]:
+    """The file names of an ``mtllib`` line: the whole rest when it names a file (spaces in the
+    name), else its words (several libraries)."""
+    if not rest:
+        return []
+    if " " in rest or "\t" in rest:
+        if _is_file(folder / rest):
+            return [rest]
+    return rest.split()
+
+
 def _vertex_index(token: str, count: int, where: str) -> int:
     """0-based index of an ``f`` corner token ``v``, ``v/vt``, ``v//vn`` or ``v/vt/vn``.
 
@@ -136,8 +218,10 @@ def _vertex_index(token: str, count: int, where: str) -> int:
     try:
         k = int(head)
     except ValueError:
-        raise SceneError(f"{where}: bad vertex index {token!r}") from None
+        raise SceneError(f"{where}: bad vertex index {clip_token(token)}") from None
     index = k - 1 if k > 0 else count + k
     if k == 0 or not 0 <= index < count:
-        raise SceneError(f"{where}: vertex index {k} out of range (only {count} vertices read so far)")
+        shown = head if len(head) <= 40 else clip_token(head)
+        raise SceneError(f"{where}: vertex index {shown} out of range "
+                         f"(only {count} vertices read so far)")
     return index
