@@ -10,8 +10,6 @@ never exists. With ``checkpoint=PATH`` the stream state is saved every
 from __future__ import annotations
 
 import contextlib
-import hashlib
-import json
 import math
 import time
 from pathlib import Path
@@ -23,18 +21,16 @@ from .defaults import DEFAULT_BLOCK_SIZE
 from .errors import InputError, SceneError
 from .factorize.api import check_method, lowrank_from_blocks, lowrank_from_matrix
 from .factorize.hf import HFStream, frobenius2
-from .factorize.nearfield import DEFAULT_NEAR_ENTRIES, NearFieldSplit, near_radius
+from .factorize.nearfield import DEFAULT_NEAR_ENTRIES, NearFieldSplit
 from .factorize.streaming import load_checkpoint, save_checkpoint
-from .formfactors.energy import warn_energy
-from .formfactors.parallel import default_one_ray_tol, default_workers
+from .formfactors.parallel import default_workers
 from .memory import precompute_bytes
 from .progress import ProgressCallback, report
 from .scene.scene import Scene
-from .scene.zorder import patch_order
-from .solve.nearfield import NearFieldFactorization
+from .solve.assemble import PrecomputeOptions, assemble, precompute_options
 from .solve.stats import PassStatistics
 from .solve.woodbury import HFactorization
-from .validation import check_areas, check_factorize_options, check_permutation, check_reflectance
+from .validation import check_areas, check_factorize_options, check_form_factors, check_permutation, check_reflectance
 
 #: ``near_field="auto"`` splits the near field from this many patches on (below, it does not pay).
 NEAR_FIELD_MIN_PATCHES = 2000
@@ -46,17 +42,6 @@ _STATS = "stats_"
 CHECKPOINT_COST_RATIO = 50.0
 
 StatusCallback = Callable[[dict], None] | None
-
-
-def _scene_key(scene: Scene, params: dict) -> str:
-    """A hash of everything the factorization depends on: geometry, reflectance, parameters."""
-    h = hashlib.sha256()
-    for a in (scene.vertices, scene.faces, scene.occluder_vertices, scene.occluder_faces, scene.patch_of_triangle,
-              scene.reflectance.max(axis=1)):
-        h.update(np.ascontiguousarray(a).tobytes())
-    # params hold the form-factor kernel's version and settings: a checkpoint from another kernel is refused
-    h.update(json.dumps(params, sort_keys=True).encode())
-    return h.hexdigest()
 
 
 def check_factorize_args(scene: Scene, eps: float, block_size: int, dtype, relative: bool = True) -> np.dtype:
@@ -72,9 +57,12 @@ def factorize(scene_or_matrix, reflectance=None, *, areas=None, eps: float = 0.0
               block_size: int | None = None, dtype="float32", order=None, method: str = "hf",
               samples: int | None = None, leaf_share: float = 0.5,
               checkpoint: str | Path | None = None, checkpoint_interval: float = 30.0,
+              keep_checkpoint: bool = False,
               blas_threads: int | None = 1, processes: int | None = 1, one_ray_tol: float | None = None,
               near_field: int | str | None = "auto", reciprocity: bool = True, rng=None,
-              progress: ProgressCallback = None, status: StatusCallback = None) -> HFactorization:
+              progress: ProgressCallback = None, status: StatusCallback = None, scheduler=None,
+              workers: int | None = None, task_threads: int | None = None, connect_timeout: float | None = None,
+              records: list | None = None) -> HFactorization:
     """Factor a radiosity system once: ``diag(rho_max) F ~= Q V^T``, then solve it for any light in O(nk).
 
     Parameters
@@ -111,11 +99,18 @@ def factorize(scene_or_matrix, reflectance=None, *, areas=None, eps: float = 0.0
         Share of the squared error budget given to the leaf SVDs.
     checkpoint : path, optional
         Scene only: save the stream state here while running and resume
-        from it if it exists; deleted when the factorization completes.
+        from it if it exists; deleted when the factorization completes
+        (see ``keep_checkpoint``). A damaged checkpoint, or one made for
+        another input, is refused (FileFormatError / InputError), never resumed.
     checkpoint_interval : float, seconds
         At least this long between checkpoints, and at least
         :data:`CHECKPOINT_COST_RATIO` times the last write's duration
         (0: after every block, whatever it costs).
+    keep_checkpoint : bool
+        Scene only, in this process: leave the checkpoint in place when the
+        factorization completes, for a caller that deletes it only once the
+        result is safely saved (``hfrad precompute`` removes it after the
+        ``.hfr`` file is renamed into place, so a crash while saving loses nothing).
     blas_threads : int or None
         Scene only: BLAS threads while the form-factor engine runs (None:
         leave as is). One is fastest while the engine uses the other cores.
@@ -155,6 +150,17 @@ def factorize(scene_or_matrix, reflectance=None, *, areas=None, eps: float = 0.0
         Column blocks done.
     status : callable (dict), optional
         Scene only: called after each block with ``blocks``, ``rank``, ``elapsed``.
+    scheduler : str, distributed.Client or hfrad.distributed.Cluster, optional
+        Scene only: run the column blocks, leaves and merges as Dask tasks on this
+        cluster (docs/cluster.md) instead of in this process. Same options, same
+        class, same ``.hfr`` contents and error figures (only ``params["backend"]``,
+        ``params["workers"]`` and the timings differ); ``reciprocity`` is not used
+        there (every pair is computed), and ``checkpoint`` names a folder of the
+        finished subtrees' factors, so a rerun skips them.
+    workers : int, optional
+        Instead of ``scheduler``: a LocalCluster of this many worker processes.
+    task_threads, connect_timeout, records
+        Dask only: see :func:`hfrad.distributed.factorize_distributed`.
 
     Returns
     -------
@@ -189,19 +195,33 @@ def factorize(scene_or_matrix, reflectance=None, *, areas=None, eps: float = 0.0
         if method != "hf":
             raise InputError(f"a scene is factored by streaming HF; method {method!r} needs the dense "
                              "matrix (hfrad.form_factor_matrix(scene)) and is a baseline")
-        return _factorize_scene(scene_or_matrix, eps=eps, relative=relative, block_size=block_size, dtype=dtype,
-                                samples=samples, order="zorder" if order is None else order,
-                                leaf_share=leaf_share, checkpoint=checkpoint,
-                                checkpoint_interval=checkpoint_interval, blas_threads=blas_threads,
-                                processes=processes, one_ray_tol=one_ray_tol, near_field=near_field,
-                                reciprocity=reciprocity,
-                                progress=progress, status=status)
+        options = precompute_options(scene_or_matrix, eps=eps, relative=relative, block_size=block_size,
+                                     dtype=dtype, samples=samples, order="zorder" if order is None else order,
+                                     leaf_share=leaf_share, one_ray_tol=one_ray_tol,
+                                     near_entries=near_entries(near_field, scene_or_matrix.n_patches),
+                                     reciprocity=reciprocity)
+        if scheduler is not None or workers is not None:
+            if processes not in (None, 1):
+                raise InputError("processes is for the in-process path; on Dask the workers compute the blocks")
+            from .distributed import factorize_distributed, remove_checkpoint
+
+            fac = factorize_distributed(scene_or_matrix, options, scheduler=scheduler, workers=workers,
+                                        task_threads=task_threads, connect_timeout=connect_timeout,
+                                        checkpoint=checkpoint, progress=progress, status=status, records=records)
+            if checkpoint is not None and not keep_checkpoint:
+                remove_checkpoint(checkpoint)
+            return fac
+        return _factorize_scene(scene_or_matrix, options, checkpoint=checkpoint,
+                                checkpoint_interval=checkpoint_interval, keep_checkpoint=keep_checkpoint,
+                                blas_threads=blas_threads,
+                                processes=processes, progress=progress, status=status)
     if isinstance(scene_or_matrix, (str, Path)):
         raise InputError(f"factorize takes a Scene or a matrix; load the file first: "
                          f"hfrad.load_scene({str(scene_or_matrix)!r})")
     if reflectance is None:
         raise InputError("factorize(F, reflectance): a form-factor matrix needs the (n, 3) reflectance")
     for name, value in (("samples", samples), ("checkpoint", checkpoint), ("status", status),
+                        ("scheduler", scheduler), ("workers", workers), ("records", records),
                         ("processes", None if processes == 1 else processes), ("one_ray_tol", one_ray_tol),
                         ("near_field", None if near_field == "auto" else near_field)):
         if value is not None:
@@ -212,53 +232,29 @@ def factorize(scene_or_matrix, reflectance=None, *, areas=None, eps: float = 0.0
                              progress=progress)
 
 
-def _factorize_scene(scene: Scene, *, eps: float, relative: bool, block_size: int | None, dtype, samples,
-                     order, leaf_share: float, checkpoint, checkpoint_interval: float, blas_threads,
-                     processes, one_ray_tol, near_field, reciprocity: bool, progress: ProgressCallback,
+def _factorize_scene(scene: Scene, options: PrecomputeOptions, *, checkpoint, checkpoint_interval: float,
+                     keep_checkpoint: bool = False, blas_threads, processes, progress: ProgressCallback,
                      status: StatusCallback) -> HFactorization:
-    """The scene branch of :func:`factorize` (arguments as there): streamed form factors into HF."""
-    if block_size is None:
-        block_size = min(DEFAULT_BLOCK_SIZE, max(scene.n_patches, 1))
-    dt = check_factorize_args(scene, eps, block_size, dtype, relative)
+    """The scene branch of :func:`factorize` in this process (arguments as there): streamed form factors into HF."""
     from .formfactors.blocks import iter_column_blocks
-    from .formfactors.kernel import settings as kernel_settings
-    from .formfactors.visibility import settings as visibility_settings
 
-    n = scene.n_patches
-    if isinstance(order, str):
-        perm = patch_order(scene.centroids, order)
-    else:
-        perm = check_permutation(order, n)
-        order = "custom"
-    rho_max = scene.reflectance.max(axis=1)
-    n_blocks = math.ceil(n / block_size)
-    if one_ray_tol is None:
-        one_ray_tol = default_one_ray_tol(eps, relative)
-    entries = near_entries(near_field, n)
-    params = {"eps": eps, "relative": relative, "block_size": block_size, "dtype": dt.name,
-              "samples": samples, "order": order, "leaf_share": leaf_share, "one_ray_tol": one_ray_tol,
-              "near_field": entries,
-              # the radius, not only the count, is part of the checkpoint key
-              "near_radius": near_radius(scene.centroids, entries, scene.normals) if entries else 0.0,
-              # kernel version and tolerance: recorded in the .hfr, part of the checkpoint key
-              "form_factors": {**kernel_settings(), **visibility_settings()}}
-    key = _scene_key(scene, params)
-    params["reciprocity"] = bool(reciprocity)    # F equal to rounding either way: not part of the key
-    stream = _open_stream(checkpoint, key, n, n_blocks, eps, relative, dt, leaf_share)
-    stats = _open_stats(stream, n, scene.areas[perm])
+    n, block_size, dt = options.n, options.block_size, np.dtype(options.dtype)
+    perm, n_blocks = options.perm, options.n_blocks
+    key = options.key(scene)
+    stream = _open_stream(checkpoint, key, n, n_blocks, options.eps, options.relative, dt, options.leaf_share)
+    stats = _open_stats(stream, n, options.stats_weights(scene))
     t0 = time.perf_counter()
-    ff_kwargs = {} if samples is None else {"samples": samples}
-    if samples != 0:
-        from .formfactors.parallel import ray_budget
-        ff_kwargs["ray_budget"] = ray_budget(scene, one_ray_tol)
+    ff_kwargs = {} if options.samples is None else {"samples": options.samples}
+    if options.samples != 0:
+        ff_kwargs["ray_budget"] = options.ray_budget(scene)
     # the reciprocity tiles leave free what the rest of the run is estimated to need
     blocks = iter_column_blocks(scene, block_size, order=perm, first_block=stream.blocks_done,
-                                processes=processes, dtype=dt, reciprocity=reciprocity,
+                                processes=processes, dtype=dt, reciprocity=options.reciprocity,
                                 reserved_bytes=precompute_bytes(n, block_size, itemsize=dt.itemsize), **ff_kwargs)
-    rows_rho = rho_max[perm][:, None].astype(dt)
+    rows_rho = options.rows_rho(scene)
     split = None
-    if params["near_field"]:
-        split = NearFieldSplit(scene.centroids[perm], params["near_radius"])
+    if options.near_entries:
+        split = NearFieldSplit(scene.centroids[perm], options.near_radius)
         if stream.blocks_done:
             split.restore(stream.extra)
     with _blas_threads(blas_threads):
@@ -269,20 +265,10 @@ def _factorize_scene(scene: Scene, *, eps: float, relative: bool, block_size: in
     lowrank = stream.finish()
     lowrank.info.update({"time_formfactors": time_ff, "time_checkpoints": time_ckpt,
                          "time_precompute": time.perf_counter() - t0})
-    warn_energy(scene, stats.row_sums[np.argsort(perm)])
-    if split is None:
-        fac = HFactorization(perm, lowrank.Q, lowrank.V, rho_max, scene.reflectance, lowrank,
-                             params={**params, "backend": "local"}, scene=scene, stats=stats)
-    else:
-        t1 = time.perf_counter()
-        N = split.matrix()
-        lowrank.info.update({"near_radius": split.radius, "near_nnz": int(N.nnz)})
-        fac = NearFieldFactorization(perm, lowrank.Q, lowrank.V, N, rho_max, scene.reflectance, lowrank,
-                                     params={**params, "backend": "local"}, scene=scene, stats=stats)
-        lowrank.info["time_nearfield_setup"] = time.perf_counter() - t1
-    lowrank.info["solver"] = fac.solver
-    if checkpoint is not None and Path(checkpoint).exists():
-        Path(checkpoint).unlink()
+    fac = assemble(scene, options, lowrank, stats, None if split is None else split.state(),
+                   backend={"backend": "local"})
+    if checkpoint is not None and not keep_checkpoint:
+        Path(checkpoint).unlink(missing_ok=True)
     return fac
 
 
@@ -392,7 +378,7 @@ def _stream_blocks(blocks, stream: HFStream, stats: PassStatistics, rows_rho, n_
 def _factorize_matrix(F, reflectance, *, eps: float, relative: bool, block_size: int, dtype, order,
                       method: str, leaf_share: float, rng, areas, progress: ProgressCallback) -> HFactorization:
     """The matrix branch of :func:`factorize` (arguments as there): validation, then the factorizer."""
-    F = np.asarray(F)
+    F = check_form_factors(F)  # real, square, finite, >= 0
     if F.ndim != 2 or F.shape[0] != F.shape[1]:
         raise InputError(f"form factors must be a square (n, n) matrix; got {F.shape}")
     n = F.shape[0]

@@ -94,14 +94,17 @@ def register(app: typer.Typer) -> None:
                                      "(rank guessed; refused above 80% of the available memory), plus up to "
                                      f"{human(mirror)} of form factors kept for reciprocity", highlight=False)
             if scheduler is not None or workers is not None:
-                if near_field not in ("auto", "off", "0") or processes not in (None, 1):
-                    raise InputError("--near-field and --processes are for the in-process path; with --scheduler "
-                                     "or --workers the Dask workers compute the blocks and HF has no near-field "
-                                     "split yet")
+                if processes not in (None, 1):
+                    raise InputError("--processes is for the in-process path; with --scheduler or --workers "
+                                     "the Dask workers compute the blocks")
                 t_load = time.perf_counter() - t0
+                parts = output.with_name(output.name + ".partial.d")   # finished subtrees: a rerun skips them
                 fac = _on_cluster(s, scheduler, workers, quiet, eps=eps, block_size=block, dtype=dtype,
-                                  samples=samples, order=order)
+                                  samples=samples, order=order, near_field=_near_field(near_field),
+                                  checkpoint=parts, keep_checkpoint=True)
                 save_hfr(fac, output, timings={"load": t_load, **_stage_times(fac)})
+                from ..distributed import remove_checkpoint
+                remove_checkpoint(parts)  # only once the .hfr is safely renamed into place
                 _report(fac, output, time.perf_counter() - t0)
                 return
             checkpoint = output.with_name(output.name + ".partial")
@@ -135,8 +138,8 @@ def _stage_times(fac) -> dict:
 
 def _on_cluster(scene, scheduler: Optional[str], workers: Optional[int], quiet: bool, **options):
     """The precompute as Dask tasks; a scheduler that cannot be reached exits 2 naming its address."""
-    from ..distributed import (SchedulerUnreachableError, WorkerLostError, connect, factorize_distributed,
-                               rank_guess, worker_bytes)
+    from ..distributed import SchedulerUnreachableError, WorkerLostError, connect, rank_guess, worker_bytes
+    from ..pipeline import factorize
     from ..memory import human
 
     if scheduler is not None and workers is not None:
@@ -153,7 +156,7 @@ def _on_cluster(scene, scheduler: Optional[str], workers: Optional[int], quiet: 
                 + (f"\nDask dashboard: {cluster.dashboard}" if cluster.dashboard else ""), highlight=False)
             with common.progress_bar(f"precompute {n:,} patches on Dask", quiet) as bar:
                 status = None if bar is None else (lambda info: bar.note(f"rank {info['rank']:,}"))
-                return factorize_distributed(scene, scheduler=cluster, progress=bar, status=status, **options)
+                return factorize(scene, scheduler=cluster, progress=bar, status=status, **options)
     except (SchedulerUnreachableError, WorkerLostError) as exc:
         common.fail(str(exc))
 

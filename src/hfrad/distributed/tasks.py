@@ -1,11 +1,13 @@
 """What runs on the Dask workers: one leaf per column block, one merge per tree node.
 
 A task returns a :class:`Part`: the HF node (``U``, ``s``, ``V`` and the error
-bookkeeping of :mod:`hfrad.factorize.hf`) plus the records of the tasks below
-it. The n x b form-factor block of a leaf is made, compressed and dropped inside
-the task, so only its factors (n x k_j and b x k_j) ever leave the worker.
+bookkeeping of :mod:`hfrad.factorize.hf`), the pass statistics and near-field
+entries of its columns, plus the records of the tasks below it. The n x b
+form-factor block of a leaf is made, split, compressed and dropped inside the
+task, so only its factors (n x k_j and b x k_j), statistics and near entries
+ever leave the worker.
 
-Everything here trusts its input: :func:`hfrad.distributed.factorize_distributed`
+Everything here trusts its input: :func:`hfrad.solve.assemble.precompute_options`
 validated it on the client.
 """
 
@@ -17,10 +19,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..factorize.hf import ErrorBudget, compress_leaf, merge_nodes, root_lowrank
-from ..factorize.lowrank import LowRank
+from ..factorize.hf import ErrorBudget, compress_leaf, frobenius2, merge_nodes, root_lowrank
+from ..factorize.nearfield import NearFieldSplit
 from ..formfactors.parallel import column_block
 from ..formfactors.visibility import RayBudget
+from ..solve.assemble import add_statistics, block_statistics, concat_near
+from . import store
 
 
 @dataclass(frozen=True)
@@ -32,15 +36,13 @@ class Job:
     scene : Scene
         The patches; each worker process builds its form-factor engine and
         Embree scene from it once (:func:`hfrad.formfactors.parallel.column_block`).
-    perm : (n,) int64
-        Internal (Z-)order: internal index t holds user patch ``perm[t]``.
-    rows_rho : (n, 1) of ``dtype``
+    options : PrecomputeOptions
+        The validated options (:mod:`hfrad.solve.assemble`), the local path's:
+        internal order ``perm``, block size, dtype, error budget, near-field radius.
+    rows_rho : (n, 1) of the factors' dtype
         ``rho_max`` in internal order: a block of G is ``rows_rho * F[perm][:, cols]``.
-    block_size, n_blocks : int
-    dtype : str
-        Working precision of the factors ("float32" or "float64").
-    eps, relative, leaf_share
-        The error budget, as in :class:`~hfrad.factorize.hf.HFStream`.
+    weights : (n,) float64
+        Patch areas in internal order (the pass statistics' norm).
     samples : int
         Visibility rays per pair.
     ray_budget : RayBudget or None
@@ -49,25 +51,27 @@ class Job:
         Threads of the numba kernel inside one task (None: the worker's setting).
     token : str
         Names this run (task keys, the progress topic).
+    checkpoint : str or None
+        Folder the finished parts are saved to (:mod:`hfrad.distributed.store`).
     """
 
     scene: object
-    perm: np.ndarray
+    options: object
     rows_rho: np.ndarray
-    block_size: int
-    n_blocks: int
-    dtype: str
-    eps: float
-    relative: bool
-    leaf_share: float
+    weights: np.ndarray | None
     samples: int
     ray_budget: RayBudget | None
     task_threads: int | None
     token: str
+    checkpoint: str | None = None
+
+    @property
+    def perm(self) -> np.ndarray:
+        return self.options.perm
 
     @property
     def budget(self) -> ErrorBudget:
-        return ErrorBudget(self.eps, self.relative, max(self.n_blocks, 1), self.leaf_share)
+        return self.options.budget
 
     @property
     def topic(self) -> str:
@@ -77,18 +81,21 @@ class Job:
 
 @dataclass
 class Part:
-    """A factored column range and the records of the tasks that made it.
+    """A factored column range, what the pass recorded on it, and the records of the tasks that made it.
 
-    ``records`` has one dict per task in the subtree: ``kind`` ("leaf" or
-    "merge"), ``node``, ``rank``, ``columns``, ``rows``, ``seconds`` (task wall time),
-    ``cpu`` (CPU seconds of the worker process during the task: with one task at a
-    time, the task's own, and not inflated by other processes competing for the
-    cores), ``formfactors``, ``svd`` and ``cpu_formfactors`` seconds (leaves),
-    ``ranks_in`` (merges), ``worker``.
+    ``stats``: the pass statistics of these columns (:func:`~hfrad.solve.assemble.block_statistics`,
+    additive). ``near``: their near-field entries (None without the split). ``records`` has one
+    dict per task in the subtree: ``kind`` ("leaf" or "merge"), ``node``, ``rank``, ``columns``,
+    ``rows``, ``seconds`` (task wall time), ``cpu`` (CPU seconds of the worker process during the
+    task: with one task at a time, the task's own, and not inflated by other processes competing
+    for the cores), ``formfactors``, ``svd`` and ``cpu_formfactors`` seconds (leaves),
+    ``ranks_in`` (merges), ``worker``, ``resumed`` (read back from a checkpoint, not run now).
     """
 
     node: object
     records: list = field(default_factory=list)
+    stats: dict | None = None
+    near: dict | None = None
 
 
 @contextlib.contextmanager
@@ -131,48 +138,102 @@ def _worker_name() -> str:
         return "local"
 
 
-def leaf_task(job: Job, j: int) -> Part:
-    """Leaf ``j``: compute the column block ``G[:, cols_j]`` of ``G = diag(rho_max) F`` and compress it.
+#: One near-field splitter (its k-d tree of the centroids) per worker process and run.
+_SPLITS: dict = {}
 
-    Returns the truncated SVD of the block (n x k_j, k_j, b x k_j), never the block.
-    The block is the local path's, value for value (same engine, threshold and
-    dtype). Peak memory: the float64 block (8 n b bytes), its ``dtype`` copies
-    and the SVD's workspace, about 25 n b bytes with float32 factors.
+
+def _splitter(job: Job) -> NearFieldSplit:
+    split = _SPLITS.get(job.token)
+    if split is None:
+        _SPLITS.clear()
+        split = _SPLITS[job.token] = NearFieldSplit(job.scene.centroids[job.perm], job.options.near_radius)
+    split.rows, split.cols, split.values = [], [], []
+    return split
+
+
+def _saved(job: Job, node_id: int, part: Part, children=()) -> Part:
+    """Save ``part`` to the run's checkpoint folder (if any), then drop its children's files."""
+    if job.checkpoint is not None:
+        store.save_part(job.checkpoint, node_id, part)
+        for child in children:
+            store.drop_part(job.checkpoint, child)
+    return part
+
+
+def leaf_task(job: Job, j: int) -> Part:
+    """Leaf ``j``: column block ``G[:, cols_j]`` of ``G = diag(rho_max) F``, as the local path treats it.
+
+    The block's pass statistics, its near entries moved out (with the split), then the
+    truncated SVD of the rest within the leaf's share of the budget of the block's full
+    norm. Returns those (n x k_j, k_j, b x k_j factors, the statistics, the sparse near
+    entries), never the block. The block is the local path's, value for value (same
+    engine, ray budget and dtype). Peak memory: the float64 block (8 n b bytes), its dtype
+    copies and the SVD's workspace, about 25 n b bytes with float32 factors.
     """
     t0, cpu0 = time.perf_counter(), time.process_time()
-    cols = job.perm[j * job.block_size:(j + 1) * job.block_size]
+    b = job.options.block_size
+    start = j * b
+    cols = job.perm[start:start + b]
     with _threads(job.task_threads):
-        A = job.rows_rho * column_block(job.scene, cols, order=job.perm, samples=job.samples,
-                                        ray_budget=job.ray_budget, dtype=job.dtype)
+        F = column_block(job.scene, cols, order=job.perm, samples=job.samples, ray_budget=job.ray_budget,
+                         dtype=job.options.dtype)
     t1, cpu1 = time.perf_counter(), time.process_time()
-    node = compress_leaf(A, job.budget, j)
-    del A
+    n = job.perm.size
+    stats = block_statistics(n, job.weights, start, start + len(cols), F, job.rows_rho)
+    G = job.rows_rho * F
+    del F
+    norm2 = near = None
+    if job.options.near_entries:
+        norm2 = frobenius2(G)
+        split = _splitter(job)
+        G = split.split(G, start)
+        near = split.state()
+    node = compress_leaf(G, job.budget, j, norm2)
+    del G
     t2 = time.perf_counter()
     rank = int(node.s.size)
+    part = Part(node, [{"kind": "leaf", "node": j, "rank": rank, "columns": int(len(cols)), "rows": int(n),
+                        "seconds": t2 - t0, "formfactors": t1 - t0, "svd": t2 - t1,
+                        "cpu": time.process_time() - cpu0, "cpu_formfactors": cpu1 - cpu0,
+                        "worker": _worker_name()}], stats, near)
+    _saved(job, j, part)
     _announce(job, {"node": j, "kind": "leaf", "rank": rank})
-    return Part(node, [{"kind": "leaf", "node": j, "rank": rank, "columns": int(len(cols)),
-                        "rows": int(job.perm.size), "seconds": t2 - t0, "formfactors": t1 - t0,
-                        "svd": t2 - t1, "cpu": time.process_time() - cpu0, "cpu_formfactors": cpu1 - cpu0,
-                        "worker": _worker_name()}])
+    return part
 
 
-def merge_task(job: Job, node_id: int, left: Part, right: Part) -> Part:
+def merge_task(job: Job, node_id: int, left: Part, right: Part, children: tuple = ()) -> Part:
     """Merge two sibling parts (``left`` covers the earlier columns) within the node's error share.
 
-    Peak memory about ``7 n (k_left + k_right)`` words: both children's U, the
-    orthogonalised block, and the merged U with its two products.
+    Their statistics add, their near entries are concatenated. Peak memory about
+    ``7 n (k_left + k_right)`` words: both children's U, the orthogonalised block, and
+    the merged U with its two products. ``children``: the child node ids, whose
+    checkpoint files are dropped once this node's are written.
     """
     t0, cpu0 = time.perf_counter(), time.process_time()
     node = merge_nodes(left.node, right.node, job.budget, f"merge node {node_id}")
     seconds = time.perf_counter() - t0
     rank = int(node.s.size)
-    _announce(job, {"node": node_id, "kind": "merge", "rank": rank})
     own = {"kind": "merge", "node": node_id, "rank": rank, "rows": int(job.perm.size),
            "columns": int(node.V.shape[0]), "ranks_in": [int(left.node.s.size), int(right.node.s.size)],
            "seconds": seconds, "cpu": time.process_time() - cpu0, "worker": _worker_name()}
-    return Part(node, left.records + right.records + [own])
+    part = Part(node, left.records + right.records + [own], add_statistics(left.stats, right.stats),
+                concat_near(left.near, right.near))
+    _saved(job, node_id, part, children)
+    _announce(job, {"node": node_id, "kind": "merge", "rank": rank})
+    return part
 
 
-def root_task(job: Job, root: Part) -> tuple[LowRank, list]:
-    """``Q V^T`` of the root with its achieved error (``Q`` and ``V`` are n x k), and all task records."""
-    return root_lowrank(root.node, job.eps, job.relative), root.records
+def load_task(job: Job, node_id: int) -> Part:
+    """Node ``node_id`` as a finished run saved it (a rerun skips its subtree)."""
+    node, stats, near, records = store.load_part(job.checkpoint, node_id)
+    for r in records:
+        r["resumed"] = True
+    _announce(job, {"node": node_id, "kind": "resumed", "rank": int(node.s.size),
+                    "leaves": [r["node"] for r in records if r["kind"] == "leaf"]})
+    return Part(node, records, stats, near)
+
+
+def root_task(job: Job, root: Part) -> tuple:
+    """``Q V^T`` of the root with its achieved error (``Q`` and ``V`` are n x k), the task records,
+    the statistics and the near entries of all columns."""
+    return root_lowrank(root.node, job.options.eps, job.options.relative), root.records, root.stats, root.near

@@ -1,0 +1,282 @@
+"""One precompute, two backends: the validated options and the assembly of the solver object.
+
+``hfrad.factorize(scene)`` runs the precompute in this process (:mod:`hfrad.pipeline`)
+or as Dask tasks (:mod:`hfrad.distributed`); the backend only decides where column
+blocks, leaves and merges run. Both take a :class:`PrecomputeOptions` (validated
+once, here) and end in :func:`assemble`: low-rank factors + near-field entries +
+pass statistics + parameters -> the solver object. Per column block both do the
+same (:func:`block_statistics`, :class:`~hfrad.factorize.nearfield.NearFieldSplit`,
+:func:`~hfrad.factorize.hf.compress_leaf`), so the two give the same class, the
+same ``.hfr`` contents (apart from the recorded backend and timings) and the same
+error figures.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+from ..defaults import DEFAULT_BLOCK_SIZE
+from ..errors import InputError, SceneError
+from ..factorize.hf import ErrorBudget
+from ..factorize.lowrank import LowRank
+from ..factorize.nearfield import near_radius
+from ..formfactors.energy import warn_energy
+from ..formfactors.parallel import default_one_ray_tol
+from ..scene.scene import Scene
+from ..scene.zorder import patch_order
+from ..validation import check_factorize_options, check_permutation
+from .nearfield import NearFieldFactorization
+from .stats import PassStatistics
+from .woodbury import HFactorization
+
+__all__ = ["PrecomputeOptions", "precompute_options", "assemble", "block_statistics", "add_statistics",
+           "near_state", "concat_near"]
+
+#: The arrays of the near field's coordinate lists (:meth:`NearFieldSplit.state`).
+NEAR_KEYS = ("near_rows", "near_cols", "near_values")
+
+
+@dataclass(frozen=True, eq=False)
+class PrecomputeOptions:
+    """The precompute's options for one scene, validated (:func:`precompute_options`).
+
+    Attributes
+    ----------
+    n : int
+        Patches.
+    eps, relative, block_size, dtype, samples, leaf_share, one_ray_tol, reciprocity
+        As in :func:`hfrad.factorize` (``one_ray_tol`` resolved: never None).
+    order : str
+        The order's name ("zorder", "hilbert", "random", "input") or "custom".
+    perm : (n,) int64
+        Internal order: internal index t holds user patch ``perm[t]``.
+    near_entries : int
+        Facing neighbours per row of the near field (0: no split).
+    near_radius : float, metres
+        Pairs with centroid distance <= this are near (0.0 without the split).
+    form_factors : dict
+        The form-factor kernel's and visibility's version and settings.
+    """
+
+    n: int
+    eps: float
+    relative: bool
+    block_size: int
+    dtype: str
+    samples: int | None
+    order: str
+    perm: np.ndarray
+    leaf_share: float
+    one_ray_tol: float
+    near_entries: int
+    near_radius: float
+    reciprocity: bool
+    form_factors: dict
+
+    @property
+    def n_blocks(self) -> int:
+        """Column blocks, m = ceil(n / block_size)."""
+        return -(-self.n // self.block_size)
+
+    @property
+    def budget(self) -> ErrorBudget:
+        """The HF error budget every leaf and merge of either backend draws from."""
+        return ErrorBudget(self.eps, self.relative, max(self.n_blocks, 1), self.leaf_share)
+
+    def replace(self, **changes) -> "PrecomputeOptions":
+        return dataclasses.replace(self, **changes)
+
+    def params(self) -> dict:
+        """The parameters recorded in the ``.hfr`` (the backend adds ``backend``, ``workers``)."""
+        return {"eps": self.eps, "relative": self.relative, "block_size": self.block_size, "dtype": self.dtype,
+                "samples": self.samples, "order": self.order, "leaf_share": self.leaf_share,
+                "one_ray_tol": self.one_ray_tol, "near_field": self.near_entries, "near_radius": self.near_radius,
+                "form_factors": self.form_factors, "reciprocity": self.reciprocity}
+
+    def key(self, scene: Scene) -> str:
+        """A hash of everything the factorization depends on: geometry, reflectance, parameters.
+
+        Checkpoints of either backend carry it and refuse to resume another input. The
+        reciprocity copy is not part of it (F is equal to rounding either way).
+        """
+        h = hashlib.sha256()
+        for a in (scene.vertices, scene.faces, scene.occluder_vertices, scene.occluder_faces,
+                  scene.patch_of_triangle, scene.reflectance.max(axis=1)):
+            h.update(np.ascontiguousarray(a).tobytes())
+        params = self.params()
+        del params["reciprocity"]
+        if self.order == "custom":
+            h.update(np.ascontiguousarray(self.perm, np.int64).tobytes())
+        h.update(json.dumps(params, sort_keys=True).encode())
+        return h.hexdigest()
+
+    def rows_rho(self, scene: Scene) -> np.ndarray:
+        """(n, 1) ``rho_max`` in internal order, in the factors' dtype: a block of G is ``rows_rho * F``."""
+        return scene.reflectance.max(axis=1)[self.perm][:, None].astype(self.dtype)
+
+    def stats_weights(self, scene: Scene) -> np.ndarray:
+        """Patch areas in internal order: the pass statistics' (area-weighted) norm."""
+        return np.asarray(scene.areas, np.float64)[self.perm]
+
+    def ray_budget(self, scene: Scene):
+        """The form-factor engine's :class:`RayBudget` (None with ``samples=0``: analytic, no rays)."""
+        if self.samples == 0:
+            return None
+        from ..formfactors.parallel import ray_budget
+
+        return ray_budget(scene, self.one_ray_tol)
+
+
+def precompute_options(scene: Scene, *, eps: float = 0.02, relative: bool = True, block_size: int | None = None,
+                       dtype="float32", samples: int | None = None, order="zorder", leaf_share: float = 0.5,
+                       one_ray_tol: float | None = None, near_entries: int = 0,
+                       reciprocity: bool = True) -> PrecomputeOptions:
+    """Validate the precompute's options for ``scene`` at the API boundary (both backends).
+
+    Parameters
+    ----------
+    scene : Scene
+    eps, relative, block_size, dtype, samples, order, leaf_share, one_ray_tol, reciprocity
+        As in :func:`hfrad.factorize`.
+    near_entries : int >= 0
+        Facing neighbours per row of the near field, already resolved from
+        ``near_field="auto"`` (:func:`hfrad.pipeline.near_entries`); 0: no split.
+
+    Returns
+    -------
+    PrecomputeOptions
+
+    Raises
+    ------
+    InputError
+        A bad option (names it).
+    SceneError
+        A scene without patches.
+    """
+    if not isinstance(scene, Scene):
+        raise TypeError(f"scene must be a hfrad Scene (see hfrad.load_scene); got {type(scene).__name__}")
+    n = scene.n_patches
+    if n == 0:
+        raise SceneError(f"{scene.name}: the scene has no patches")
+    if block_size is None:
+        block_size = min(DEFAULT_BLOCK_SIZE, n)
+    dt = check_factorize_options(n, eps, block_size, dtype, relative)
+    if not (0.0 < leaf_share <= 1.0):
+        raise InputError(f"leaf_share must be in (0, 1]; got {leaf_share!r}")
+    if samples is not None and (int(samples) != samples or samples < 0):
+        raise InputError(f"samples must be a number of rays >= 0; got {samples!r}")
+    if one_ray_tol is None:
+        one_ray_tol = default_one_ray_tol(eps, relative)
+    elif not (one_ray_tol >= 0 and np.isfinite(one_ray_tol)):
+        raise InputError(f"one_ray_tol must be a share >= 0 of ||F||_F; got {one_ray_tol!r}")
+    if isinstance(order, str):
+        perm = patch_order(scene.centroids, order)
+    else:
+        perm = check_permutation(order, n)
+        order = "custom"
+    if int(near_entries) != near_entries or near_entries < 0:
+        raise InputError(f"near_entries must be a number of neighbours per row >= 0; got {near_entries!r}")
+    entries = int(near_entries)
+    from ..formfactors.kernel import settings as kernel_settings
+    from ..formfactors.visibility import settings as visibility_settings
+
+    return PrecomputeOptions(
+        n=n, eps=float(eps), relative=bool(relative), block_size=int(block_size), dtype=dt.name,
+        samples=None if samples is None else int(samples), order=order, perm=np.asarray(perm, np.int64),
+        leaf_share=float(leaf_share), one_ray_tol=float(one_ray_tol), near_entries=entries,
+        # the radius, not only the count, is part of the checkpoint key
+        near_radius=near_radius(scene.centroids, entries, scene.normals) if entries else 0.0,
+        reciprocity=bool(reciprocity),
+        # kernel version and tolerance: recorded in the .hfr, part of the checkpoint key
+        form_factors={**kernel_settings(), **visibility_settings()})
+
+
+# -- What a column block adds: additive over blocks, so a Dask leaf returns its share -------------
+
+def block_statistics(n: int, weights, start: int, stop: int, F_block: np.ndarray, rows_rho: np.ndarray) -> dict:
+    """The pass statistics of columns ``start:stop`` alone (:meth:`PassStatistics.add`), as a state.
+
+    The states of disjoint column ranges add up (:func:`add_statistics`) to the
+    statistics of their union: row sums and the probe sketch are sums over columns.
+    """
+    stats = PassStatistics(n, weights)
+    stats.add(start, stop, F_block, rows_rho)
+    state = stats.state()
+    state.pop("weights", None)
+    return state
+
+
+def add_statistics(a: dict | None, b: dict | None) -> dict | None:
+    """The statistics of two disjoint column ranges together (either may be None)."""
+    if a is None or b is None:
+        return a if b is None else b
+    return {**a, "row_sums": a["row_sums"] + b["row_sums"], "col_sums": a["col_sums"] + b["col_sums"],
+            "sketch": a["sketch"] + b["sketch"]}
+
+
+def near_state(rows=(), cols=(), values=()) -> dict:
+    """Near-field coordinate lists as :meth:`NearFieldSplit.state` gives them."""
+    cat = (lambda xs, dt: np.concatenate(xs).astype(dt, copy=False) if len(xs) else np.zeros(0, dt))
+    return {"near_rows": cat(list(rows), np.int64), "near_cols": cat(list(cols), np.int64),
+            "near_values": cat(list(values), np.float64)}
+
+
+def concat_near(a: dict | None, b: dict | None) -> dict | None:
+    """The near entries of two column ranges together (``a``'s first; either may be None)."""
+    if a is None or b is None:
+        return a if b is None else b
+    return near_state(*([a[k], b[k]] for k in NEAR_KEYS))
+
+
+# -- The one assembly step ---------------------------------------------------------------------------
+
+def assemble(scene: Scene, options: PrecomputeOptions, lowrank: LowRank, stats: PassStatistics,
+             near: dict | None = None, *, backend: dict | None = None) -> HFactorization:
+    """Low-rank factors + near field + pass statistics + parameters -> the solver object.
+
+    Parameters
+    ----------
+    scene : Scene
+    options : PrecomputeOptions
+    lowrank : LowRank
+        ``G_int - N ~= Q V^T`` (internal order) with its achieved error; its ``info``
+        gets ``near_radius``, ``near_nnz``, ``time_nearfield_setup`` and ``solver``.
+    stats : PassStatistics
+        Of all n columns (internal order, area-weighted).
+    near : dict, optional
+        The near entries (``near_rows``, ``near_cols`` internal order, ``near_values``
+        of G); required when ``options.near_entries`` > 0.
+    backend : dict, optional
+        Recorded in ``params`` beside the options (``backend``, ``workers``).
+
+    Returns
+    -------
+    HFactorization or NearFieldFactorization
+        The latter with the near-field split.
+    """
+    perm = options.perm
+    warn_energy(scene, stats.row_sums[np.argsort(perm)])
+    rho_max = scene.reflectance.max(axis=1)
+    params = {**options.params(), **(backend or {})}
+    if not options.near_entries:
+        fac = HFactorization(perm, lowrank.Q, lowrank.V, rho_max, scene.reflectance, lowrank,
+                             params=params, scene=scene, stats=stats)
+    else:
+        if near is None:
+            raise ValueError("the near-field split needs its near entries")
+        t1 = time.perf_counter()
+        N = sp.csr_matrix((near["near_values"], (near["near_rows"], near["near_cols"])),
+                          shape=(options.n, options.n))
+        lowrank.info.update({"near_radius": options.near_radius, "near_nnz": int(N.nnz)})
+        fac = NearFieldFactorization(perm, lowrank.Q, lowrank.V, N, rho_max, scene.reflectance, lowrank,
+                                     params=params, scene=scene, stats=stats)
+        lowrank.info["time_nearfield_setup"] = time.perf_counter() - t1
+    lowrank.info["solver"] = fac.solver
+    return fac
