@@ -55,6 +55,16 @@ def test_no_page_points_outside_the_repository():
         assert "../shared" not in text and "/work/" not in text, path
 
 
+def test_the_readme_links_and_pictures_resolve():
+    """The README is read on a forge, not built by Sphinx: its relative links are checked here."""
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    targets = re.findall(r"\]\(([^)#\s]+)(?:#[^)]*)?\)", text)
+    local = [t for t in targets if "://" not in t]
+    assert len(local) >= 8, local
+    missing = [t for t in local if not (ROOT / t).exists()]
+    assert not missing, missing
+
+
 def _cases():
     for path in FILES:
         if not snippets(path):
