@@ -49,7 +49,11 @@ def as_real_array(array, name: str) -> np.ndarray:
         A complex, boolean, string, object (``None``, ragged lists, mixed
         types) or date array, naming ``name`` and the dtype received.
     """
-    a = array if isinstance(array, np.ndarray) else np.asarray(array)
+    try:
+        a = array if isinstance(array, np.ndarray) else np.asarray(array)
+    except (ValueError, TypeError) as exc:  # ragged nested lists
+        raise InputError(f"{name} must be an array of real numbers; got {type(array).__name__} that is "
+                         f"not one ({str(exc).split('.')[0]})") from None
     kind = a.dtype.kind
     if kind in "iuf":
         return np.asarray(a, dtype=np.float64)

@@ -19,7 +19,7 @@ import numpy as np
 
 from ..atomic import atomic_path
 from ..errors import InputError
-from ..validation import object_first
+from ..validation import check_finite, object_first
 
 from .camera import Camera
 from .falsecolor import check_unit, colorbar_width, falsecolor_image, photometric
@@ -30,7 +30,7 @@ from .tonemap import tonemap
 
 
 def _check_radiosity(scene, radiosity) -> np.ndarray:
-    B = np.asarray(radiosity, dtype=np.float64)
+    B = check_finite(radiosity, "radiosity")  # real numbers (no complex, strings, bools), no NaN/inf
     n = scene.n_patches
     if B.shape == (n,):
         B = np.repeat(B[:, None], 3, axis=1)

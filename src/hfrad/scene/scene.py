@@ -13,8 +13,8 @@ from functools import cached_property
 
 import numpy as np
 
-from ..errors import SceneError
-from ..validation import MAX_EXITANCE
+from ..errors import InputError, SceneError
+from ..validation import MAX_EXITANCE, as_real_array
 
 #: Sizes (largest side of the bounding box, metres) a scene may have. Form factors are checked
 #: to be independent of the unit from 1e-40 to 1e40 m (tests/test_robust_inputs.py) and break
@@ -387,8 +387,11 @@ class Scene:
         vertices = np.asarray(mesh.vertices, dtype=np.float64)
         faces = np.asarray(mesh.faces, dtype=np.int64)
         n = len(faces)
-        rho = np.asarray(reflectance, dtype=np.float64)
-        em = np.asarray(emission, dtype=np.float64)
+        try:
+            rho = as_real_array(reflectance, "reflectance")
+            em = as_real_array(emission, "emission")
+        except InputError as exc:
+            raise SceneError(f"{name}: {exc}") from None
         uniform = rho.shape == (3,) and em.shape == (3,)
         material = Material("trimesh", tuple(float(x) for x in (rho if rho.shape == (3,) else (0.0,) * 3)),
                             tuple(float(x) for x in (em if em.shape == (3,) else (0.0,) * 3)))
