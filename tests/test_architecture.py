@@ -21,7 +21,7 @@ PACKAGE = SRC / "hfrad"
 #: (layer, unit, module prefixes), lowest first. Keep in step with docs/architecture.md.
 LAYERS: list[tuple[int, str, tuple[str, ...]]] = [
     (0, "base", ("hfrad._version", "hfrad.errors", "hfrad.progress", "hfrad.memory", "hfrad.atomic",
-                 "hfrad.validation", "hfrad.defaults")),
+                 "hfrad.validation", "hfrad.defaults", "hfrad.jsonfile")),
     (1, "scene", ("hfrad.scene",)),
     (2, "formfactors", ("hfrad.formfactors",)),
     (3, "factorize", ("hfrad.factorize",)),
