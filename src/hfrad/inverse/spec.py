@@ -30,7 +30,6 @@ Every problem is reported as a :class:`SpecError` naming the field, e.g.
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -38,6 +37,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from ..jsonfile import loads_json, loads_toml
 from ..errors import InputError
 from ..render.falsecolor import photometric
 
@@ -135,9 +135,8 @@ def read_spec(path: "str | Path") -> dict:
     text = path.read_text(encoding="utf-8")
     try:
         if path.suffix.lower() == ".toml":
-            import tomllib
-            return tomllib.loads(text)
-        return json.loads(text)
+            return loads_toml(text)
+        return loads_json(text)   # a deeply nested file: JSONDecodeError, not RecursionError
     except (ValueError, TypeError) as exc:  # JSONDecodeError and TOMLDecodeError are ValueErrors
         raise SpecError(f"{path}: not valid {'TOML' if path.suffix.lower() == '.toml' else 'JSON'}: {exc}") from None
 

@@ -36,6 +36,7 @@ import os
 from pathlib import Path
 from typing import Sequence
 
+from ..jsonfile import loads_json
 from ..errors import FileFormatError
 from ..validation import MAX_EXITANCE, clip_token
 
@@ -190,7 +191,7 @@ def read_emission(path: "str | os.PathLike") -> list[EmitterSetting]:
 def loads_emission(text: str, source: "str | os.PathLike" = "<emission>") -> list[EmitterSetting]:
     """Parse the text of an emission file; ``source`` is named in errors (see :func:`read_emission`)."""
     try:
-        data = json.loads(text)
+        data = loads_json(text)   # RecursionError of a deeply nested file -> JSONDecodeError
     except json.JSONDecodeError as exc:
         raise FileFormatError(f"{source}: not valid JSON: {exc.msg} at line {exc.lineno}, "
                               f"column {exc.colno}") from None
