@@ -274,6 +274,8 @@ def design_lighting(fac, spec: "LightingSpec | Mapping | str | Path", *, model: 
         model = LightingModel(fac, spec.luminaires, background=spec.background, progress=progress)
     if responses is None:
         responses = [model.sensors(g.sensors) for g in spec.grids]
+    cost = np.array([luminaire_power(l) for l in spec.luminaires])
+    lumens = [l.photometry.flux() for l in spec.luminaires]      # integrated once per file (cached)
     t_pre = time.perf_counter() - t0
     t1 = time.perf_counter()
     dspec = _design_spec(spec)
@@ -281,7 +283,6 @@ def design_lighting(fac, spec: "LightingSpec | Mapping | str | Path", *, model: 
     resp = Response([r.matrix for r in responses], [r.offset for r in responses],
                     [np.full(len(r.sensors), 1.0 / len(r.sensors)) for r in responses],
                     L + int(spec.background == "scene"), t_pre, None)
-    cost = np.array([luminaire_power(l) for l in spec.luminaires])
     sol = optimise(dspec, resp, cost)
     w = sol.intensity
     grids_out, all_met = [], w is not None
@@ -297,7 +298,7 @@ def design_lighting(fac, spec: "LightingSpec | Mapping | str | Path", *, model: 
             all_met &= all(entry["met"].values())
         grids_out.append(entry)
     lums_out = [{"name": l.name, "catalogue": l.photometry.name, "watts": luminaire_power(l),
-                 "lumens": l.photometry.flux(), "max": l.max,
+                 "lumens": lumens[i], "max": l.max,
                  "dimming": None if w is None else float(w[i]),
                  "power_W": None if w is None else float(w[i] * cost[i])} for i, l in enumerate(spec.luminaires)]
     status, message = sol.status, sol.message

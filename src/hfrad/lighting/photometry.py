@@ -109,6 +109,7 @@ class Photometry:
             a.flags.writeable = False
             object.__setattr__(self, name, a)
         object.__setattr__(self, "size", tuple(float(x) for x in self.size))
+        object.__setattr__(self, "_flux", {})                 # resolution -> lumens (the table is read-only)
 
     # -- symmetry --------------------------------------------------------------------------------
     @property
@@ -211,13 +212,16 @@ class Photometry:
         bilinear interpolant is integrated, so a finer grid changes the result
         only by its own quadrature error (about 1e-5 at 0.5 degrees).
         """
+        if resolution in self._flux:
+            return self._flux[resolution]
         ng, nc = int(round(180 / resolution)), int(round(360 / resolution))
         g = np.radians((np.arange(ng) + 0.5) * resolution)
         c = np.radians((np.arange(nc) + 0.5) * resolution)
         G, C = np.meshgrid(g, c, indexing="ij")
         d = np.stack([np.sin(G) * np.cos(C), np.sin(G) * np.sin(C), -np.cos(G)], axis=-1)
         dw = math.radians(resolution) ** 2 * np.sin(G)
-        return float((self.intensity(d) * dw).sum())
+        self._flux[resolution] = float((self.intensity(d) * dw).sum())
+        return self._flux[resolution]
 
     def scaled(self, factor: float) -> "Photometry":
         """The same distribution with every intensity times ``factor``."""
