@@ -97,13 +97,82 @@ def test_unreachable_scheduler_exits_2(tmp_path):
 
 @pytest.mark.parametrize("args, message", [
     (["--scheduler", "tcp://127.0.0.1:1", "--workers", "2"], "not both"),
-    (["--workers", "2", "--near-field", "64"], "--near-field and --processes are for the in-process path"),
-    (["--workers", "2", "--processes", "2"], "--near-field and --processes are for the in-process path"),
+    (["--workers", "2", "--processes", "2"], "--processes is for the in-process path"),
 ])
 def test_conflicting_options_are_refused(tmp_path, args, message):
     result = runner.invoke(app, ["precompute", "furnace", "-o", str(tmp_path / "x.hfr"), *args])
     assert result.exit_code == 2 and message in result.output
     assert not (tmp_path / "x.hfr").exists()
+
+
+@pytest.fixture(scope="module")
+def dask_hfr(tmp_path_factory):
+    """A Dask-made .hfr with the near field (forced on at 400 patches).
+
+    Made on an in-process LocalCluster and saved as the CLI saves it: worker processes
+    start in seconds but compile the form-factor kernel again (~100 s under this machine's
+    load), which the slow test below and the scheduler test above pay for the CLI path.
+    """
+    from hfrad.distributed import connect
+    from hfrad.solve.hfr import save_hfr
+
+    out = tmp_path_factory.mktemp("dask") / "d.hfr"
+    scene = load_scene("cornell", patches=400)
+    with connect(workers=1, processes=False) as cluster:
+        fac = factorize(scene, eps=0.02, block_size=64, near_field=32, scheduler=cluster)
+    save_hfr(fac, out)
+    return out
+
+
+def test_solve_render_view_design_work_on_a_dask_hfr(dask_hfr, tmp_path):
+    """The reported bug: `hfrad solve` of a Dask-made file died in the error figures (exit 1)."""
+    import json
+
+    from hfrad.viewer import ViewerApp
+
+    meta = read_hfr_metadata(dask_hfr)
+    assert meta["parameters"]["backend"] == "dask" and meta["solver"] == "woodbury+neumann(I - D_c N)"
+    solved = runner.invoke(app, ["solve", str(dask_hfr), "-o", str(tmp_path / "B.npz"), "--json"])
+    assert solved.exit_code == 0, solved.output
+    report = json.loads(solved.output.strip().splitlines()[-1])
+    assert report["error_bound_kind"] == "probes" and report["error_norm"] == "area"
+    assert report["failure_probability"] == pytest.approx(1e-6)
+    words = runner.invoke(app, ["solve", str(dask_hfr), "-o", str(tmp_path / "B2.npz")])
+    assert words.exit_code == 0 and "Traceback" not in words.output and "wrote" in words.output, words.output
+    fac = load_hfr(dask_hfr)
+    B = np.load(tmp_path / "B.npz")["B"]
+    assert np.allclose(B, fac.solve(fac.scene.emission), rtol=1e-5, atol=1e-6 * np.abs(B).max())
+
+    png = tmp_path / "r.png"
+    rendered = runner.invoke(app, ["render", str(dask_hfr), "-o", str(png), "--width", "48", "--height", "32"])
+    assert rendered.exit_code == 0 and png.stat().st_size > 0, rendered.output
+
+    spec = tmp_path / "spec.json"
+    spec.write_text(json.dumps({"emitters": [{"name": "light", "material": "light", "max": 1000.0}],
+                                "targets": [{"name": "floor", "group": "floor", "quantity": "irradiance_lux",
+                                             "min": 100.0}]}))
+    designed = runner.invoke(app, ["design", str(spec), str(dask_hfr), "-o", str(tmp_path / "d.json"), "--quiet"])
+    assert designed.exit_code == 0, designed.output
+    assert json.loads((tmp_path / "d.json").read_text())["feasible"]
+
+    port = _free_port()
+    viewer = ViewerApp(fac, port=port, save_dir=tmp_path)   # what `hfrad view` serves, without a browser
+    try:
+        assert viewer.wait_idle(30)
+        assert np.allclose(viewer._shown[0], B, rtol=1e-4, atol=1e-6 * np.abs(B).max())
+    finally:
+        viewer.close()
+
+
+@pytest.mark.slow
+def test_the_reported_commands(tmp_path):
+    """`hfrad precompute cornell --patches 3000 --workers 2 -o d.hfr` then `hfrad solve d.hfr -o B.npz` (issue 27)."""
+    out = tmp_path / "d.hfr"
+    made = runner.invoke(app, ["precompute", "cornell", "--patches", "3000", "--workers", "2", "-o", str(out)])
+    assert made.exit_code == 0, made.output
+    solved = runner.invoke(app, ["solve", str(out), "-o", str(tmp_path / "B.npz")])
+    assert solved.exit_code == 0, solved.output
+    assert "Traceback" not in solved.output and "wrote" in solved.output
 
 
 @pytest.mark.slow
