@@ -39,8 +39,9 @@ def _ply(fmt: str, vertices=_V, polygons=_POLYGONS, rho=_RHO, em=_EM, declared_f
         body += "".join(f"{len(f)} {' '.join(map(str, f))} {' '.join(repr(float(x)) for x in (*r, *e))}\n"
                         for f, r, e in zip(polygons, rho, em))
         return head + body.encode()
-    body = b"".join(struct.pack("<3d", *v) for v in vertices)
-    body += b"".join(struct.pack("<B", len(f)) + struct.pack(f"<{len(f)}I", *f) + struct.pack("<6f", *r, *e)
+    o = "<" if fmt == "binary_little_endian" else ">"
+    body = b"".join(struct.pack(f"{o}3d", *v) for v in vertices)
+    body += b"".join(struct.pack(f"{o}B", len(f)) + struct.pack(f"{o}{len(f)}I", *f) + struct.pack(f"{o}6f", *r, *e)
                      for f, r, e in zip(polygons, rho, em))
     return head + body
 
@@ -54,17 +55,21 @@ def _write(path, data) -> str:
 
 # -- PLY --------------------------------------------------------------------------------------------
 
-def test_ascii_ply_loads_like_binary(tmp_path):
-    """Every ASCII PLY failed ('dict' object has no attribute 'dtype'); both encodings give one scene."""
-    tri = [p for p in _POLYGONS if len(p) == 3]  # trimesh reads one list length only in binary
-    a = load_scene(_write(tmp_path / "a.ply", _ply("ascii", polygons=tri, rho=_RHO[2:], em=_EM[2:])))
-    b = load_scene(_write(tmp_path / "b.ply", _ply("binary_little_endian", polygons=tri, rho=_RHO[2:], em=_EM[2:])))
-    assert a.n_patches == b.n_patches
-    np.testing.assert_array_equal(a.vertices, b.vertices)
-    np.testing.assert_array_equal(a.faces, b.faces)
-    np.testing.assert_array_equal(a.reflectance, b.reflectance)
-    np.testing.assert_array_equal(a.emission, b.emission)
-    assert a.reflectance[0].tolist() == list(_RHO[2]) and a.emission[0].tolist() == list(_EM[2])
+@pytest.mark.parametrize("polygons", ["triangles", "triangles and quads"])
+def test_ascii_ply_loads_like_binary(tmp_path, polygons):
+    """Every ASCII PLY failed ('dict' object has no attribute 'dtype'), and a binary PLY mixing
+    triangles and quads failed ('PLY is unexpected length!'); all encodings give one scene."""
+    k = 2 if polygons == "triangles" else 0
+    kw = {"polygons": _POLYGONS[k:], "rho": _RHO[k:], "em": _EM[k:]}
+    a = load_scene(_write(tmp_path / "a.ply", _ply("ascii", **kw)))
+    for fmt in ("binary_little_endian", "binary_big_endian"):
+        b = load_scene(_write(tmp_path / "b.ply", _ply(fmt, **kw)))
+        assert a.n_patches == b.n_patches
+        np.testing.assert_array_equal(a.vertices, b.vertices)
+        np.testing.assert_array_equal(a.faces, b.faces)
+        np.testing.assert_array_equal(a.reflectance, b.reflectance)
+        np.testing.assert_array_equal(a.emission, b.emission)
+    assert a.reflectance[-1].tolist() == list(_RHO[2]) and a.emission[-1].tolist() == list(_EM[2])
 
 
 def test_ascii_ply_polygons_keep_their_properties(tmp_path):
@@ -94,10 +99,15 @@ def test_bad_ply_files_are_one_line(tmp_path, fmt):
         load_scene(_write(tmp_path / "em.ply", _ply(fmt, polygons=tri, em=[_EM[0], _EM[1], (big, 0, 0)])))
 
 
-def test_truncated_ascii_ply_is_refused(tmp_path):
+def test_truncated_ply_is_refused(tmp_path):
     """An ASCII file cut short used to load the faces it had, silently."""
     with pytest.raises(SceneError, match=r"t\.ply: truncated or malformed PLY: the header declares 9 'face'"):
         load_scene(_write(tmp_path / "t.ply", _ply("ascii", declared_faces=9)))
+    data = _ply("binary_little_endian")
+    with pytest.raises(SceneError, match=r"b\.ply: truncated PLY: element 'face' ends after 2 of 3 rows"):
+        load_scene(_write(tmp_path / "b.ply", data[:-10]))
+    with pytest.raises(SceneError, match=r"h\.ply: truncated PLY: element 'face' declares 100,000,000,000 rows"):
+        load_scene(_write(tmp_path / "h.ply", _ply("binary_little_endian", declared_faces=10**11)))
 
 
 # -- OBJ / MTL --------------------------------------------------------------------------------------

@@ -47,6 +47,82 @@ def _check_file(path: Path) -> None:
         raise SceneError(f"{path}: cannot read: {exc.strerror or exc}") from None
 
 
+_PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
+              "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+              "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}
+
+
+def _binary_ply(path: Path, trimesh_error: Exception) -> dict:
+    """A binary PLY that trimesh could not read, element by element: ``{element: {"length", "data"}}``
+    in the layout of trimesh's raw PLY (``data`` is ``{property: array}``; a list property gives an
+    object array of index arrays). Elements without lists are read in one go; those with lists
+    row by row (a few microseconds a row).
+
+    Raises
+    ------
+    SceneError
+        Not a binary PLY (with trimesh's complaint), an unknown type, or fewer bytes than the
+        header's elements need (truncated).
+    """
+    data = path.read_bytes()
+    end = data.find(b"end_header")
+    newline = data.find(b"\n", end)
+    if not data.startswith(b"ply") or end < 0 or newline < 0:
+        raise SceneError(f"{path}: could not read as PLY: {_short(trimesh_error)}")
+    fmt, elements = None, []
+    for line in data[:end].decode("ascii", "replace").splitlines():
+        words = line.split()
+        if len(words) >= 2 and words[0] == "format":
+            fmt = words[1]
+        elif len(words) >= 3 and words[0] == "element" and words[2].isdigit():
+            elements.append((words[1], int(words[2]), []))
+        elif len(words) >= 3 and words[0] == "property" and elements:
+            elements[-1][2].append(tuple(words[1:]))
+    if fmt not in ("binary_little_endian", "binary_big_endian"):
+        raise SceneError(f"{path}: could not read as PLY: {_short(trimesh_error)}")
+    order = "<" if fmt == "binary_little_endian" else ">"
+
+    def dtype(name: str, where: str) -> np.dtype:
+        if name not in _PLY_TYPES:
+            raise SceneError(f"{path}: unknown PLY type {clip_token(name)} in {where}")
+        return np.dtype(order + _PLY_TYPES[name])
+
+    pos, out = newline + 1, {}
+    for name, count, props in elements:
+        where = f"element {clip_token(name)}"
+        if all(p[0] != "list" for p in props):
+            rec = np.dtype([(p[-1], dtype(p[0], where)) for p in props if len(p) >= 2])
+            if pos + rec.itemsize * count > len(data):
+                raise SceneError(f"{path}: truncated PLY: {where} needs {rec.itemsize * count:,} bytes, "
+                                 f"{len(data) - pos:,} are left")
+            arr = np.frombuffer(data, rec, count, pos)
+            pos += rec.itemsize * count
+            out[name] = {"length": count, "data": {n: arr[n] for n in rec.names}}
+            continue
+        layout = [(p[-1], dtype(p[1], where), dtype(p[2], where)) if p[0] == "list" and len(p) >= 4
+                  else (p[-1], None, dtype(p[0], where)) for p in props]
+        smallest = sum((c if c is not None else t).itemsize for n, c, t in layout)  # a row of empty lists
+        if pos + smallest * count > len(data):  # before allocating: the header may claim 1e11 rows
+            raise SceneError(f"{path}: truncated PLY: {where} declares {count:,} rows, which need at least "
+                             f"{smallest * count:,} bytes; {len(data) - pos:,} are left")
+        columns = {n: np.empty(count, dtype=object if c is not None else t) for n, c, t in layout}
+        try:
+            for row in range(count):
+                for n, c, t in layout:
+                    if c is None:
+                        columns[n][row] = np.frombuffer(data, t, 1, pos)[0]
+                        pos += t.itemsize
+                    else:
+                        k = int(np.frombuffer(data, c, 1, pos)[0])
+                        pos += c.itemsize
+                        columns[n][row] = np.frombuffer(data, t, k, pos).astype(np.int64)
+                        pos += k * t.itemsize
+        except ValueError:  # frombuffer past the end
+            raise SceneError(f"{path}: truncated PLY: {where} ends after {row:,} of {count:,} rows") from None
+        out[name] = {"length": count, "data": columns}
+    return out
+
+
 def _ply_columns(element: dict) -> dict:
     """{property: array} of one element of trimesh's raw PLY (a structured array when binary, a dict when ASCII)."""
     data = element.get("data")
@@ -104,8 +180,18 @@ def read_ply(path: Path) -> dict:
     try:
         mesh = trimesh.load(str(path), process=False, force="mesh")
     except Exception as exc:
-        raise SceneError(f"{path}: could not read as PLY: {_short(exc)}") from None
-    raw = mesh.metadata.get("_ply_raw", {})
+        # trimesh reads binary lists of one length only ("PLY is unexpected length!" for a mix
+        # of triangles and quads): read such a file element by element instead
+        raw = _binary_ply(path, exc)
+        mesh_faces = np.zeros((0, 3), np.int64)
+        vertex = raw.get("vertex", {}).get("data", {})
+        if not all(c in vertex for c in "xyz"):
+            raise SceneError(f"{path}: no 'vertex' element with x, y and z") from None
+        vertices = np.stack([np.asarray(vertex[c], np.float64).reshape(-1) for c in "xyz"], axis=1)
+    else:
+        raw = mesh.metadata.get("_ply_raw", {})
+        mesh_faces = np.asarray(mesh.faces, dtype=np.int64).reshape(-1, 3)
+        vertices = np.asarray(mesh.vertices, dtype=np.float64).reshape(-1, 3)
     for element, props in raw.items():  # an ASCII file cut short parses without complaint
         declared = props.get("length")
         for name, column in _ply_columns(props).items():
@@ -114,11 +200,10 @@ def read_ply(path: Path) -> dict:
                                  f"'{element}' elements, the file holds {len(column):,} "
                                  f"(property {clip_token(name)})")
     columns = _ply_columns(raw.get("face", {}))
-    vertices = np.asarray(mesh.vertices, dtype=np.float64).reshape(-1, 3)
     if "vertex_indices" in columns or "vertex_index" in columns:
         faces, owner = _ply_polygons(columns.get("vertex_indices", columns.get("vertex_index")), path)
     else:  # not a PLY layout we know: trimesh's triangles, one per face
-        faces = np.asarray(mesh.faces, dtype=np.int64).reshape(-1, 3)
+        faces = mesh_faces
         owner = np.arange(len(faces))
     if not len(faces):
         raise SceneError(f"{path}: no faces found")
