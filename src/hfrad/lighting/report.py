@@ -104,7 +104,7 @@ def plan_image(sensors: SensorSet, lux: np.ndarray, *, pixels_per_cell: int | No
     valid[sensors.cells[:, 1], sensors.cells[:, 0]] = True
     values = np.repeat(np.repeat(values, ppc, axis=0), ppc, axis=1)
     valid = np.repeat(np.repeat(valid, ppc, axis=0), ppc, axis=1)
-    head = 22
+    head = 36
     h, w = values.shape
     values = np.vstack([np.zeros((head, w)), values])
     valid = np.vstack([np.zeros((head, w), bool), valid])
@@ -113,8 +113,13 @@ def plan_image(sensors: SensorSet, lux: np.ndarray, *, pixels_per_cell: int | No
     st = grid_stats(lux)
     text = title or (f"{sensors.name}: avg {st['average']:.0f} lx, min {st['minimum']:.0f}, "
                      f"max {st['maximum']:.0f}, U0 {st['U0']:.2f}" if st["U0"] is not None else sensors.name)
+    x0, z0 = sensors.origin
+    extent = (f"plan: x {x0:.2f}..{x0 + nx * sensors.spacing:.2f} m to the right, z {z0:.2f}.."
+              f"{z0 + nz * sensors.spacing:.2f} m down; {sensors.spacing:g} m cells")
     pic = Image.fromarray(img)
-    ImageDraw.Draw(pic).text((4, 4), text, fill=(255, 255, 255), font=_font(12))
+    draw = ImageDraw.Draw(pic)
+    draw.text((4, 3), text, fill=(255, 255, 255), font=_font(12))
+    draw.text((4, 19), extent, fill=(200, 200, 200), font=_font(11))
     return np.asarray(pic)
 
 
