@@ -22,11 +22,11 @@ from ..validation import MAX_EXITANCE, as_real_array
 #: scene is refused with the size it has, rather than reported as "every face is degenerate".
 SIZE_RANGE = (1e-30, 1e30)
 
-#: How far from the origin, in multiples of its size, a scene may lie. Patch meshing merges
-#: points closer than 1e-9 times the largest coordinate (hfrad.scene.patches); from 5e5 sizes
-#: away that cuts zero-area patches into a Cornell box (measured). 1e4 keeps that merging
-#: distance under 1e-5 of the scene's size: a 100 m site in coordinates of 1e6 m still loads.
-MAX_OFFSET_RATIO = 1e4
+#: How far from the origin, in multiples of its size, a scene may lie. Float64 coordinates there
+#: keep 2.2e-16 x 1e7 = 2e-9 of the scene's size: the geometry the form factors see (centred in
+#: float64, then cast in float32 rays in the scene's own frame) stays exact to that. A site of
+#: 100 m in coordinates of 1e6 m (ratio 1e4) is fine; a 1 m room 1e13 m away (ratio 1e13) is refused.
+MAX_OFFSET_RATIO = 1e7
 
 
 @dataclass(frozen=True)
@@ -201,9 +201,9 @@ class Scene:
         if far > MAX_OFFSET_RATIO * size:
             centre = 0.5 * (lo + hi)
             raise SceneError(f"{self.name}: the scene is {size:.3g} m across but lies {far:.3g} m from the "
-                             f"origin ({far / size:.3g} times its size; at most {MAX_OFFSET_RATIO:g}): its "
-                             f"patches would be meshed to a precision of about {1e-9 * far:.2g} m. Move it near "
-                             f"the origin (subtract ({', '.join(f'{c:.6g}' for c in centre)}) from every vertex)")
+                             f"origin ({far / size:.3g} times its size; at most {MAX_OFFSET_RATIO:g}): float64 "
+                             f"coordinates there resolve only {np.spacing(far):.2g} m. Move it near the origin "
+                             f"(subtract ({', '.join(f'{c:.6g}' for c in centre)}) from every vertex)")
 
     def _check_exitance(self) -> None:
         """Refuse emission above MAX_EXITANCE: float32 radiosity would overflow into inf/NaN (a black picture)."""
