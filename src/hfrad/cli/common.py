@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import errno
 from typing import Iterator, Optional
 
 import click
@@ -15,8 +16,8 @@ from ..errors import InputError
 console = Console(stderr=True, soft_wrap=True)
 
 # Shared option declarations so every command spells them the same way.
-MaxEdgeOption = typer.Option(None, "--max-edge", help="Patches no longer than this (metres): long faces are split, faces under half of it grouped into clusters.")
-PatchesOption = typer.Option(None, "--patches", help="Roughly this many patches: faces are split, or grouped into clusters of triangles when fewer patches than faces are asked for.")
+MaxEdgeOption = typer.Option(None, "--max-edge", help="Patches no longer than this (metres): long faces are split, faces under half of it grouped into clusters. Makes at least area / (0.433 max_edge^2) patches (an equilateral triangle of edge h has area 0.433 h^2); memory for that many is checked before cutting.")
+PatchesOption = typer.Option(None, "--patches", help="Roughly this many patches: faces are split, or grouped into clusters of triangles when fewer patches than faces are asked for. Memory for that many is checked before cutting.")
 UnitScaleOption = typer.Option(1.0, "--unit-scale", help="Multiply coordinates by this to get metres.")
 # --emission is the one spelling; --emit (its old name on info and precompute) is accepted too.
 EmissionOption = typer.Option(None, "--emission", "--emit",
@@ -31,6 +32,12 @@ AllowMissingMaterialsOption = typer.Option(False, "--allow-missing-materials",
 KeepDuplicatesOption = typer.Option(False, "--keep-duplicates", help="Keep faces that duplicate another face (same corners) instead of merging them (their light is then counted twice).")
 
 
+def quote(value: object, limit: int = 200) -> str:
+    """``repr`` of a value a user gave, cut to about ``limit`` characters for an error line."""
+    text = repr(value)
+    return text if len(text) <= limit else text[:limit - 20] + f"... ({len(text):,} characters)"
+
+
 def fail(message: str, code: int = 2) -> "typer.Exit":
     """Print an error message (no traceback) and exit with ``code``."""
     console.print(f"[bold red]error:[/] {message}", highlight=False)
@@ -41,12 +48,24 @@ def fail(message: str, code: int = 2) -> "typer.Exit":
 REPORT_TO = "the hfrad issue tracker (include the command line and this traceback)"
 
 
-def _is_user_error(exc: BaseException) -> bool:
-    """Errors caused by the input, not by hfrad: bad files, values, options, memory, missing extras."""
-    from ..errors import FileFormatError, InputError, MemoryLimitError, SceneError, WorkerError
+#: typer >= 0.16 carries its own copy of click: its usage errors are of that copy's classes.
+_CLICK_ERRORS = tuple({click.exceptions.ClickException,
+                       next(c for c in typer.BadParameter.__mro__ if c.__name__ == "ClickException")})
 
-    if isinstance(exc, (SceneError, FileFormatError, MemoryLimitError, InputError, WorkerError, FileNotFoundError,
-                        IsADirectoryError, NotADirectoryError, PermissionError)):
+#: errno values of the machine's file system, not of hfrad: full disk, read-only or missing folder, ...
+_SYSTEM_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EIO, errno.EROFS, errno.EACCES, errno.EPERM,
+                  errno.ENOENT, errno.ENOTDIR, errno.EISDIR, errno.ENAMETOOLONG, errno.EEXIST}
+
+
+def _is_user_error(exc: BaseException) -> bool:
+    """Errors caused by the input or the machine, not by hfrad: bad files, values, options, memory, a full
+    disk, missing extras."""
+    from ..errors import FileFormatError, InputError, MemoryLimitError, SceneError, WorkerError, WriteError
+
+    if isinstance(exc, (SceneError, FileFormatError, MemoryLimitError, InputError, WorkerError, WriteError,
+                        FileNotFoundError, IsADirectoryError, NotADirectoryError, PermissionError)):
+        return True
+    if isinstance(exc, OSError) and exc.errno in _SYSTEM_ERRNOS:
         return True
     # an optional dependency missing: hfrad raises ImportError("... pip install X") itself (no
     # module name); an ImportError from the import system (name set) is a broken install or a bug
@@ -58,7 +77,7 @@ def user_errors() -> Iterator[None]:
     """Bad input: one line and exit code 2. Anything else: the traceback, where to report, exit 1."""
     try:
         yield
-    except (typer.Exit, typer.Abort, KeyboardInterrupt, click.exceptions.ClickException):
+    except (typer.Exit, typer.Abort, KeyboardInterrupt) + _CLICK_ERRORS:
         raise
     except Exception as exc:  # noqa: BLE001 - sorted into user errors and internal errors below
         if _is_user_error(exc):
@@ -107,33 +126,131 @@ def check_dtype(dtype: str):
     return np.dtype(dtype)
 
 
-def check_memory_for_precompute(n: int, block: int, dtype: str) -> None:
-    """Refuse a precompute that would not fit in memory (see ``hfrad precompute --help``)."""
+def check_output(path, *, option: str = "-o/--output"):
+    """Refuse at once an output that could not be written at the end (missing or read-only folder, a
+    directory at that name): :func:`hfrad.atomic.check_writable`, before any work."""
+    from pathlib import Path
+
+    from ..atomic import check_writable
+
+    if path is None:
+        return None
+    if str(path) == "":
+        raise InputError(f"{option}: empty file name")
+    return check_writable(Path(path))
+
+
+def check_output_folder(folder, files=(), *, option: str = "-o/--output"):
+    """Create ``folder`` (with its parents) for a command's output ``files`` and check each can be written,
+    or refuse in one line: a file of that name, a read-only or unwritable place, a folder at a file's name."""
+    from pathlib import Path
+
+    from ..atomic import check_writable
+    from ..errors import WriteError
+
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise WriteError(f"cannot write into {folder} ({option}): it is a file, not a folder")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise WriteError(f"cannot create the folder {folder} ({option}): {exc.strerror or exc}") from None
+    for name in files:
+        check_writable(folder / name)
+    return folder
+
+
+def hfr_bytes(fac) -> int:
+    """About the size of ``fac``'s .hfr file: its arrays (stored uncompressed) and the patches, plus headers."""
+    import numpy as np
+
+    def nbytes(a) -> int:
+        if a is None:
+            return 0
+        if hasattr(a, "indptr"):                  # scipy sparse: data, indices, indptr
+            return int(a.data.nbytes + a.indices.nbytes + a.indptr.nbytes)
+        if hasattr(a, "codes"):                   # 16-bit rows and their scales
+            return int(np.asarray(a.codes).nbytes + np.asarray(a.scale).nbytes)
+        return int(np.asarray(a).nbytes) if isinstance(a, np.ndarray) else 0
+
+    total = sum(nbytes(getattr(fac, name, None)) for name in
+                ("perm", "Q", "V", "rho_max", "reflectance", "capacitance_inv", "N", "Z"))
+    if getattr(fac, "stats", None) is not None:
+        total += sum(nbytes(v) for v in fac.stats.state().values())
+    scene = getattr(fac, "scene", None)
+    if scene is not None:
+        total += sum(nbytes(getattr(scene, name, None)) for name in
+                     ("vertices", "faces", "material", "group", "reflectance", "emission", "parent",
+                      "occluder_vertices", "occluder_faces", "triangle_patch"))
+    return int(1.05 * total) + (64 << 10)
+
+
+def check_space_for_hfr(path, fac) -> None:
+    """Refuse to write an .hfr file the disk has no room for (HDF5 cannot fail cleanly half way)."""
+    from ..atomic import check_space
+
+    check_space(path, hfr_bytes(fac))
+
+
+def check_count(value, option: str, *, low: int = 1, high: int | None = None, why: str = "") -> None:
+    """An integer option within [low, high]; InputError naming the option, the range and the value."""
+    if value is None:
+        return
+    if value < low or (high is not None and value > high):
+        span = f">= {low:,}" if high is None else f"between {low:,} and {high:,}"
+        raise InputError(f"{option} must be a whole number {span}{'; ' + why if why else ''}; got {value:,}")
+
+
+def check_choice(value: str, option: str, allowed) -> str:
+    """``value`` if it is one of ``allowed``, else InputError listing them (for options like --method)."""
+    if value not in allowed:
+        raise InputError(f"{option} must be one of {', '.join(allowed)}; got {quote(value)}")
+    return value
+
+
+def cores() -> int:
+    """CPU cores this process may use."""
+    import os
+
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+#: Most worker processes per core worth starting (each holds a copy of the scene's ray caster).
+MAX_PROCESSES_PER_CORE = 4
+
+#: Most visibility rays per patch pair (32 x 32 points per triangle); the cost grows in proportion.
+MAX_SAMPLES = 1024
+
+
+def check_samples(samples) -> None:
+    """``--samples``: 0 (no visibility) or a perfect square up to :data:`MAX_SAMPLES`."""
+    check_count(samples, "--samples", low=0, high=MAX_SAMPLES,
+                why="visibility rays per patch pair; time and memory grow in proportion")
+
+
+def check_memory_for_precompute(n: int, block: int, dtype: str, *, count: str = "") -> None:
+    """Refuse a precompute that would not fit in memory (see ``hfrad precompute --help``); ``count``
+    qualifies the patch count in the message ("at least" for an estimate before cutting)."""
     from ..memory import RANK_ASSUMPTION, precompute_bytes, rank_guess, require
 
-    require(precompute_bytes(n, block, itemsize=check_dtype(dtype).itemsize), f"precomputing {n:,} patches",
+    require(precompute_bytes(n, block, itemsize=check_dtype(dtype).itemsize),
+            f"precomputing {count + ' ' if count else ''}{n:,} patches",
             f"use fewer patches (--patches/--max-edge) or a larger --eps (the estimate assumes a rank of "
             f"{rank_guess(n):,}: {RANK_ASSUMPTION})")
 
 
-def error_figures_line(fac) -> str:
-    """The factorization's error figures in words (docs/method.md, section 7)."""
+def error_figures_line(fac, residual=None) -> str:
+    """The factorization's error figures in words, the one to rely on first (docs/method.md, section 7):
+    :func:`hfrad.solve.bounds.accuracy_lines`."""
     import warnings
 
     from ..errors import AccuracyWarning
+    from ..solve.bounds import accuracy_lines
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", AccuracyWarning)   # said in words below
         est = fac.error_estimate()
-    def figs(values):
-        return ", ".join(f"{v:.3g}" if v == v and v != float("inf") else "none" for v in values)
-    if est.kind == "probes":
-        head = (f"guaranteed bound on the relative radiosity error of any solve (R,G,B; {est.norm} norm, failure "
-                f"probability {est.failure_probability:g}): {figs(est.bound)}")
-    else:
-        head = "no pass statistics: only the eq. 5 figure"
-    return (f"{head}; eq. 5 bound {figs(est.eq5_bound)} (sigma_max {figs(est.sigma_max)}); "
-            "`hfrad solve --residual` gives the tight figure of one solution")
+    return "\n".join(accuracy_lines(est, residual=residual, achieved_error=fac.relative_error))
 
 
 def show_warnings_plainly() -> None:
@@ -148,8 +265,14 @@ def show_warnings_plainly() -> None:
 
 def load_factorization(path):
     """An .hfr file's factorization, which must hold its patches (``fac.scene``)."""
+    from pathlib import Path
+
     from ..solve.hfr import load_hfr
 
+    if not Path(path).exists():
+        raise InputError(f"{path}: no such file (a factorization from `hfrad precompute SCENE -o FILE.hfr`)")
+    if Path(path).is_dir():
+        raise InputError(f"{path}: is a folder, not a factorization file (.hfr)")
     fac = load_hfr(path)
     if fac.scene is None:
         raise InputError(f"{path}: has no patches stored; re-run `hfrad precompute` (it stores them)")

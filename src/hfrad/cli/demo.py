@@ -29,31 +29,33 @@ def register(app: typer.Typer) -> None:
         from ..io.export import write_radiosity
         from ..solve.hfr import save_hfr
         from ..pipeline import factorize
+        from ..defaults import DEFAULT_BLOCK_SIZE
         from ..render import render_image, save_png
-        from ..scene.load import load_scene
+        from .info import load_scene_from_options
 
         out = common.console.print
         t0 = time.perf_counter()
         with common.user_errors():
-            output.mkdir(parents=True, exist_ok=True)
-            scene = load_scene("cornell", patches=patches)
+            common.check_output_folder(output, ("cornell.hfr", "cornell.png", "cornell.glb", "cornell-blue.png"))
+            need = lambda n: common.check_memory_for_precompute(n, min(DEFAULT_BLOCK_SIZE, n), "float32")  # noqa: E731
+            scene = load_scene_from_options("cornell", patches=patches, need=need)   # refused before cutting
             out(f"Cornell box: {scene.n_patches:,} patches, {scene.emitters.sum()} emitting")
             with common.progress_bar("precompute (form factors + HF)", quiet) as bar:
                 fac = factorize(scene, eps=eps, progress=bar)
             t_pre = time.perf_counter() - t0
             info = fac.lowrank.info
+            common.check_space_for_hfr(output / "cornell.hfr", fac)   # HDF5 cannot fail cleanly on a full disk
             save_hfr(fac, output / "cornell.hfr", timings={k: v for k, v in info.items() if k.startswith("time")})
-            out(f"precompute {t_pre:.1f} s (form factors {info['time_formfactors']:.1f} s, "
-                f"HF {info['time_total']:.1f} s): rank {fac.rank:,} of {fac.n_patches:,}, "
-                f"achieved error {fac.relative_error:.4f} (target {eps})")
-            out(common.error_figures_line(fac))
             t1 = time.perf_counter()
             B = fac.solve(scene.emission)
             t_solve = time.perf_counter() - t1
             with common.progress_bar("residual of the solution (form factors again)", quiet) as bar:
                 r = fac.residual(scene.emission, B, progress=bar, processes=None)
-            out("guaranteed bound on the relative radiosity error of this solution (R,G,B; "
-                f"{r.norm} norm, from its residual): " + ", ".join(f"{b:.3g}" for b in r.bound))
+            # the figure a user can rely on first: this solution's guaranteed bound, from its residual
+            out(common.error_figures_line(fac, residual=r))
+            out(f"precompute {t_pre:.1f} s (form factors {info['time_formfactors']:.1f} s, "
+                f"HF {info['time_total']:.1f} s): rank {fac.rank:,} of {fac.n_patches:,}, "
+                f"achieved error {fac.relative_error:.4f} (target {eps})")
             save_png(render_image(scene, B, camera="front"), output / "cornell.png")
             write_radiosity(scene, B, output / "cornell.glb", scene.emission)
             blue = scene.emission * np.array([0.1, 0.3, 1.0]) / 0.4  # relight: same lamp, blue

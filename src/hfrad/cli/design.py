@@ -57,8 +57,11 @@ def register(app: typer.Typer) -> None:
         from ..atomic import atomic_path
 
         with common.user_errors():
+            common.check_choice(method, "--method", ("auto", "forward", "adjoint"))
             if output.suffix.lower() != ".json":
                 raise InputError(f"output must be a .json file, got '{output}'")
+            for path in (output, emission_out, render):
+                common.check_output(path)   # a missing or read-only folder: refused before the solves
             if emission_out is not None and emission_out.suffix.lower() != ".json":
                 raise InputError(f"--emission-out must be a .json file, got '{emission_out}'")
             if render is not None:

@@ -10,15 +10,19 @@ import typer
 from . import common
 
 
+def npz_path(path: Path) -> Path:
+    """``path``, with ``.npz`` appended unless it ends so (what ``numpy.savez`` would write)."""
+    path = Path(path)
+    return path if path.suffix == ".npz" else path.with_name(path.name + ".npz")
+
+
 def write_npz(path: Path, scene, F) -> None:
     """Write F and the patch data (user order) to ``path`` via a temporary name + rename."""
     import numpy as np
 
     from ..atomic import atomic_path
 
-    path = Path(path)
-    if path.suffix != ".npz":
-        path = path.with_name(path.name + ".npz")
+    path = npz_path(path)
     with atomic_path(path, suffix=".npz") as tmp:
         np.savez(tmp, F=F, area=np.asarray(scene.areas), centroid=np.asarray(scene.centroids),
                  normal=np.asarray(scene.normals), material=np.asarray(scene.material, dtype=np.int64),
@@ -38,7 +42,7 @@ def register(app: typer.Typer) -> None:
         default_reflectance: float = common.DefaultReflectanceOption,
         allow_missing_materials: bool = common.AllowMissingMaterialsOption,
         keep_duplicates: bool = common.KeepDuplicatesOption,
-        samples: int = typer.Option(4, "--samples", help="Visibility rays per patch pair (1, 4, 9, 16, ...; 1 = centroid to centroid)."),
+        samples: int = typer.Option(4, "--samples", help="Visibility rays per patch pair (1, 4, 9, 16, ... up to 1,024; 1 = centroid to centroid; 0 = no visibility)."),
         dtype: str = common.dtype_option("float64"),
         quiet: bool = common.QuietOption,
     ) -> None:
@@ -53,10 +57,13 @@ def register(app: typer.Typer) -> None:
 
         with common.user_errors():
             dt = common.check_dtype(dtype)
+            common.check_samples(samples)
+            common.check_output(npz_path(output))
             s = load_scene_from_options(scene, unit_scale=unit_scale, emit=emission, area_light=area_light,
                                         default_reflectance=default_reflectance,
                                         allow_missing_materials=allow_missing_materials,
-                                        max_edge=max_edge, patches=patches, keep_duplicates=keep_duplicates)
+                                        max_edge=max_edge, patches=patches, keep_duplicates=keep_duplicates,
+                                        need=lambda n: check_dense_memory(n, dt))   # before cutting
             check_dense_memory(s.n_patches, dt)
             with common.progress_bar(f"form factors ({s.n_patches} patches)", quiet) as progress:
                 F = form_factor_matrix(s, samples=samples, dtype=dt, progress=progress)

@@ -10,46 +10,66 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from ..errors import InputError
 from . import common
+from .common import quote
+
+
+def _numbers(text: str) -> tuple[float, ...]:
+    """``'1,2,3'`` -> (1.0, 2.0, 3.0); () if any part is not a number."""
+    try:
+        return tuple(float(x) for x in text.split(","))
+    except ValueError:
+        return ()
 
 
 def parse_emit(values: Optional[List[str]]) -> dict[str, tuple[float, float, float]]:
-    """``['light=17,12,4', 'lamp=5']`` -> ``{'light': (17, 12, 4), 'lamp': (5, 5, 5)}``."""
+    """``['light=17,12,4', 'lamp=5']`` -> ``{'light': (17, 12, 4), 'lamp': (5, 5, 5)}``.
+
+    Raises
+    ------
+    InputError
+        An item that is not NAME=R,G,B or NAME=V (quoted, at most ~200 characters).
+    """
     out = {}
     for item in values or []:
         name, sep, rgb = item.rpartition("=")
-        try:
-            numbers = tuple(float(x) for x in rgb.split(","))
-        except ValueError:
-            numbers = ()
+        numbers = _numbers(rgb)
         if not sep or not name or len(numbers) not in (1, 3):
-            raise typer.BadParameter(f"expected NAME=R,G,B or NAME=V, got {item!r}")
+            raise InputError(f"--emission: expected NAME=R,G,B or NAME=V (W/m^2, e.g. light=17,12,4), "
+                             f"got {quote(item)}")
         out[name] = numbers * 3 if len(numbers) == 1 else numbers
     return out
 
 
-def parse_rgb(value: Optional[str]) -> Optional[tuple[float, ...]]:
+def parse_rgb(value: Optional[str], option: str = "--area-light") -> Optional[tuple[float, ...]]:
+    """``'1,2,3'`` -> (1, 2, 3), ``'5'`` -> (5, 5, 5); InputError naming ``option`` otherwise."""
     if value is None:
         return None
-    try:
-        numbers = tuple(float(x) for x in value.split(","))
-    except ValueError:
-        numbers = ()
+    numbers = _numbers(value)
     if len(numbers) not in (1, 3):
-        raise typer.BadParameter(f"expected R,G,B or V, got {value!r}")
+        raise InputError(f"{option}: expected R,G,B or V (W/m^2, e.g. 10,10,10), got {quote(value)}")
     return numbers * 3 if len(numbers) == 1 else numbers
 
 
 def load_scene_from_options(scene: str, *, unit_scale: float = 1.0, emit=None, area_light=None,
                             default_reflectance: float = 0.7, allow_missing_materials: bool = False,
-                            max_edge=None, patches=None, keep_duplicates: bool = False):
-    """Load a scene the way every command does, from its CLI options."""
-    from ..scene.load import load_scene
+                            max_edge=None, patches=None, keep_duplicates: bool = False, need=None):
+    """Load a scene the way every command does, from its CLI options.
 
-    return load_scene(scene, unit_scale=unit_scale, emit=parse_emit(emit), area_light=parse_rgb(area_light),
-                      default_reflectance=default_reflectance,
-                      allow_missing_materials=allow_missing_materials, max_edge=max_edge, patches=patches,
-                      keep_duplicates=keep_duplicates)
+    ``need(n)``, if given, is called with the patch count the cut will make
+    (:func:`hfrad.scene.load.estimate_patch_count`) before any cutting, so a
+    command refuses a scene too large for its own memory (precompute,
+    formfactors) at once rather than after minutes of meshing.
+    """
+    from ..scene.load import cut_patches, estimate_patch_count, load_scene
+
+    lights = dict(emit=parse_emit(emit), area_light=parse_rgb(area_light))
+    s = load_scene(scene, unit_scale=unit_scale, **lights, default_reflectance=default_reflectance,
+                   allow_missing_materials=allow_missing_materials, keep_duplicates=keep_duplicates)
+    if need is not None:
+        need(estimate_patch_count(s, max_edge=max_edge, patches=patches))
+    return cut_patches(s, max_edge=max_edge, patches=patches)
 
 
 def register(app: typer.Typer) -> None:

@@ -25,7 +25,7 @@ def register(app: typer.Typer) -> None:
         refine: Optional[float] = typer.Option(None, "--refine", help="After cutting, solve once on those patches and split (conforming, one level) every patch on an edge where the luminance jumps by more than this fraction (e.g. 0.2). At most 8,000 patches before refining."),
         block: Optional[int] = typer.Option(None, "--block", help=f"Column block width (patches); default min({DEFAULT_BLOCK_SIZE}, n)."),
         dtype: str = common.dtype_option("float32"),
-        samples: Optional[int] = typer.Option(None, "--samples", help="Visibility rays per patch pair."),
+        samples: Optional[int] = typer.Option(None, "--samples", help="Visibility rays per patch pair: 1, 4, 9, ... up to 1,024 (time grows in proportion); 0: no visibility (every pair sees each other)."),
         order: str = typer.Option("zorder", "--order", help="Internal patch order: zorder, hilbert, random, input."),
         processes: Optional[int] = typer.Option(None, "--processes", help="Form-factor worker processes, each with its own Embree scene. Default: one per core from 4,000 patches on (idle 2 cores, 10K patches: form factors 9.9 s vs 18.4 s in one process), else this process."),
         near_field: str = typer.Option("auto", "--near-field", help="Near-field split: pairs within the radius holding ~this many facing neighbours (nonzeros of a row of N) go into a sparse N, HF factors the smooth rest, the solver is Woodbury around I - D_c N (Neumann series per solve, sparse LU in the set-up). 'auto' (default): 120 from 2,000 patches on (Cornell box, 5K patches, eps 0.05: rank 1,081 -> 195 at lower radiosity error); 'off' or 0: plain Woodbury."),
@@ -72,10 +72,20 @@ def register(app: typer.Typer) -> None:
             common.check_dtype(dtype)
             if output.suffix != ".hfr":
                 raise InputError(f"output must end in .hfr; got {output}")
+            _check_options(processes=processes, samples=samples, refine=refine, scheduler=scheduler,
+                           workers=workers)
+            common.check_output(output)
+            common.check_output(output.with_name(output.name + ".partial"))
+
+            def need(n: int) -> None:   # before cutting: --max-edge 1e-4 is refused at once, not by the OOM killer
+                common.check_memory_for_precompute(n, min(block or DEFAULT_BLOCK_SIZE, max(n, 1)), dtype,
+                                                   count="at least" if max_edge is not None else "about")
+
             s = load_scene_from_options(scene, unit_scale=unit_scale, emit=emission, area_light=area_light,
                                         default_reflectance=default_reflectance,
                                         allow_missing_materials=allow_missing_materials,
-                                        max_edge=max_edge, patches=patches, keep_duplicates=keep_duplicates)
+                                        max_edge=max_edge, patches=patches, keep_duplicates=keep_duplicates,
+                                        need=need)
             if refine is not None:
                 from ..solve.refine import refine_by_radiosity
                 before = s.n_patches
@@ -102,6 +112,7 @@ def register(app: typer.Typer) -> None:
                 fac = _on_cluster(s, scheduler, workers, quiet, eps=eps, block_size=block, dtype=dtype,
                                   samples=samples, order=order, near_field=_near_field(near_field),
                                   checkpoint=parts, keep_checkpoint=True)
+                common.check_space_for_hfr(output, fac)
                 save_hfr(fac, output, timings={"load": t_load, **_stage_times(fac)})
                 from ..distributed import remove_checkpoint
                 remove_checkpoint(parts)  # only once the .hfr is safely renamed into place
@@ -116,8 +127,29 @@ def register(app: typer.Typer) -> None:
                 fac = factorize(s, eps=eps, block_size=block, dtype=dtype, samples=samples, order=order,
                                 checkpoint=checkpoint, progress=bar, status=status, processes=processes,
                                 near_field=_near_field(near_field))
+            common.check_space_for_hfr(output, fac)
             save_hfr(fac, output, timings={"load": t_load, **_stage_times(fac)})
         _report(fac, output, time.perf_counter() - t0)
+
+
+def _check_options(*, processes, samples, refine, scheduler, workers) -> None:
+    """Option values refused before any work, each in one line naming the option."""
+    import math
+    import re
+
+    limit = common.MAX_PROCESSES_PER_CORE * common.cores()
+    common.check_count(processes, "--processes", high=limit,
+                       why=f"{common.MAX_PROCESSES_PER_CORE} per core at most (this machine has {common.cores()}); "
+                           "more only add memory and start-up time")
+    common.check_count(workers, "--workers", high=limit,
+                       why=f"{common.MAX_PROCESSES_PER_CORE} per core at most (this machine has {common.cores()})")
+    common.check_samples(samples)
+    if refine is not None and not (refine > 0 and math.isfinite(refine)):
+        raise InputError(f"--refine must be a positive, finite luminance jump (e.g. 0.2); got {refine}")
+    if scheduler is not None:
+        m = re.fullmatch(r"(?:[A-Za-z][\w+.-]*://)?(\[[0-9A-Fa-f:.]+\]|[^\s/:\[\]]+):(\d{1,5})", scheduler.strip())
+        if m is None or not 1 <= int(m.group(2)) <= 65535:
+            raise InputError(f"--scheduler must look like tcp://HOST:PORT (port 1-65535); got {common.quote(scheduler)}")
 
 
 def _near_field(value: str) -> int | str:

@@ -24,8 +24,9 @@ def register(app: typer.Typer) -> None:
         camera: str = typer.Option("auto", "--camera",
                                    help="auto (three-quarter view), front (along -z, the Cornell box view) "
                                         "or x,y,z:tx,ty,tz[:fov_degrees]."),
-        width: int = typer.Option(512, "--width", min=1, help="Picture width, pixels."),
-        height: int = typer.Option(512, "--height", min=1, help="Picture height, pixels."),
+        width: int = typer.Option(512, "--width", min=1, help="Picture width, pixels (at most 16,384, and "
+                                                              "~256 bytes a pixel of memory)."),
+        height: int = typer.Option(512, "--height", min=1, help="Picture height, pixels (at most 16,384)."),
         exposure: Optional[float] = typer.Option(
             None, "--exposure", help="Exposure in EV: pixel = clip(B/pi * 2^EV, 0, 1), then sRGB. "
                                      "Default: --auto-exposure."),
@@ -46,6 +47,7 @@ def register(app: typer.Typer) -> None:
         import numpy as np
 
         from ..render import Camera, render_image, save_png
+        from ..render.image import check_size
         from .solve import exitance_from_options
 
         with common.user_errors():
@@ -54,7 +56,13 @@ def register(app: typer.Typer) -> None:
             if falsecolor:
                 from ..render.falsecolor import check_unit
                 check_unit(unit)
+            if exposure is not None:
+                from ..render.tonemap import MAX_EXPOSURE
+                if not (np.isfinite(exposure) and abs(exposure) <= MAX_EXPOSURE):
+                    raise InputError(f"--exposure must be a finite number of EV within +-{MAX_EXPOSURE:g}; got {exposure}")
             Camera.parse(camera, np.array([[0.0, 0, 0], [1, 1, 1]]))  # fail on a bad spec before the solve
+            check_size(width, height, falsecolor=falsecolor)            # and on a picture too large for memory
+            common.check_output(output)
             fac = common.load_factorization(factorization)
             scene = fac.scene
             E = exitance_from_options(scene, emission, emission_scale, emission_file)

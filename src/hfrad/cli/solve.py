@@ -66,6 +66,7 @@ def register(app: typer.Typer) -> None:
         from ..io.export import write_radiosity
 
         with common.user_errors():
+            common.check_output(output)
             t0 = time.perf_counter()
             fac = common.load_factorization(factorization)
             t_load = time.perf_counter() - t0
@@ -91,21 +92,15 @@ def register(app: typer.Typer) -> None:
         if as_json:
             typer.echo(json.dumps(report))
             return
+        # first the figure a user can rely on: this solution's guaranteed bound (--residual), else the a-priori
+        # bound when it says something, else "no useful a-priori bound" and what to do
+        lines = common.error_figures_line(fac, residual=r).splitlines()
+        common.console.print(lines[0], highlight=False)
         if r is not None:
             common.console.print("a-posteriori residual ||(I - RF) B - E|| / ||E|| (R,G,B): "
                                  + ", ".join(f"{x:.3g}" for x in r.residual), highlight=False)
         common.console.print(
             f"wrote {output}: {fac.n_patches:,} patches, rank {fac.rank:,}; solve {t_solve * 1e3:.1f} ms "
-            f"(load {t_load:.2f} s)\n{_bound_line(report)}", highlight=False)
-
-
-def _bound_line(report: dict) -> str:
-    """The error figures in words: which bound, in which norm, with which guarantee."""
-    def figs(values):
-        return ", ".join("none" if v is None else f"{v:.3g}" for v in values)
-    how = {"residual": "guaranteed for this solution (its residual with the exact F)",
-           "probes": f"guaranteed for any light except with probability {report['failure_probability']:g}; "
-                     "--residual gives the tight figure of this solution",
-           "eq5": "eq. 5, not guaranteed (no pass statistics in this file)"}[report["error_bound_kind"]]
-    return (f"bound on the relative radiosity error (R,G,B; {report['error_norm']} norm): "
-            f"{figs(report['error_bound'])} ({how}); eq. 5 figure: {figs(report['eq5_bound'])}")
+            f"(load {t_load:.2f} s)", highlight=False)
+        for line in lines[1:]:
+            common.console.print(line, highlight=False)

@@ -45,14 +45,15 @@ class Camera:
     def __post_init__(self) -> None:
         p, t, u = (np.asarray(v, dtype=np.float64).reshape(3) for v in (self.position, self.target, self.up))
         if not (np.isfinite(p).all() and np.isfinite(t).all() and np.isfinite(u).all()):
-            raise InputError(f"camera position, target and up must be finite, got {p}, {t}, {u}")
+            raise InputError(f"camera position, target and up must be finite, got {tuple(p.tolist())}, "
+                             f"{tuple(t.tolist())}, {tuple(u.tolist())}")
         if np.linalg.norm(t - p) == 0:
-            raise InputError(f"camera target must differ from its position, both are {tuple(p)}")
+            raise InputError(f"camera target must differ from its position, both are {tuple(p.tolist())}")
         if not 0 < self.fov < 180:
             raise InputError(f"camera fov must be in (0, 180) degrees, got {self.fov}")
         f = (t - p) / np.linalg.norm(t - p)
         if np.linalg.norm(np.cross(f, u)) < 1e-9 * max(np.linalg.norm(u), 1e-300):
-            raise InputError(f"camera up {tuple(u)} is parallel to the view direction {tuple(f)}; "
+            raise InputError(f"camera up {tuple(u.tolist())} is parallel to the view direction {tuple(f.round(6).tolist())}; "
                              "give another up vector")
         object.__setattr__(self, "position", tuple(map(float, p)))
         object.__setattr__(self, "target", tuple(map(float, t)))

@@ -82,6 +82,10 @@ def to_uint8(values: np.ndarray) -> np.ndarray:
     return np.rint(x * 255.0).astype(np.uint8)
 
 
+#: Largest exposure, EV, either way (2^1000 ~ 1e301; beyond, 2^EV overflows a float).
+MAX_EXPOSURE = 1000.0
+
+
 def tonemap(radiance: np.ndarray, *, exposure: float = 0.0, encoding: str = "srgb") -> np.ndarray:
     """Linear radiance -> 8-bit display values.
 
@@ -100,8 +104,9 @@ def tonemap(radiance: np.ndarray, *, exposure: float = 0.0, encoding: str = "srg
     """
     if encoding not in ("srgb", "linear"):
         raise InputError(f"encoding must be 'srgb' or 'linear', got {encoding!r}")
-    if not np.isfinite(exposure):
-        raise InputError(f"exposure must be a finite number of EV, got {exposure}")
+    if not (np.isfinite(exposure) and abs(exposure) <= MAX_EXPOSURE):
+        raise InputError(f"exposure must be a finite number of EV within +-{MAX_EXPOSURE:g} (a factor 2^EV), "
+                         f"got {exposure}")
     x = np.asarray(radiance, dtype=np.float64) * (2.0 ** exposure)
     x = np.clip(np.nan_to_num(x, nan=0.0, posinf=1.0, neginf=0.0), 0.0, 1.0)
     return to_uint8(srgb_encode(x) if encoding == "srgb" else x)

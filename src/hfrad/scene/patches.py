@@ -19,6 +19,20 @@ from .conform import conforming_subdivide
 from .scene import Scene
 
 
+#: Peak memory per patch while cutting faces into patches and holding the result. Measured on the
+#: built-in Cornell box (peak RSS above the uncut scene): 390 B a patch at 9,402 patches, 250 B at
+#: 87,416 and 745,030; 1 KB leaves room for the copies later stages make.
+MESH_BYTES_PER_PATCH = 1024
+
+#: Area of an equilateral triangle of unit edge, sqrt(3)/4: the largest triangle with no edge over 1.
+EQUILATERAL_AREA = math.sqrt(3) / 4
+
+
+def min_patches_for_edge(total_area: float, max_edge: float) -> float:
+    """Fewest triangles of edges at most ``max_edge`` that cover ``total_area``: ``A / (sqrt(3)/4 h^2)``."""
+    return float(total_area) / (EQUILATERAL_AREA * float(max_edge) ** 2)
+
+
 def _edge_lengths(tri: np.ndarray) -> np.ndarray:
     """(n, 3, 3) triangles -> (n,) longest edge length."""
     e = np.stack([tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 1], tri[:, 0] - tri[:, 2]], axis=1)

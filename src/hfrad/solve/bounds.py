@@ -12,7 +12,8 @@ from typing import Iterable
 import numpy as np
 
 __all__ = ["ErrorEstimate", "ResidualEstimate", "estimate_errors", "solution_bound", "relative_bound",
-           "contraction_bound", "power_sigma_max", "eq5_bound", "residual_norm", "residual_estimate"]
+           "contraction_bound", "power_sigma_max", "eq5_bound", "residual_norm", "residual_estimate",
+           "USEFUL_BOUND", "is_useful", "percent", "accuracy_lines"]
 
 
 def _figures(a) -> list:
@@ -265,3 +266,90 @@ def residual_norm(blocks: Iterable[tuple[int, int, np.ndarray]], reflectance, ex
     One pass over F, O(n^2) time, O(n b) memory.
     """
     return residual_estimate(blocks, reflectance, exitance, radiosity, perm=perm).residual
+
+
+#: A relative error bound at or above this (100%) says nothing: the error could be as large as the answer.
+USEFUL_BOUND = 1.0
+
+#: The relative error the advice for a lower ``eps`` aims at when the a-priori bound is of no use (10%).
+ADVICE_TARGET = 0.1
+
+
+def is_useful(bound) -> bool:
+    """Whether every channel's relative error bound is finite and below :data:`USEFUL_BOUND`."""
+    b = np.atleast_1d(np.asarray(bound, dtype=np.float64))
+    return bool(b.size) and bool(np.all(np.isfinite(b) & (b < USEFUL_BOUND)))
+
+
+def percent(values) -> str:
+    """``[0.0031, 1.55, inf]`` -> ``'0.31%, 155%, none'``: relative figures as percentages."""
+    return ", ".join(f"{100 * float(v):.3g}%" if np.isfinite(v) else "none" for v in np.atleast_1d(values))
+
+
+def _eps_for(estimate: ErrorEstimate, achieved_error: float, target: float = ADVICE_TARGET) -> float | None:
+    """The ``eps`` that would bring the a-priori bound to about ``target``, or None when none can.
+
+    The bound is ``delta / (1 - delta)`` with ``delta = operator_error / (1 - contraction)``,
+    and the probed operator error scales with the achieved factorization error
+    (Cornell box, 300 patches: 5.2, 5.1 and 4.7 times it at eps 0.02, 0.01, 0.005).
+    """
+    if estimate.operator_error is None or estimate.contraction is None or not achieved_error > 0:
+        return None
+    kappa = float(np.max(estimate.contraction))
+    op = float(np.max(estimate.operator_error))
+    if not (kappa < 1.0 and op > 0 and np.isfinite(op)):
+        return None
+    delta = target / (1.0 + target)
+    return achieved_error * delta * (1.0 - kappa) / op
+
+
+def accuracy_lines(estimate: ErrorEstimate, *, residual: ResidualEstimate | None = None,
+                   achieved_error: float | None = None) -> list[str]:
+    """The accuracy figures in words, the figure a user can rely on first (docs/method.md, section 7).
+
+    1. With ``residual``: the guaranteed bound of that one solution.
+    2. The a-priori bound for any light, when it says something (every
+       channel below 100%); otherwise "no useful a-priori bound" with what to
+       do: the solution's residual, or a lower ``eps`` (estimated from the
+       achieved error when ``achieved_error`` is given).
+    3. The paper's eq. 5 figure, marked as not guaranteed.
+
+    Parameters
+    ----------
+    estimate : ErrorEstimate
+        ``fac.error_estimate()``.
+    residual : ResidualEstimate, optional
+        ``fac.residual(E, B)`` of a solution.
+    achieved_error : float, optional
+        ``fac.relative_error``: the achieved relative Frobenius error of the factorization.
+
+    Returns
+    -------
+    list of str
+    """
+    lines = []
+    if residual is not None:
+        if is_useful(residual.bound):
+            lines.append(f"error of this solution: at most {percent(residual.bound)} (R,G,B; relative, "
+                         f"{residual.norm} norm; guaranteed, a posteriori with the exact form factors)")
+        else:
+            lines.append(f"no useful bound on the error of this solution: the a-posteriori figure is "
+                         f"{percent(residual.bound)} (R,G,B); precompute with a lower --eps")
+    norm = f"{estimate.norm} norm"
+    if estimate.kind == "probes" and is_useful(estimate.bound):
+        lines.append(f"a-priori bound on the relative radiosity error of any solve: at most {percent(estimate.bound)} "
+                     f"(R,G,B; {norm}; guaranteed except with probability {estimate.failure_probability:g})")
+    elif estimate.kind == "probes":
+        eps = None if achieved_error is None else _eps_for(estimate, achieved_error)
+        todo = ("`hfrad solve --residual` gives the guaranteed figure of one solution"
+                + (f"; for an a-priori bound of about {100 * ADVICE_TARGET:.0f}%, precompute with --eps {eps:.2g} "
+                   "or lower" if eps is not None else
+                   "; the reflectance times the form factors' row sums reaches 1, so no eps gives an a-priori bound"))
+        lines.append(f"no useful a-priori bound on the relative radiosity error of a solve (the guaranteed figure is "
+                     f"{percent(estimate.bound)}, R,G,B: not below 100%); {todo}")
+    else:
+        lines.append("no a-priori bound on the relative radiosity error in this file (written without pass "
+                     "statistics); `hfrad solve --residual` gives the guaranteed figure of one solution")
+    lines.append(f"eq. 5 bound (the paper's estimate, not guaranteed): {percent(estimate.eq5_bound)} "
+                 f"(sigma_max {', '.join(f'{v:.3g}' for v in np.atleast_1d(estimate.sigma_max))})")
+    return lines
