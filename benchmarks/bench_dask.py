@@ -1,8 +1,8 @@
 """The Dask backend: local path vs LocalCluster with 1 and 2 workers, and a model for 163K / 1M patches.
 
-Measures ``hfrad.factorize`` (in-process streaming) against
-``hfrad.distributed.factorize_distributed`` on a LocalCluster of 1 and 2
-worker processes (one thread each), on the same scene (>= 10K patches), each
+Measures ``hfrad.factorize(scene)`` (in-process streaming, with its reciprocity
+copy) against ``hfrad.factorize(scene, scheduler=cluster)`` on a LocalCluster of 1
+and 2 worker processes (one thread each), on the same scene, each
 configuration in a fresh process: wall time, cluster start-up, per-stage task
 seconds, peak memory per worker, rank, achieved error, and the largest
 difference of the radiosity to the local result. Parallel efficiency is
@@ -45,7 +45,7 @@ NETWORK_BYTES_PER_S = 1.0e9
 
 # -- one configuration, in its own process ---------------------------------------------------
 def one_run(config: str, patches: int, eps: float, block: int, out_npy: str) -> dict:
-    from hfrad.distributed import connect, factorize_distributed
+    from hfrad.distributed import connect
     from hfrad.pipeline import factorize
     from hfrad.scene.load import load_scene
 
@@ -67,13 +67,14 @@ def one_run(config: str, patches: int, eps: float, block: int, out_npy: str) -> 
             result["startup_s"] = time.perf_counter() - t
             records: list = []
             t = time.perf_counter()
-            fac = factorize_distributed(scene, scheduler=cluster, eps=eps, block_size=block, records=records)
+            fac = factorize(scene, eps=eps, block_size=block, scheduler=cluster, records=records)
             result["wall_s"] = time.perf_counter() - t
             rss = cluster.client.run(lambda: resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20)
             result["peak_rss_worker_gb"] = max(rss.values())
             result["task_overhead_s"] = _task_overhead(cluster.client, workers)
     info = fac.lowrank.info
-    result.update({"rank": fac.rank, "achieved_error": fac.relative_error,
+    result.update({"rank": fac.rank, "achieved_error": fac.relative_error, "solver": fac.solver,
+                   "error_bound_kind": fac.error_estimate().kind,
                    "formfactors_s": info["time_formfactors"], "leaf_svd_s": info["time_leaf"],
                    "merge_s": info["time_merge"], "scatter_s": info.get("time_scatter", 0.0),
                    "gather_s": info.get("time_gather", 0.0), "loadavg_before": load_before,
