@@ -25,7 +25,10 @@ Cases:
 
 - ``office``: examples/office with its 12 catalogue luminaires (layout.json,
   all at full output, background none), the 0.8 m work plane (floor outline,
-  0.5 m border) at ``--office-spacing``;
+  0.5 m border) at ``--office-spacing``; the ceiling cells under the six
+  panels (material ``luminaire``) get reflectance 0 on both sides: they are the
+  panels' faces, which Radiance's light polygons hide and which return 0 to
+  its indirect rays;
 - ``cornell``: ../shared/scenes/cornell-box/CornellBox-Original.obj (its own area
   light, background scene), a plane at 1.4 m over the box's floor (above both
   blocks) at ``--cornell-spacing``.
@@ -80,11 +83,11 @@ def _zup(p: np.ndarray) -> np.ndarray:
     return np.stack([p[..., 0], -p[..., 2], p[..., 1]], axis=-1)
 
 
-def scene_to_rad(scene, path: Path, *, emit: bool) -> dict:
-    """Write the scene's triangles as Radiance polygons; returns counts."""
+def scene_to_rad(scene, path: Path, *, emit: bool, reflectance=None) -> dict:
+    """Write the scene's triangles as Radiance polygons (``reflectance`` (n, 3) overrides the scene's)."""
     tri = _zup(np.asarray(scene.triangles))
     patch = np.asarray(scene.patch_of_triangle)
-    rho = np.round(np.asarray(scene.reflectance), 6)[patch]
+    rho = np.round(np.asarray(scene.reflectance if reflectance is None else reflectance), 6)[patch]
     E = np.asarray(scene.emission)[patch] if emit else np.zeros_like(rho)
     lines, mats = [], {}
     for i in range(len(tri)):
@@ -130,10 +133,10 @@ def luminaires_to_rad(layout_path: Path, luminaires, work: Path, tools: dict) ->
 
 
 def run_radiance(scene, sensors, *, luminaires=(), layout=None, emit: bool, ad: int, ab: int, threads: int,
-                 work: Path, tools: dict) -> dict:
+                 work: Path, tools: dict, reflectance=None) -> dict:
     """Illuminance (lux) at the sensors by rtrace -I; each sensor traced twice (noise)."""
     t0 = time.perf_counter()
-    info = scene_to_rad(scene, work / "scene.rad", emit=emit)
+    info = scene_to_rad(scene, work / "scene.rad", emit=emit, reflectance=reflectance)
     files = ["scene.rad"] + [p.name for p in (luminaires_to_rad(layout, luminaires, work, tools)
                                                if luminaires else [])]
     with open(work / "scene.oct", "wb") as fh:
@@ -209,6 +212,11 @@ def run_case(name: str, args, tools: dict) -> dict:
             hfrad.load_scene(OFFICE / "office.obj", patches=args.patches), eps=args.eps)
         layout = OFFICE / "layout.json"
         lums = read_layout(layout)
+        # the ceiling cells under the six panels are the panels' own faces: Radiance's light polygons
+        # (1 cm below them) hide them and return 0 to indirect rays, so they do not reflect here either
+        rho = np.array(fac.reflectance)
+        rho[fac.scene.material == fac.scene.material_names.index("luminaire")] = 0.0
+        fac = fac.with_reflectance(rho)
         background, emit = "none", False
         sensors = floor_grid(fac.scene, 0.8, args.office_spacing, margin=0.5)
     else:
@@ -232,7 +240,7 @@ def run_case(name: str, args, tools: dict) -> dict:
     dense = _dense_check(fac, model, resp, args.ab) if args.dense else None
     with tempfile.TemporaryDirectory(prefix=f"rad-{name}-") as tmp:
         rad = run_radiance(fac.scene, sensors, luminaires=lums, layout=layout, emit=emit, ad=args.ad, ab=args.ab,
-                           threads=args.threads, work=Path(tmp), tools=tools)
+                           threads=args.threads, work=Path(tmp), tools=tools, reflectance=fac.reflectance)
     out = {"case": name, "patches": fac.n_patches, "rank": fac.rank, "eps": fac.eps, "sensors": len(sensors),
            "spacing_m": sensors.spacing, "luminaires": len(lums),
            "hfrad": {**grid_stats(lux_h), "factorization_s": t_fac if not (args.hfr_office or args.hfr_cornell) else
@@ -257,9 +265,8 @@ def run_case(name: str, args, tools: dict) -> dict:
         model2 = model.with_reflectance(rho)
         lux2 = model2.sensors(sensors, gather=resp.gather).illuminance(w)
         t_h2 = time.perf_counter() - t3
-        scene2 = fac.scene.replace(reflectance=rho)
         with tempfile.TemporaryDirectory(prefix=f"rad-{name}-walls-") as tmp:
-            rad2 = run_radiance(scene2, sensors, luminaires=lums, layout=layout, emit=emit, ad=args.ad, ab=args.ab,
+            rad2 = run_radiance(fac.scene, sensors, reflectance=rho, luminaires=lums, layout=layout, emit=emit, ad=args.ad, ab=args.ab,
                                 threads=args.threads, work=Path(tmp), tools=tools)
         out["walls_60pct"] = {"hfrad_s": t_h2, "radiance_s": rad2["convert_s"] + rad2["rtrace_s"],
                               "hfrad_average": float(lux2.mean()), "radiance_average": float(rad2["lux"].mean()),
