@@ -281,3 +281,33 @@ def test_refuses_workers_too_small_for_one_leaf(cornell, monkeypatch):
     with connect(workers=1, processes=False) as cluster:
         with pytest.raises(MemoryLimitError, match="one leaf task needs about"):
             factorize(scene, scheduler=cluster, eps=EPS, block_size=64)
+
+
+def test_a_damaged_checkpoint_part_is_refused(tmp_path):
+    """A saved part reads back as written; a flipped byte fails its checksum, naming the file."""
+    from hfrad.distributed import store
+    from hfrad.errors import FileFormatError
+    from hfrad.factorize.hf import _Node
+
+    rng = np.random.default_rng(1)
+    node = _Node(2, rng.standard_normal((30, 4)), np.arange(4.0)[::-1].copy(), rng.standard_normal((12, 4)),
+                 5.0, 0.25, 0.5)
+    stats = {"row_sums": rng.random(30), "col_sums": rng.random(30), "sketch": rng.random((30, 20)),
+             "probes": 20, "seed": 7}
+    near = {"near_rows": np.array([0, 3]), "near_cols": np.array([1, 2]), "near_values": np.array([0.5, 0.25])}
+    assert store.open_folder(tmp_path, "k") == set()
+    store.save_part(tmp_path, 9, tasks.Part(node, [{"kind": "merge", "node": 9}], stats, near))
+    assert store.open_folder(tmp_path, "k") == {9}
+    got, got_stats, got_near, records = store.load_part(tmp_path, 9)
+    assert np.array_equal(got.U, node.U) and np.array_equal(got.V, node.V) and got.level == 2
+    assert (got.norm2, got.discarded2, got.slack2) == (5.0, 0.25, 0.5)
+    assert np.array_equal(got_stats["sketch"], stats["sketch"]) and got_stats["seed"] == 7
+    assert np.array_equal(got_near["near_values"], near["near_values"]) and records == [{"kind": "merge", "node": 9}]
+    path = tmp_path / "node-9.npz"
+    data = bytearray(path.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    path.write_bytes(bytes(data))
+    with pytest.raises(FileFormatError, match="node-9.npz"):
+        store.load_part(tmp_path, 9)
+    store.drop_part(tmp_path, 9)
+    assert store.open_folder(tmp_path, "k") == set()
