@@ -31,7 +31,8 @@ Cases:
   its indirect rays;
 - ``cornell``: ../shared/scenes/cornell-box/CornellBox-Original.obj (its own area
   light, background scene), a plane at 1.4 m over the box's floor (above both
-  blocks) at ``--cornell-spacing``.
+  blocks) at ``--cornell-spacing``; the light's patches get reflectance 0 (a
+  Radiance ``light`` does not reflect).
 
 Timings: hfrad's precompute (factorization if not given, luminaires' direct
 light, the batched solve, the gather operator) and one relighting, against
@@ -227,6 +228,11 @@ def run_case(name: str, args, tools: dict) -> dict:
         layout, lums = None, []
         background, emit = "scene", True
         sensors = rectangle_grid((-0.95, 0.95), (-0.95, 0.9), 1.4, args.cornell_spacing, name="plane_1.4m")
+    if emit:
+        # emitting patches become Radiance `light`s, which do not reflect: no reflectance on hfrad's side either
+        rho = np.array(fac.reflectance)
+        rho[np.asarray(fac.scene.emission).max(axis=1) > 0] = 0.0
+        fac = fac.with_reflectance(rho)
     t_fac = time.perf_counter() - t0
     t1 = time.perf_counter()
     model = LightingModel(fac, lums, background=background)
