@@ -89,7 +89,7 @@ def check_exitance(exitance, name: str = "exitance", *, signed: bool = False) ->
     if not signed and (flat < 0).any():
         where = np.unravel_index(int(np.flatnonzero(flat < 0)[0]), E.shape)
         raise InputError(f"{name} must be >= 0 (W/m^2); index {tuple(int(i) for i in where)} "
-                         f"has {float(E[where]):g}")
+                         f"has a negative value, {float(E[where]):g}")
     big = np.abs(flat) > MAX_EXITANCE
     if big.any():
         where = np.unravel_index(int(np.flatnonzero(big)[0]), E.shape)
