@@ -3,6 +3,7 @@ an unbindable --host refused at once, uploads and pictures capped, saved names t
 
 from __future__ import annotations
 
+import contextlib
 import http.server
 import json
 import os
@@ -27,7 +28,8 @@ viser = pytest.importorskip("viser", reason="hfrad view needs viser (pip install
 from websockets.exceptions import InvalidStatus  # noqa: E402  (websockets comes with viser)
 from websockets.sync.client import connect  # noqa: E402
 
-from hfrad.viewer.guard import PageGuard, _same_origin, _split_hostport, guarded_server, self_test  # noqa: E402
+from hfrad.viewer.guard import (  # noqa: E402
+    PageGuard, _same_origin, _split_hostport, check_bindable, guarded_server, self_test)
 
 #: An address of RFC 5737's documentation range: never one of this machine's.
 FOREIGN_ADDRESS = "203.0.113.7"
@@ -188,6 +190,23 @@ def test_unbindable_host_fails_at_once(fac, tmp_path):
         assert result.exit_code == 2, result.output
         lines = result.output.strip().splitlines()
         assert len(lines) == 1 and lines[0].startswith("error: --host ") and why in lines[0]
+    # a busy port: the next free one; the last port busy: refused (viser's own search died on port 65536)
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        assert port < check_bindable("127.0.0.1", port) <= port + 100
+    with socket.socket() as last:
+        with contextlib.suppress(OSError):          # (if another program holds it, it is busy all the same)
+            last.bind(("127.0.0.1", 65535))
+            last.listen()
+        with pytest.raises(InputError, match="--port 65535: ports 65535-65535 on 127.0.0.1 are all in use"):
+            check_bindable("127.0.0.1", 65535)
+        result = CliRunner().invoke(cli_app, ["view", str(tmp_path / "any.hfr"), "--port", "65535"])
+        assert result.exit_code == 2 and "are all in use" in result.output, result.output
+    for host in ("", "   "):
+        with pytest.raises(InputError, match="got an empty value"):
+            check_bindable(host, 8080)
 
 
 def test_cli_prints_token_url_and_warns_off_loopback(fac, tmp_path):
@@ -230,7 +249,8 @@ class FakeClient:
         self.downloads: list[str] = []
         self.notes: list[tuple[str, str]] = []
         cam = dict(position=(0.28, 0.27, -0.8), look_at=(0.28, 0.27, 0.28), up_direction=(0.0, 1.0, 0.0),
-                   fov=0.8, image_width=width, image_height=height)
+                   fov=0.8, image_width=width, image_height=height,
+                   aspect=property(lambda c: float(c.image_width) / c.image_height))   # as viser's
         self.camera = type("Cam", (), cam)()
 
     def send_file_download(self, name, content, save_immediately=False):
@@ -363,5 +383,8 @@ def test_uploads_capped_as_they_arrive(app):
         for m in _upload_messages(button, good, parts=3):
             ws.send(m)
         assert _wait(lambda: light().intensity == 5.0), app.state.emitters
+        end = time.monotonic() + 10
+        while b"Loaded emission" not in _plain(ws.recv(timeout=max(0.1, end - time.monotonic()))):
+            pass
     assert app.uploads.refused == refused + 3
     assert _wait(lambda: not pending)                      # the tab's unfinished upload dropped on disconnect

@@ -37,14 +37,14 @@ def register(app: typer.Typer) -> None:
         Memory: the factors (Q, V and three k x k inverses: (2 n k + 3 k^2) x 4
         bytes in float32) plus one radiosity per emitter.
         """
-        from ..viewer import ViewerApp
         from ..viewer.guard import check_bindable, is_loopback
 
         with common.user_errors():
             host = host.strip()
             if host.startswith("[") and host.endswith("]"):
                 host = host[1:-1]
-            check_bindable(host, port)             # before loading: a wrong --host fails at once
+            check_bindable(host, port)             # before loading: a wrong --host or a full port range fails at once
+            from ..viewer import ViewerApp
             if factorization.suffix.lower() != ".hfr":
                 raise InputError(f"{factorization}: not a factorization file (.hfr); make one with "
                                  "`hfrad precompute SCENE -o FILE.hfr`")

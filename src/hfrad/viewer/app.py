@@ -149,7 +149,7 @@ class ViewerApp:
             host = host[1:-1]                      # [::1] as written in URLs
         if isinstance(port, bool) or int(port) != port or not 0 <= port < 65536:
             raise InputError(f"port must be a whole number in [0, 65535], got {port!r}")
-        check_bindable(host, int(port))
+        port = check_bindable(host, int(port))     # fails at once (viser would hang); busy: the next free port
         viser = _import_viser()
         self.guard = PageGuard(host, token)
         self.fac, self.scene = fac, fac.scene
@@ -169,7 +169,7 @@ class ViewerApp:
         self._mesh = None
 
         self._names_lock = threading.Lock()
-        self.server = _start_server(viser, self.guard, host, int(port), verbose)
+        self.server = _start_server(viser, self.guard, host, port, verbose)
         self.host, self.port = host, self.server.get_port()
         try:
             self_test(host, self.port)
@@ -484,8 +484,8 @@ class ViewerApp:
         aspect = float(aspect)
         width = round(height * aspect) if math.isfinite(aspect) and aspect > 0 else 0
         if not 1 <= width <= MAX_PICTURE_SIDE:
-            raise InputError(f"picture width {height} x {aspect:.4g} (aspect) must be in [1, {MAX_PICTURE_SIDE}] "
-                             "pixels; make the browser window less wide or tall")
+            raise InputError(f"picture width must be in [1, {MAX_PICTURE_SIDE}] pixels, got height {height} x aspect "
+                             f"{aspect:.4g} = {height * aspect:.6g}; make the browser window less wide")
         memory.require(RENDER_BYTES_PER_PIXEL * width * height, f"a {width} x {height} picture")
         with self._lock:
             B, E, exposure, falsecolor, unit = self._shown

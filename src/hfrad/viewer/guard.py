@@ -44,6 +44,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import errno
 import http
 import inspect
 import ipaddress
@@ -99,30 +100,51 @@ def url_host(host: str) -> str:
     return f"[{host.strip('[]')}]" if ip is not None and ip.version == 6 else host
 
 
-def check_bindable(host: str, port: int) -> None:
-    """Raise InputError at once if the server could not listen on ``host``.
+#: Ports tried after a busy one (viser's own search, 1000 ports, never reported its failure).
+PORT_SEARCH = 100
+
+
+def check_bindable(host: str, port: int) -> int:
+    """The first port from ``port`` on which the server can listen on ``host``; InputError at once if none.
 
     viser tries the next port when binding fails, for any reason, up to 1000
-    times, then never reports back: an address that is not this machine's (or
-    a name that does not resolve) made ``hfrad view`` hang. Every address the
-    name resolves to is tried here on a free port (the server binds all of them).
+    times, then never reports back: an address that is not this machine's, a
+    name that does not resolve, or a busy port 65535 made ``hfrad view`` hang.
+    Here every address the name resolves to (the server binds all of them) is
+    tried, on ``port`` and up to ``PORT_SEARCH`` ports after it if busy
+    (``port`` 0: any free port, chosen when the server starts).
+
+    Returns
+    -------
+    int
+        A port free on every address now (0 if ``port`` is 0).
     """
     if not isinstance(host, str) or not host.strip():
         raise InputError("--host must be an address or name of this machine, got an empty value")
     try:
         infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
-    except (socket.gaierror, UnicodeError) as exc:
+    except (socket.gaierror, UnicodeError, OverflowError) as exc:
         raise InputError(f"--host {host[:200]}: cannot resolve this name ({exc}); give an address of this "
                          "machine such as 127.0.0.1") from None
-    for family, type_, proto, _, addr in infos:
-        try:
-            with socket.socket(family, type_, proto) as s:
-                if family == socket.AF_INET6:
-                    s.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_V6ONLY, 1)
-                s.bind((addr[0], 0) + tuple(addr[2:]))
-        except OSError as exc:
-            raise InputError(f"--host {host[:200]}: cannot listen on {addr[0]} ({exc.strerror or exc}); "
-                             "give an address of this machine such as 127.0.0.1") from None
+    busy = None
+    for candidate in ([0] if port == 0 else range(port, min(port + PORT_SEARCH, 65535) + 1)):
+        for family, type_, proto, _, addr in infos:
+            try:
+                with socket.socket(family, type_, proto) as s:
+                    s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)    # as asyncio's server does
+                    if family == socket.AF_INET6:
+                        s.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_V6ONLY, 1)
+                    s.bind((addr[0], candidate) + tuple(addr[2:]))
+            except OSError as exc:
+                if exc.errno != errno.EADDRINUSE:
+                    raise InputError(f"--host {host[:200]}: cannot listen on {addr[0]} ({exc.strerror or exc}); "
+                                     "give an address of this machine such as 127.0.0.1") from None
+                busy = exc
+                break
+        else:
+            return candidate
+    raise InputError(f"--port {port}: ports {port}-{min(port + PORT_SEARCH, 65535)} on {host[:200]} are all in use "
+                     f"({busy.strerror if busy else 'busy'}); give another --port")
 
 
 class PageGuard:
