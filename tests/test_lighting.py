@@ -205,6 +205,11 @@ def test_floor_grid_follows_an_l_shaped_outline():
     assert len(g) == 8 * 4 + 4 * 4                                    # 3 m^2 at 0.0625 m^2 a cell
     assert np.allclose(g.points[:, 1], 0.8)
     assert not ((g.points[:, 0] > 1) & (g.points[:, 2] > 1)).any()
+    # a 0.25 m border zone follows the L: cells within 0.25 m of any wall, the inner corner's too, go
+    inner = floor_grid(scene, 0.8, 0.25, margin=0.25)
+    x, z = inner.points[:, 0], inner.points[:, 2]
+    assert len(inner) > 0 and (x >= 0.25).all() and (z >= 0.25).all() and (x <= 1.75).all()
+    assert not ((x > 0.75) & (z > 0.75)).any()                        # 0.25 m from the inner corner's walls
     with pytest.raises(InputError, match="not in the scene"):
         floor_grid(scene, 0.8, 0.25, material="carpet")
 

@@ -169,7 +169,9 @@ def floor_grid(scene, height: float, spacing: float, *, material: str = "floor",
 
     The grid covers the floor's bounding box in plan (x, z); a sensor is kept
     when its plan position lies on a floor triangle (so L-shaped rooms get an
-    L-shaped grid). ``height`` is measured from the floor's lowest point.
+    L-shaped grid) and, with a ``margin``, so do the 16 points at that
+    distance around it (the border zone follows the outline). ``height`` is
+    measured from the floor's lowest point.
 
     Raises
     ------
@@ -188,7 +190,11 @@ def floor_grid(scene, height: float, spacing: float, *, material: str = "floor",
     plan = tri[..., [0, 2]]
     lo, hi = plan.reshape(-1, 2).min(axis=0), plan.reshape(-1, 2).max(axis=0)
     full = rectangle_grid((lo[0], hi[0]), (lo[1], hi[1]), y0 + height, spacing, name=name, margin=margin)
-    keep = _inside_triangles(full.points[:, [0, 2]], plan)
+    xz = full.points[:, [0, 2]]
+    keep = _inside_triangles(xz, plan)
+    if margin > 0:                         # the border zone follows the outline: the points margin away inside too
+        for a in np.radians(np.arange(0, 360, 22.5)):
+            keep &= _inside_triangles(xz + margin * np.array([np.cos(a), np.sin(a)]), plan)
     if not keep.any():
         raise InputError(f"no grid point of spacing {spacing:g} m falls on the {material!r} outline")
     return SensorSet(name, full.points[keep], full.normals[keep], full.cells[keep], full.shape, full.origin,
