@@ -14,6 +14,7 @@ validated it on the client.
 from __future__ import annotations
 
 import contextlib
+import copy
 import time
 from dataclasses import dataclass, field
 
@@ -143,10 +144,13 @@ _SPLITS: dict = {}
 
 
 def _splitter(job: Job) -> NearFieldSplit:
-    split = _SPLITS.get(job.token)
-    if split is None:
+    """A splitter with empty coordinate lists, sharing the worker's k-d tree (read-only, so threads of
+    one worker process may run leaves at once: each gets its own lists)."""
+    template = _SPLITS.get(job.token)
+    if template is None:
         _SPLITS.clear()
-        split = _SPLITS[job.token] = NearFieldSplit(job.scene.centroids[job.perm], job.options.near_radius)
+        template = _SPLITS[job.token] = NearFieldSplit(job.scene.centroids[job.perm], job.options.near_radius)
+    split = copy.copy(template)
     split.rows, split.cols, split.values = [], [], []
     return split
 
