@@ -60,8 +60,8 @@ def register(app: typer.Typer) -> None:
         form-factor workers at 164,988.
         A checkpoint (OUTPUT.partial) is written every 30 s (less often when a write is slow: at most ~2% of the run); rerun the same
         command to resume after an interruption. With --scheduler or --workers
-        the work runs as Dask tasks (no checkpoint: Dask re-runs the tasks of a
-        lost worker); each worker needs about 25 n BLOCK bytes plus, for the
+        the work runs as Dask tasks (finished subtrees are kept in OUTPUT.partial.d/
+        until the file is saved: a rerun skips them); each worker needs about 25 n BLOCK bytes plus, for the
         root merge, ~16 n k x 4 bytes (docs/cluster.md).
         """
         from ..solve.hfr import save_hfr
