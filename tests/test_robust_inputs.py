@@ -312,3 +312,9 @@ def test_cli_reads_ascii_ply_and_refuses_escapes_in_one_line(tmp_path):
     obj = _write(tmp_path / "s" / "e.obj", "mtllib ../../../../../../etc/passwd\n" + _GEO)
     r = run_cli("info", obj)
     assert r.exit_code == 2 and "outside the scene's folder" in r.output and "Traceback" not in r.output
+    tri = [(0, 1, 2), (0, 2, 3), (2, 5, 6)]
+    nan = _write(tmp_path / "nan.ply", _ply("binary_little_endian", polygons=tri, rho=[_RHO[0], (np.nan, 0.5, 0.5), _RHO[2]]))
+    r = run_cli("info", nan)  # was loaded with the default reflectance for that face, exit 0
+    # values in parentheses: the command line's rich console takes "[nan, ...]" for a markup tag and drops it
+    assert r.exit_code == 2 and "face 1 has a non-finite reflectance_r/reflectance_g/reflectance_b: (nan, 0.5, 0.5)" \
+        in " ".join(r.output.split()), r.output

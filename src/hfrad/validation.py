@@ -156,7 +156,7 @@ def check_reflectance(reflectance, n: int, name: str = "reflectance") -> np.ndar
     if bad.any():
         i = int(np.flatnonzero(bad)[0])
         raise InputError(f"{name} must be finite and in [0, 1) (a reflectance of 1 or more creates energy); "
-                         f"patch {i} has {rho[i].tolist()}")
+                         f"patch {i} has {tuple(rho[i].tolist())}")
     return rho
 
 

@@ -209,7 +209,7 @@ def read_ply(path: Path) -> dict:
         raise SceneError(f"{path}: no faces found")
     if not np.isfinite(vertices).all():
         bad = int(np.flatnonzero(~np.isfinite(vertices).all(axis=1))[0])
-        raise SceneError(f"{path}: vertex {bad} has a non-finite coordinate {vertices[bad].tolist()}")
+        raise SceneError(f"{path}: vertex {bad} has a non-finite coordinate {tuple(vertices[bad].tolist())}")
     bad = (faces < 0) | (faces >= len(vertices))
     if bad.any():
         t = int(np.flatnonzero(bad.any(axis=1))[0])
@@ -223,8 +223,9 @@ def read_ply(path: Path) -> dict:
         finite = np.isfinite(values).all(axis=1)
         if not finite.all():
             i = int(np.flatnonzero(~finite)[0])
-            raise SceneError(f"{path}: face {i} has a non-finite {'/'.join(names)}: {values[i].tolist()} "
-                             "(a PLY 'float' holds at most 3.4e38)")
+            hint = " (a PLY 'float' holds at most 3.4e38)" if np.isinf(values[i]).any() else ""
+            raise SceneError(f"{path}: face {i} has a non-finite {'/'.join(names)}: {tuple(values[i].tolist())}"
+                             + hint)
         return values[owner]
 
     rho = per_face([f"reflectance_{c}" for c in "rgb"])

@@ -166,22 +166,22 @@ class Scene:
         for m in self.materials:
             rho, em = np.asarray(m.reflectance), np.asarray(m.emission)
             if not (np.isfinite(rho).all() and (rho >= 0).all() and (rho < 1).all()):
-                raise SceneError(f"{self.name}: material '{m.name}' reflectance {rho.tolist()} "
+                raise SceneError(f"{self.name}: material '{m.name}' reflectance {tuple(rho.tolist())} "
                                  "must be in [0, 1) (a reflectance of 1 or more creates energy)")
             if not (np.isfinite(em).all() and (em >= 0).all()):
-                raise SceneError(f"{self.name}: material '{m.name}' emission {em.tolist()} must be finite and >= 0")
+                raise SceneError(f"{self.name}: material '{m.name}' emission {tuple(em.tolist())} must be finite and >= 0")
         self._check_extent()
         self._check_exitance()
         # per-patch overrides are checked too: a NaN would reach LAPACK (which runs unchecked)
         bad = ~(np.isfinite(self.reflectance) & (self.reflectance >= 0) & (self.reflectance < 1)).all(axis=1)
         if bad.any():
             i = int(np.flatnonzero(bad)[0])
-            raise SceneError(f"{self.name}: patch {i} reflectance {self.reflectance[i].tolist()} must be finite "
+            raise SceneError(f"{self.name}: patch {i} reflectance {tuple(self.reflectance[i].tolist())} must be finite "
                              "and in [0, 1)")
         bad = ~(np.isfinite(self.emission) & (self.emission >= 0)).all(axis=1)
         if bad.any():
             i = int(np.flatnonzero(bad)[0])
-            raise SceneError(f"{self.name}: patch {i} emission {self.emission[i].tolist()} must be finite and >= 0")
+            raise SceneError(f"{self.name}: patch {i} emission {tuple(self.emission[i].tolist())} must be finite and >= 0")
 
     def _check_extent(self) -> None:
         """Refuse a scene too small, too large or too far from the origin to compute with (with the reason)."""
@@ -211,7 +211,7 @@ class Scene:
         if over.any():
             i = int(np.flatnonzero(over)[0])
             m = self.materials[int(self.material[i])].name if len(self.materials) else "?"
-            raise SceneError(f"{self.name}: patch {i} (material '{m}') emits {self.emission[i].tolist()} W/m^2, "
+            raise SceneError(f"{self.name}: patch {i} (material '{m}') emits {tuple(self.emission[i].tolist())} W/m^2, "
                              f"above the largest exitance hfrad computes with, {MAX_EXITANCE:g} W/m^2 "
                              "(radiosity is stored in float32 and would overflow); express the emission "
                              "in a larger unit")
@@ -399,11 +399,11 @@ class Scene:
         bad = ~(np.isfinite(rho_n) & (rho_n >= 0) & (rho_n < 1)).all(axis=1)
         if bad.any():
             i = int(np.flatnonzero(bad)[0])
-            raise SceneError(f"{name}: reflectance of face {i} {rho_n[i].tolist()} must be in [0, 1)")
+            raise SceneError(f"{name}: reflectance of face {i} {tuple(rho_n[i].tolist())} must be in [0, 1)")
         bad = ~(np.isfinite(em_n) & (em_n >= 0)).all(axis=1)
         if bad.any():
             i = int(np.flatnonzero(bad)[0])
-            raise SceneError(f"{name}: emission of face {i} {em_n[i].tolist()} must be finite and >= 0")
+            raise SceneError(f"{name}: emission of face {i} {tuple(em_n[i].tolist())} must be finite and >= 0")
         return cls(vertices=vertices, faces=faces, material=np.zeros(n, np.int64), materials=(material,),
                    reflectance=None if uniform else rho_n, emission=None if uniform else em_n, name=name)
 
