@@ -45,7 +45,6 @@ import numpy as np
 
 from ..lighting import LightingModel, SensorSet, floor_grid, grid_stats, parse_layout, read_layout, read_sensors
 from ..lighting import rectangle_grid
-from ..lighting.model import SensorResponse
 from ..progress import ProgressCallback
 from .design import _met
 from .optimize import optimise
