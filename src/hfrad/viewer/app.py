@@ -45,6 +45,8 @@ MAX_PICTURE_SIDE = 8192
 #: Peak memory of a render per pixel, bytes (measured ~200 for 2000 x 2000 of a Cornell box: rays,
 #: hits, barycentrics, radiance in float64).
 RENDER_BYTES_PER_PIXEL = 256
+#: Largest intensity, W/m^2, a control may set (the sun gives ~1e3; far from float32's 3.4e38).
+MAX_INTENSITY = 1e12
 #: Largest file the page's "load emission" accepts, bytes (an emission file is ~100 bytes per emitter).
 MAX_UPLOAD_BYTES = 1 << 20
 _EV_RANGE = (-12.0, 12.0)
@@ -71,6 +73,20 @@ def _start_server(viser, guard: PageGuard, host: str, port: int, verbose: bool):
             return viser.ViserServer(host=host, port=port, verbose=verbose)
     finally:
         console.quiet = quiet
+
+
+def _checked_exposure(value) -> float:
+    """The exposure slider's value, EV, if it is a number within the slider's range."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or \
+            not _EV_RANGE[0] <= value <= _EV_RANGE[1]:
+        raise InputError(f"exposure must be a number in [{_EV_RANGE[0]:g}, {_EV_RANGE[1]:g}] EV, got {value!r:.60}")
+    return float(value)
+
+
+def _checked_unit(value) -> str:
+    if value not in UNITS:
+        raise InputError(f"unit must be one of {', '.join(UNITS)}, got {str(value)[:60]!r}")
+    return str(value)
 
 
 def _error_estimate(fac) -> np.ndarray:
@@ -201,7 +217,18 @@ class ViewerApp:
         return t
 
     def set_emitter(self, name: str, **changes) -> float:
-        """Change an emitter (``on``, ``intensity``, ``color``) and schedule an update, as a control does."""
+        """Change an emitter (``on``, ``intensity``, ``color``) and schedule an update, as a control does.
+
+        Raises
+        ------
+        ValueError
+            An unknown name, an intensity outside [0, MAX_INTENSITY] W/m^2 or a colour outside [0, 1].
+        """
+        if "intensity" in changes:
+            v = changes["intensity"]
+            if isinstance(v, bool) or not isinstance(v, (int, float, np.number)) or not 0 <= v <= MAX_INTENSITY:
+                raise InputError(f"emitter '{name}': intensity must be a number in [0, {MAX_INTENSITY:g}] W/m^2, "
+                                 f"got {v!r:.60}")
         with self._lock:
             i = self._index(name)
             self.state.emitters[i] = dataclasses.replace(self.state.emitters[i], **changes)
@@ -386,17 +413,19 @@ class ViewerApp:
 
             def set_display(**changes):
                 def cb(event) -> None:
+                    values = {k: f() for k, f in changes.items()}    # all checked before any is set
                     with self._lock:
-                        for k, f in changes.items():
-                            setattr(self.state, k, f())
+                        for k, v in values.items():
+                            setattr(self.state, k, v)
                     self.submit()
                 return self._guard(cb)
 
+            # the browser may send any value (viser checks neither ranges nor choices): checked here
             auto.on_update(set_display(auto_exposure=lambda: bool(auto.value)))
-            ev.on_update(set_display(exposure=lambda: float(ev.value), auto_exposure=lambda: False))
+            ev.on_update(set_display(exposure=lambda: _checked_exposure(ev.value), auto_exposure=lambda: False))
             ev.on_update(lambda _: setattr(auto, "value", False) if auto.value else None)
             fc.on_update(set_display(falsecolor=lambda: bool(fc.value)))
-            unit.on_update(set_display(unit=lambda: str(unit.value)))
+            unit.on_update(set_display(unit=lambda: _checked_unit(unit.value)))
         with gui.add_folder("Files"):
             gui.add_button("save PNG").on_click(self._guard(self._save_png))
             gui.add_button("save emission").on_click(self._guard(self._save_emission))
