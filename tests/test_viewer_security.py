@@ -415,3 +415,47 @@ def test_controls_refuse_values_out_of_range(app):
     assert "failed" not in app._readout.content
     with pytest.raises(InputError, match=r"intensity must be a number in \[0, 1e\+12\]"):
         app.set_emitter("light", intensity=1e13)
+
+
+def test_upload_limit_counts_uploads_in_flight():
+    """At most `max_in_flight` unfinished uploads; one that overflowed counts until its tab disconnects."""
+    from viser import _messages as msgs
+
+    from hfrad.viewer.guard import UploadLimit
+
+    seen, told = [], []
+
+    class Server:                                     # viser's WebsockServer, as far as UploadLimit uses it
+        def __init__(self):
+            self._incoming_handlers = {msgs.FileTransferStartUpload: [lambda c, m: seen.append(("start", c))],
+                                       msgs.FileTransferPart: [lambda c, m: seen.append(("part", c))]}
+            self.disconnect = []
+
+        def on_client_disconnect(self, cb):
+            self.disconnect.append(cb)
+
+    server = Server()
+    limit = UploadLimit(1000, max_in_flight=2, on_refused=lambda c, text: told.append((c, text)))
+    limit.install(server)
+    start, part = (server._incoming_handlers[k][0] for k in (msgs.FileTransferStartUpload, msgs.FileTransferPart))
+
+    def begin(client, tid, size=10, parts=2):
+        start(client, msgs.FileTransferStartUpload("b", tid, "f.json", "application/json", parts, size))
+
+    begin(1, "a")
+    begin(1, "b")
+    begin(2, "c")                                     # a third at once: refused
+    assert seen == [("start", 1), ("start", 1)] and told[-1][0] == 2 and "2 uploads already" in told[-1][1]
+    part(1, msgs.FileTransferPart("b", "a", 0, b"12345"))
+    part(1, msgs.FileTransferPart("b", "a", 1, b"12345"))                       # "a" complete: a slot frees
+    part(1, msgs.FileTransferPart("b", "b", 0, b"x" * 11))                      # "b" overflows: poisoned
+    part(1, msgs.FileTransferPart("b", "b", 1, b"y"))                           # and stays dropped
+    part(2, msgs.FileTransferPart("b", "a", 0, b"z"))                           # another tab's part: dropped
+    assert seen[2:] == [("part", 1), ("part", 1)] and "exceed the 10 bytes declared" in told[-1][1]
+    begin(2, "d")
+    begin(2, "e")                                     # "b" (poisoned) and "d" in flight: refused
+    assert seen[-1] == ("start", 2) and len(seen) == 5 and "already in progress" in told[-1][1]
+    server.disconnect[0](type("Conn", (), {"client_id": 1})())                # tab 1 leaves: "b" forgotten
+    begin(2, "e")
+    assert seen[-1] == ("start", 2) and len(seen) == 6
+    assert limit.refused == 3
