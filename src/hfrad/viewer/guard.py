@@ -8,9 +8,10 @@ rebinding a foreign name may even resolve to 127.0.0.1 (the browser then sends
 must pass three checks (:meth:`PageGuard.refusal`):
 
 1. ``Host`` names this machine with the server's port: ``localhost`` (and
-   ``*.localhost``), a loopback address, the bound address, and, when bound to
-   every interface (0.0.0.0 or ::), any IP literal or this machine's name; a
-   rebinding attack always uses a domain name, which these exclude;
+   ``*.localhost``), a loopback address, the bound address; when reachable
+   from the network also this machine's own name, and, when bound to every
+   interface (0.0.0.0 or ::), any IP literal; a rebinding attack always uses
+   a foreign domain name, which these exclude;
 2. ``Origin``, when present (browsers always send it on websockets), is the
    same origin as ``Host``: scheme http(s), same host and port;
 3. the request carries the per-run token (:func:`secrets.token_urlsafe`,
@@ -176,7 +177,7 @@ class PageGuard:
         names = {"localhost"}
         if host not in WILDCARD_HOSTS:
             names.add(host.strip("[]").lower().rstrip("."))
-        else:
+        if not is_loopback(host):                 # reachable from the network: also by this machine's name
             with contextlib.suppress(OSError):
                 names.update({socket.gethostname().lower(), socket.getfqdn().lower()})
         return names
