@@ -436,3 +436,33 @@ def test_intact_hfr_still_loads(hfr_file):
     back = load_hfr(path)
     E = fac.scene.emission
     np.testing.assert_array_equal(back.solve(E), fac.solve(E))
+
+
+# -- the form-factor block cache ---------------------------------------------------------------
+
+@pytest.mark.parametrize("how", ["bit flip in F", "F rewritten without checksum", "key edited, digest deleted"])
+def test_damaged_form_factor_cache_is_refused(cornell, tmp_path, how):
+    """A complete cache that was damaged is refused naming the file, never read as form factors."""
+    from hfrad.formfactors.blocks import iter_column_blocks
+
+    path = tmp_path / "ff.h5"
+    want = np.concatenate([b for _, _, b in iter_column_blocks(cornell, 100, cache=path)], axis=1)
+    with h5py.File(path, "a") as f:
+        if how == "F rewritten without checksum":
+            F = f["F"][()]
+            del f["F"]
+            f.create_dataset("F", data=F * 1.01)
+        elif how == "key edited, digest deleted":
+            del f.attrs[DIGEST]
+            f.attrs["key"] = f.attrs["key"].replace('"samples": 16', '"samples": 17')
+    if how == "bit flip in F":
+        with h5py.File(path, "r") as f:
+            offset, size = _data_offset(f["F"])
+        with open(path, "r+b") as fh:   # an exponent bit of a float32 in the first chunk
+            fh.seek(offset + size // 2 // 4 * 4 + 3)
+            b = fh.read(1)
+            fh.seek(offset + size // 2 // 4 * 4 + 3)
+            fh.write(bytes([b[0] ^ 0x01]))
+    with pytest.raises(FileFormatError, match=r"ff\.h5: .*damaged.*delete"):
+        got = np.concatenate([b for _, _, b in iter_column_blocks(cornell, 100, cache=path)], axis=1)
+        assert np.array_equal(got, want)   # (reached only on the old code: the damage was read)

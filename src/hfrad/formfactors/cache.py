@@ -16,6 +16,13 @@ Policy on mismatch: a complete cache whose key differs raises
 would hide an expensive mistake; delete the file or pass another path). A
 ``.partial`` file that does not match, or cannot be read (killed while
 writing), is only scratch: it is discarded with a ``UserWarning`` and rebuilt.
+
+Integrity (format 2): ``F`` and ``done`` carry HDF5's Fletcher-32 checksum on
+every chunk, the attributes a SHA-256 digest and the root the list of datasets
+(:func:`seal`, the same checks as HF checkpoints and ``.hfr`` files). A
+complete cache that fails them, or a block whose checksum fails when read,
+raises :class:`~hfrad.errors.FileFormatError` naming the file (delete it: it
+is recomputed); a format-1 cache (no checksums) is refused the same way.
 """
 
 from __future__ import annotations
@@ -30,7 +37,7 @@ import numpy as np
 from ..atomic import publish
 from ..errors import FileFormatError
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 
 
 class CacheMismatchError(FileFormatError):
@@ -202,9 +209,10 @@ class BlockCache:
         f.attrs["format_version"] = FORMAT_VERSION
         f.attrs["key"] = json.dumps(key, sort_keys=True)
         chunk_rows = max(1, min(n, (1 << 20) // max(1, block_size)))
-        f.create_dataset("F", shape=(n, n), dtype=dtype,
-                         chunks=(chunk_rows, max(1, min(n, block_size))) if n else None)
-        f.create_dataset("done", shape=(n_blocks,), dtype=np.bool_, fillvalue=False)
+        checked_dataset(f, "F", shape=(n, n), dtype=dtype,
+                        chunks=(chunk_rows, max(1, min(n, block_size))) if n else None)
+        checked_dataset(f, "done", shape=(n_blocks,), dtype=np.bool_, fillvalue=False)
+        seal(f)   # the attributes are final: the chunks' checksums follow the data as it is written
         f.flush()
         self._file, self._readonly = f, False
 
@@ -217,9 +225,15 @@ class BlockCache:
         if f.attrs.get("hfrad_format") != "formfactor-blocks":
             f.close()
             raise FileFormatError(f"{path}: not an hfrad form-factor cache")
-        if int(f.attrs.get("format_version", -1)) > FORMAT_VERSION:
+        version = int(f.attrs.get("format_version", -1))
+        if version > FORMAT_VERSION:
             f.close()
             raise FileFormatError(f"{path}: written by a newer hfrad (format {f.attrs['format_version']})")
+        problem = ("it was written by an older hfrad, without checksums" if version < FORMAT_VERSION
+                   else integrity_problem(f))
+        if problem is not None:
+            f.close()
+            raise FileFormatError(f"{path}: damaged form-factor cache, {problem}; delete it (it is recomputed)")
         return f
 
     @staticmethod
@@ -237,13 +251,21 @@ class BlockCache:
     def get(self, index: int, start: int, stop: int) -> np.ndarray | None:
         """Block ``index`` (columns start:stop) if stored, else None."""
         f = self._file
-        if not bool(f["done"][index]):
-            return None
-        return f["F"][:, start:stop]
+        try:
+            if not bool(f["done"][index]):
+                return None
+            return f["F"][:, start:stop]
+        except OSError as exc:   # HDF5: checksum mismatch or unreadable chunk
+            raise FileFormatError(f"{f.filename}: block {index} of the form-factor cache is damaged ({exc}); "
+                                  "delete the file (it is recomputed)") from None
 
     def has(self, index: int) -> bool:
         """Whether block ``index`` is stored (reads only its flag)."""
-        return bool(self._file["done"][index])
+        try:
+            return bool(self._file["done"][index])
+        except OSError as exc:
+            raise FileFormatError(f"{self._file.filename}: the form-factor cache is damaged ({exc}); "
+                                  "delete the file (it is recomputed)") from None
 
     def put(self, index: int, start: int, stop: int, block: np.ndarray) -> None:
         """Store a block and mark it done (data first, then the flag, each flushed)."""
