@@ -18,6 +18,10 @@ LEAF_BYTES_PER_ENTRY = 25
 # A merge of children of ranks k1, k2 holds both U's, the orthogonalised block
 # and the merged U with its two partial products: about 7 n (k1 + k2) words.
 MERGE_WORDS_PER_ROW_RANK = 7
+# A part's pass statistics: row sums, column sums and the 20-probe sketch, float64.
+STATS_BYTES_PER_PATCH = 22 * 8
+# A near entry on its way up the tree: row, column (int64) and value (float64).
+NEAR_BYTES_PER_ENTRY = 24
 
 
 def rank_guess(n: int, eps: float = 0.02) -> int:
@@ -39,13 +43,16 @@ def merge_bytes(n: int, rank_left: int, rank_right: int, itemsize: int = 4) -> i
     return MERGE_WORDS_PER_ROW_RANK * n * (rank_left + rank_right) * itemsize
 
 
-def worker_bytes(n: int, block_size: int, rank: int, itemsize: int = 4) -> int:
+def worker_bytes(n: int, block_size: int, rank: int, itemsize: int = 4, near_entries: int = 0) -> int:
     """Peak bytes of the worker that runs the root merge (the busiest one).
 
     ``PROCESS + ENGINE n + max(leaf, root merge) + 2 n k s`` for resident nodes waiting for
     their siblings (the frontier of the tree holds at most about 2 n k words):
     the root's children have ranks of at most k each. Other workers need less:
-    their merges are lower in the tree, where ranks are smaller.
+    their merges are lower in the tree, where ranks are smaller. Plus the pass
+    statistics of the root's two children and its own (3 x 176 n bytes) and, with the
+    near-field split, the near entries of both children and their concatenation
+    (2 x 24 bytes x ``near_entries`` n).
 
     Parameters
     ----------
@@ -57,7 +64,10 @@ def worker_bytes(n: int, block_size: int, rank: int, itemsize: int = 4) -> int:
         The final rank k (unknown before the run: see :func:`rank_guess`).
     itemsize : int
         4 for float32 factors, 8 for float64.
+    near_entries : int
+        Near entries per row (0 without the split; 120 with ``near_field="auto"``).
     """
     return (PROCESS_BYTES + ENGINE_BYTES_PER_PATCH * n
             + max(leaf_bytes(n, block_size), merge_bytes(n, rank, rank, itemsize))
-            + 2 * n * rank * itemsize)
+            + 2 * n * rank * itemsize + 3 * STATS_BYTES_PER_PATCH * n
+            + 2 * NEAR_BYTES_PER_ENTRY * near_entries * n)
