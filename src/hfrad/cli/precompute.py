@@ -125,10 +125,11 @@ def register(app: typer.Typer) -> None:
             with common.progress_bar(f"precompute {s.n_patches:,} patches", quiet) as bar:
                 status = None if bar is None else (lambda info: bar.note(f"rank {info['rank']:,}"))
                 fac = factorize(s, eps=eps, block_size=block, dtype=dtype, samples=samples, order=order,
-                                checkpoint=checkpoint, progress=bar, status=status, processes=processes,
-                                near_field=_near_field(near_field))
+                                checkpoint=checkpoint, keep_checkpoint=True, progress=bar, status=status,
+                                processes=processes, near_field=_near_field(near_field))
             common.check_space_for_hfr(output, fac)
             save_hfr(fac, output, timings={"load": t_load, **_stage_times(fac)})
+            checkpoint.unlink(missing_ok=True)  # only once the .hfr is safely renamed into place
         _report(fac, output, time.perf_counter() - t0)
 
 
