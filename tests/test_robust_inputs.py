@@ -245,12 +245,15 @@ def test_arrays_that_are_not_real_numbers_are_refused(small_fac, bad):
             call()
 
 
-def test_factorize_refuses_negative_form_factors(small_fac):
+def test_factorize_refuses_negative_or_energy_creating_form_factors(small_fac):
     fac, F, rho = small_fac
     G = F.copy()
     G[1, 2] = -0.1
     with pytest.raises(InputError, match=r"form factors must be >= 0.*F\[1, 2\] = -0.1"):
         hfrad.factorize(G, rho)
+    # rows summing to 2: the solve returned radiosity -1.25 for an exitance of 1, silently
+    with pytest.raises(InputError, match=r"form factors: row 0 sums to 2; a patch cannot send out more"):
+        hfrad.factorize(np.full((4, 4), 0.5), np.full((4, 3), 0.9))
 
 
 def test_render_refuses_complex_or_nan_radiosity():
