@@ -138,8 +138,8 @@ def estimate_patch_count(scene: Scene, *, max_edge: float | None = None, patches
     ``max_edge = h``: a lower bound. A patch with no edge longer than h has an
     area of at most ``sqrt(3)/4 h^2`` (the equilateral triangle), so cutting
     faces of total area A makes at least ``A / (0.433 h^2)`` patches, and at
-    least one per face (conforming meshes of the built-in box make 1.1 to 1.3
-    times that). Where small faces are grown into clusters instead, each
+    least one per face (conforming meshes of the built-in box make 1.14 times
+    that at h = 0.01 m, 1.4 at 0.1 m, 1.8 at 0.3 m). Where small faces are grown into clusters instead, each
     face longer than h/2 is split into ``ceil(longest edge / h)^2`` patches
     and the small faces' area is divided by ``pi/4 h^2`` (a cluster is no
     wider than h). Neither: the scene's own count.
@@ -192,6 +192,8 @@ def cut_patches(scene: Scene, *, max_edge: float | None = None, patches: int | N
         The cut would not fit in the available memory (the message gives both numbers).
     """
     count = estimate_patch_count(scene, max_edge=max_edge, patches=patches)
+    if max_edge is None and patches is None:
+        return scene
     if count > scene.n_patches:
         require(MESH_BYTES_PER_PATCH * float(count),
                 f"{scene.name}: cutting into {'at least ' if patches is None else ''}{count:,} patches",
