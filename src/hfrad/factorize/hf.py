@@ -319,7 +319,7 @@ def spare_blas_threads(limit: int) -> int:
 
 
 @contextlib.contextmanager
-def _spare_threads():
+def spare_threads():
     """Lower the BLAS threads inside to :func:`spare_blas_threads` (never raise them; nothing to do at one)."""
     current = _blas_threads_now()
     spare = spare_blas_threads(current) if current > 1 else current
@@ -381,7 +381,7 @@ class HFStream:
             raise ValueError(f"column block {j} must have shape ({self.n}, b); got {A.shape}")
         if j >= self.n_blocks:
             raise ValueError(f"more than the announced n_blocks={self.n_blocks} column blocks were pushed")
-        with _spare_threads():   # a caller's BLAS threads, fewer where other processes want the cores
+        with spare_threads():   # a caller's BLAS threads, fewer where other processes want the cores
             t = time.perf_counter()
             node = compress_leaf(A, self._budget, j, norm2)
             self.leaf_ranks.append(node.s.size)
@@ -403,7 +403,7 @@ class HFStream:
         if not stack:
             stack.append(_Node(0, np.zeros((self.n, 0), self.dtype), np.zeros(0, self.dtype),
                                np.zeros((0, 0), self.dtype), 0.0, 0.0, 0.0))
-        with _spare_threads() if len(stack) > 1 else contextlib.nullcontext():
+        with spare_threads() if len(stack) > 1 else contextlib.nullcontext():
             while len(stack) > 1:  # remaining nodes, top (smallest) down
                 right, left = stack.pop(), stack.pop()
                 stack.append(merge_nodes(left, right, self._budget, "final merge"))

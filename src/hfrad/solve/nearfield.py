@@ -34,6 +34,7 @@ import scipy.sparse as sp
 from scipy.sparse.linalg import splu
 
 from ..errors import FactorizationError
+from ..factorize.hf import SLAB_ROWS, spare_threads
 from ..factorize.lowrank import LowRank
 from . import thin
 from .bounds import power_sigma_max
@@ -122,7 +123,8 @@ class NearFieldFactorization(HFactorization):
         self.last_sweeps = 0
         self._quantization_error: np.ndarray | None = None
         self._quantize = quantize
-        self.Z, self.capacitance_inv = self._near_solution(near_solution, capacitance, quantize)
+        with spare_threads():   # BLAS threads that other processes leave free (hfrad.factorize.hf)
+            self.Z, self.capacitance_inv = self._near_solution(near_solution, capacitance, quantize)
 
     @property
     def distinct_channels(self) -> list[int]:
@@ -164,15 +166,28 @@ class NearFieldFactorization(HFactorization):
             if quantize or (self.dtype == np.float32 and error.max() <= QUANTIZE_SHARE * self.achieved_error):
                 Z, self._quantization_error = coded, error
         K_inv = np.empty((N_CHANNELS, self.rank, self.rank), self.dtype)
-        Vt = self.V.T.astype(np.float64)
         for z, c in enumerate(distinct):
             if self.rank:   # K from the Z the solve reads: Woodbury then inverts A_c - A_c Z_c V^T exactly
-                Zz = Z[z].decode() if isinstance(Z, QuantizedRows) else Z[z]
-                K = np.eye(self.rank) - Vt @ Zz.astype(np.float64)
+                K = np.eye(self.rank) - self._vt_times(Z[z])
                 K_inv[c] = invert_capacitance(K, f"channel {c}: I - V^T A_c^-1 D_c Q", self.dtype)
         for c, s in enumerate(self._sources):
             K_inv[c] = K_inv[s]
         return Z, K_inv
+
+    def _vt_times(self, Zz, slab: int = SLAB_ROWS) -> np.ndarray:
+        """(k, k) float64 ``V^T Z``: products of row slabs in the factors' dtype, summed in float64.
+
+        As the plain solver's capacitance (:func:`~hfrad.solve.woodbury.capacitance`): a float64
+        product was 2 n k^2 flops at half the speed plus an n x k float64 copy of V and of each Z
+        (10K patches, rank 2,083, three channels: 22 of the set-up's 73 CPU seconds, loaded machine).
+        Summing per slab keeps float32 rounding at that of a ``slab``-long dot product.
+        """
+        K = np.zeros((self.rank, self.rank))
+        for a in range(0, self.n_patches, slab):
+            rows = slice(a, min(a + slab, self.n_patches))
+            part = Zz.decode(rows) if isinstance(Zz, QuantizedRows) else Zz[rows]
+            K += (self.V[rows].T @ part.astype(self.dtype, copy=False)).astype(np.float64)
+        return K
 
     def _quantization_bound(self, coded: QuantizedRows) -> np.ndarray:
         """(3,) bound on ``||A_c (Z_c - coded_c) V^T||_2``: ``(1 + ||N||_2) ||dZ_c||_F ||V||_2``.
