@@ -104,6 +104,7 @@ def test_quoted_values_are_cut_to_about_200_characters():
     (["--scheduler", "nonsense"], "--scheduler"),
     (["--samples", "4000000"], "--samples"),
     (["--refine", "inf"], "--refine"),
+    (["--refine", "1.5"], "--refine"),       # a relative jump never exceeds 1: refined nothing, silently
 ])
 def test_precompute_options_refused_before_work(tmp_path, no_meshing, args, needle):
     one_clear_line(run("precompute", "cornell", "--patches", "300", "-q", "-o", tmp_path / "x.hfr", *args), needle)

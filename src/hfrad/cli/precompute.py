@@ -22,7 +22,7 @@ def register(app: typer.Typer) -> None:
         eps: float = typer.Option(0.02, "--eps", help="Target relative Frobenius error of RF ~ Q V^T, in (0, 1)."),
         max_edge: Optional[float] = common.MaxEdgeOption,
         patches: Optional[int] = common.PatchesOption,
-        refine: Optional[float] = typer.Option(None, "--refine", help="After cutting, solve once on those patches and split (conforming, one level) every patch on an edge where the luminance jumps by more than this fraction (e.g. 0.2). At most 8,000 patches before refining."),
+        refine: Optional[float] = typer.Option(None, "--refine", help="After cutting, solve once on those patches and split (conforming, one level) every patch on an edge where the luminance jumps by more than this fraction of the larger side, in (0, 1) (e.g. 0.2). At most 8,000 patches before refining."),
         block: Optional[int] = typer.Option(None, "--block", help=f"Column block width (patches); default min({DEFAULT_BLOCK_SIZE}, n)."),
         dtype: str = common.dtype_option("float32"),
         samples: Optional[int] = typer.Option(None, "--samples", help="Visibility rays per patch pair: 1, 4, 9, ... up to 1,024 (time grows in proportion); 0: no visibility (every pair sees each other)."),
@@ -135,7 +135,6 @@ def register(app: typer.Typer) -> None:
 
 def _check_options(*, processes, samples, refine, scheduler, workers) -> None:
     """Option values refused before any work, each in one line naming the option."""
-    import math
     import re
 
     limit = common.MAX_PROCESSES_PER_CORE * common.cores()
@@ -145,8 +144,9 @@ def _check_options(*, processes, samples, refine, scheduler, workers) -> None:
     common.check_count(workers, "--workers", high=limit,
                        why=f"{common.MAX_PROCESSES_PER_CORE} per core at most (this machine has {common.cores()})")
     common.check_samples(samples)
-    if refine is not None and not (refine > 0 and math.isfinite(refine)):
-        raise InputError(f"--refine must be a positive, finite luminance jump (e.g. 0.2); got {refine}")
+    if refine is not None and not (0 < refine < 1):   # |L_p - L_q| / max(L_p, L_q) never reaches 1: nothing marked
+        raise InputError(f"--refine must be in (0, 1), a relative luminance jump |L_p - L_q| / max(L_p, L_q) "
+                         f"(e.g. 0.2); got {refine}")
     if scheduler is not None:
         m = re.fullmatch(r"(?:[A-Za-z][\w+.-]*://)?(\[[0-9A-Fa-f:.]+\]|[^\s/:\[\]]+):(\d{1,5})", scheduler.strip())
         if m is None or not 1 <= int(m.group(2)) <= 65535:
