@@ -9,7 +9,10 @@ and false colour, live timings, and buttons that save the view as PNG (through
 >>> from hfrad.viewer import ViewerApp                  # doctest: +SKIP
 >>> app = ViewerApp(hfrad.load("cornell.hfr"))          # doctest: +SKIP
 >>> app.url                                             # doctest: +SKIP
-'http://127.0.0.1:8080'
+'http://127.0.0.1:8080/?token=...'
+
+The server answers only that page (Host, Origin and token checked on every
+request: :mod:`hfrad.viewer.guard`).
 """
 
 __all__ = ["ViewerApp", "UpdateStats", "Emitter", "Lighting", "scene_emitters", "DEFAULT_HOST", "DEFAULT_PORT"]
