@@ -99,7 +99,8 @@ def test_page_needs_token_and_own_host(app):
     cookie = headers["Set-Cookie"]
     assert cookie.startswith(f"hfrad-view-token-{app.port}={token};")
     assert "HttpOnly" in cookie and "SameSite=Strict" in cookie
-    assert headers["Referrer-Policy"] == "no-referrer" and "frame-ancestors 'none'" in headers["Content-Security-Policy"]
+    assert headers["Referrer-Policy"] == "no-referrer"
+    assert "frame-ancestors 'none'" in headers["Content-Security-Policy"]
     # the cookie set by the page, the Authorization header, and the other names of this machine
     assert get(base, Cookie=f"other=1; hfrad-view-token-{app.port}={token}")[0] == 200
     assert get(base, Authorization=f"token {token}")[0] == 200

@@ -43,7 +43,6 @@ weighed:
 
 from __future__ import annotations
 
-import asyncio
 import contextlib
 import errno
 import http
@@ -203,7 +202,10 @@ class PageGuard:
         return self.host in WILDCARD_HOSTS or ip == _ip(self.host)
 
     def token_of(self, request) -> str | None:
-        """The token a request carries (query, Authorization header or cookie), or None."""
+        """The token a request carries in its query (``?token=``) or ``Authorization: token ...`` header, or None.
+
+        (The cookie the page sets is read by :meth:`refusal` too.)
+        """
         query = parse_qs(urlsplit(request.path).query)
         if query.get("token"):
             return query["token"][0]
