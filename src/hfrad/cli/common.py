@@ -192,6 +192,26 @@ def check_space_for_hfr(path, fac) -> None:
     check_space(path, hfr_bytes(fac))
 
 
+def warn_disk_for_hfr(path, n: int, dtype: str) -> None:
+    """Before a precompute: warn when the output's disk may be too small for the .hfr (the rank is guessed,
+    so this is a warning; :func:`check_space_for_hfr` refuses with the real size before writing)."""
+    import warnings
+    from pathlib import Path
+
+    from ..atomic import free_bytes
+    from ..memory import factors_bytes, human, rank_guess
+
+    k = rank_guess(n)
+    need = factors_bytes(n, k, check_dtype(dtype).itemsize) + 200 * n   # factors + patches
+    try:
+        free = free_bytes(Path(path).parent)
+    except OSError:
+        return
+    if need > free:
+        warnings.warn(f"{path} may need up to {human(need)} (rank guessed as {k:,}) but its disk has "
+                      f"{human(free)} free; the write is checked again, with the real size, before it starts")
+
+
 def check_count(value, option: str, *, low: int = 1, high: int | None = None, why: str = "") -> None:
     """An integer option within [low, high]; InputError naming the option, the range and the value."""
     if value is None:

@@ -15,7 +15,8 @@ def register(app: typer.Typer) -> None:
     @app.command()
     def demo(
         output: Path = typer.Option(Path("hfrad-demo"), "-o", "--output", help="Folder for the results."),
-        patches: int = typer.Option(3000, "--patches", help="Patches of the Cornell box."),
+        patches: int = typer.Option(3000, "--patches", help="Patches of the Cornell box (the precompute's memory "
+                                                           "for that many is checked before cutting)."),
         eps: float = typer.Option(0.02, "--eps", help="Target relative error of the factorization."),
         quiet: bool = common.QuietOption,
     ) -> None:
@@ -24,7 +25,9 @@ def register(app: typer.Typer) -> None:
         Writes DIR/cornell.hfr, DIR/cornell.png, DIR/cornell.glb and
         DIR/cornell-blue.png (the same scene re-lit with a blue light, solved
         from the factorization in milliseconds). Memory: under 1 GB at the
-        default 3,000 patches.
+        default 3,000 patches. Prints first the error bound of the solution
+        (guaranteed, from its residual), then the a-priori bound for any light
+        when it is below 100%.
         """
         from ..io.export import write_radiosity
         from ..solve.hfr import save_hfr

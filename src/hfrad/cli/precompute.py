@@ -94,6 +94,7 @@ def register(app: typer.Typer) -> None:
                 if not quiet:
                     common.console.print(f"refined: {marked:,} of {before:,} patches marked, {s.n_patches:,} patches now")
             common.check_memory_for_precompute(s.n_patches, block or DEFAULT_BLOCK_SIZE, dtype)
+            common.warn_disk_for_hfr(output, s.n_patches, dtype)
             if not quiet:
                 from ..formfactors.mirror import mirror_bytes
                 from ..memory import human, precompute_bytes
