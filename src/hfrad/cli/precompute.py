@@ -146,7 +146,7 @@ def _check_options(*, processes, samples, refine, scheduler, workers) -> None:
                        why=f"{common.MAX_PROCESSES_PER_CORE} per core at most (this machine has {common.cores()})")
     common.check_samples(samples)
     if refine is not None and not (0 < refine < 1):   # |L_p - L_q| / max(L_p, L_q) never reaches 1: nothing marked
-        raise InputError(f"--refine must be in (0, 1), a relative luminance jump |L_p - L_q| / max(L_p, L_q) "
+        raise InputError(f"--refine threshold must be in (0, 1), a relative luminance jump |L_p - L_q| / max(L_p, L_q) "
                          f"(e.g. 0.2); got {refine}")
     if scheduler is not None:
         m = re.fullmatch(r"(?:[A-Za-z][\w+.-]*://)?(\[[0-9A-Fa-f:.]+\]|[^\s/:\[\]]+):(\d{1,5})", scheduler.strip())
