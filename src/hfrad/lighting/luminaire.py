@@ -133,10 +133,11 @@ class Luminaire:
         """Points spread over the luminous opening, about ``spacing`` apart, and their shares of the intensity.
 
         A rectangle length x width (C0 x C90): the centres of an even grid of
-        cells. A disk of diameter |length| (negative length, or a length with
-        zero width): equal-width rings, each cut into cells about ``spacing``
-        long, a point at each cell's centre of area, weighted by the cell's
-        area. A point source: its centre.
+        cells. A disk (a negative length or width, as LM-63 marks round
+        openings; or a length with zero width, as EULUMDAT does) of diameter
+        the larger of |length| and |width|: equal-width rings, each cut into
+        cells about ``spacing`` long, a point at each cell's centre of area,
+        weighted by the cell's area. A point source: its centre.
 
         Returns
         -------
@@ -145,8 +146,8 @@ class Luminaire:
         """
         length, width, _ = self.photometry.size
         frame = self.frame
-        if length < 0 or (width == 0 and length > 0):
-            r = 0.5 * abs(length)
+        if length < 0 or width < 0 or (width == 0 and length > 0):
+            r = 0.5 * max(abs(length), abs(width))
             rings = max(1, int(math.ceil(r / spacing)))
             local, weights = [], []
             for j in range(rings):
