@@ -134,17 +134,18 @@ def test_picture_larger_than_memory_is_refused(coarse_hfr, tmp_path, memory_8gb)
 
 @pytest.mark.parametrize("args, needle", [
     (["--exposure", "1e308"], "exposure"),
-    (["--falsecolor", "--width", "8", "--height", "8"], "96 x 48"),
+    (["--falsecolor", "--width", "8", "--height", "8"], "16 x 24"),
+    (["--falsecolor", "--width", "100", "--height", "8"], "16 x 24"),
 ])
 def test_render_values_that_broke_the_picture(coarse_hfr, tmp_path, args, needle):
     one_clear_line(run("render", coarse_hfr, "-o", tmp_path / "r.png", *args), needle)
 
 
 def test_smallest_false_colour_picture_is_drawn(coarse_hfr, tmp_path):
-    result = run("render", coarse_hfr, "-o", tmp_path / "r.png", "--falsecolor", "--width", "96", "--height", "48")
+    result = run("render", coarse_hfr, "-o", tmp_path / "r.png", "--falsecolor", "--width", "16", "--height", "24")
     assert result.exit_code == 0, result.output
     from PIL import Image
-    assert Image.open(tmp_path / "r.png").size == (96, 48)
+    assert Image.open(tmp_path / "r.png").size == (16, 24)
 
 
 def test_json_nested_100000_deep(coarse_hfr, tmp_path):

@@ -48,8 +48,9 @@ MAX_SIDE = 16384
 #: measured 191 B at 1,500 x 1,500 on a 300-patch Cornell box, 162 B in false colour.
 BYTES_PER_PIXEL = 256
 
-#: Smallest false-colour picture: the colour bar and its labels need this much beside the scene.
-MIN_FALSECOLOR_SIZE = (96, 48)
+#: Smallest false-colour picture: the colour bar and its labels need this much beside the scene
+#: (8 pixels high or less broke the drawing of the bar; 16 x 24 is the smallest drawn whole).
+MIN_FALSECOLOR_SIZE = (16, 24)
 
 
 def check_size(width: int, height: int, *, falsecolor: bool = False) -> None:
