@@ -29,6 +29,9 @@ Cases:
   panels (material ``luminaire``) get reflectance 0 on both sides: they are the
   panels' faces, which Radiance's light polygons hide and which return 0 to
   its indirect rays;
+- ``room``: a closed empty 4 x 2.8 x 3 m room (floor 0.2, walls 0.5,
+  ceiling 0.7) with the office's IES downlight in the middle of the ceiling,
+  the 0.8 m work plane at 0.5 m spacing (0.25 m border), factorized here;
 - ``cornell``: ../shared/scenes/cornell-box/CornellBox-Original.obj (its own area
   light, background scene), a plane at 1.4 m over the box's floor (above both
   blocks) at ``--cornell-spacing``; the light's patches get reflectance 0 (a
@@ -169,6 +172,26 @@ def compare(h: np.ndarray, r: np.ndarray) -> dict:
             "mean_rel": float(h.mean() / r.mean() - 1), "max_abs_rel": float(np.max(np.abs(d) / np.maximum(r, 1e-9)))}
 
 
+def _closed_room(folder: Path) -> Path:
+    """A closed empty 4 x 2.8 x 3 m room (y up, faces inward): floor 0.2, walls 0.5, ceiling 0.7."""
+    X, Y, Z = 4.0, 2.8, 3.0
+    v = [(x, y, z) for x in (0, X) for y in (0, Y) for z in (0, Z)]
+    idx = {p: i + 1 for i, p in enumerate(v)}
+    quads = {"floor": [(0, 0, 0), (X, 0, 0), (X, 0, Z), (0, 0, Z)],
+             "ceiling": [(0, Y, 0), (0, Y, Z), (X, Y, Z), (X, Y, 0)],
+             "wall": [[(0, 0, 0), (0, 0, Z), (0, Y, Z), (0, Y, 0)], [(X, 0, 0), (X, Y, 0), (X, Y, Z), (X, 0, Z)],
+                      [(0, 0, 0), (0, Y, 0), (X, Y, 0), (X, 0, 0)], [(0, 0, Z), (X, 0, Z), (X, Y, Z), (0, Y, Z)]]}
+    lines = ["mtllib room.mtl"] + [f"v {x} {y} {z}" for x, y, z in v]
+    for mat, q in quads.items():
+        lines.append(f"usemtl {mat}")
+        for quad in (q if mat == "wall" else [q]):
+            lines.append("f " + " ".join(str(idx[p]) for p in quad[::-1]))      # counter-clockwise from inside
+    (folder / "room.obj").write_text("\n".join(lines) + "\n")
+    (folder / "room.mtl").write_text("newmtl floor\nKd 0.2 0.2 0.2\nnewmtl wall\nKd 0.5 0.5 0.5\n"
+                                     "newmtl ceiling\nKd 0.7 0.7 0.7\n")
+    return folder / "room.obj"
+
+
 def _dense_check(fac, model, resp, ab: int) -> dict:
     """The same sensors with the exact dense F: all bounces (LU), and truncated after ``ab`` (as rtrace -ab)."""
     from hfrad.formfactors.blocks import form_factor_matrix
@@ -220,6 +243,16 @@ def run_case(name: str, args, tools: dict) -> dict:
         fac = fac.with_reflectance(rho)
         background, emit = "none", False
         sensors = floor_grid(fac.scene, 0.8, args.office_spacing, margin=0.5)
+    elif name == "room":
+        work = Path(tempfile.mkdtemp(prefix="hfrad-room-"))
+        obj = _closed_room(work)
+        fac = hfrad.factorize(hfrad.load_scene(obj, patches=args.room_patches), eps=args.eps)
+        layout = work / "layout.json"
+        layout.write_text(json.dumps({"luminaires": [{"name": "downlight", "position": [2.0, 2.79, 1.5],
+                                                      "photometry": str(OFFICE / "luminaires" / "downlight-150.ies")}]}))
+        lums = read_layout(layout)
+        background, emit = "none", False
+        sensors = floor_grid(fac.scene, 0.8, 0.5, margin=0.25)
     else:
         if not CORNELL.is_file():
             raise SystemExit(f"{CORNELL} is missing (the shared scenes folder)")
@@ -286,6 +319,7 @@ def main() -> None:
     p.add_argument("--hfr-office", default=None, help="a kept office .hfr (else factorized here)")
     p.add_argument("--hfr-cornell", default=None)
     p.add_argument("--patches", type=int, default=3000)
+    p.add_argument("--room-patches", type=int, default=1500)
     p.add_argument("--eps", type=float, default=0.01)
     p.add_argument("--office-spacing", type=float, default=0.25)
     p.add_argument("--cornell-spacing", type=float, default=0.2)
