@@ -303,6 +303,9 @@ def test_scenes_out_of_range_are_refused_with_the_reason():
     with pytest.raises(SceneError, match=r"2 m across but lies 1e\+13 m from the origin.*Move it near the origin"):
         s.replace(vertices=s.vertices + 1e13, occluder_vertices=s.occluder_vertices + 1e13)
     assert load_scene("cornell", unit_scale=1e-13).total_area == pytest.approx(s.total_area * 1e-26, rel=1e-9)
+    # a stray vertex no face uses does not count
+    stray = s.replace(vertices=np.vstack([s.vertices, [[1e40, 0, 0]]]))
+    assert stray.n_patches == s.n_patches
 
 
 # -- command line -----------------------------------------------------------------------------------
