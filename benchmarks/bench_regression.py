@@ -34,6 +34,7 @@ The machine may be shared: the load averages say how far to trust a ratio.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import re
 import shutil
@@ -58,7 +59,7 @@ WARMUP = ["cornell", "--patches", "300", "--eps", "0.05"]
 
 _REPORT = re.compile(r"wrote .*?: ([\d,]+) patches, rank ([\d,]+), achieved error ([\d.eE+-]+)", re.S)
 _TIMES = re.compile(r"time ([\d.]+) s \(form factors ([\d.]+) s, factorization ([\d.]+) s")
-_SOLVER = re.compile(r"solver (\S+)")
+_SOLVER = re.compile(r"solver (.+?), time ")
 
 
 def _git(*args: str) -> str:
@@ -116,8 +117,19 @@ def parse_report(text: str) -> dict:
     if m:
         out.update(time=float(m[1]), time_formfactors=float(m[2]), time_factorization=float(m[3]))
     m = _SOLVER.search(text)
-    out["solver"] = m[1].rstrip(",") if m else "woodbury"
+    out["solver"] = m[1] if m else "woodbury"   # d11fd0c had only Woodbury and did not print it
     return out
+
+
+def hfr_timings(path: Path) -> dict:
+    """The stage times a .hfr file records (``timings`` attribute, JSON; both versions write it)."""
+    try:
+        import h5py
+
+        with h5py.File(path, "r") as fh:
+            return json.loads(fh.attrs["timings"])
+    except (OSError, KeyError, ValueError, ImportError):
+        return {}
 
 
 def run_once(python: Path | str, args: list[str], workdir: Path, timeout: float) -> dict:
@@ -135,6 +147,7 @@ def run_once(python: Path | str, args: list[str], workdir: Path, timeout: float)
         rec["error"] = (proc.stdout + proc.stderr)[-2000:]
         return rec
     rec.update(parse_report(proc.stdout + proc.stderr))
+    rec["timings"] = hfr_timings(output)
     output.unlink(missing_ok=True)
     return rec
 
