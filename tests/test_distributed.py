@@ -26,7 +26,8 @@ NEAR = 32        # near field forced on at this size ("auto" turns it on from 2,
 def cornell():
     """A 600-patch Cornell box and its local (in-process, streaming) factorization with the near field."""
     scene = load_scene("cornell", patches=600)
-    return scene, factorize(scene, eps=EPS, block_size=64, near_field=NEAR, reciprocity=False)   # every pair, as on Dask
+    # reciprocity=False: every pair computed, as on Dask
+    return scene, factorize(scene, eps=EPS, block_size=64, near_field=NEAR, reciprocity=False)
 
 
 def _assert_same_factorization(dist, local, scene):

@@ -16,7 +16,6 @@ import uuid
 from pathlib import Path
 
 import dask
-import numpy as np
 from distributed.scheduler import KilledWorker
 
 from ..errors import MemoryLimitError
