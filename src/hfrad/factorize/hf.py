@@ -229,8 +229,9 @@ class ErrorBudget:
 # -- BLAS threads on a shared machine ------------------------------------------------
 #: Seconds over which the other processes' CPU use is measured before a merge ...
 _BUSY_WINDOW = 0.1
-#: ... and for how long that measure is reused (merges come in bursts).
-_BUSY_REUSE = 5.0
+#: ... and for how long that measure is reused: at most ~0.3% of the time spent measuring where every
+#: push measures (a caller without a thread limit; the pipeline's pushes run at one thread and skip it).
+_BUSY_REUSE = 30.0
 _busy_cache: list = [float("-inf"), 0.0]    # [when measured, other processes' cores]
 
 
