@@ -39,7 +39,10 @@ Cases:
 
 Timings: hfrad's precompute (factorization if not given, luminaires' direct
 light, the batched solve, the gather operator) and one relighting, against
-Radiance's oconv + rtrace for the one lighting state; with ``--reflectance``
+Radiance's oconv + rtrace for the one lighting state; with ``--rcontrib`` also
+``rcontrib -I+`` with one modifier per luminaire (every luminaire's
+contribution in one run, so any dimming is a weighted sum on Radiance's side
+too), compared at five random dimmings; with ``--reflectance``
 also a change Radiance must trace again for (walls at 60% of their
 reflectance), hfrad by ``with_reflectance`` (no refactorization).
 
@@ -163,6 +166,42 @@ def run_radiance(scene, sensors, *, luminaires=(), layout=None, emit: bool, ad: 
     return {"lux": mean, "noise_rel_rms": noise / math.sqrt(2),    # of the mean of the two runs
             "convert_s": t_conv, "rtrace_s_two_runs": t_trace, "rtrace_s": t_trace / 2, "options": " ".join(opts),
             **info}
+
+
+def run_rcontrib(scene, sensors, luminaires, layout: Path, *, ad: int, ab: int, threads: int, work: Path,
+                 tools: dict, reflectance=None) -> dict:
+    """Each luminaire's contribution (lux at dimming 1) at the sensors in one rcontrib run (one modifier each;
+    -V+: contributions, not coefficients)."""
+    t0 = time.perf_counter()
+    scene_to_rad(scene, work / "scene.rad", emit=False, reflectance=reflectance)
+    raw = json.loads(layout.read_text())
+    defaults = raw.get("defaults", {})
+    files = [Path(layout.parent, {**defaults, **e}["photometry"]) for e in raw["luminaires"]]
+    names = []
+    for k, (lum, f) in enumerate(zip(luminaires, files)):
+        root = f"lum{k}"                                   # a separate ies2rad output: its own modifier
+        subprocess.run([shutil.which("ies2rad"), "-dm", "-c", "1", "1", "1", "-o", root, str(f)], cwd=work,
+                       check=True, capture_output=True)
+        with open(work / f"inst{k}.rad", "w") as fh:
+            subprocess.run([tools["xform"], "-rz", f"{lum.rotation:g}", "-t", *(f"{x:.9g}" for x in _zup(lum.position)),
+                            f"{root}.rad"], cwd=work, check=True, stdout=fh)
+        names.append(f"{root}_light")
+    with open(work / "scene.oct", "wb") as fh:
+        subprocess.run([tools["oconv"], "scene.rad", *(f"inst{k}.rad" for k in range(len(names)))], cwd=work,
+                       check=True, stdout=fh)
+    P, N = _zup(sensors.points), _zup(sensors.normals)
+    text = "".join(" ".join(f"{v:.9g}" for v in row) + "\n" for row in np.hstack([P, N]))
+    opts = ["-h", "-I+", "-V+", "-ab", str(ab), "-ad", str(ad), "-aa", "0", "-lw", "1e-5", "-lr", "-12", "-ds", "0.02",
+            "-dj", "0", "-dt", "0", "-dc", "1", "-st", "0", "-n", str(threads)]
+    mods = [x for m in names for x in ("-m", m)]
+    t1 = time.perf_counter()
+    res = subprocess.run([shutil.which("rcontrib"), *opts, *mods, "scene.oct"], cwd=work, input=text, check=True,
+                         capture_output=True, text=True)
+    t_run = time.perf_counter() - t1
+    vals = np.array([[float(x) for x in line.split()] for line in res.stdout.strip().splitlines()])
+    rgb = vals.reshape(len(P), len(names), 3)
+    return {"lux": RADIANCE_EFFICACY * rgb @ Y709, "rcontrib_s": t_run, "convert_s": t1 - t0,
+            "options": " ".join(opts)}
 
 
 def compare(h: np.ndarray, r: np.ndarray) -> dict:
@@ -295,6 +334,16 @@ def run_case(name: str, args, tools: dict) -> dict:
                "exact_average": float(dense["exact"].mean()), "bounces_average": float(dense["bounces"].mean())},
            "lux": {"hfrad": lux_h.tolist(), "radiance": rad["lux"].tolist(),
                    "points": sensors.points.tolist()}}
+    if args.rcontrib and lums:
+        with tempfile.TemporaryDirectory(prefix=f"rad-{name}-rcontrib-") as tmp:
+            rc = run_rcontrib(fac.scene, sensors, lums, layout, ad=args.ad, ab=args.ab, threads=args.threads,
+                              work=Path(tmp), tools=tools, reflectance=fac.reflectance)
+        rng = np.random.default_rng(0)
+        dims = rng.uniform(0, 1, (5, len(lums)))                     # five random dimmings, both ways
+        out["rcontrib"] = {"rcontrib_s": rc["rcontrib_s"], "convert_s": rc["convert_s"],
+                           "all_on_vs_rtrace": compare(rc["lux"].sum(axis=1), rad["lux"]),
+                           "random_dimmings_vs_hfrad": [compare(resp.illuminance(d), rc["lux"] @ d) for d in dims],
+                           "options": rc["options"]}
     if args.reflectance:
         rho = np.array(fac.reflectance)
         walls = [i for i, m in enumerate(fac.scene.material_names) if "wall" in m.lower()]
@@ -328,6 +377,7 @@ def main() -> None:
     p.add_argument("--threads", type=int, default=len(os.sched_getaffinity(0)))
     p.add_argument("--reflectance", action="store_true", help="also the walls at 60%% reflectance")
     p.add_argument("--dense", action="store_true", help="also the exact dense F: all bounces and --ab bounces")
+    p.add_argument("--rcontrib", action="store_true", help="also rcontrib, one modifier per luminaire (any dimming)")
     p.add_argument("--name", default="radiance")
     args = p.parse_args()
     tools = _radiance()
