@@ -16,6 +16,7 @@ import shutil
 import stat
 import subprocess
 import sys
+import textwrap
 import time
 from pathlib import Path
 
@@ -358,6 +359,40 @@ def test_full_disk_precompute_is_one_line_and_leaves_nothing(tmp_path):
         assert done.returncode == 2, (done.returncode, done.stdout, done.stderr)
         assert f"no space left on device writing {target}" in done.stderr, done.stderr
         assert "Traceback" not in done.stderr
+        assert list(full.iterdir()) == []
+    finally:
+        subprocess.run(["umount", str(full)], capture_output=True)
+
+
+def test_full_disk_api_save_and_checkpoint_refused_cleanly(tmp_path):
+    """The API's hfrad.save and the stream's checkpoint on a real 64 KB tmpfs: a WriteError naming the file,
+    nothing left (hfrad.save ran h5py into ENOSPC, which crashes the process on closing the file)."""
+    full = tmp_path / "full"
+    if not _mount_tiny_tmpfs(full):
+        pytest.skip("needs root and `mount -t tmpfs` to make a small file system")
+    script = textwrap.dedent(f"""
+        import warnings
+        import numpy as np
+        import hfrad
+        from hfrad.errors import WriteError
+        from hfrad.factorize.hf import HFStream
+        from hfrad.factorize.streaming import save_checkpoint
+        warnings.simplefilter("ignore")
+        fac = hfrad.factorize(hfrad.load_scene("cornell", patches=300), eps=0.05)
+        stream = HFStream(4096, 16, eps=0.05)
+        for j in range(3):
+            stream.push(np.random.default_rng(j).random((4096, 256)))
+        for write in (lambda: hfrad.save(fac, {str(full / "x.hfr")!r}),
+                      lambda: save_checkpoint(stream, {str(full / "x.partial")!r})):
+            try:
+                write()
+            except WriteError as exc:
+                print("refused:", exc)
+        """)
+    try:
+        done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+        assert done.returncode == 0, (done.returncode, done.stderr)
+        assert done.stdout.count("refused: no space left on device writing") == 2, done.stdout
         assert list(full.iterdir()) == []
     finally:
         subprocess.run(["umount", str(full)], capture_output=True)

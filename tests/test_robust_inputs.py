@@ -324,3 +324,20 @@ def test_cli_reads_ascii_ply_and_refuses_escapes_in_one_line(tmp_path):
     # values in parentheses: the command line's rich console takes "[nan, ...]" for a markup tag and drops it
     assert r.exit_code == 2 and "face 1 has a non-finite reflectance_r/reflectance_g/reflectance_b: (nan, 0.5, 0.5)" \
         in " ".join(r.output.split()), r.output
+
+
+def test_patches_far_from_the_origin_keep_their_areas():
+    """Points were merged within 1e-9 of the largest coordinate: a 2 m box 1e6 m from the origin lost
+    whole patches to zero area (and factorize then asked to remove degenerate patches)."""
+    from hfrad.scene.patches import subdivide
+
+    base = load_scene("cornell")
+    near = subdivide(base, patches=300)
+    moved = base.replace(vertices=base.vertices + 1e6, occluder_vertices=base.occluder_vertices + 1e6)
+    far = subdivide(moved, patches=300)
+    assert far.n_patches == near.n_patches
+    assert len(far.vertices) == len(near.vertices)   # shared corners still shared
+    # the mesher may flip a diagonal on rounding (2 of 300 patch pairs here), never lose area:
+    # float64 at 1e6 m keeps ~1e-10 m, 4e-10 relative observed
+    assert far.areas.sum() == pytest.approx(near.areas.sum(), rel=1e-8)
+    assert far.areas.min() > 0.5 * near.areas.min()

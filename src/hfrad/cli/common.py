@@ -40,7 +40,10 @@ def quote(value: object, limit: int = 200) -> str:
 
 def fail(message: str, code: int = 2) -> "typer.Exit":
     """Print an error message (no traceback) and exit with ``code``."""
-    console.print(f"[bold red]error:[/] {message}", highlight=False)
+    from rich.markup import escape
+
+    # escaped: a message quoting "[nan, 0.5]" or "[section]" must not be read as rich markup and vanish
+    console.print(f"[bold red]error:[/] {escape(str(message))}", highlight=False)
     raise typer.Exit(code)
 
 
@@ -160,34 +163,10 @@ def check_output_folder(folder, files=(), *, option: str = "-o/--output"):
     return folder
 
 
-def hfr_bytes(fac) -> int:
-    """About the size of ``fac``'s .hfr file: its arrays (stored uncompressed) and the patches, plus headers."""
-    import numpy as np
-
-    def nbytes(a) -> int:
-        if a is None:
-            return 0
-        if hasattr(a, "indptr"):                  # scipy sparse: data, indices, indptr
-            return int(a.data.nbytes + a.indices.nbytes + a.indptr.nbytes)
-        if hasattr(a, "codes"):                   # 16-bit rows and their scales
-            return int(np.asarray(a.codes).nbytes + np.asarray(a.scale).nbytes)
-        return int(np.asarray(a).nbytes) if isinstance(a, np.ndarray) else 0
-
-    total = sum(nbytes(getattr(fac, name, None)) for name in
-                ("perm", "Q", "V", "rho_max", "reflectance", "capacitance_inv", "N", "Z"))
-    if getattr(fac, "stats", None) is not None:
-        total += sum(nbytes(v) for v in fac.stats.state().values())
-    scene = getattr(fac, "scene", None)
-    if scene is not None:
-        total += sum(nbytes(getattr(scene, name, None)) for name in
-                     ("vertices", "faces", "material", "group", "reflectance", "emission", "parent",
-                      "occluder_vertices", "occluder_faces", "triangle_patch"))
-    return int(1.05 * total) + (64 << 10)
-
-
 def check_space_for_hfr(path, fac) -> None:
     """Refuse to write an .hfr file the disk has no room for (HDF5 cannot fail cleanly half way)."""
     from ..atomic import check_space
+    from ..solve.hfr import hfr_bytes
 
     check_space(path, hfr_bytes(fac))
 

@@ -48,7 +48,10 @@ def save_checkpoint(stream: HFStream, path: str | os.PathLike, key: str = "") ->
     """
     import h5py
 
-    with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
+    # h5py crashes the process on a full disk: atomic_path refuses first when the room is short
+    size = (sum(np.asarray(a).nbytes for node in stream.stack for a in (node.U, node.s, node.V))
+            + sum(np.asarray(a).nbytes for a in stream.extra.values()) + (64 << 10))
+    with atomic_path(path, size=size) as tmp, h5py.File(tmp, "w") as f:
         f.attrs["format"] = FORMAT
         f.attrs["version"] = CHECKPOINT_VERSION
         f.attrs["key"] = key

@@ -183,6 +183,18 @@ def conforming_subdivide(scene: Scene, h: float) -> Scene:
     """
     if scene.is_clustered:
         raise SceneError(f"{scene.name}: cannot subdivide a clustered scene")
+    # mesh in a frame centred on the scene: tolerances are relative to its size, and a box lying far
+    # from the origin would otherwise merge or miss points at the rounding of its coordinates
+    centre = 0.5 * np.asarray(scene.bounds, dtype=np.float64).sum(axis=0)
+    if np.any(centre != 0):
+        local = scene.replace(vertices=scene.vertices - centre, occluder_vertices=scene.occluder_vertices - centre)
+        out = _conforming_subdivide(local, h)
+        return out.replace(vertices=out.vertices + centre, occluder_vertices=out.occluder_vertices + centre)
+    return _conforming_subdivide(scene, h)
+
+
+def _conforming_subdivide(scene: Scene, h: float) -> Scene:
+    """:func:`conforming_subdivide` of a scene centred on the origin."""
     scale = float(np.abs(scene.bounds).max()) or 1.0
     tol = REL_TOL * scale
     V, index = _merge(scene.vertices, tol)

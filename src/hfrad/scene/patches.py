@@ -166,9 +166,18 @@ def split_faces(scene: Scene, splits: np.ndarray) -> tuple[Scene, np.ndarray]:
 
 
 def _merge_vertices(points: np.ndarray, faces: np.ndarray, scene: Scene) -> tuple[np.ndarray, np.ndarray]:
-    """Merge coincident points so neighbouring patches share vertices."""
-    scale = float(np.abs(scene.bounds).max()) or 1.0
-    key = np.rint(points / (scale * 1e-9)).astype(np.int64)
+    """Merge coincident points so neighbouring patches share vertices.
+
+    Points within 1e-9 of the scene's size are one point, measured from the scene's centre: a tolerance
+    relative to the largest coordinate merged whole patches of a box lying far from the origin. The step
+    never falls below float64's rounding at those coordinates, so equal points computed twice still meet.
+    """
+    lo, hi = np.asarray(scene.bounds, dtype=np.float64)
+    centre = 0.5 * (lo + hi)
+    size = float(np.max(hi - lo))
+    rounding = 64 * np.finfo(np.float64).eps * float(np.abs(scene.bounds).max())
+    step = max(size * 1e-9, rounding) or 1.0
+    key = np.rint((points - centre) / step).astype(np.int64)
     _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
     return points[first], inverse.reshape(-1)[faces]
 

@@ -102,6 +102,30 @@ def _write_scene(g: h5py.Group, scene) -> None:
     g.attrs["name"] = str(scene.name)
 
 
+def hfr_bytes(fac, scene=None) -> int:
+    """About the size of ``fac``'s .hfr file: its arrays (stored uncompressed) and the patches, plus headers."""
+
+    def nbytes(a) -> int:
+        if a is None:
+            return 0
+        if hasattr(a, "indptr"):                  # scipy sparse: data, indices, indptr
+            return int(a.data.nbytes + a.indices.nbytes + a.indptr.nbytes)
+        if hasattr(a, "codes"):                   # 16-bit rows and their scales
+            return int(np.asarray(a.codes).nbytes + np.asarray(a.scale).nbytes)
+        return int(np.asarray(a).nbytes) if isinstance(a, np.ndarray) else 0
+
+    total = sum(nbytes(getattr(fac, name, None)) for name in
+                ("perm", "Q", "V", "rho_max", "reflectance", "capacitance_inv", "N", "Z"))
+    if getattr(fac, "stats", None) is not None:
+        total += sum(nbytes(v) for v in fac.stats.state().values())
+    scene = getattr(fac, "scene", None) if scene is None else scene
+    if scene is not None:
+        total += sum(nbytes(getattr(scene, name, None)) for name in
+                     ("vertices", "faces", "material", "group", "reflectance", "emission", "parent",
+                      "occluder_vertices", "occluder_faces", "triangle_patch"))
+    return int(1.05 * total) + (64 << 10)
+
+
 def save_hfr(factorization: HFactorization, path, *, scene=None, timings: dict | None = None) -> Path:
     """Write ``factorization`` (and optionally its scene's patches) to an .hfr file.
 
@@ -123,7 +147,8 @@ def save_hfr(factorization: HFactorization, path, *, scene=None, timings: dict |
     fac = factorization
     scene = fac.scene if scene is None else scene
     estimate = fac.error_estimate()
-    with atomic_path(path) as tmp:
+    # h5py crashes the process on a full disk: refuse before writing (atomic_path checks the room)
+    with atomic_path(path, size=hfr_bytes(fac, scene)) as tmp:
         with h5py.File(tmp, "w") as f:
             lr = fac.lowrank
             a = f.attrs
