@@ -320,3 +320,20 @@ def test_cli_lux_and_design_with_luminaires(tmp_path, cornell):
     (tmp_path / "spec.json").write_text(json.dumps(spec))
     res = run_cli("design", tmp_path / "spec.json", hfr, "-o", tmp_path / "d.json", "--quiet")
     assert res.exit_code == 2 and "grids[0].spacing" in res.output
+
+
+def test_layout_files_that_cannot_be_read_are_one_clear_error(tmp_path):
+    """A layout nested 100,000 deep raised RecursionError (an internal error at the CLI); Latin-1 text a
+    UnicodeDecodeError. Both are now LayoutError naming the file, as design specs are."""
+    from hfrad.lighting.luminaire import read_layout
+
+    deep = tmp_path / "deep.json"
+    deep.write_text("[" * 100_000 + "]" * 100_000)
+    with pytest.raises(LayoutError, match=r"deep.json: not valid JSON: JSON nested too deeply"):
+        read_layout(deep)
+    latin = tmp_path / "latin.toml"
+    latin.write_bytes("name = 'Büro'".encode("latin-1"))
+    with pytest.raises(LayoutError, match=r"latin.toml: not valid TOML"):
+        read_layout(latin)
+    with pytest.raises(FileNotFoundError, match="no such layout file"):
+        read_layout(tmp_path / "missing.json")

@@ -11,6 +11,7 @@ reports bad JSON in one line reports this one too.
 from __future__ import annotations
 
 import json
+from pathlib import Path
 from typing import Any
 
 __all__ = ["loads_json", "loads_toml", "nesting_error"]
@@ -71,3 +72,30 @@ def loads_toml(text: str) -> dict:
         return tomllib.loads(text)
     except RecursionError:
         raise nesting_error(text, "TOML") from None
+
+
+def read_document(path: "str | Path", *, what: str, error: type[Exception]) -> Any:
+    """The data of a user's ``.json`` or ``.toml`` file (chosen by its suffix), not yet validated.
+
+    Parameters
+    ----------
+    path : str or Path
+    what : str
+        What the file is, for the messages ("spec", "layout").
+    error : exception class
+        Raised, naming the file, when the text is not valid JSON/TOML, too deeply nested, or not UTF-8.
+
+    Raises
+    ------
+    FileNotFoundError
+        No such file.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such {what} file")
+    kind = "TOML" if path.suffix.lower() == ".toml" else "JSON"
+    try:
+        text = path.read_text(encoding="utf-8")
+        return loads_toml(text) if kind == "TOML" else loads_json(text)
+    except (ValueError, TypeError) as exc:  # JSONDecodeError, TOMLDecodeError and UnicodeDecodeError
+        raise error(f"{path}: not valid {kind}: {exc}") from None

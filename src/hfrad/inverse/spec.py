@@ -37,8 +37,8 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from ..jsonfile import loads_json, loads_toml
 from ..errors import InputError
+from ..jsonfile import read_document
 from ..render.falsecolor import photometric
 
 #: quantity -> (unit printed in results, description)
@@ -129,16 +129,7 @@ def read_spec(path: "str | Path") -> dict:
     SpecError
         Not valid JSON/TOML (the parser's line and column are quoted).
     """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: no such spec file")
-    text = path.read_text(encoding="utf-8")
-    try:
-        if path.suffix.lower() == ".toml":
-            return loads_toml(text)
-        return loads_json(text)   # a deeply nested file: JSONDecodeError, not RecursionError
-    except (ValueError, TypeError) as exc:  # JSONDecodeError and TOMLDecodeError are ValueErrors
-        raise SpecError(f"{path}: not valid {'TOML' if path.suffix.lower() == '.toml' else 'JSON'}: {exc}") from None
+    return read_document(path, what="spec", error=SpecError)
 
 
 def parse_spec(spec: "Mapping[str, Any] | str | Path", scene, *, source: str | None = None) -> DesignSpec:

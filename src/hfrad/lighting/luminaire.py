@@ -27,7 +27,6 @@ luminance 1 so that dimming and photometry alone set the lux.
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,6 +35,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from ..errors import InputError
+from ..jsonfile import read_document
 from .photometry import Photometry, read_photometry
 
 __all__ = ["Luminaire", "read_layout", "parse_layout", "LayoutError"]
@@ -250,15 +250,5 @@ def read_layout(path: "str | Path") -> list[Luminaire]:
         Not valid JSON/TOML, or a malformed entry (names the field).
     """
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: no such layout file")
-    text = path.read_text(encoding="utf-8")
-    try:
-        if path.suffix.lower() == ".toml":
-            import tomllib
-            data = tomllib.loads(text)
-        else:
-            data = json.loads(text)
-    except ValueError as exc:
-        raise LayoutError(f"{path}: not valid {'TOML' if path.suffix.lower() == '.toml' else 'JSON'}: {exc}") from None
+    data = read_document(path, what="layout", error=LayoutError)
     return parse_layout(data, base=path.parent, where=str(path))
