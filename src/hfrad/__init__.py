@@ -30,7 +30,6 @@ _EXPORTS = {
     "builtin_scene": "hfrad.scene.builtin",
     "subdivide": "hfrad.scene.patches",
     "factorize": "hfrad.pipeline",
-    "factorize_distributed": "hfrad.distributed",
     "HFactorization": "hfrad.solve.woodbury",
     "ErrorEstimate": "hfrad.solve.bounds",
     "form_factor_matrix": "hfrad.formfactors.blocks",

@@ -164,6 +164,10 @@ def _point_in_triangles(p: np.ndarray, tri: np.ndarray, tol: float) -> np.ndarra
     return ((s1 <= tol) & (s2 <= tol) & (s3 <= tol)) | ((s1 >= -tol) & (s2 >= -tol) & (s3 >= -tol))
 
 
+#: A scene whose centre lies more than this many times its size from the origin is meshed centred.
+FAR_FROM_ORIGIN = 100.0
+
+
 def conforming_subdivide(scene: Scene, h: float) -> Scene:
     """Conforming, quality patches with no edge longer than ``h`` (see module doc).
 
@@ -183,10 +187,13 @@ def conforming_subdivide(scene: Scene, h: float) -> Scene:
     """
     if scene.is_clustered:
         raise SceneError(f"{scene.name}: cannot subdivide a clustered scene")
-    # mesh in a frame centred on the scene: tolerances are relative to its size, and a box lying far
-    # from the origin would otherwise merge or miss points at the rounding of its coordinates
-    centre = 0.5 * np.asarray(scene.bounds, dtype=np.float64).sum(axis=0)
-    if np.any(centre != 0):
+    # A scene lying far from the origin (more than FAR_FROM_ORIGIN times its size) is meshed in a frame
+    # centred on it: the tolerances below are relative to the largest coordinate, which there is far
+    # larger than the scene, and points would merge or be missed. Nearer scenes are meshed where they
+    # are, since moving them re-rounds every coordinate and the mesher may then flip diagonals.
+    lo, hi = np.asarray(scene.bounds, dtype=np.float64)
+    centre = 0.5 * (lo + hi)
+    if np.abs(centre).max() > FAR_FROM_ORIGIN * max(float(np.max(hi - lo)), np.finfo(float).tiny):
         local = scene.replace(vertices=scene.vertices - centre, occluder_vertices=scene.occluder_vertices - centre)
         out = _conforming_subdivide(local, h)
         return out.replace(vertices=out.vertices + centre, occluder_vertices=out.occluder_vertices + centre)
