@@ -59,9 +59,6 @@ html_theme = "furo"
 html_title = f"hfrad {release}"
 html_static_path: list[str] = []
 
-# Pages that other people own and that may not exist yet in a checkout: listed when present.
-OPTIONAL_HOWTO = ["cluster", "lighting"]
-
 # Classes the reference documents besides the exports (reached through them: return values).
 EXTRA_CLASSES = [
     "hfrad.solve.bounds.ResidualEstimate",
@@ -120,9 +117,6 @@ def _fill(app, docname: str, source: list[str]) -> None:
         text = text.replace("{hfrad-api-functions}", _reference(groups["functions"]))
         text = text.replace("{hfrad-api-classes}", _reference(groups["classes"], members=True))
         text = text.replace("{hfrad-api-errors}", _reference(groups["errors"]))
-    if "{hfrad-optional-howto}" in text:
-        present = [p for p in OPTIONAL_HOWTO if (HERE / f"{p}.md").exists()]
-        text = text.replace("{hfrad-optional-howto}\n", "".join(f"{p}\n" for p in present))
     source[0] = text
 
 
