@@ -23,6 +23,10 @@ DEFAULT_FOV = 40.0
 _MARGIN = 1.05  # framing slack so the scene does not touch the image border
 
 
+#: Smallest half-size a framed box is given (a point scene still gets a camera).
+_TINY = 1e-300
+
+
 @dataclass(frozen=True)
 class Camera:
     """A pinhole camera.
@@ -108,7 +112,8 @@ class Camera:
         open (here: back-facing, hence transparent) front wall.
         """
         lo, hi = np.asarray(bounds, dtype=np.float64)
-        centre, half = (lo + hi) / 2, np.maximum((hi - lo) / 2, 1e-9)
+        # a flat box keeps a sliver of depth relative to its size (an absolute floor blacked out small scenes)
+        centre, half = (lo + hi) / 2, np.maximum((hi - lo) / 2, 1e-9 * max(float(np.max(hi - lo)) / 2, _TINY))
         tan_v = math.tan(math.radians(fov) / 2)
         # the front face of the box must fit both vertically and horizontally
         dist = _MARGIN * max(half[1] / tan_v, half[0] / (tan_v * aspect)) + half[2]
@@ -127,7 +132,7 @@ class Camera:
         """
         lo, hi = np.asarray(bounds, dtype=np.float64)
         centre = (lo + hi) / 2
-        radius = max(float(np.linalg.norm(hi - lo)) / 2, 1e-9)
+        radius = max(float(np.linalg.norm(hi - lo)) / 2, _TINY)
         half_v = math.radians(fov) / 2
         half_fov = min(half_v, math.atan(math.tan(half_v) * aspect))  # the narrower of the two
         dist = _MARGIN * radius / math.sin(half_fov)

@@ -55,10 +55,13 @@ def trace_front(scene, origins: np.ndarray, directions: np.ndarray, *,
     uv = np.zeros((r, 2))
     if r == 0 or scene.n_triangles == 0:
         return face, dist, uv
-    # Step past a back face by a length that float32 (Embree's precision)
-    # resolves at these coordinates, yet far below any patch size.
+    # Step past a back face by a length that float32 (Embree's precision) resolves in the caster's
+    # frame, centred on the scene, yet far below any patch size: relative to the scene's size and the
+    # camera's distance from its centre, not to the coordinates (at 1e6 m off the origin a step of
+    # 1e-5 of them crossed the whole room).
     lo, hi = scene.bounds
-    size = max(float(np.abs(np.r_[lo, hi]).max()), float(np.abs(origins).max()), float(np.linalg.norm(hi - lo)))
+    centre = 0.5 * (lo + hi)
+    size = max(float(np.linalg.norm(hi - lo)), float(np.abs(origins - centre).max()))
     step = 1e-5 * (size or 1.0)
     normals = scene.triangle_normals
     travelled = np.zeros(r)
