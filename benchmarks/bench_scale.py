@@ -187,7 +187,7 @@ def run_one(args) -> dict:
 def ffprobe(args) -> dict:
     """Form-factor engine alone on a few blocks: 1 process vs workers, vs raw Embree on the same rays."""
     from hfrad.formfactors.blocks import FormFactorEngine, make_engine
-    from hfrad.formfactors.parallel import ray_budget
+    from hfrad.formfactors.budget import ray_budget
     from hfrad.scene.zorder import zorder_permutation
 
     scene = load(args.scene, args.ffprobe)

@@ -30,7 +30,7 @@ import json, os, sys, time
 import numpy as np
 from hfrad.scene.load import load_scene
 from hfrad.formfactors.blocks import iter_column_blocks
-from hfrad.formfactors.parallel import ray_budget
+from hfrad.formfactors.budget import ray_budget
 from hfrad.scene.zorder import patch_order
 n_req, processes, eps = int(sys.argv[1]), int(sys.argv[2]), float(sys.argv[3])
 scene = load_scene("cornell", patches=n_req)

@@ -7,7 +7,8 @@ import pytest
 
 from hfrad.formfactors import form_factor_matrix, iter_column_blocks
 from hfrad.formfactors.blocks import make_engine
-from hfrad.formfactors.parallel import FEW_RAYS_FACTOR, ProcessEngine, column_block, one_ray_threshold, ray_budget
+from hfrad.formfactors.budget import FEW_RAYS_FACTOR, one_ray_threshold, ray_budget
+from hfrad.formfactors.parallel import ProcessEngine, column_block
 from hfrad.formfactors.visibility import RayBudget
 from hfrad.scene.builtin import cornell_box
 from hfrad.scene.patches import subdivide

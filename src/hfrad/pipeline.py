@@ -126,7 +126,7 @@ def factorize(scene_or_matrix, reflectance=None, *, areas=None, eps: float = 0.0
         Scene only: pairs that together hold at most this share of ``||F||_F``
         get one visibility ray instead of several, and flagged pairs (probes
         disagree) holding ``FEW_RAYS_FACTOR`` (4) times this share get 4 rays
-        instead of 16 (:func:`hfrad.formfactors.parallel.ray_budget`); None:
+        instead of 16 (:func:`hfrad.formfactors.budget.ray_budget`); None:
         ``eps / 4`` for a relative eps, 0 (both rules off) for an absolute one.
     near_field : "auto", int or None
         Scene only: the near-field split (docs/method.md; :mod:`hfrad.factorize.nearfield`):

@@ -106,7 +106,7 @@ class RayBudget:
 
     ``A_i F_ij`` is the same number for (i, j) and (j, i), so both rules decide
     alike from either side and V_ij == V_ji still holds. The thresholds come
-    from :func:`hfrad.formfactors.parallel.ray_budget` (a share of ``||F||_F``).
+    from :func:`hfrad.formfactors.budget.ray_budget` (a share of ``||F||_F``).
 
     Attributes
     ----------

@@ -28,7 +28,7 @@ from ..factorize.hf import ErrorBudget
 from ..factorize.lowrank import LowRank
 from ..factorize.nearfield import near_radius
 from ..formfactors.energy import warn_energy
-from ..formfactors.parallel import default_one_ray_tol
+from ..formfactors.budget import default_one_ray_tol
 from ..scene.scene import Scene
 from ..scene.zorder import patch_order
 from ..validation import check_factorize_options, check_permutation
@@ -129,7 +129,7 @@ class PrecomputeOptions:
         """The form-factor engine's :class:`RayBudget` (None with ``samples=0``: analytic, no rays)."""
         if self.samples == 0:
             return None
-        from ..formfactors.parallel import ray_budget
+        from ..formfactors.budget import ray_budget
 
         return ray_budget(scene, self.one_ray_tol)
 
