@@ -108,10 +108,9 @@ class RayCaster:
 
         Contiguous float32 arrays are passed to Embree without a copy.
         """
-        if self._mapped:  # into the caster's frame in float64, then float32 (module docstring)
-            origins = (np.asarray(origins, np.float64) - self.centre) / self.unit
+        o = self._in_frame(origins)
+        if self._mapped:
             distances = np.asarray(distances, np.float64) / self.unit
-        o = np.ascontiguousarray(origins, dtype=np.float32)
         d = np.ascontiguousarray(directions, dtype=np.float32)
         t = np.ascontiguousarray(distances, dtype=np.float32)
         if not len(self.triangles) or not len(o):
@@ -135,9 +134,7 @@ class RayCaster:
         distance : (r,) float, ray parameter of the hit (inf where none)
         barycentric : (r, 2) float, (u, v) weights of corners 1 and 2 of the hit face
         """
-        if self._mapped:  # into the caster's frame in float64, then float32 (module docstring)
-            origins = (np.asarray(origins, np.float64) - self.centre) / self.unit
-        origins = np.ascontiguousarray(origins, dtype=np.float32)
+        origins = self._in_frame(origins)
         directions = np.ascontiguousarray(directions, dtype=np.float32)
         r = len(origins)
         face = np.full(r, -1, np.int64)
@@ -158,6 +155,12 @@ class RayCaster:
         if self._mapped:
             dist *= self.unit  # inf stays inf
         return face, dist, uv
+
+    def _in_frame(self, origins) -> np.ndarray:
+        """Ray origins as Embree sees them: mapped into the caster's frame in float64, then float32."""
+        if self._mapped:
+            origins = (np.asarray(origins, np.float64) - self.centre) / self.unit
+        return np.ascontiguousarray(origins, dtype=np.float32)
 
     def close(self) -> None:
         if self._pool is not None:

@@ -48,7 +48,7 @@ from ..lighting import rectangle_grid
 from ..progress import ProgressCallback
 from .design import _met
 from .optimize import optimise
-from .spec import OBJECTIVES, DesignSpec, Emitter, SpecError, Target, read_spec
+from .spec import GOALS, OBJECTIVES, DesignSpec, Emitter, SpecError, Target, read_spec
 from .transfer import Response
 
 __all__ = ["LightingSpec", "GridGoal", "LightingDesign", "parse_lighting_spec", "design_lighting",
@@ -76,7 +76,7 @@ class GridGoal:
         return self.sensors.name
 
     def goals(self) -> dict:
-        return {k: getattr(self, k) for k in ("min", "max", "mean", "uniformity") if getattr(self, k) is not None}
+        return {g: getattr(self, g) for g in GOALS if getattr(self, g) is not None}
 
 
 @dataclass(frozen=True)
