@@ -18,7 +18,7 @@ from typing import Callable
 import numpy as np
 
 from .defaults import DEFAULT_BLOCK_SIZE
-from .errors import InputError, SceneError
+from .errors import InputError
 from .factorize.api import check_method, lowrank_from_blocks, lowrank_from_matrix
 from .factorize.hf import HFStream, frobenius2
 from .factorize.nearfield import DEFAULT_NEAR_ENTRIES, NearFieldSplit
@@ -30,7 +30,7 @@ from .scene.scene import Scene
 from .solve.assemble import PrecomputeOptions, assemble, precompute_options
 from .solve.stats import PassStatistics
 from .solve.woodbury import HFactorization
-from .validation import check_areas, check_factorize_options, check_form_factors, check_permutation, check_reflectance
+from .validation import check_areas, check_form_factors, check_permutation, check_reflectance
 
 #: ``near_field="auto"`` splits the near field from this many patches on (below, it does not pay).
 NEAR_FIELD_MIN_PATCHES = 2000
@@ -42,15 +42,6 @@ _STATS = "stats_"
 CHECKPOINT_COST_RATIO = 50.0
 
 StatusCallback = Callable[[dict], None] | None
-
-
-def check_factorize_args(scene: Scene, eps: float, block_size: int, dtype, relative: bool = True) -> np.dtype:
-    """Validate the options of :func:`factorize` at the API boundary."""
-    if not isinstance(scene, Scene):
-        raise TypeError(f"scene must be a hfrad Scene (see hfrad.load_scene); got {type(scene).__name__}")
-    if scene.n_patches == 0:
-        raise SceneError(f"{scene.name}: the scene has no patches")
-    return check_factorize_options(scene.n_patches, eps, block_size, dtype, relative)
 
 
 def factorize(scene_or_matrix, reflectance=None, *, areas=None, eps: float = 0.02, relative: bool = True,
