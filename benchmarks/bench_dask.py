@@ -137,7 +137,7 @@ def fit_rank_profile(records: list[dict], n: int) -> dict:
 
 def simulate(n: int, block: int, workers: int, costs: dict, profile: dict) -> dict:
     """List-schedule the HF tree (counter_tree) on ``workers`` identical one-core workers."""
-    from hfrad.factorize.hf import counter_tree
+    from hfrad.lowrank.hf import counter_tree
 
     m = math.ceil(n / block)
     k_root = profile["root_rank"] * (n / profile["n"]) ** RANK_EXPONENT

@@ -82,7 +82,7 @@ def run_case(name: str, eps_list: list[float]) -> list[dict]:
     for eps in eps_list:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", AccuracyWarning)
-            fac = hfrad.factorize(F, scene.reflectance, areas=scene.areas, eps=eps, order=perm)
+            fac = hfrad.factorize_matrix(F, scene.reflectance, areas=scene.areas, eps=eps, order=perm)
             B = fac.solve(scene.emission)
             est = fac.error_estimate()
             res = fac.residual(scene.emission, B, form_factors=F)

@@ -3,7 +3,7 @@
 For each scene and size, G = diag(rho_max) F is built once in Z-order (from the cached F,
 see common.load_case) and every method factors that same matrix in the same run:
 
-* ``hf32`` / ``hf64``: one-pass hierarchical factorization (hfrad.factorize.hf), blocks of 256
+* ``hf32`` / ``hf64``: one-pass hierarchical factorization (hfrad.lowrank.hf), blocks of 256
   columns, float32 / float64;
 * ``svd32`` / ``svd64``: LAPACK thin SVD (scipy ``gesdd``) of the whole matrix, then the
   smallest rank within eps. One SVD serves every eps (the truncation is free), so its time
@@ -34,9 +34,9 @@ import numpy as np
 import scipy.linalg as sla
 
 import common
-from hfrad.factorize.baselines import randomized_factorization, sketch_factorization
-from hfrad.factorize.hf import hierarchical_factorization
-from hfrad.factorize.lowrank import truncation_rank
+from hfrad.lowrank.baselines import randomized_factorization, sketch_factorization
+from hfrad.lowrank.hf import hierarchical_factorization
+from hfrad.lowrank.factors import truncation_rank
 
 ALL_METHODS = ("hf32", "hf64", "svd32", "svd64", "rsvd", "sketch")
 

@@ -57,8 +57,8 @@ def main() -> None:
     from scipy.linalg import interpolative as sli
     from sklearn.utils.extmath import randomized_svd
 
-    from hfrad.factorize.baselines import randomized_factorization
-    from hfrad.factorize.hf import hierarchical_factorization
+    from hfrad.lowrank.baselines import randomized_factorization
+    from hfrad.lowrank.hf import hierarchical_factorization
     case = common.load_case("cornell", args.patches)
     perm = case.perm("zorder")
     G32 = case.G(perm, np.float32)

@@ -20,7 +20,7 @@ import time
 import numpy as np
 
 import common
-from hfrad.factorize.hf import hierarchical_factorization
+from hfrad.lowrank.hf import hierarchical_factorization
 
 ORDERS = ("zorder", "hilbert", "random", "input")
 

@@ -36,8 +36,8 @@ import numpy as np
 import scipy.linalg as sla
 
 import common
-from hfrad.factorize.baselines import randomized_factorization, sketch_factorization
-from hfrad.factorize.lowrank import truncation_rank
+from hfrad.lowrank.baselines import randomized_factorization, sketch_factorization
+from hfrad.lowrank.factors import truncation_rank
 from hfrad.pipeline import factorize
 
 

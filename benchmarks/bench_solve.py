@@ -54,7 +54,7 @@ import time
 import numpy as np
 
 import common
-from hfrad import factorize
+from hfrad import factorize_matrix
 from hfrad.solve.direct import LUFactorization
 from hfrad.solve.iterative import gauss_seidel, gmres, jacobi, southwell
 
@@ -106,7 +106,7 @@ def bench_case(scene: str, patches: int, args, bw: float) -> list[dict]:
     print(f"\n[{scene} n={n}]", file=sys.stderr, flush=True)
 
     t0 = time.perf_counter()
-    fac = factorize(case.F, rho, eps=args.eps, dtype=np.float32, order=case.perm("zorder"))
+    fac = factorize_matrix(case.F, rho, eps=args.eps, dtype=np.float32, order=case.perm("zorder"))
     t_fac = time.perf_counter() - t0
     bound = float(np.max(fac.error_bound))
     k = fac.rank

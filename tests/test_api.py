@@ -11,11 +11,11 @@ import hfrad
 
 
 def test_factorize_works_twice_after_the_subpackage_is_imported():
-    # importing a module of the subpackage hfrad.factorize used to replace the
-    # function hfrad.factorize by the subpackage (issue 10, item 4)
-    import hfrad.factorize.hf  # noqa: F401
-    from hfrad.factorize.hf import HFStream  # noqa: F401
-    from hfrad.factorize.lowrank import LowRank  # noqa: F401
+    # the factorizers' subpackage is hfrad.lowrank; importing it must leave the
+    # function hfrad.factorize alone (it once shared the name: issue 10, item 4)
+    import hfrad.lowrank.hf  # noqa: F401
+    from hfrad.lowrank.hf import HFStream  # noqa: F401
+    from hfrad.lowrank.factors import LowRank  # noqa: F401
 
     scene = hfrad.load_scene("furnace", patches=60)
     first = hfrad.factorize(scene, eps=0.05)
@@ -50,7 +50,7 @@ def test_linear_operator_is_the_woodbury_inverse_and_preconditions_gmres():
     from scipy.sparse.linalg import gmres
 
     scene, F = _small_system()
-    fac = hfrad.factorize(F, scene.reflectance, eps=0.05, dtype="float64")
+    fac = hfrad.factorize_matrix(F, scene.reflectance, eps=0.05, dtype="float64")
     n = scene.n_patches
     for c in range(3):
         A = np.eye(n) - scene.reflectance[:, [c]] * F                 # the exact operator
@@ -76,7 +76,7 @@ def test_trans_and_deprecated_transpose_agree():
     import pytest
 
     scene, F = _small_system()
-    fac = hfrad.factorize(F, scene.reflectance, eps=0.05, dtype="float64")
+    fac = hfrad.factorize_matrix(F, scene.reflectance, eps=0.05, dtype="float64")
     g = np.random.default_rng(1).standard_normal((scene.n_patches, 3))
     with pytest.warns(DeprecationWarning, match="trans='T'"):
         old = fac.solve(g, transpose=True)
@@ -89,18 +89,20 @@ def test_factorize_input_errors():
     import pytest
 
     scene, F = _small_system()
-    with pytest.raises(hfrad.InputError, match="needs the .n, 3. reflectance"):
+    with pytest.raises(hfrad.InputError, match=r"not ndarray; for a form-factor matrix use hfrad.factorize_matrix"):
         hfrad.factorize(F)
-    with pytest.raises(hfrad.InputError, match="Scene carries its reflectance"):
-        hfrad.factorize(scene, scene.reflectance)
+    with pytest.raises(hfrad.InputError, match=r"for a Scene use hfrad.factorize\(scene\)"):
+        hfrad.factorize_matrix(scene, scene.reflectance)
+    with pytest.raises(hfrad.InputError, match=r"load the file first: hfrad.load_scene\('room.obj'\)"):
+        hfrad.factorize("room.obj")
     bad = F.copy()
     bad[3, 5] = np.nan
     with pytest.raises(hfrad.InputError, match=r"F\[3, 5\]"):
-        hfrad.factorize(bad, scene.reflectance)
+        hfrad.factorize_matrix(bad, scene.reflectance)
     rho = scene.reflectance.copy()
     rho[7, 1] = np.nan
     with pytest.raises(ValueError, match="patch 7"):
-        hfrad.factorize(F, rho)
+        hfrad.factorize_matrix(F, rho)
     with pytest.raises(hfrad.SceneError, match="patch 2 reflectance"):
         scene.replace(reflectance=np.where(np.arange(scene.n_patches)[:, None] == 2, np.nan, scene.reflectance))
 

@@ -24,7 +24,7 @@ LAYERS: list[tuple[int, str, tuple[str, ...]]] = [
                  "hfrad.validation", "hfrad.defaults", "hfrad.jsonfile")),
     (1, "scene", ("hfrad.scene",)),
     (2, "formfactors", ("hfrad.formfactors",)),
-    (3, "factorize", ("hfrad.factorize",)),
+    (3, "lowrank", ("hfrad.lowrank",)),
     (4, "solve", ("hfrad.solve",)),
     (5, "distributed", ("hfrad.distributed",)),
     (6, "pipeline", ("hfrad.pipeline",)),
@@ -130,11 +130,11 @@ def test_no_import_goes_up_the_layers():
     ("from .. import solve\n", "hfrad.solve"),
     ("def f():\n    import hfrad.render.image\n", "hfrad.render.image"),
     ("if TYPE_CHECKING:\n    from hfrad.cli import common\n", "hfrad.cli.common"),
-    ("from . import hf\n", "hfrad.factorize.hf"),
+    ("from . import hf\n", "hfrad.lowrank.hf"),
 ])
 def test_the_checker_sees_relative_and_lazy_imports(source, expected):
-    # as if the text were hfrad/factorize/api.py
-    found = [t for _, t in imported_modules(PACKAGE / "factorize" / "api.py", text=source)]
+    # as if the text were hfrad/lowrank/api.py
+    found = [t for _, t in imported_modules(PACKAGE / "lowrank" / "api.py", text=source)]
     assert found == [expected]
 
 

@@ -46,8 +46,8 @@ def test_failure_leaves_nothing_and_keeps_old_file(tmp_path):
 def test_every_writer_follows_the_umask(tmp_path, umask_027):
     """Exports, pictures, .hfr files and checkpoints all go through the helper."""
     import hfrad
-    from hfrad.factorize.hf import HFStream
-    from hfrad.factorize.streaming import save_checkpoint
+    from hfrad.lowrank.hf import HFStream
+    from hfrad.lowrank.streaming import save_checkpoint
     from hfrad.io.export import write_radiosity
     from hfrad.render.image import save_png
     from hfrad.scene.builtin import furnace
@@ -62,7 +62,7 @@ def test_every_writer_follows_the_umask(tmp_path, umask_027):
     stream = HFStream(n, 2, eps=0.1)
     save_checkpoint(stream, tmp_path / "s.partial")
     F = np.full((n, n), 1.0 / n)
-    fac = hfrad.factorize(F, np.full((n, 3), 0.5), eps=0.05, block_size=32)
+    fac = hfrad.factorize_matrix(F, np.full((n, 3), 0.5), eps=0.05, block_size=32)
     hfrad.save(fac, tmp_path / "f.hfr")
     names = sorted(p.name for p in tmp_path.iterdir())
     assert names == ["b.npz", "b.ply", "c.png", "f.hfr", "s.partial"]

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from hfrad.factorize.baselines import randomized_factorization, sketch_factorization, svd_factorization
+from hfrad.lowrank.baselines import randomized_factorization, sketch_factorization, svd_factorization
 
 
 @pytest.fixture(scope="module")

@@ -14,7 +14,7 @@ from hfrad.distributed import SchedulerUnreachableError, connect
 from hfrad.distributed import tasks
 from hfrad.distributed.run import task_order
 from hfrad.distributed.tasks import Job
-from hfrad.factorize.hf import HFStream, counter_tree
+from hfrad.lowrank.hf import HFStream, counter_tree
 from hfrad.pipeline import factorize
 from hfrad.scene.load import load_scene
 
@@ -288,7 +288,7 @@ def test_a_damaged_checkpoint_part_is_refused(tmp_path):
     """A saved part reads back as written; a flipped byte fails its checksum, naming the file."""
     from hfrad.distributed import store
     from hfrad.errors import FileFormatError
-    from hfrad.factorize.hf import _Node
+    from hfrad.lowrank.hf import _Node
 
     rng = np.random.default_rng(1)
     node = _Node(2, rng.standard_normal((30, 4)), np.arange(4.0)[::-1].copy(), rng.standard_normal((12, 4)),

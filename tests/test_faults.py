@@ -23,7 +23,7 @@ from conftest import Interrupt, interrupt_at, run_cli
 
 from hfrad import factorize, load_scene
 from hfrad.errors import FileFormatError, InputError
-from hfrad.factorize.streaming import load_checkpoint
+from hfrad.lowrank.streaming import load_checkpoint
 from hfrad.formfactors.cache import DIGEST, integrity_problem
 from hfrad.formfactors.parallel import SEGMENT_PREFIX, remove_stale_segments
 from hfrad.solve.hfr import load_hfr, read_hfr_metadata, save_hfr

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from hfrad.factorize.hf import hierarchical_factorization
+from hfrad.lowrank.hf import hierarchical_factorization
 
 
 def known_spectrum(n, seed=0, decay=25.0):
@@ -111,7 +111,7 @@ def test_gram_leaf_matches_the_svd_leaf(dtype):
     """The Gram leaf (tall blocks, budget well above rounding) keeps the SVD leaf's rank, or one
     more (it picks the rank within 90% of the budget), and its reported discard is the true
     ||A - U S V^T||_F^2."""
-    from hfrad.factorize import hf
+    from hfrad.lowrank import hf
     rng = np.random.default_rng(3)
     n, b = 4000, 64
     A = (rng.standard_normal((n, 20)) @ rng.standard_normal((20, b)) * np.exp(-np.arange(b) / 6)
@@ -136,7 +136,7 @@ def test_leaf_takes_the_gram_path_when_the_budget_norm_exceeds_the_block(monkeyp
     entries were moved out (larger than ||A||^2). The Gram leaf must measure its discard on A
     itself and be kept: measuring it against the larger norm once sent every near-field leaf
     through the Gram matrix *and* a full gesdd of the tall block."""
-    from hfrad.factorize import hf
+    from hfrad.lowrank import hf
     rng = np.random.default_rng(5)
     n, b = 4000, 64
     A = (rng.standard_normal((n, 12)) @ rng.standard_normal((12, b))).astype(np.float32)
@@ -157,7 +157,7 @@ def test_leaf_takes_the_gram_path_when_the_budget_norm_exceeds_the_block(monkeyp
 # -- BLAS threads on a shared machine -------------------------------------------------
 
 def _busy(monkeypatch, cores_used):
-    from hfrad.factorize import hf
+    from hfrad.lowrank import hf
     monkeypatch.setattr(hf, "other_processes_cores", lambda window=0.1: cores_used)
     monkeypatch.setattr(hf, "_busy_cache", [float("-inf"), 0.0])
     monkeypatch.setattr(hf.os, "sched_getaffinity", lambda pid: {0, 1, 2, 3})   # a 4-core machine
@@ -172,7 +172,7 @@ def test_spare_blas_threads_leave_the_cores_other_processes_use(monkeypatch, oth
 
 
 def test_other_processes_cores_is_a_share_of_the_machine():
-    from hfrad.factorize import hf
+    from hfrad.lowrank import hf
     used = hf.other_processes_cores(0.05)
     import os
     if used is None:

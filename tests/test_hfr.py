@@ -8,7 +8,7 @@ import pytest
 
 import hfrad.solve.hfr as hfr
 from hfrad.errors import FileFormatError
-from hfrad import factorize
+from hfrad import factorize_matrix
 from hfrad.solve.hfr import FORMAT_VERSION, load_hfr, read_hfr_metadata, save_hfr
 from hfrad.scene.scene import Material, Scene
 
@@ -40,7 +40,7 @@ def small_scene_and_factorization(n_side=6):
     F = (np.clip(np.einsum("ik,ijk->ij", N, d), 0, None) * np.clip(-np.einsum("jk,ijk->ij", N, d), 0, None)
          / (np.pi * r2 ** 2) * A[None])
     np.fill_diagonal(F, 0.0)
-    fac = factorize(F, scene.reflectance, eps=0.01, block_size=16, order=np.arange(n)[::-1])
+    fac = factorize_matrix(F, scene.reflectance, eps=0.01, block_size=16, order=np.arange(n)[::-1])
     fac.scene = scene
     return scene, fac
 

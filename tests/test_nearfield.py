@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hfrad.factorize.nearfield import NearFieldSplit, near_radius
+from hfrad.lowrank.nearfield import NearFieldSplit, near_radius
 from hfrad.formfactors import form_factor_matrix
 from hfrad.solve.hfr import load_hfr, read_hfr_metadata, save_hfr
 from hfrad.pipeline import factorize, near_entries

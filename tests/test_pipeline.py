@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from conftest import Interrupt, interrupt_at
 
-from hfrad import factorize
+from hfrad import factorize, factorize_matrix
 from hfrad.formfactors import form_factor_matrix
 from hfrad.scene.load import load_scene
 from hfrad.scene.zorder import patch_order
@@ -58,7 +58,7 @@ def test_out_of_core_equals_in_core(cornell):
     perm = patch_order(scene.centroids, "zorder")
     # one_ray_tol=0: every pair gets all its rays, so the streamed F is the dense F exactly
     streamed = factorize(scene, eps=0.02, block_size=128, dtype="float64", one_ray_tol=0)
-    in_core = factorize(F, scene.reflectance, eps=0.02, block_size=128, dtype=np.float64, order=perm)
+    in_core = factorize_matrix(F, scene.reflectance, eps=0.02, block_size=128, dtype=np.float64, order=perm)
     assert streamed.rank == in_core.rank
     B1, B2 = streamed.solve(scene.emission), in_core.solve(scene.emission)
     assert np.allclose(B1, B2, rtol=1e-8, atol=1e-10 * np.abs(B2).max())

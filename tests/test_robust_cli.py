@@ -375,8 +375,8 @@ def test_full_disk_api_save_and_checkpoint_refused_cleanly(tmp_path):
         import numpy as np
         import hfrad
         from hfrad.errors import WriteError
-        from hfrad.factorize.hf import HFStream
-        from hfrad.factorize.streaming import save_checkpoint
+        from hfrad.lowrank.hf import HFStream
+        from hfrad.lowrank.streaming import save_checkpoint
         warnings.simplefilter("ignore")
         fac = hfrad.factorize(hfrad.load_scene("cornell", patches=300), eps=0.05)
         stream = HFStream(4096, 16, eps=0.05)

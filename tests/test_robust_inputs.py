@@ -205,7 +205,7 @@ def test_gltf_factors_are_read_exactly_and_checked(tmp_path):
 def small_fac():
     from conftest import closed_system
     F, areas, rho = closed_system(12)
-    return hfrad.factorize(F, rho * 0.9, areas=areas), F, rho * 0.9
+    return hfrad.factorize_matrix(F, rho * 0.9, areas=areas), F, rho * 0.9
 
 
 def test_exitance_beyond_float32_is_refused_before_any_work(tmp_path, small_fac):
@@ -239,8 +239,8 @@ def test_arrays_that_are_not_real_numbers_are_refused(small_fac, bad):
     make = {"complex": lambda a: a + 1j, "bool": lambda a: a > 0.5, "str": lambda a: a.astype(str),
             "object": lambda a: a.astype(object), "ragged": lambda a: [list(r) for r in a[:-1]] + [[1.0]]}[bad]
     for call in (lambda: fac.solve(make(E)), lambda: fac.solve(make(E), trans="T"),
-                 lambda: fac.with_reflectance(make(rho)), lambda: hfrad.factorize(make(F), rho),
-                 lambda: hfrad.factorize(F, make(rho)), lambda: fac.residual(E, make(E), form_factors=F)):
+                 lambda: fac.with_reflectance(make(rho)), lambda: hfrad.factorize_matrix(make(F), rho),
+                 lambda: hfrad.factorize_matrix(F, make(rho)), lambda: fac.residual(E, make(E), form_factors=F)):
         with pytest.raises(InputError, match="real numbers"):
             call()
 
@@ -250,10 +250,10 @@ def test_factorize_refuses_negative_or_energy_creating_form_factors(small_fac):
     G = F.copy()
     G[1, 2] = -0.1
     with pytest.raises(InputError, match=r"form factors must be >= 0.*F\[1, 2\] = -0.1"):
-        hfrad.factorize(G, rho)
+        hfrad.factorize_matrix(G, rho)
     # rows summing to 2: the solve returned radiosity -1.25 for an exitance of 1, silently
     with pytest.raises(InputError, match=r"form factors: row 0 sums to 2; a patch cannot send out more"):
-        hfrad.factorize(np.full((4, 4), 0.5), np.full((4, 3), 0.9))
+        hfrad.factorize_matrix(np.full((4, 4), 0.5), np.full((4, 3), 0.9))
 
 
 def test_render_refuses_complex_or_nan_radiosity():

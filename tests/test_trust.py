@@ -25,7 +25,7 @@ def cornell():
     F = hfrad.form_factor_matrix(scene)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", AccuracyWarning)
-        fac = hfrad.factorize(F, scene.reflectance, areas=scene.areas, eps=0.02, dtype="float64",
+        fac = hfrad.factorize_matrix(F, scene.reflectance, areas=scene.areas, eps=0.02, dtype="float64",
                               order=hfrad.scene.zorder.patch_order(scene.centroids, "zorder"))
         fac.error_estimate()
     return scene, F, fac

@@ -9,7 +9,7 @@ import pytest
 from conftest import closed_system
 
 from hfrad.errors import FactorizationError
-from hfrad import factorize
+from hfrad import factorize_matrix
 from hfrad.pipeline import factorize_blocks
 from hfrad.solve.bounds import residual_norm
 
@@ -28,7 +28,7 @@ def exact(F, rho, E, transpose=False):
 @pytest.fixture(scope="module")
 def system():
     F, areas, rho = closed_system(300)
-    fac = factorize(F, rho, areas=areas, eps=0.02, block_size=32, dtype=np.float64)
+    fac = factorize_matrix(F, rho, areas=areas, eps=0.02, block_size=32, dtype=np.float64)
     return F, areas, rho, fac
 
 
@@ -66,7 +66,7 @@ def test_furnace_uniform():
     rho = np.full((n, 3), 0.5)
     E = np.ones(n)
     for eps, tol in ((0.05, 1e-2), (1e-5, 1e-7)):
-        fac = factorize(F, rho, eps=eps, block_size=16, dtype=np.float64)
+        fac = factorize_matrix(F, rho, eps=eps, block_size=16, dtype=np.float64)
         B = fac.solve(E)
         np.testing.assert_allclose(B, 2.0, rtol=tol)
 
@@ -94,7 +94,7 @@ def test_batched_equals_single(system):
 def test_user_order_permutation(system):
     F, _, rho, fac = system
     p = np.random.default_rng(4).permutation(300)
-    fac_p = factorize(F[np.ix_(p, p)], rho[p], eps=0.02, block_size=32, dtype=np.float64,
+    fac_p = factorize_matrix(F[np.ix_(p, p)], rho[p], eps=0.02, block_size=32, dtype=np.float64,
                              order=np.argsort(p))     # same internal order as fac
     E = np.random.default_rng(5).random((300, 3))
     np.testing.assert_allclose(fac_p.solve(E[p]), fac.solve(E)[p], rtol=1e-9)
@@ -103,7 +103,7 @@ def test_user_order_permutation(system):
 def test_identity_vs_random_order_within_bound(system):
     F, _, rho, fac = system
     perm = np.random.default_rng(6).permutation(300)
-    fac_r = factorize(F, rho, eps=0.02, block_size=32, dtype=np.float64, order=perm)
+    fac_r = factorize_matrix(F, rho, eps=0.02, block_size=32, dtype=np.float64, order=perm)
     E = np.random.default_rng(7).random((300, 3))
     B1, B2 = fac.solve(E), fac_r.solve(E)
     diff = np.linalg.norm(B1 - B2, axis=0) / np.linalg.norm(B1, axis=0)
@@ -127,7 +127,7 @@ def test_with_reflectance(system):
     rho2 = rho * np.random.default_rng(8).uniform(0.5, 1.0, rho.shape)
     rho2 = np.minimum(rho2, rho.max(1, keepdims=True))
     fac2 = fac.with_reflectance(rho2)
-    fresh = factorize(F, rho2, eps=0.02, block_size=32, dtype=np.float64)
+    fresh = factorize_matrix(F, rho2, eps=0.02, block_size=32, dtype=np.float64)
     E = np.random.default_rng(9).random((300, 3))
     Bx = exact(F, rho2, E)
     for f in (fac2, fresh):
@@ -154,16 +154,16 @@ def test_bad_inputs(system, E, msg):
 def test_bad_factorize_inputs(system):
     F, _, rho, _ = system
     with pytest.raises(ValueError, match="reflectance"):
-        factorize(F, np.full((300, 3), 1.0))
+        factorize_matrix(F, np.full((300, 3), 1.0))
     with pytest.raises(ValueError, match="method"):
-        factorize(F, rho, method="qr")
+        factorize_matrix(F, rho, method="qr")
     with pytest.raises(ValueError, match="permutation"):
-        factorize(F, rho, order=np.zeros(300, int))
+        factorize_matrix(F, rho, order=np.zeros(300, int))
 
 
 def test_float32_and_singular():
     F, _, rho = closed_system(120, seed=11)
-    fac = factorize(F, rho, eps=0.01, block_size=16)
+    fac = factorize_matrix(F, rho, eps=0.01, block_size=16)
     assert fac.Q.dtype == np.float32 and fac.V.dtype == np.float32
     assert fac.capacitance_inv.dtype == np.float32 and fac.capacitance_inv.shape == (3, fac.rank, fac.rank)
     E = np.random.default_rng(0).random((120, 3))
@@ -194,7 +194,7 @@ def test_capacitance_precision(dtype):
     """M_c from float32 products solves as accurately as from float64 ones (vs the exact dense solve), both trans."""
     from hfrad.solve.woodbury import capacitance, invert_capacitance, low_rank_correction
     F, _, rho = closed_system(300)
-    fac = factorize(F, rho, eps=0.02, block_size=32, dtype=dtype)
+    fac = factorize_matrix(F, rho, eps=0.02, block_size=32, dtype=dtype)
     E = np.random.default_rng(10).random((300, 3, 2))
     Ei = E[fac.perm]
     for adjoint in (False, True):

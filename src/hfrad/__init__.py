@@ -10,6 +10,7 @@ of the form-factor matrix plus Sherman-Morrison-Woodbury::
     fac.error_estimate()                                   # error figures, per channel
     hfrad.save(fac, "cornell.hfr"); fac = hfrad.load("cornell.hfr")
 
+A form-factor matrix you already have: ``hfrad.factorize_matrix(F, reflectance)``.
 The whole API is described in docs/api.md.
 
 Names are imported lazily so that ``import hfrad`` stays fast.
@@ -18,8 +19,6 @@ Names are imported lazily so that ``import hfrad`` stays fast.
 from __future__ import annotations
 
 import importlib
-import sys
-import types
 
 from ._version import __version__
 
@@ -30,6 +29,7 @@ _EXPORTS = {
     "builtin_scene": "hfrad.scene.builtin",
     "subdivide": "hfrad.scene.patches",
     "factorize": "hfrad.pipeline",
+    "factorize_matrix": "hfrad.pipeline",
     "HFactorization": "hfrad.solve.woodbury",
     "ErrorEstimate": "hfrad.solve.bounds",
     "form_factor_matrix": "hfrad.formfactors.blocks",
@@ -59,25 +59,6 @@ def save(factorization, path) -> "Path":  # noqa: F821
     from .solve.hfr import save_hfr
 
     return save_hfr(factorization, path)
-
-
-class _Package(types.ModuleType):
-    """The ``hfrad`` module, keeping ``hfrad.factorize`` the function.
-
-    Importing any module of the subpackage ``hfrad.factorize`` makes Python set
-    the attribute ``hfrad.factorize`` to that subpackage, which would shadow the
-    lazily exported function (``TypeError: 'module' object is not callable`` on
-    the next call). The subpackage stays importable by its dotted name
-    (``from hfrad.factorize.hf import HFStream``); only the attribute is kept.
-    """
-
-    def __setattr__(self, name: str, value) -> None:
-        if name == "factorize" and isinstance(value, types.ModuleType):
-            return
-        super().__setattr__(name, value)
-
-
-sys.modules[__name__].__class__ = _Package
 
 
 def __getattr__(name: str):

@@ -2,7 +2,7 @@
 
 ``factorize(scene)`` is what ``hfrad precompute`` runs. Column blocks of
 ``G = diag(rho_max) F`` are generated one at a time in Z-order, pushed into a
-:class:`~hfrad.factorize.streaming.HFStream` and dropped, so the n x n matrix
+:class:`~hfrad.lowrank.streaming.HFStream` and dropped, so the n x n matrix
 never exists. With ``checkpoint=PATH`` the stream state is saved every
 ``checkpoint_interval`` seconds and a rerun resumes after the last saved block.
 """
@@ -19,10 +19,10 @@ import numpy as np
 
 from .defaults import DEFAULT_BLOCK_SIZE
 from .errors import InputError
-from .factorize.api import check_method, lowrank_from_blocks, lowrank_from_matrix
-from .factorize.hf import HFStream, frobenius2
-from .factorize.nearfield import DEFAULT_NEAR_ENTRIES, NearFieldSplit
-from .factorize.streaming import load_checkpoint, save_checkpoint
+from .lowrank.api import check_method, lowrank_from_blocks, lowrank_from_matrix
+from .lowrank.hf import HFStream, frobenius2
+from .lowrank.nearfield import DEFAULT_NEAR_ENTRIES, NearFieldSplit
+from .lowrank.streaming import load_checkpoint, save_checkpoint
 from .formfactors.parallel import default_workers
 from .memory import precompute_bytes
 from .progress import ProgressCallback, report
@@ -44,13 +44,13 @@ CHECKPOINT_COST_RATIO = 50.0
 StatusCallback = Callable[[dict], None] | None
 
 
-def factorize(scene_or_matrix, reflectance=None, *, areas=None, eps: float = 0.02, relative: bool = True,
-              block_size: int | None = None, dtype="float32", order=None, method: str = "hf",
+def factorize(scene: Scene, *, eps: float = 0.02, relative: bool = True,
+              block_size: int | None = None, dtype="float32", order=None,
               samples: int | None = None, leaf_share: float = 0.5,
               checkpoint: str | Path | None = None, checkpoint_interval: float = 30.0,
               keep_checkpoint: bool = False,
               blas_threads: int | None = 1, processes: int | None = 1, one_ray_tol: float | None = None,
-              near_field: int | str | None = "auto", reciprocity: bool = True, rng=None,
+              near_field: int | str | None = "auto", reciprocity: bool = True,
               progress: ProgressCallback = None, status: StatusCallback = None, scheduler=None,
               workers: int | None = None, task_threads: int | None = None, connect_timeout: float | None = None,
               records: list | None = None) -> HFactorization:
@@ -58,17 +58,11 @@ def factorize(scene_or_matrix, reflectance=None, *, areas=None, eps: float = 0.0
 
     Parameters
     ----------
-    scene_or_matrix : Scene or (n, n) float array
-        A :class:`~hfrad.scene.scene.Scene` (form factors with visibility are
-        computed and streamed in column blocks; the n x n matrix is never
-        formed), or form factors F in the user's patch order (F[i, j]:
-        fraction of the energy leaving i that reaches j).
-    reflectance : (n, 3) float in [0, 1), optional
-        Needed with a matrix; a scene carries its own.
-    areas : (n,) float > 0, m^2, optional
-        Patch areas of a matrix (a scene carries its own): the error bound is
-        then in the area-weighted norm, where reciprocity gives the tight
-        contraction bound; without them the plain 2-norm.
+    scene : Scene
+        Patches, materials and lights (:func:`hfrad.load_scene`). Form factors
+        with visibility are computed and streamed in column blocks; the n x n
+        matrix is never formed. For a matrix you already have, use
+        :func:`factorize_matrix`.
     eps : float in (0, 1)
         Target ``||G - Q V^T||_F`` relative to ``||G||_F`` (absolute with
         ``relative=False``), ``G = diag(rho_max) F``.
@@ -78,18 +72,14 @@ def factorize(scene_or_matrix, reflectance=None, *, areas=None, eps: float = 0.0
         Precision of the factors.
     order : {"zorder", "hilbert", "random", "input"} or (n,) int, optional
         Internal patch order (internal index t holds user patch order[t]);
-        default Z-order for a scene (the paper's), the input order for a
-        matrix. Only speed and rank depend on it: every input and output
-        stays in the user's order.
-    method : {"hf", "svd", "rsvd", "sketch"}
-        The factorizer; a scene is always streamed through HF (the others
-        need the dense matrix and are baselines).
+        default Z-order (the paper's). Only speed and rank depend on it:
+        every input and output stays in the user's order.
     samples : int, optional
-        Visibility rays per patch pair (scene only; default: the engine's).
+        Visibility rays per patch pair (default: the engine's).
     leaf_share : float in (0, 1]
         Share of the squared error budget given to the leaf SVDs.
     checkpoint : path, optional
-        Scene only: save the stream state here while running and resume
+        Save the stream state here while running and resume
         from it if it exists; deleted when the factorization completes
         (see ``keep_checkpoint``). A damaged checkpoint, or one made for
         another input, is refused (FileFormatError / InputError), never resumed.
@@ -98,51 +88,48 @@ def factorize(scene_or_matrix, reflectance=None, *, areas=None, eps: float = 0.0
         :data:`CHECKPOINT_COST_RATIO` times the last write's duration
         (0: after every block, whatever it costs).
     keep_checkpoint : bool
-        Scene only, in this process: leave the checkpoint in place when the
+        In this process: leave the checkpoint in place when the
         factorization completes, for a caller that deletes it only once the
         result is safely saved (``hfrad precompute`` removes it after the
         ``.hfr`` file is renamed into place, so a crash while saving loses nothing).
     blas_threads : int or None
-        Scene only: BLAS threads while the form-factor engine runs (None:
+        BLAS threads while the form-factor engine runs (None:
         leave as is). One is fastest while the engine uses the other cores.
     processes : int or None
-        Scene only: form-factor worker processes (None: one per core from
+        Form-factor worker processes (None: one per core from
         4,000 patches on); the result does not depend on it. Default 1 (this
         process: numba threads plus one Embree thread) so that scripts need no
         ``if __name__ == "__main__":`` guard (workers are spawned); the CLI
-        defaults to None. Idle 2-core machine, 10,435-patch Cornell box: form
-        factors 18.4 s in one process, 9.9 s with two; under heavy load
-        (load ~25) two workers were 2x slower.
+        defaults to None. Two workers pay off when the machine's cores are otherwise idle;
+        on a loaded machine they compete with the other processes.
     one_ray_tol : float or None
-        Scene only: pairs that together hold at most this share of ``||F||_F``
+        Pairs that together hold at most this share of ``||F||_F``
         get one visibility ray instead of several, and flagged pairs (probes
         disagree) holding ``FEW_RAYS_FACTOR`` (4) times this share get 4 rays
         instead of 16 (:func:`hfrad.formfactors.budget.ray_budget`); None:
         ``eps / 4`` for a relative eps, 0 (both rules off) for an absolute one.
     near_field : "auto", int or None
-        Scene only: the near-field split (docs/method.md; :mod:`hfrad.factorize.nearfield`):
+        The near-field split (docs/method.md; :mod:`hfrad.lowrank.nearfield`):
         pairs within a radius holding about this many neighbours per row go into
         a sparse N, HF factors only ``G - N``, and the solver is Woodbury around a
         sparse LU of ``I - D_c N`` (:class:`~hfrad.solve.nearfield.NearFieldFactorization`).
         "auto" (default): ``DEFAULT_NEAR_ENTRIES`` (120) facing neighbours per row from
         ``NEAR_FIELD_MIN_PATCHES`` (2,000) patches on, off below; None or 0: off (plain
-        Woodbury). Measured on the Cornell box (rank, radiosity error vs the exact
-        solve): 5K patches, eps 0.05: 1,081 -> 195 and 0.83% -> 0.55%; eps 0.02:
-        1,362 -> 1,307 and 0.19% -> 0.10%; 10K, eps 0.05: rank 1,641 -> 537.
+        Woodbury). The split lowers the rank HF needs (the near pairs hold F's
+        high-rank part) and, at equal eps, the radiosity error; it costs a sparse LU
+        of ``I - D_c N`` (about 12 bytes per entry, ``n * near_field`` entries).
     reciprocity : bool
-        Scene only: a column block copies its pairs with the columns of earlier blocks,
+        A column block copies its pairs with the columns of earlier blocks,
         ``F_ij = A_j F_ji / A_i``, instead of computing them again
         (:mod:`hfrad.formfactors.mirror`; about half the form-factor work, F equal
         to rounding; its tiles take at most a quarter of the available memory).
         False computes every pair, as the Dask backend does (its blocks bit for bit).
-    rng : None, int or numpy Generator
-        Seed of the randomized baselines ("rsvd", "sketch").
     progress : callable (done, total), optional
         Column blocks done.
     status : callable (dict), optional
-        Scene only: called after each block with ``blocks``, ``rank``, ``elapsed``.
+        Called after each block with ``blocks``, ``rank``, ``elapsed``.
     scheduler : str, distributed.Client or hfrad.distributed.Cluster, optional
-        Scene only: run the column blocks, leaves and merges as Dask tasks on this
+        Run the column blocks, leaves and merges as Dask tasks on this
         cluster (docs/cluster.md) instead of in this process. Same options, same
         class, same ``.hfr`` contents and error figures (only ``params["backend"]``,
         ``params["workers"]`` and the timings differ); ``reciprocity`` is not used
@@ -173,51 +160,106 @@ def factorize(scene_or_matrix, reflectance=None, *, areas=None, eps: float = 0.0
 
     Examples
     --------
+    >>> import hfrad
+    >>> scene = hfrad.load_scene("furnace", patches=60)     # a closed box, uniform materials
+    >>> fac = hfrad.factorize(scene, eps=0.05)
+    >>> B = fac.solve(scene.emission)                        # (60, 3) W/m^2, user order
+    >>> B.shape
+    (60, 3)
+    """
+    if not isinstance(scene, Scene):
+        if isinstance(scene, (str, Path)):
+            raise InputError(f"factorize takes a Scene; load the file first: hfrad.load_scene({str(scene)!r})")
+        raise InputError(f"factorize takes a Scene, not {type(scene).__name__}; for a form-factor "
+                         "matrix use hfrad.factorize_matrix(F, reflectance)")
+    options = precompute_options(scene, eps=eps, relative=relative, block_size=block_size,
+                                 dtype=dtype, samples=samples, order="zorder" if order is None else order,
+                                 leaf_share=leaf_share, one_ray_tol=one_ray_tol,
+                                 near_entries=near_entries(near_field, scene.n_patches),
+                                 reciprocity=reciprocity)
+    if scheduler is not None or workers is not None:
+        if processes not in (None, 1):
+            raise InputError("processes is for the in-process path; on Dask the workers compute the blocks")
+        from .distributed import factorize_distributed, remove_checkpoint
+
+        fac = factorize_distributed(scene, options, scheduler=scheduler, workers=workers,
+                                    task_threads=task_threads, connect_timeout=connect_timeout,
+                                    checkpoint=checkpoint, progress=progress, status=status, records=records)
+        if checkpoint is not None and not keep_checkpoint:
+            remove_checkpoint(checkpoint)
+        return fac
+    return _factorize_scene(scene, options, checkpoint=checkpoint,
+                            checkpoint_interval=checkpoint_interval, keep_checkpoint=keep_checkpoint,
+                            blas_threads=blas_threads,
+                            processes=processes, progress=progress, status=status)
+
+
+def factorize_matrix(F, reflectance, *, areas=None, eps: float = 0.02, relative: bool = True,
+                     block_size: int | None = None, dtype="float32", order=None, method: str = "hf",
+                     leaf_share: float = 0.5, rng=None, progress: ProgressCallback = None) -> HFactorization:
+    """Factor the radiosity system of a form-factor matrix you already have.
+
+    The same factorization and solver object as :func:`factorize`, from a
+    dense F instead of a scene (no visibility rays, no near-field split), and
+    the only entry to the dense baselines.
+
+    Parameters
+    ----------
+    F : (n, n) float array
+        Form factors in the user's patch order: ``F[i, j]`` is the fraction
+        of the energy leaving patch i that reaches patch j (>= 0, rows
+        summing to at most 1).
+    reflectance : (n, 3) float in [0, 1)
+        Diffuse reflectance per patch and colour channel (or (n,) grey).
+    areas : (n,) float > 0, m^2, optional
+        Patch areas: the error figures are then in the area-weighted norm,
+        where reciprocity gives the tight contraction bound; without them
+        the plain 2-norm.
+    eps : float in (0, 1)
+        Target ``||G - Q V^T||_F`` relative to ``||G||_F`` (absolute with
+        ``relative=False``), ``G = diag(rho_max) F``.
+    block_size : int, optional
+        Column block width; default ``DEFAULT_BLOCK_SIZE`` (256).
+    dtype : {"float32", "float64"}
+        Precision of the factors.
+    order : "input" or (n,) int, optional
+        Internal patch order (internal index t holds user patch order[t]);
+        default the input order. Only speed and rank depend on it.
+    method : {"hf", "svd", "rsvd", "sketch"}
+        HF (the paper's) or a baseline on the dense matrix: truncated SVD
+        (LAPACK), randomized SVD (scikit-learn), or a one-pass sketch.
+    leaf_share : float in (0, 1]
+        HF: share of the squared error budget given to the leaf SVDs.
+    rng : None, int or numpy Generator
+        Seed of the randomized baselines ("rsvd", "sketch").
+    progress : callable (done, total), optional
+        Column blocks done.
+
+    Returns
+    -------
+    HFactorization
+
+    Raises
+    ------
+    InputError (a ValueError)
+        Bad shapes or values (negative entries, rows summing above 1.05,
+        NaN), or options; the message names the argument.
+
+    Notes
+    -----
+    Memory: F itself (n^2 float64 words) plus the factors (O(nk)).
+
+    Examples
+    --------
     >>> import numpy as np, hfrad
     >>> F = np.full((40, 40), 1 / 40)                 # a closed, uniform enclosure
-    >>> fac = hfrad.factorize(F, np.full((40, 3), 0.5), eps=1e-3)
+    >>> fac = hfrad.factorize_matrix(F, np.full((40, 3), 0.5), eps=1e-3)
     >>> bool(np.allclose(fac.solve(np.ones(40)), 2.0))   # B = E / (1 - rho)
     True
     """
-    if isinstance(scene_or_matrix, Scene):
-        if reflectance is not None or areas is not None:
-            raise InputError("a Scene carries its reflectance and areas: pass them only with a matrix "
-                             "(or use scene.replace(reflectance=...))")
-        if method != "hf":
-            raise InputError(f"a scene is factored by streaming HF; method {method!r} needs the dense "
-                             "matrix (hfrad.form_factor_matrix(scene)) and is a baseline")
-        options = precompute_options(scene_or_matrix, eps=eps, relative=relative, block_size=block_size,
-                                     dtype=dtype, samples=samples, order="zorder" if order is None else order,
-                                     leaf_share=leaf_share, one_ray_tol=one_ray_tol,
-                                     near_entries=near_entries(near_field, scene_or_matrix.n_patches),
-                                     reciprocity=reciprocity)
-        if scheduler is not None or workers is not None:
-            if processes not in (None, 1):
-                raise InputError("processes is for the in-process path; on Dask the workers compute the blocks")
-            from .distributed import factorize_distributed, remove_checkpoint
-
-            fac = factorize_distributed(scene_or_matrix, options, scheduler=scheduler, workers=workers,
-                                        task_threads=task_threads, connect_timeout=connect_timeout,
-                                        checkpoint=checkpoint, progress=progress, status=status, records=records)
-            if checkpoint is not None and not keep_checkpoint:
-                remove_checkpoint(checkpoint)
-            return fac
-        return _factorize_scene(scene_or_matrix, options, checkpoint=checkpoint,
-                                checkpoint_interval=checkpoint_interval, keep_checkpoint=keep_checkpoint,
-                                blas_threads=blas_threads,
-                                processes=processes, progress=progress, status=status)
-    if isinstance(scene_or_matrix, (str, Path)):
-        raise InputError(f"factorize takes a Scene or a matrix; load the file first: "
-                         f"hfrad.load_scene({str(scene_or_matrix)!r})")
-    if reflectance is None:
-        raise InputError("factorize(F, reflectance): a form-factor matrix needs the (n, 3) reflectance")
-    for name, value in (("samples", samples), ("checkpoint", checkpoint), ("status", status),
-                        ("scheduler", scheduler), ("workers", workers), ("records", records),
-                        ("processes", None if processes == 1 else processes), ("one_ray_tol", one_ray_tol),
-                        ("near_field", None if near_field == "auto" else near_field)):
-        if value is not None:
-            raise InputError(f"{name} applies to a Scene only, not to a form-factor matrix")
-    return _factorize_matrix(scene_or_matrix, reflectance, eps=eps, relative=relative,
+    if isinstance(F, Scene):
+        raise InputError("factorize_matrix takes a form-factor matrix; for a Scene use hfrad.factorize(scene)")
+    return _factorize_matrix(F, reflectance, eps=eps, relative=relative,
                              block_size=DEFAULT_BLOCK_SIZE if block_size is None else block_size, dtype=dtype,
                              order=order, method=method, leaf_share=leaf_share, rng=rng, areas=areas,
                              progress=progress)
@@ -226,7 +268,7 @@ def factorize(scene_or_matrix, reflectance=None, *, areas=None, eps: float = 0.0
 def _factorize_scene(scene: Scene, options: PrecomputeOptions, *, checkpoint, checkpoint_interval: float,
                      keep_checkpoint: bool = False, blas_threads, processes, progress: ProgressCallback,
                      status: StatusCallback) -> HFactorization:
-    """The scene branch of :func:`factorize` in this process (arguments as there): streamed form factors into HF."""
+    """The body of :func:`factorize` in this process (arguments as there): streamed form factors into HF."""
     from .formfactors.blocks import iter_column_blocks
 
     n, block_size, dt = options.n, options.block_size, np.dtype(options.dtype)
@@ -368,7 +410,7 @@ def _stream_blocks(blocks, stream: HFStream, stats: PassStatistics, rows_rho, n_
 
 def _factorize_matrix(F, reflectance, *, eps: float, relative: bool, block_size: int, dtype, order,
                       method: str, leaf_share: float, rng, areas, progress: ProgressCallback) -> HFactorization:
-    """The matrix branch of :func:`factorize` (arguments as there): validation, then the factorizer."""
+    """The body of :func:`factorize_matrix` (arguments as there): validation, then the factorizer."""
     F = check_form_factors(F)  # real, square, finite, >= 0
     if F.ndim != 2 or F.shape[0] != F.shape[1]:
         raise InputError(f"form factors must be a square (n, n) matrix; got {F.shape}")
@@ -417,7 +459,7 @@ def factorize_blocks(blocks, n: int, reflectance, perm, *, eps: float = 0.02, re
     reflectance : (n, 3) float in [0, 1), user order
     perm : (n,) int, internal order
     eps, relative, dtype, leaf_share, progress : see
-        :func:`~hfrad.factorize.hf.hierarchical_factorization`
+        :func:`~hfrad.lowrank.hf.hierarchical_factorization`
     n_blocks : int, optional
         Number of blocks (needed for the error budget when ``blocks`` has no len);
         defaults to ``ceil(n / block_size)`` when ``block_size`` is given.

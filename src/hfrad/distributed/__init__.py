@@ -1,6 +1,6 @@
 """The precomputation on a Dask cluster (``hfrad precompute --scheduler/--workers``).
 
-Sits beside :mod:`hfrad.pipeline`: it uses scene/, formfactors/, factorize/ and
+Sits beside :mod:`hfrad.pipeline`: it uses scene/, formfactors/, lowrank/ and
 solve/, and only the CLI and the top-level API import it::
 
     import hfrad

@@ -2,7 +2,7 @@
 
 Leaves (column block generation + truncated SVD) are independent tasks;
 sibling merges form a tree reduction of depth ceil(log2 m). The tree is the
-one :class:`~hfrad.factorize.hf.HFStream` builds (:func:`~hfrad.factorize.hf.counter_tree`)
+one :class:`~hfrad.lowrank.hf.HFStream` builds (:func:`~hfrad.lowrank.hf.counter_tree`)
 with the same truncations and error budget, so the result has the same
 meaning as the local path (one pass over F, achieved error <= eps) and equals
 it up to rounding.
@@ -19,7 +19,7 @@ import dask
 from distributed.scheduler import KilledWorker
 
 from ..errors import MemoryLimitError
-from ..factorize.hf import counter_tree
+from ..lowrank.hf import counter_tree
 from ..memory import human
 from ..progress import ProgressCallback, report
 from ..solve.assemble import PrecomputeOptions, assemble

@@ -80,7 +80,7 @@ def save_part(folder: str | os.PathLike, node_id: int, part) -> None:
 
 def load_part(folder: str | os.PathLike, node_id: int):
     """Read node ``node_id`` back as (node, stats, near, records); FileFormatError if it is damaged."""
-    from ..factorize.hf import _Node
+    from ..lowrank.hf import _Node
 
     folder = Path(folder)
     npz = folder / f"node-{node_id}.npz"

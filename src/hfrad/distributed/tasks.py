@@ -1,7 +1,7 @@
 """What runs on the Dask workers: one leaf per column block, one merge per tree node.
 
 A task returns a :class:`Part`: the HF node (``U``, ``s``, ``V`` and the error
-bookkeeping of :mod:`hfrad.factorize.hf`), the pass statistics and near-field
+bookkeeping of :mod:`hfrad.lowrank.hf`), the pass statistics and near-field
 entries of its columns, plus the records of the tasks below it. The n x b
 form-factor block of a leaf is made, split, compressed and dropped inside the
 task, so only its factors (n x k_j and b x k_j), statistics and near entries
@@ -20,8 +20,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..factorize.hf import ErrorBudget, compress_leaf, frobenius2, merge_nodes, root_lowrank
-from ..factorize.nearfield import NearFieldSplit
+from ..lowrank.hf import ErrorBudget, compress_leaf, frobenius2, merge_nodes, root_lowrank
+from ..lowrank.nearfield import NearFieldSplit
 from ..formfactors.parallel import column_block
 from ..formfactors.visibility import RayBudget
 from ..solve.assemble import add_statistics, block_statistics, concat_near

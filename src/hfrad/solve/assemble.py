@@ -5,8 +5,8 @@ or as Dask tasks (:mod:`hfrad.distributed`); the backend only decides where colu
 blocks, leaves and merges run. Both take a :class:`PrecomputeOptions` (validated
 once, here) and end in :func:`assemble`: low-rank factors + near-field entries +
 pass statistics + parameters -> the solver object. Per column block both do the
-same (:func:`block_statistics`, :class:`~hfrad.factorize.nearfield.NearFieldSplit`,
-:func:`~hfrad.factorize.hf.compress_leaf`), so the two give the same class, the
+same (:func:`block_statistics`, :class:`~hfrad.lowrank.nearfield.NearFieldSplit`,
+:func:`~hfrad.lowrank.hf.compress_leaf`), so the two give the same class, the
 same ``.hfr`` contents (apart from the recorded backend and timings) and the same
 error figures.
 """
@@ -24,9 +24,9 @@ import scipy.sparse as sp
 
 from ..defaults import DEFAULT_BLOCK_SIZE
 from ..errors import InputError, SceneError
-from ..factorize.hf import ErrorBudget
-from ..factorize.lowrank import LowRank
-from ..factorize.nearfield import near_radius
+from ..lowrank.hf import ErrorBudget
+from ..lowrank.factors import LowRank
+from ..lowrank.nearfield import near_radius
 from ..formfactors.energy import warn_energy
 from ..formfactors.budget import default_one_ray_tol
 from ..scene.scene import Scene

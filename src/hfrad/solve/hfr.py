@@ -61,7 +61,7 @@ import scipy.sparse as sp
 from .._version import __version__
 from ..atomic import atomic_path
 from ..errors import FileFormatError
-from ..factorize.lowrank import LowRank
+from ..lowrank.factors import LowRank
 from ..formfactors.cache import DIGEST, attrs_digest, checked_dataset, integrity_problem, seal
 from ..validation import object_first
 from .nearfield import NearFieldFactorization

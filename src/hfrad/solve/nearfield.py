@@ -1,6 +1,6 @@
 """Solves with the near-field split: Woodbury around the sparse ``I - D_c N``.
 
-With ``G = N + Q V^T`` (N sparse near field, :mod:`hfrad.factorize.nearfield`)
+With ``G = N + Q V^T`` (N sparse near field, :mod:`hfrad.lowrank.nearfield`)
 and ``D_c = diag(rho_c / rho_max)``, channel c solves
 
     (A_c - U_c V^T) B_c = E_c,    A_c = I - D_c N  (sparse),  U_c = D_c Q.
@@ -34,8 +34,8 @@ import scipy.sparse as sp
 from scipy.sparse.linalg import splu
 
 from ..errors import FactorizationError
-from ..factorize.hf import SLAB_ROWS, spare_threads
-from ..factorize.lowrank import LowRank
+from ..lowrank.hf import SLAB_ROWS, spare_threads
+from ..lowrank.factors import LowRank
 from . import thin
 from .bounds import power_sigma_max
 from .neumann import neumann_solve, spectral_bound
@@ -123,7 +123,7 @@ class NearFieldFactorization(HFactorization):
         self.last_sweeps = 0
         self._quantization_error: np.ndarray | None = None
         self._quantize = quantize
-        with spare_threads():   # BLAS threads that other processes leave free (hfrad.factorize.hf)
+        with spare_threads():   # BLAS threads that other processes leave free (hfrad.lowrank.hf)
             self.Z, self.capacitance_inv = self._near_solution(near_solution, capacitance, quantize)
 
     @property

@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 
-from ..factorize.hf import SLAB_ROWS
+from ..lowrank.hf import SLAB_ROWS
 from .bounds import contraction_bound
 
 __all__ = ["PassStatistics", "PROBES", "FAILURE_PROBABILITY", "probe_alpha", "probe_vectors"]

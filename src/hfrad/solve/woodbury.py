@@ -13,7 +13,7 @@ import numpy as np
 import scipy.linalg as sla
 
 from ..errors import AccuracyWarning, FactorizationError, InputError
-from ..factorize.lowrank import LowRank
+from ..lowrank.factors import LowRank
 from ..validation import as_real_array, check_exitance, check_finite, check_reflectance, check_trans
 from .bounds import ErrorEstimate, ResidualEstimate, estimate_errors, power_sigma_max, residual_estimate
 from . import thin

@@ -1,6 +1,6 @@
 """Checkpoints of a running HF stream, so an interrupted precompute resumes.
 
-The state of :class:`~hfrad.factorize.hf.HFStream` is its binary-counter stack
+The state of :class:`~hfrad.lowrank.hf.HFStream` is its binary-counter stack
 (O(log m) factor pairs) plus counters; saving it lets a long precomputation
 resume after the last saved block without redoing finished blocks.
 

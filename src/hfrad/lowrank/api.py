@@ -1,6 +1,6 @@
 """Low-rank factorizations of ``G = diag(rho_max) F`` from an in-core F or from its column blocks.
 
-These return a :class:`~hfrad.factorize.lowrank.LowRank` in the internal patch
+These return a :class:`~hfrad.lowrank.factors.LowRank` in the internal patch
 order; :func:`hfrad.factorize` (the pipeline layer) validates the user's input
 and wraps the result into the solver object. Inputs here are trusted.
 """
@@ -16,7 +16,7 @@ from ..errors import InputError
 from ..progress import ProgressCallback
 from .baselines import randomized_factorization, sketch_factorization, svd_factorization
 from .hf import hierarchical_factorization
-from .lowrank import LowRank
+from .factors import LowRank
 
 METHODS = ("hf", "svd", "rsvd", "sketch")
 

@@ -8,7 +8,7 @@
   Udell & Cevher 2017, Alg. 7), one pass over column blocks, sketch grown until
   eps is met (each growth is a new pass; verification is an extra pass).
 
-All return :class:`~hfrad.factorize.lowrank.LowRank` with ``Q = U S``, ``V``
+All return :class:`~hfrad.lowrank.factors.LowRank` with ``Q = U S``, ``V``
 orthonormal and the *achieved* Frobenius error.
 """
 
@@ -21,7 +21,7 @@ import numpy as np
 import scipy.linalg as sla
 
 from ..errors import FactorizationError
-from .lowrank import LowRank, sign_fix, truncation_rank
+from .factors import LowRank, sign_fix, truncation_rank
 
 
 def _target2(eps: float, relative: bool, norm2: float) -> float:
@@ -43,7 +43,7 @@ def svd_factorization(A, *, eps: float = 0.02, relative: bool = True, dtype=np.f
     Parameters
     ----------
     A : (n, N) array_like
-    eps, relative, dtype : as in :func:`~hfrad.factorize.hf.hierarchical_factorization`
+    eps, relative, dtype : as in :func:`~hfrad.lowrank.hf.hierarchical_factorization`
 
     Returns
     -------

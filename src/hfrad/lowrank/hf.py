@@ -37,7 +37,7 @@ import scipy.linalg as sla
 
 from ..errors import FactorizationError
 from ..progress import ProgressCallback, report
-from .lowrank import LowRank, sign_fix, truncation_rank
+from .factors import LowRank, sign_fix, truncation_rank
 
 
 @dataclass
@@ -343,7 +343,7 @@ class HFStream:
     n_blocks : int
         Number of column blocks m that will be pushed (splits the error budget).
     eps, relative, dtype, leaf_share
-        As in :func:`hfrad.factorize.hf.hierarchical_factorization`.
+        As in :func:`hfrad.lowrank.hf.hierarchical_factorization`.
     """
 
     def __init__(self, n: int, n_blocks: int, *, eps: float = 0.02, relative: bool = True,
