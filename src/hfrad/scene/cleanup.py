@@ -31,6 +31,7 @@ import numpy as np
 from numba import njit
 
 from .scene import Scene
+from .weld import weld
 
 #: Corners closer than this times the scene size are one vertex when comparing faces.
 WELD = 1e-6
@@ -101,14 +102,6 @@ def _size(scene: Scene) -> float:
     return size if size > 0 else 1.0
 
 
-def weld(scene: Scene) -> np.ndarray:
-    """(v,) int: one id per distinct vertex position (rounded to ``WELD`` x scene size)."""
-    centre = 0.5 * (scene.bounds[0] + scene.bounds[1])
-    key = np.rint((scene.vertices - centre) / (WELD * _size(scene))).astype(np.int64)
-    _, ids = np.unique(key, axis=0, return_inverse=True)
-    return ids.reshape(-1)
-
-
 def find_face_problems(scene: Scene) -> FaceReport:
     """Duplicate, coplanar-overlapping and face-to-face triangles (see module docstring).
 
@@ -127,7 +120,7 @@ def find_face_problems(scene: Scene) -> FaceReport:
     if n < 2:
         return FaceReport(empty, empty, empty)
     normals = np.asarray(scene.normals)
-    corners = np.sort(weld(scene)[scene.faces], axis=1)
+    corners = np.sort(weld(scene.vertices, scene.faces, rel_tol=WELD, bounds=scene.bounds), axis=1)
     _, group = np.unique(corners, axis=0, return_inverse=True)
     group = group.reshape(-1)
     order = np.lexsort((np.arange(n), group))

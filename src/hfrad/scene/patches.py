@@ -17,6 +17,7 @@ import numpy as np
 from ..errors import InputError, SceneError
 from .conform import conforming_subdivide
 from .scene import Scene
+from .weld import weld_points
 
 
 #: Peak memory per patch while cutting faces into patches and holding the result. Measured on the
@@ -33,20 +34,20 @@ def min_patches_for_edge(total_area: float, max_edge: float) -> float:
     return float(total_area) / (EQUILATERAL_AREA * float(max_edge) ** 2)
 
 
-def _edge_lengths(tri: np.ndarray) -> np.ndarray:
-    """(n, 3, 3) triangles -> (n,) longest edge length."""
+def longest_edges(tri: np.ndarray) -> np.ndarray:
+    """(n,) metres: the longest edge of each of the (n, 3, 3) triangles ``tri``."""
     e = np.stack([tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 1], tri[:, 0] - tri[:, 2]], axis=1)
     return np.linalg.norm(e, axis=2).max(axis=1)
 
 
 def splits_for_edge(scene: Scene, max_edge: float) -> np.ndarray:
     """(n,) int: splits per edge so that no sub-triangle edge exceeds ``max_edge``."""
-    return np.maximum(1, np.ceil(_edge_lengths(scene.triangles) / max_edge - 1e-9)).astype(np.int64)
+    return np.maximum(1, np.ceil(longest_edges(scene.triangles) / max_edge - 1e-9)).astype(np.int64)
 
 
 def max_edge_for_count(scene: Scene, patches: int) -> float:
     """Longest-edge limit giving approximately ``patches`` patches (bisection)."""
-    longest = _edge_lengths(scene.triangles)
+    longest = longest_edges(scene.triangles)
     if patches <= len(longest):
         return float(longest.max())
     lo, hi = float(longest.max()) / math.sqrt(patches) / 100, float(longest.max())
@@ -152,7 +153,9 @@ def split_faces(scene: Scene, splits: np.ndarray) -> tuple[Scene, np.ndarray]:
     points_all = np.concatenate(points)
     faces_all = np.concatenate(faces)
     owner_all = np.concatenate(owner)
-    vertices, faces_all = _merge_vertices(points_all, faces_all, scene)
+    ids = weld_points(points_all, bounds=scene.bounds)  # neighbouring patches share their corners
+    _, first = np.unique(ids, return_index=True)
+    vertices, faces_all = points_all[first], ids[faces_all]
     order = np.argsort(owner_all, kind="stable")  # keep patches of one face together
     faces_all, owner_all = faces_all[order], owner_all[order]
     return Scene(
@@ -163,23 +166,6 @@ def split_faces(scene: Scene, splits: np.ndarray) -> tuple[Scene, np.ndarray]:
         occluder_vertices=scene.occluder_vertices, occluder_faces=scene.occluder_faces,
         name=scene.name, warnings=scene.warnings,
     ), owner_all
-
-
-def _merge_vertices(points: np.ndarray, faces: np.ndarray, scene: Scene) -> tuple[np.ndarray, np.ndarray]:
-    """Merge coincident points so neighbouring patches share vertices.
-
-    Points within 1e-9 of the scene's size are one point, measured from the scene's centre: a tolerance
-    relative to the largest coordinate merged whole patches of a box lying far from the origin. The step
-    never falls below float64's rounding at those coordinates, so equal points computed twice still meet.
-    """
-    lo, hi = np.asarray(scene.bounds, dtype=np.float64)
-    centre = 0.5 * (lo + hi)
-    size = float(np.max(hi - lo))
-    rounding = 64 * np.finfo(np.float64).eps * float(np.abs(scene.bounds).max())
-    step = max(size * 1e-9, rounding) or 1.0
-    key = np.rint((points - centre) / step).astype(np.int64)
-    _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
-    return points[first], inverse.reshape(-1)[faces]
 
 
 def drop_degenerate(scene: Scene, *, rel_area: float = 1e-12) -> Scene:

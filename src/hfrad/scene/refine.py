@@ -18,17 +18,10 @@ import numpy as np
 
 from ..errors import InputError, SceneError
 from .scene import Scene
+from .weld import weld
 
 #: Rec. 709 luminance weights of RGB radiosity.
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
-
-
-def _vertex_ids(scene: Scene) -> np.ndarray:
-    """(t, 3) vertex indices with coincident vertices merged (patches of two faces share them)."""
-    scale = float(np.abs(scene.bounds).max()) or 1.0
-    key = np.rint(scene.vertices / (scale * 1e-9)).astype(np.int64)
-    _, inverse = np.unique(key, axis=0, return_inverse=True)
-    return inverse.reshape(-1)[scene.faces]
 
 
 def _edges(F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -57,7 +50,7 @@ def marks_from_radiosity(scene: Scene, radiosity: np.ndarray, threshold: float) 
     L = B @ LUMINANCE if B.ndim == 2 else B
     if L.shape != (scene.n_patches,):
         raise InputError(f"radiosity has {L.shape[0]} rows for {scene.n_patches} patches")
-    F = _vertex_ids(scene)
+    F = weld(scene.vertices, scene.faces)  # patches of two faces share corners
     _, edge_of = _edges(F)
     # the (up to two) patches on each edge
     tri = np.repeat(np.arange(len(F)), 3)
@@ -85,7 +78,7 @@ def refine_patches(scene: Scene, marked: np.ndarray) -> Scene:
     marked = np.asarray(marked, dtype=bool).reshape(-1)
     if marked.shape != (scene.n_patches,):
         raise InputError(f"marks have {marked.size} entries for {scene.n_patches} patches")
-    F = _vertex_ids(scene)
+    F = weld(scene.vertices, scene.faces)  # patches of two faces share corners
     edges, edge_of = _edges(F)
     red = marked.copy()
     while True:  # red patches cut all their edges; a patch with two or more cut edges turns red

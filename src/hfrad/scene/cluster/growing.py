@@ -1,44 +1,11 @@
-"""Patches that are clusters of triangles: a real mesh at the patch count asked for.
+"""Region growing: faces of an unclustered scene grown into clusters of about a target area.
 
-Game-level and CAD meshes are made of many small triangles (mouldings,
-railings, chair legs) whose light matters in aggregate. When ``--patches N``
-asks for fewer patches than the scene has faces, :func:`cluster` grows
-adjacent triangles into patches of roughly equal area instead of giving each
-triangle its own patch (the "target mesh / detail mesh" split of production
-radiosity systems):
-
-1. Target area A* = total area / N (times a factor found by a few secant
-   steps so that the patch count comes out within ~5 % of N).
-1b. Faces longer than PRESPLIT_EDGE sqrt(A*) are first cut by longest-edge
-   bisection until no piece is (:func:`presplit`), and the pieces are grown
-   like any small face: a long thin face (Sponza's floor strips) would otherwise be a
-   long thin patch, one radiosity value along a strip; now its pieces join
-   their neighbours across the strip into compact patches.
-2. Faces larger than A* are split m x m, m = round(sqrt(area / A*)), as
-   :func:`hfrad.scene.patches.subdivide` does; each piece is a patch.
-3. The other faces are grown into clusters. Seeds are taken along the Z-order
-   curve of the face centroids; a cluster absorbs the unassigned neighbour
-   (sharing a vertex, welded by position) nearest to its seed while its area
-   is below A*, if the neighbour has the same material, group, reflectance
-   and emission, its normal is within ``normal_tolerance`` of the cluster's
-   mean normal, and it lies within ``1.5 sqrt(A*)`` of the seed (compact
-   patches); a patch holds at most MAX_TRIANGLES triangles (this bounds the
-   form-factor cost of a pair of patches).
-4. Leftover slivers smaller than A*/4 join a compatible adjacent cluster;
-   clusters under A*/2 that touch none (separate small parts, gaps, T-joints)
-   join a compatible one among the nearest within 1.5 sqrt(A*) if the union
-   stays within the normal tolerance; crumbs under A*/100 join the nearest
-   one of their material whatever its normal (a patch of almost no area
-   would make the columns of F, A_j F_ji / A_i, huge).
-
-With ``max_edge=L`` faces longer than L are split as before and faces shorter
-than L/2 are grown into patches no wider than L (no area limit).
-
-Each triangle belongs to exactly one patch (``Scene.triangle_patch``); the
-patch's area is the sum of its triangles' areas, so area per material is
-conserved exactly, and its normal is the area-weighted mean normal
-(``Scene.non_flatness`` measures how far from flat it is). The occluder mesh
-is the original mesh, untouched.
+:class:`FaceGraph` holds the per-face arrays (welded corners, vertex stars,
+centroids, normals, areas, compatibility classes, Z-order seeds) and
+:meth:`FaceGraph.grow` runs the three passes of step 3 and 4 of
+:mod:`hfrad.scene.cluster`: greedy growing from seeds along the Z-order
+curve, merging small clusters into an adjacent one, and merging the ones
+still small into a nearby one (or, for crumbs, the nearest one).
 """
 
 from __future__ import annotations
@@ -49,12 +16,10 @@ import math
 import numpy as np
 from numba import njit
 
-from .patches import split_faces
-from .scene import Scene
-from .zorder import zorder_permutation
-
-#: Default largest angle between a triangle's normal and its patch's mean normal, degrees.
-NORMAL_TOLERANCE = 30.0
+from ..patches import longest_edges
+from ..scene import Scene
+from ..weld import row_ids, weld
+from ..zorder import zorder_permutation
 
 #: A cluster may reach this far from its seed, in units of sqrt(target area).
 REACH = 1.5
@@ -80,47 +45,6 @@ CRUMB_CAP = 4
 #: Nearest clusters considered, and rounds of nearby merging.
 NEARBY_CANDIDATES = 8
 NEARBY_ROUNDS = 4
-
-#: Accept a patch count within this relative distance of the one asked for.
-COUNT_TOLERANCE = 0.05
-
-#: Faces longer than this times sqrt(target area) are cut before growing (compact patches).
-PRESPLIT_EDGE = 1.5
-
-
-def weld(vertices: np.ndarray, faces: np.ndarray, *, rel_tol: float = 1e-9) -> np.ndarray:
-    """(n, 3) int: face corners renumbered so coincident vertices share one id.
-
-    Positions are rounded to ``rel_tol`` times the largest coordinate, so
-    triangle soups (every face with its own three vertices) become meshes.
-    """
-    vertices = np.asarray(vertices, dtype=np.float64)
-    faces = np.asarray(faces, dtype=np.int64)
-    if not len(faces):
-        return faces.reshape(0, 3)
-    scale = float(np.abs(vertices).max(initial=0.0)) or 1.0
-    key = np.rint(vertices / (scale * rel_tol)).astype(np.int64)
-    return row_ids(key)[faces]
-
-
-def row_ids(table: np.ndarray) -> np.ndarray:
-    """(n,) int64: equal rows of the (n, k) ``table`` get equal ids 0..u-1 (in sorted row order).
-
-    Same as ``np.unique(table, axis=0, return_inverse=True)[1]``, several times faster
-    (a lexsort on the columns instead of sorting rows as opaque records).
-    """
-    table = np.asarray(table)
-    n = len(table)
-    if n == 0:
-        return np.zeros(0, np.int64)
-    order = np.lexsort(table.T[::-1])
-    ordered = table[order]
-    new = np.empty(n, bool)
-    new[0] = True
-    np.any(ordered[1:] != ordered[:-1], axis=1, out=new[1:])
-    ids = np.empty(n, np.int64)
-    ids[order] = np.cumsum(new) - 1
-    return ids
 
 
 def compatibility_classes(scene: Scene) -> np.ndarray:
@@ -398,8 +322,12 @@ def _relabel(label: np.ndarray) -> int:
     return len(used)
 
 
-class _Mesh:
-    """Per-face arrays of an unclustered scene that the growing needs (computed once)."""
+class FaceGraph:
+    """Per-face arrays of an unclustered scene that the growing needs (computed once).
+
+    Faces are adjacent when they share a corner, corners being welded by
+    position (:func:`hfrad.scene.weld.weld`), so triangle soups grow too.
+    """
 
     def __init__(self, scene: Scene) -> None:
         tri = scene.triangles
@@ -410,12 +338,37 @@ class _Mesh:
         self.normals = np.ascontiguousarray(scene.normals)
         self.areas = np.ascontiguousarray(scene.areas)
         self.reach = np.linalg.norm(tri - self.centroids[:, None], axis=2).max(axis=1) if len(tri) else np.zeros(0)
-        self.longest = _longest_edges(tri)
+        self.longest = longest_edges(tri)
         self.key = compatibility_classes(scene)
         self.seeds = zorder_permutation(self.centroids)
 
     def grow(self, eligible: np.ndarray, cos_tol: float, a_max: float, r_max: float,
              merge: bool, max_triangles: int = 0) -> tuple[np.ndarray, int]:
+        """Grow the ``eligible`` faces into clusters.
+
+        Parameters
+        ----------
+        eligible : (t,) bool
+            Faces that may join a cluster (the others keep label -1).
+        cos_tol : float
+            Cosine of the largest angle between a face's normal and its cluster's mean normal.
+        a_max : float, m^2
+            Target cluster area: growing stops at it (``np.inf``: no area limit).
+        r_max : float, metres
+            Largest distance of a face's corners from its cluster's seed.
+        merge : bool
+            Then merge clusters below ``MERGE_BELOW * a_max`` into an adjacent one,
+            those below ``NEARBY_BELOW * a_max`` into a nearby one, crumbs into the nearest.
+        max_triangles : int
+            Most faces in a cluster (0: ``MAX_TRIANGLES``).
+
+        Returns
+        -------
+        label : (t,) int64
+            Cluster of each face, 0..count-1, or -1 for faces not eligible.
+        count : int
+            Number of clusters.
+        """
         max_triangles = max_triangles or MAX_TRIANGLES
         label = np.full(len(self.areas), -1, np.int64)
         count = _grow(self.seeds, eligible, self.key, self.welded, self.vstart, self.vtris, self.centroids,
@@ -506,230 +459,3 @@ class _Mesh:
         s_cen, s_rad = _cluster_spheres(label, count, self.centroids, self.reach, self.areas)
         return _merge_nearby(label, c_area, c_vec, c_key, c_count, s_cen, s_rad, np.ascontiguousarray(cand),
                              NEARBY_BELOW * a_max, CRUMB * a_max, a_max, cos_tol, cos_pair, max_triangles, 2.0 * r_max)
-
-
-def cluster(scene: Scene, *, patches: int | None = None, max_edge: float | None = None,
-            normal_tolerance: float = NORMAL_TOLERANCE) -> Scene:
-    """Group a scene's faces into patches of about equal area (see the module docstring).
-
-    Parameters
-    ----------
-    scene : Scene
-        Unclustered (one triangle per patch), degenerate faces already dropped.
-    patches : int, optional
-        Patch count to aim for (met within ~5 % where the mesh allows it).
-    max_edge : float, metres, optional
-        Instead of ``patches``: split faces longer than this, and grow faces
-        shorter than half of it into patches no wider than it.
-    normal_tolerance : float, degrees
-        Largest angle between a triangle's normal and its patch's mean normal.
-
-    Returns
-    -------
-    Scene
-        ``faces`` are the detail triangles (the input faces, large ones split),
-        ``triangle_patch`` maps each to its patch; patches are in Z-order of
-        their centroids and each patch's triangles are contiguous. When the
-        request cannot be met (fewer patches than materials and separate
-        surfaces allow), the scene carries a warning saying so.
-
-    Raises
-    ------
-    ValueError
-        Both or neither of ``patches`` and ``max_edge``; bad values; an
-        already clustered scene.
-
-    Examples
-    --------
-    >>> from hfrad.scene.builtin import cornell_box
-    >>> from hfrad.scene.patches import subdivide
-    >>> fine = subdivide(cornell_box(), patches=4000)
-    >>> coarse = cluster(fine, patches=1000)
-    >>> bool(abs(coarse.n_patches - 1000) <= 100), coarse.n_triangles == fine.n_patches
-    (True, True)
-    >>> bool(np.isclose(coarse.total_area, fine.total_area, rtol=1e-12))
-    True
-    """
-    if (patches is None) == (max_edge is None):
-        raise ValueError("give either patches or max_edge to cluster, not both or neither")
-    if scene.is_clustered:
-        raise ValueError(f"{scene.name}: the scene is already clustered")
-    if not (0.0 < normal_tolerance < 90.0):
-        raise ValueError(f"normal_tolerance must be in (0, 90) degrees, got {normal_tolerance}")
-    if patches is not None and (int(patches) != patches or patches < 1):
-        raise ValueError(f"patches must be a whole number >= 1, got {patches}")
-    if max_edge is not None and not (max_edge > 0 and math.isfinite(max_edge)):
-        raise ValueError(f"max_edge must be a positive length, got {max_edge}")
-    if scene.n_patches == 0:
-        return scene
-    if patches is not None:
-        scene = presplit(scene, PRESPLIT_EDGE * math.sqrt(scene.total_area / patches))
-    mesh = _Mesh(scene)
-    cos_tol = math.cos(math.radians(normal_tolerance))
-    if max_edge is not None:
-        splits = np.maximum(1, np.ceil(mesh.longest / max_edge - 1e-9)).astype(np.int64)
-        eligible = mesh.longest < 0.5 * max_edge
-        label, count = mesh.grow(eligible, cos_tol, np.inf, 0.5 * max_edge, merge=False)
-        return _build(scene, splits, label, count, note=None)
-    label, splits, count = _fit_count(mesh, int(patches), cos_tol)
-    total = int((splits[splits > 1] ** 2).sum()) + count
-    note = None
-    if total > (1 + COUNT_TOLERANCE) * patches:
-        floor = _fewest(mesh, cos_tol)
-        why = (f"clusters cannot cross materials or groups, bend more than {normal_tolerance:g} degrees, "
-               f"bridge gaps wider than {REACH:g} sqrt(patch area) or hold more than {MAX_TRIANGLES} triangles, "
-               f"so this mesh needs at least about {max(floor, -(-mesh.areas.size // MAX_TRIANGLES)):,}")
-        note = (f"--patches {patches:,} cannot be met: got {total:,} patches; " + why if floor > patches else
-                f"--patches {patches:,} was met only to {total:,} patches (small separate parts limit the merging; "
-                + why + ")")
-    return _build(scene, splits, label, count, note=note)
-
-
-def presplit(scene: Scene, max_edge: float) -> Scene:
-    """The unclustered scene with every face longer than ``max_edge`` bisected until none is.
-
-    Longest-edge bisection (cut at the midpoint of the longest edge, again and
-    again): a sliver of length L becomes ~2 L / max_edge pieces, not the
-    (L / max_edge)^2 of an m x m split, and a well-shaped face gets
-    well-shaped pieces. Area and orientation are kept exactly; coincident
-    points are merged (the growing welds by position anyway); ``parent``
-    still names the input face. Unchanged when no face is that long.
-    """
-    tri = scene.triangles
-    owner = np.arange(len(tri))
-    long = _longest_edges(tri) > max_edge
-    if not long.any():
-        return scene
-    done_tri, done_owner = [tri[~long]], [owner[~long]]
-    tri, owner = tri[long], owner[long]
-    while len(tri):
-        # rotate each triangle so that its longest edge is (corner 0, corner 1), then cut it there
-        k = np.argmax(np.linalg.norm(np.roll(tri, -1, axis=1) - tri, axis=2), axis=1)
-        rot = (k[:, None] + np.arange(3)[None]) % 3
-        a, b, c = (tri[np.arange(len(tri)), rot[:, q]] for q in range(3))
-        mid = 0.5 * (a + b)
-        tri = np.concatenate([np.stack([a, mid, c], axis=1), np.stack([mid, b, c], axis=1)])
-        owner = np.concatenate([owner, owner])
-        long = _longest_edges(tri) > max_edge
-        done_tri.append(tri[~long])
-        done_owner.append(owner[~long])
-        tri, owner = tri[long], owner[long]
-    tri = np.concatenate(done_tri)
-    owner = np.concatenate(done_owner)
-    order = np.argsort(owner, kind="stable")  # pieces of one face together, in face order
-    tri, owner = tri[order], owner[order]
-    points = tri.reshape(-1, 3)
-    ids = weld(points, np.arange(len(points)).reshape(-1, 1)).reshape(-1)  # coincident points share an id
-    vertices = np.empty((int(ids.max()) + 1, 3))
-    vertices[ids] = points
-    faces = ids.reshape(-1, 3)
-    return Scene(vertices=vertices, faces=faces, material=scene.material[owner], materials=scene.materials,
-                 group=scene.group[owner], groups=scene.groups, reflectance=scene.reflectance[owner],
-                 emission=scene.emission[owner], parent=scene.parent[owner],
-                 occluder_vertices=scene.occluder_vertices, occluder_faces=scene.occluder_faces,
-                 name=scene.name, warnings=scene.warnings)
-
-
-def _longest_edges(tri: np.ndarray) -> np.ndarray:
-    """(t,) longest edge of each of (t, 3, 3) triangles."""
-    if not len(tri):
-        return np.zeros(0)
-    return np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max(axis=1)
-
-
-def _fit_count(mesh: _Mesh, patches: int, cos_tol: float) -> tuple[np.ndarray, np.ndarray, int]:
-    """Secant steps on the target area until the patch count is within COUNT_TOLERANCE."""
-    total_area = float(mesh.areas.sum())
-    factor = 1.0
-    best = None
-    for _ in range(8):
-        a_max = factor * total_area / patches
-        splits = np.maximum(1, np.rint(np.sqrt(mesh.areas / a_max))).astype(np.int64)
-        eligible = splits == 1
-        label, count = mesh.grow(eligible, cos_tol, a_max, REACH * math.sqrt(a_max), merge=True)
-        total = int((splits[~eligible] ** 2).sum()) + count
-        if best is None or abs(total - patches) < abs(best[0] - patches):
-            best = (total, label, splits, count)
-        if abs(total - patches) <= COUNT_TOLERANCE * patches:
-            break
-        # patch count ~ 1 / target area where clustering works; damp the step
-        factor *= (total / patches) ** 0.9
-    return best[1], best[2], best[3]
-
-
-def _fewest(mesh: _Mesh, cos_tol: float) -> int:
-    """Patches left when clusters may grow without limit (materials, groups, creases, gaps)."""
-    eligible = np.ones(len(mesh.areas), bool)
-    total = float(mesh.areas.sum())
-    return mesh.grow(eligible, cos_tol, total, float(np.ptp(mesh.centroids, axis=0).max()), merge=True,
-                     max_triangles=len(mesh.areas))[1]
-
-
-def _build(scene: Scene, splits: np.ndarray, label: np.ndarray, count: int, note: str | None) -> Scene:
-    """The clustered scene: split faces become one patch per piece, clusters one patch each."""
-    split_scene, owner = split_faces(scene, splits)
-    # a piece of a split face, or a face that was not grown (too long), is a patch on its own
-    single = (splits[owner] > 1) | (label[owner] < 0)
-    tri_patch = np.empty(len(owner), np.int64)
-    tri_patch[~single] = label[owner[~single]]
-    tri_patch[single] = count + np.arange(int(single.sum()))
-    n = count + int(single.sum())
-    # one face -> one patch: per-patch material etc. from any of its triangles
-    first = np.full(n, -1, np.int64)
-    first[tri_patch[::-1]] = np.arange(len(tri_patch))[::-1]
-    # patches in Z-order of their centroids, triangles grouped by patch
-    draft = split_scene.replace(material=split_scene.material[first], group=split_scene.group[first],
-                                reflectance=split_scene.reflectance[first], emission=split_scene.emission[first],
-                                triangle_patch=tri_patch)
-    rank = np.empty(n, np.int64)
-    rank[zorder_permutation(draft.centroids)] = np.arange(n)
-    tri_patch = rank[tri_patch]
-    tri_order = np.argsort(tri_patch, kind="stable")
-    first_sorted = first[np.argsort(rank)]
-    warnings = split_scene.warnings + ((note,) if note else ())
-    return Scene(
-        vertices=split_scene.vertices, faces=split_scene.faces[tri_order],
-        material=split_scene.material[first_sorted], materials=scene.materials,
-        group=split_scene.group[first_sorted], groups=scene.groups,
-        reflectance=split_scene.reflectance[first_sorted], emission=split_scene.emission[first_sorted],
-        parent=split_scene.parent[tri_order], triangle_patch=tri_patch[tri_order],
-        occluder_vertices=scene.occluder_vertices, occluder_faces=scene.occluder_faces,
-        name=scene.name, warnings=warnings)
-
-
-def patch_diameters(scene: Scene) -> np.ndarray:
-    """(n,) metres: twice the largest distance of a patch's corners from its centroid.
-
-    At least the patch's diameter and at most twice it (a disk: exactly it).
-    """
-    start, index = scene.patch_triangles
-    if not len(index):
-        return np.zeros(scene.n_patches)
-    owner = np.repeat(np.arange(scene.n_patches), np.diff(start))
-    reach = np.linalg.norm(scene.triangles[index] - scene.centroids[owner][:, None], axis=2).max(axis=1)
-    return 2.0 * np.maximum.reduceat(reach, start[:-1])
-
-
-def compactness(scene: Scene) -> np.ndarray:
-    """(n,) D^2 / A per patch, D from :func:`patch_diameters`: 4 / pi for a disk, about 2.3 to 5 for
-    squares and equilateral triangles, ~ length / width for a long strip."""
-    if not scene.n_patches:
-        return np.zeros(0)
-    return patch_diameters(scene) ** 2 / np.maximum(scene.areas, 1e-300)
-
-
-def cluster_summary(scene: Scene) -> dict:
-    """What clustering did: patches, triangles per patch, worst non-flatness, compactness."""
-    per = np.bincount(scene.patch_of_triangle, minlength=scene.n_patches) if scene.n_patches else np.zeros(0, int)
-    nf = scene.non_flatness
-    q = compactness(scene)
-    return {
-        "clustered": scene.is_clustered,
-        "triangles": scene.n_triangles,
-        "triangles_per_patch": {"mean": float(per.mean()) if per.size else 0.0,
-                                "max": int(per.max(initial=0)), "median": float(np.median(per)) if per.size else 0.0},
-        "worst_non_flatness": float(nf.max(initial=0.0)),
-        "area_cv": float(scene.areas.std() / scene.areas.mean()) if per.size else 0.0,
-        "compactness": {"median": float(np.median(q)) if q.size else 0.0,
-                        "p99": float(np.percentile(q, 99)) if q.size else 0.0, "max": float(q.max(initial=0.0))},
-    }

@@ -1,0 +1,123 @@
+"""Welding: one vertex id per distinct position.
+
+Meshes arrive as triangle soups (every face with its own three corners),
+cutting faces into patches computes a shared edge's points once per face, and
+refinement, clustering and the duplicate-face check all need to know which
+corners are the same point. :func:`weld_points` is the one rule they share;
+:func:`weld` applies it to the corners of faces.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: Default welding tolerance, relative to the size of the points' bounding box (its largest side).
+REL_TOL = 1e-9
+
+#: The grid step never falls below this many units in the last place of the largest coordinate, so
+#: one point computed twice (rounded differently) still welds far from the origin.
+ULPS = 64
+
+
+def weld_points(points: np.ndarray, *, rel_tol: float = REL_TOL, bounds: np.ndarray | None = None) -> np.ndarray:
+    """(p,) int64: one id 0..u-1 per distinct position of the (p, 3) ``points``.
+
+    Each point is rounded to a grid of step ``h`` centred on its bounding box,
+
+        key = rint((x - c) / h),   c = (lo + hi) / 2,
+        h = max(rel_tol * max(hi - lo), ULPS * eps * max|lo, hi|),
+
+    (``eps`` = 2.2e-16, the float64 spacing at 1; ``h = 1`` when both terms are
+    zero, e.g. a single point), and points with equal keys share an id. So
+    points that differ by more than ``h`` along some axis are never welded,
+    and points much closer than ``h`` are welded unless a grid cell's border
+    passes between them. The tolerance is relative to the scene's size and
+    measured from its centre: a small scene far from the origin welds as it
+    would at the origin, until coordinates are so large that float64 cannot
+    resolve ``rel_tol`` of the size.
+
+    Parameters
+    ----------
+    points : (p, 3) float
+        Positions, in the scene's frame (metres).
+    rel_tol : float
+        Grid step as a fraction of the bounding box's largest side.
+    bounds : (2, 3) float, optional
+        (lo, hi) corners of the box that sets ``c`` and the size; default the
+        points' own bounding box. Pass ``Scene.bounds`` to weld relative to the
+        scene rather than to a subset of its points.
+
+    Returns
+    -------
+    ids : (p,) int64
+        ``ids[i] == ids[j]`` when points i and j are one vertex; ids are
+        numbered in lexicographic order of the rounded positions, and
+        ``ids.max() + 1`` is the number of distinct vertices.
+
+    Examples
+    --------
+    >>> p = np.array([[0.0, 0, 0], [1, 0, 0], [1 + 3e-11, 0, 0], [1 + 3e-9, 0, 0], [0, 1, 0]])
+    >>> weld_points(p).tolist()  # h = 1e-9: the point 3e-11 away is welded, the one 3e-9 away is not
+    [0, 2, 2, 3, 1]
+    """
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if not len(points):
+        return np.zeros(0, np.int64)
+    lo, hi = (points.min(axis=0), points.max(axis=0)) if bounds is None else np.asarray(bounds, np.float64)
+    rounding = ULPS * np.finfo(np.float64).eps * float(max(np.abs(lo).max(), np.abs(hi).max()))
+    step = max(rel_tol * float(np.max(hi - lo)), rounding) or 1.0
+    key = np.rint((points - 0.5 * (lo + hi)) / step).astype(np.int64)
+    return row_ids(key)
+
+
+def weld(vertices: np.ndarray, faces: np.ndarray, *, rel_tol: float = REL_TOL,
+         bounds: np.ndarray | None = None) -> np.ndarray:
+    """(t, k) int64: ``faces`` renumbered so that corners at one position share one id.
+
+    The rule is :func:`weld_points`'s; the default ``bounds`` is the box of the
+    vertices the faces use (``Scene.bounds``), so unused vertices do not change
+    the tolerance.
+
+    Parameters
+    ----------
+    vertices : (v, 3) float
+        Positions (metres).
+    faces : (t, k) int
+        Indices into ``vertices`` (k = 3 for triangles).
+    rel_tol, bounds
+        As for :func:`weld_points`.
+
+    Returns
+    -------
+    (t, k) int64
+        Welded vertex ids: corners at one position have one id. Ids are
+        numbered over all of ``vertices``, so unused vertices may leave gaps.
+    """
+    vertices = np.asarray(vertices, dtype=np.float64)
+    faces = np.asarray(faces, dtype=np.int64)
+    if not faces.size:
+        return faces.reshape(0, faces.shape[1] if faces.ndim == 2 else 3)
+    if bounds is None:
+        used = vertices[faces.reshape(-1)]
+        bounds = np.array([used.min(axis=0), used.max(axis=0)])
+    return weld_points(vertices, rel_tol=rel_tol, bounds=bounds)[faces]
+
+
+def row_ids(table: np.ndarray) -> np.ndarray:
+    """(n,) int64: equal rows of the (n, k) ``table`` get equal ids 0..u-1, in lexicographic row order.
+
+    Same as ``np.unique(table, axis=0, return_inverse=True)[1]``, computed by a
+    lexsort on the columns instead of sorting rows as opaque records (faster).
+    """
+    table = np.asarray(table)
+    n = len(table)
+    if n == 0:
+        return np.zeros(0, np.int64)
+    order = np.lexsort(table.T[::-1])
+    ordered = table[order]
+    new = np.empty(n, bool)
+    new[0] = True
+    np.any(ordered[1:] != ordered[:-1], axis=1, out=new[1:])
+    ids = np.empty(n, np.int64)
+    ids[order] = np.cumsum(new) - 1
+    return ids
