@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from hfrad.errors import InputError, SceneError
 from hfrad.formfactors.analytic import parallel_rectangles
 from hfrad.formfactors.blocks import form_factor_matrix
 from hfrad.scene.builtin import cornell_box, parallel_plates
@@ -235,3 +236,26 @@ def test_clustered_scene_renders_exports_and_round_trips(tmp_path, fine_cornell)
         back = _read_scene(f["patches"])
     np.testing.assert_array_equal(back.triangle_patch, c.triangle_patch)
     np.testing.assert_allclose(back.areas, c.areas)
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({}, r"give either max_edge .* or patches"),
+    ({"patches": 100, "max_edge": 0.1}, r"not both \(got max_edge=0.1, patches=100\)"),
+    ({"patches": 0}, r"patches must be a whole number >= 1, got 0"),
+    ({"patches": 10.5}, r"patches must be a whole number >= 1, got 10.5"),
+    ({"patches": True}, r"patches must be a whole number >= 1, got True"),
+    ({"patches": "100"}, r"patches must be a whole number >= 1, got '100'"),
+    ({"max_edge": -1.0}, r"max_edge must be a positive finite length in metres, got -1.0"),
+    ({"max_edge": float("inf")}, r"max_edge must be a positive finite length in metres, got inf"),
+    ({"patches": 100, "normal_tolerance": 90}, r"normal_tolerance must be an angle in \(0, 90\) degrees, got 90"),
+    ({"patches": 100, "normal_tolerance": "30"}, r"normal_tolerance must be an angle .* got '30'"),
+])
+def test_bad_cluster_options_are_the_callers_mistake(kwargs, match):
+    with pytest.raises(InputError, match=match):
+        cluster(cornell_box(), **kwargs)
+
+
+def test_clustering_a_clustered_scene_names_the_scene():
+    c = cluster(subdivide(cornell_box(), patches=400), patches=100)
+    with pytest.raises(SceneError, match=r"cornell.*already clustered \(\d+ triangles in \d+ patches\)"):
+        cluster(c, patches=50)

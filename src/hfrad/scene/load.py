@@ -16,12 +16,13 @@ from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
-from ..errors import InputError, SceneError
+from ..errors import SceneError
 from ..memory import require
 from .builtin import BUILTIN_SCENES, builtin_scene
 from .cleanup import merge_duplicates
 from .cluster import cluster
-from .patches import MESH_BYTES_PER_PATCH, drop_degenerate, min_patches_for_edge, subdivide
+from .patches import (MESH_BYTES_PER_PATCH, check_cut_options, drop_degenerate, longest_edges,
+                      min_patches_for_edge, subdivide)
 from .scene import Material, Scene
 
 MAX_COLOUR_REFLECTANCE = 0.99  # a white colour (1.0) would create energy: clamp colours to this
@@ -106,24 +107,10 @@ def load_scene(
         scene = set_emission(scene, emit)
     if area_light is not None:
         scene = add_area_light(scene, area_light)
-    _check_cut_options(max_edge, patches)
+    check_cut_options(max_edge, patches)
     scene = drop_degenerate(scene)
     scene = merge_duplicates(scene, keep_duplicates=keep_duplicates)
     return cut_patches(scene, max_edge=max_edge, patches=patches)
-
-
-def _check_cut_options(max_edge, patches) -> None:
-    if max_edge is not None and patches is not None:
-        raise InputError("give either max_edge or patches, not both")
-    if patches is not None and (isinstance(patches, bool) or not float(patches).is_integer() or patches < 1):
-        raise InputError(f"patches must be a whole number >= 1, got {patches}")
-    if max_edge is not None and not (max_edge > 0 and np.isfinite(max_edge)):
-        raise InputError(f"max_edge must be a positive length, got {max_edge}")
-
-
-def _longest_edges(scene: Scene) -> np.ndarray:
-    tri = scene.triangles
-    return np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max(axis=1)
 
 
 def _clusters_small_faces(longest: np.ndarray, max_edge: float) -> bool:
@@ -160,14 +147,14 @@ def estimate_patch_count(scene: Scene, *, max_edge: float | None = None, patches
     InputError
         Both options, ``patches < 1`` or a ``max_edge`` that is not a positive length.
     """
-    _check_cut_options(max_edge, patches)
+    check_cut_options(max_edge, patches)
     n = scene.n_patches
     if patches is not None:
         return int(patches)
     if max_edge is None or n == 0:
         return n
     h = float(max_edge)
-    longest = _longest_edges(scene)
+    longest = longest_edges(scene.triangles)
     if _clusters_small_faces(longest, h):
         small = longest < 0.5 * h
         split = np.ceil(longest[~small] / h - 1e-9)
@@ -201,7 +188,7 @@ def cut_patches(scene: Scene, *, max_edge: float | None = None, patches: int | N
                 "area / (0.433 max_edge^2) at least (docs: hfrad.scene.load.estimate_patch_count)")
     if patches is not None and patches < scene.n_patches:
         return cluster(scene, patches=int(patches))
-    if max_edge is not None and scene.n_patches and _clusters_small_faces(_longest_edges(scene), max_edge):
+    if max_edge is not None and scene.n_patches and _clusters_small_faces(longest_edges(scene.triangles), max_edge):
         return cluster(scene, max_edge=max_edge)
     return subdivide(scene, max_edge=max_edge, patches=None if patches is None else int(patches))
 

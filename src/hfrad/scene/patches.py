@@ -81,6 +81,39 @@ def _grid_pattern(m: int) -> tuple[np.ndarray, np.ndarray]:
     return ij, np.array(tris, dtype=np.int64)
 
 
+def check_cut_options(max_edge, patches, *, one_required: bool = False) -> None:
+    """Check a request to cut (or cluster) a scene into patches: a longest edge or a patch count.
+
+    Parameters
+    ----------
+    max_edge : float, metres, or None
+        Must be a finite length > 0.
+    patches : int or None
+        Must be a whole number >= 1 (an integral float such as ``1e4`` passes).
+    one_required : bool
+        Refuse neither being given, too (else neither means "leave the faces as they are").
+
+    Raises
+    ------
+    InputError
+        Both given (or neither, with ``one_required``), or a value out of range.
+    """
+    if max_edge is not None and patches is not None:
+        raise InputError(f"give either max_edge or patches, not both (got max_edge={max_edge!r}, "
+                         f"patches={patches!r})")
+    if one_required and max_edge is None and patches is None:
+        raise InputError("give either max_edge (a longest patch edge, metres) or patches (a patch count)")
+    if patches is not None and not (_is_real(patches) and float(patches).is_integer() and patches >= 1):
+        raise InputError(f"patches must be a whole number >= 1, got {patches!r}")
+    if max_edge is not None and not (_is_real(max_edge) and max_edge > 0):
+        raise InputError(f"max_edge must be a positive finite length in metres, got {max_edge!r}")
+
+
+def _is_real(x) -> bool:
+    """A finite real number (int or float, numpy's too; not a bool, a string or None)."""
+    return isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, bool) and math.isfinite(x)
+
+
 def subdivide(scene: Scene, *, max_edge: float | None = None, patches: int | None = None) -> Scene:
     """Split the scene's faces into patches no longer than ``max_edge``.
 
@@ -97,17 +130,17 @@ def subdivide(scene: Scene, *, max_edge: float | None = None, patches: int | Non
     Scene
         Same materials and groups; ``parent`` maps each patch to its input face;
         the input faces are kept as the occluder mesh for ray casting.
+
+    Raises
+    ------
+    InputError
+        See :func:`check_cut_options`.
     """
-    if max_edge is not None and patches is not None:
-        raise InputError("give either max_edge or patches, not both")
+    check_cut_options(max_edge, patches)
     if patches is not None:
-        if patches < 1:
-            raise InputError(f"patches must be >= 1, got {patches}")
         max_edge = max_edge_for_count(scene, patches)
     if max_edge is None:
         return scene
-    if not (max_edge > 0 and math.isfinite(max_edge)):
-        raise InputError(f"max_edge must be a positive length, got {max_edge}")
     if patches is not None and patches <= scene.n_patches:
         return scene
     return conforming_subdivide(scene, max_edge) if patches is None else _mesh_for_count(scene, patches)

@@ -49,11 +49,12 @@ this module holds :func:`cluster` and re-exports their public names.
 from __future__ import annotations
 
 import math
+import numbers
 
 import numpy as np
 
 from ...errors import InputError, SceneError
-from ..patches import split_faces
+from ..patches import check_cut_options, split_faces
 from ..scene import Scene
 from ..weld import row_ids, weld
 from ..zorder import zorder_permutation
@@ -121,19 +122,12 @@ def cluster(scene: Scene, *, patches: int | None = None, max_edge: float | None 
     >>> bool(np.isclose(coarse.total_area, fine.total_area, rtol=1e-12))
     True
     """
-    if (patches is None) == (max_edge is None):
-        given = "both" if patches is not None else "neither"
-        raise InputError(f"cluster takes either patches or max_edge, not both or neither; got {given} "
-                         f"(patches={patches!r}, max_edge={max_edge!r})")
+    check_cut_options(max_edge, patches, one_required=True)
     if scene.is_clustered:
         raise SceneError(f"{scene.name}: the scene is already clustered ({scene.n_triangles:,} triangles in "
                          f"{scene.n_patches:,} patches); cluster the unclustered scene it was made from")
-    if not (_is_real(normal_tolerance) and 0.0 < normal_tolerance < 90.0):
+    if not (isinstance(normal_tolerance, numbers.Real) and 0.0 < normal_tolerance < 90.0):
         raise InputError(f"normal_tolerance must be an angle in (0, 90) degrees, got {normal_tolerance!r}")
-    if patches is not None and not (_is_real(patches) and float(patches).is_integer() and patches >= 1):
-        raise InputError(f"patches must be a whole number >= 1, got {patches!r}")
-    if max_edge is not None and not (_is_real(max_edge) and max_edge > 0):
-        raise InputError(f"max_edge must be a positive finite length in metres, got {max_edge!r}")
     if scene.n_patches == 0:
         return scene
     if patches is not None:
@@ -157,11 +151,6 @@ def cluster(scene: Scene, *, patches: int | None = None, max_edge: float | None 
                 f"--patches {patches:,} was met only to {total:,} patches (small separate parts limit the merging; "
                 + why + ")")
     return _build(scene, splits, label, count, note=note)
-
-
-def _is_real(x) -> bool:
-    """A finite real number (int or float, numpy's too; not a bool, a string or None)."""
-    return isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, bool) and math.isfinite(x)
 
 
 def _fit_count(mesh: FaceGraph, patches: int, cos_tol: float) -> tuple[np.ndarray, np.ndarray, int]:
