@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from hfrad.errors import InputError
 from hfrad.formfactors import analytic, form_factor_matrix, point_to_patch, unoccluded_block
 from hfrad.formfactors.kernel import PatchGeometry
 from hfrad.scene.builtin import coaxial_disks, cornell_box, parallel_plates, perpendicular_plates
@@ -101,8 +102,21 @@ def test_unequal_offset_parallel_rectangles_closed_form():
     assert 0 < exact < 1
     assert analytic.parallel_rectangles_offset((0, 2, 0, 1), (0, 2, 0, 1), 0.7) == pytest.approx(
         analytic.parallel_rectangles(2, 1, 0.7), rel=1e-12)
-    with pytest.raises(ValueError, match="distance"):
+    with pytest.raises(InputError, match="distance must be a positive finite length, got 0"):
         analytic.parallel_rectangles(1, 1, 0)
+
+
+def test_kernel_options_are_checked():
+    from hfrad.formfactors.kernel import split_centroids
+
+    scene = cornell_box()
+    with pytest.raises(InputError, match=r"tolerance must be in \(0, 1\), got 0"):
+        PatchGeometry(scene, tolerance=0.0)
+    with pytest.raises(InputError, match="need finite 0 <= adaptive <= near, got adaptive=4.0, near=3.0"):
+        PatchGeometry(scene, adaptive=4.0)
+    with pytest.raises(InputError, match="split count must be >= 1, got 0"):
+        split_centroids(0)
+    assert split_centroids(2).shape == (4, 3)
 
 
 def test_point_to_patch_is_exact_for_a_differential_area():

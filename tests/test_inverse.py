@@ -140,6 +140,10 @@ def test_infeasible_names_the_conflicting_goals(case):
     assert "floor.min" in r.report["message"] and "left.max" in r.report["message"]
     assert r.exitance is None and r.report["emitters"][0]["intensity"] is None
     json.loads(r.to_json())
+    from hfrad.errors import InputError
+    from hfrad.inverse.emission import emission_settings
+    with pytest.raises(InputError, match="no feasible design to write as an emission file"):
+        emission_settings(r, scene)
     # the emitter's own bound can be one side of the conflict
     weak = light_spec(min=300.0)
     weak["emitters"][0]["max"] = 0.01
@@ -186,8 +190,21 @@ def test_emission_file_reproduces_the_design(case):
     settings = emission_settings(r, scene)
     assert np.array_equal(set_emission(scene, emission_overrides(settings)).emission, r.exitance)
     spec["emitters"][1] = {"name": "two", "patches": [0, 1], "max": 5.0}
-    with pytest.raises(ValueError, match="one material or group name"):
+    with pytest.raises(SpecError, match="one material or group name"):
         emission_settings(design(fac, spec), scene)
+
+
+def test_unknown_design_method_is_refused_before_any_solve(case, monkeypatch):
+    import sys
+
+    from hfrad.errors import InputError
+
+    module = sys.modules["hfrad.inverse.design"]     # (hfrad.inverse.design is also the function)
+
+    scene, fac, F = case
+    monkeypatch.setattr(module, "response", lambda *a, **k: pytest.fail("solved before refusing the method"))
+    with pytest.raises(InputError, match="method must be 'auto', 'forward' or 'adjoint', got 'both'"):
+        design(fac, light_spec(min=1.0), method="both")
 
 
 def test_overlapping_emitters_are_refused(case):

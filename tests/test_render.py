@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from hfrad.errors import InputError
 from hfrad.render import Camera, render_image, render_radiance, save_png, smooth_corners
 from hfrad.render.falsecolor import colorbar_width, nice_scale, photometric
 from hfrad.render.raycast import patch_caster
@@ -125,7 +126,7 @@ def test_falsecolor_has_colour_bar(cornell):
     top = column[h // 6].astype(int)
     bottom = column[h - h // 8].astype(int)
     assert top[1] > bottom[1] + 100  # viridis: yellow-green at the top, purple at the bottom
-    with pytest.raises(ValueError, match="unit"):
+    with pytest.raises(InputError, match="unit must be one of"):
         render_image(s, B, falsecolor=True, unit="nits", width=16, height=16)
 
 
@@ -164,16 +165,16 @@ def test_camera_views():
     assert cam.position == (1.0, 2.0, 3.0) and cam.fov == 50.0
     auto = Camera.parse("auto", s.bounds)
     assert np.linalg.norm(np.subtract(auto.position, auto.target)) > 3
-    for bad in ("side", "1,2:0,0,0", "a,b,c:0,0,0"):
-        with pytest.raises(ValueError, match="camera must be"):
+    for bad in ("side", "1,2:0,0,0", "a,b,c:0,0,0", "1,2,3", "1,2,3:0,0,0:40:1", "1,2,3:0,0,0:wide", ""):
+        with pytest.raises(InputError, match="camera must be"):
             Camera.parse(bad, s.bounds)
-    with pytest.raises(ValueError, match="parallel"):
+    with pytest.raises(InputError, match="parallel"):
         Camera((0, 0, 0), (0, 1, 0))
 
 
 def test_bad_radiosity_shape():
     s = cornell_box()
-    with pytest.raises(ValueError, match=r"shape \(\d+, 3\)"):
+    with pytest.raises(InputError, match=r"shape \(\d+, 3\)"):
         render_image(s, np.ones((3, 3)), width=8, height=8)
 
 

@@ -120,6 +120,23 @@ def test_unknown_design_method(coarse_hfr, tmp_path):
                    "--method", "auto, forward, adjoint")
 
 
+def test_design_picture_size_refused_before_the_solves(coarse_hfr, tmp_path, monkeypatch):
+    """`hfrad design --render --width 1000000` ran the design's solves first, then refused the picture."""
+    import hfrad.inverse
+
+    spec = tmp_path / "spec.json"
+    spec.write_text(json.dumps({"emitters": [{"name": "light", "material": "light", "max": 1000}],
+                                "targets": [{"name": "floor", "group": "floor", "min": 100}]}))
+
+    def forbidden(*args, **kwargs):
+        raise AssertionError("the design solved before the picture size was checked")
+
+    monkeypatch.setattr(hfrad.inverse, "design", forbidden)        # what `hfrad design` calls
+    one_clear_line(run("design", spec, coarse_hfr, "-o", tmp_path / "d.json", "--render", tmp_path / "d.png",
+                       "--width", "1000000"), "width", "16,384")
+    assert list(tmp_path.iterdir()) == [spec]
+
+
 def test_picture_of_100000_pixels_a_side_is_refused(coarse_hfr, tmp_path):
     t0 = time.perf_counter()
     one_clear_line(run("render", coarse_hfr, "-o", tmp_path / "r.png", "--width", "100000", "--height", "100000"),
@@ -245,6 +262,32 @@ def no_factorize(monkeypatch):
         raise AssertionError("the precompute ran before the output was checked")
 
     monkeypatch.setattr(hfrad.pipeline, "factorize", forbidden)
+
+
+def test_damaged_checkpoint_is_refused_without_resuming(tmp_path):
+    """'resuming from checkpoint' was printed before the damaged checkpoint was refused."""
+    out = tmp_path / "x.hfr"
+    (tmp_path / "x.hfr.partial").write_bytes(b"not an HDF5 file")
+    result = run("precompute", "cornell", "--patches", "60", "-q", "-o", out)
+    one_clear_line(result, "x.hfr.partial")
+    assert "resum" not in result.output
+    assert not out.exists()
+
+
+def test_accepted_checkpoint_is_announced(tmp_path):
+    """A checkpoint written by the same command is resumed, and said so once it is accepted."""
+    out = tmp_path / "x.hfr"
+    partial = tmp_path / "x.hfr.partial"
+    scene = hfrad.load_scene("cornell", patches=60)
+    # the state after every block but the last (none is written after the last), kept on completion
+    hfrad.factorize(scene, eps=0.02, block_size=16, checkpoint=partial, checkpoint_interval=0,
+                    keep_checkpoint=True)
+    assert partial.exists()
+    result = run("precompute", "cornell", "--patches", "60", "--block", "16", "-q", "-o", out)
+    assert result.exit_code == 0, result.output
+    said = [line for line in result.output.splitlines() if line.startswith("resumed from checkpoint")]
+    assert said == [f"resumed from checkpoint {partial} (3 column blocks were done)"], result.output
+    assert out.exists() and not partial.exists()
 
 
 def test_missing_folder_refused_before_work(tmp_path, no_factorize):
@@ -438,10 +481,21 @@ def test_accuracy_lines_never_call_a_bound_above_100_percent_guaranteed():
     assert "no eps gives an a-priori bound" in accuracy_lines(hopeless, achieved_error=0.02)[0]
 
 
-def test_demo_prints_the_solution_bound_first(tmp_path):
+def test_demo_prints_the_cheap_figures_and_how_to_get_the_guaranteed_one(tmp_path, monkeypatch):
+    """The demo computed the solution's residual (the form factors again, doubling its time); now it
+    prints the figures the factorization carries and the command that gives the guaranteed one."""
+    from hfrad.solve.woodbury import HFactorization
+
+    def forbidden(*args, **kwargs):
+        raise AssertionError("the demo recomputed the form factors for a residual")
+
+    monkeypatch.setattr(HFactorization, "residual", forbidden)
     result = run("demo", "--patches", "60", "-q", "-o", tmp_path)
     assert result.exit_code == 0, result.output
     lines = result.output.splitlines()
     assert lines[0].startswith("Cornell box:")
-    assert lines[1].startswith("error of this solution: at most "), result.output
-    assert not any("guaranteed bound" in line for line in lines)
+    assert "a-priori bound on the relative radiosity error" in lines[1], result.output
+    how = [line for line in lines if line.startswith("guaranteed bound of this solution: hfrad solve ")]
+    assert len(how) == 1 and how[0].endswith("--residual (recomputes the form factors)"), result.output
+    assert str(tmp_path / "cornell.hfr") in how[0]
+    assert not any(line.startswith("error of this solution") for line in lines)

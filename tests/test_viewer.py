@@ -13,6 +13,7 @@ from typer.testing import CliRunner
 
 import hfrad
 from hfrad.cli import app as cli_app
+from hfrad.errors import InputError
 from hfrad.render.tonemap import srgb_encode, tonemap
 from hfrad.viewer.coalesce import LatestWins
 from hfrad.viewer.display import MeshColors, MeshGLB, aces_filmic, precompensate_aces
@@ -57,7 +58,7 @@ def test_superposition_equals_direct_solves(fac):
     scene = fac.scene
     tall = scene.group == scene.groups.index("tall_block")
     assert np.allclose(E[tall], 2.0) and not E[scene.material == scene.material_names.index("green")].any()
-    with pytest.raises(ValueError, match="no material or group named 'lamp'"):
+    with pytest.raises(InputError, match="no material or group named 'lamp'"):
         lighting.radiosity([Emitter("lamp", 1.0)])
 
 
@@ -76,6 +77,18 @@ def test_vertex_colors_match_render_tonemap(fac):
     assert np.abs(shown - expected).max() <= 1
     fc, top = colors.falsecolor(fac.solve(scene.emission), scene.emission, "lux")
     assert top > 0 and fc.shape == display.shape and (fc >= 0).all() and (fc <= 1).all()
+
+
+def test_emitter_values_are_checked():
+    with pytest.raises(InputError, match=r"emitter 'lamp': intensity must be a finite number >= 0 W/m\^2, got -1"):
+        Emitter("lamp", -1.0)
+    with pytest.raises(InputError, match=r"emitter 'lamp': intensity .* got nan"):
+        Emitter("lamp", float("nan"))
+    with pytest.raises(InputError, match=r"emitter 'lamp': color must be three numbers in \[0, 1\]"):
+        Emitter("lamp", 1.0, color=(2.0, 0.0, 0.0))
+    with pytest.raises(InputError, match="color must be three numbers"):
+        Emitter("lamp", 1.0, color=(1.0, 1.0))
+    assert Emitter("lamp", 2, color=[0, 0.5, 1]).color == (0.0, 0.5, 1.0)
 
 
 def test_glb_is_valid_gltf(fac):
@@ -160,10 +173,10 @@ def test_server_survives_bad_clients(fac, tmp_path):
             recv_mesh(ws)                                    # the new colours
             ws.close()
         # a bad emission upload is refused with a message, the state unchanged
-        with pytest.raises(ValueError, match="emitters\\[0\\].exitance"):
+        with pytest.raises(InputError, match="emitters\\[0\\].exitance"):
             app.load_emission('{"format": "hfrad-emission", "version": 1, '
                               '"emitters": [{"name": "light", "exitance": [1, 2]}]}')
-        with pytest.raises(ValueError, match="no material or group named 'lamp'"):
+        with pytest.raises(InputError, match="no material or group named 'lamp'"):
             app.load_emission('{"format": "hfrad-emission", "version": 1, '
                               '"emitters": [{"name": "lamp", "exitance": [1, 2, 3]}]}')
         assert [e.name for e in app.state.emitters] == ["light"]
@@ -182,6 +195,10 @@ def test_emission_round_trip_and_png(fac, tmp_path):
     app = ViewerApp(hfrad.load(hfr), port=free_port(), save_dir=tmp_path)
     try:
         app.add_emitter("green", intensity=4.0)
+        with pytest.raises(InputError, match="'green' is already an emitter"):
+            app.add_emitter("green")
+        with pytest.raises(InputError, match="no emitter named 'blue'; the emitters are 'light', 'green'"):
+            app.set_emitter("blue", on=False)
         app.set_emitter("light", color=(1.0, 0.5, 0.5))
         app.set_emitter("green", on=False)
         app.set_emitter("green", on=True)

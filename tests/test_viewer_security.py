@@ -150,7 +150,7 @@ def test_host_and_origin_rules():
                        ("file://", False), ("ws://127.0.0.1:8080", False), ("http://u@127.0.0.1:8080", False),
                        ("http://localhost:8080", False)):
         assert _same_origin(origin, "127.0.0.1:8080") is ok, origin
-    with pytest.raises(ValueError, match="16 characters"):
+    with pytest.raises(InputError, match="16 characters of randomness; got 5"):
         PageGuard("127.0.0.1", token="short")
 
 

@@ -34,7 +34,8 @@ def require(nbytes: float, what: str, hint: str = "", fraction: float = 0.8) -> 
 
 
 #: The rank is only known after the run; the memory check assumes this much.
-RANK_ASSUMPTION = "min(n, 3000), generous for eps = 0.02 up to ~50K patches (10K-patch Cornell box: 1,869)"
+RANK_ASSUMPTION = ("min(n, 3000); the true rank grows with n and 1/eps and is larger for some scenes "
+                   "(hfrad.distributed.rank_guess: ~19 sqrt(n) at eps 0.02 on the Cornell box)")
 
 
 def rank_guess(n: int) -> int:
@@ -49,11 +50,12 @@ def factors_bytes(n: int, k: int, itemsize: int = 4) -> int:
 
 
 def precompute_bytes(n: int, block_size: int, rank_guess_: int | None = None, itemsize: int = 4) -> int:
-    """Rough peak memory of ``factorize``: a few float64 blocks plus the factors.
+    """Rough peak memory of ``factorize``, bytes: ``24 n b + (2 n k + 3 k^2) s + 4 n k s``.
 
-    The factors: :func:`factors_bytes`; merges hold about twice the rank
-    transiently (4 n k values). The rank k is not known before the run:
-    :func:`rank_guess` (RANK_ASSUMPTION) unless given.
+    Three float64 n x b column blocks (b = ``block_size``), the factors
+    (:func:`factors_bytes`, s = ``itemsize``) and a merge, which holds about
+    twice the rank transiently (4 n k values). The rank k is not known before
+    the run: :func:`rank_guess` (:data:`RANK_ASSUMPTION`) unless given.
     """
     k = rank_guess(n) if rank_guess_ is None else rank_guess_
     return 3 * 8 * n * block_size + factors_bytes(n, k, itemsize) + 4 * n * k * itemsize

@@ -37,8 +37,9 @@ NEAR_FIELD_MIN_PATCHES = 2000
 #: Prefix of the pass statistics among a checkpoint's extra arrays.
 _STATS = "stats_"
 #: A checkpoint is written at most once per this many times its last write took, so that
-#: writing them costs at most ~2% of the run: the state grows with the near field (24 bytes
-#: an entry), and at 164,988 patches a fixed 30 s interval wrote 43 GB in 63 minutes.
+#: writing them costs at most ~2% (1/50) of the run: the state grows with the near field (24
+#: bytes an entry, 24 n c bytes for c entries a row) and with the rank (O(n k)), so a fixed
+#: interval would spend a growing share of a large run writing.
 CHECKPOINT_COST_RATIO = 50.0
 
 StatusCallback = Callable[[dict], None] | None
@@ -100,7 +101,7 @@ def factorize(scene: Scene, *, eps: float = 0.02, relative: bool = True,
         4,000 patches on); the result does not depend on it. Default 1 (this
         process: numba threads plus one Embree thread) so that scripts need no
         ``if __name__ == "__main__":`` guard (workers are spawned); the CLI
-        defaults to None. Two workers pay off when the machine's cores are otherwise idle;
+        defaults to None. Workers pay off when they get cores of their own;
         on a loaded machine they compete with the other processes.
     one_ray_tol : float or None
         Pairs that together hold at most this share of ``||F||_F``
@@ -127,7 +128,9 @@ def factorize(scene: Scene, *, eps: float = 0.02, relative: bool = True,
     progress : callable (done, total), optional
         Column blocks done.
     status : callable (dict), optional
-        Called after each block with ``blocks``, ``rank``, ``elapsed``.
+        Called after each block with ``blocks``, ``rank``, ``elapsed`` (seconds);
+        in this process, the first call after resuming from ``checkpoint`` also
+        has ``resumed``: the blocks the checkpoint held.
     scheduler : str, distributed.Client or hfrad.distributed.Cluster, optional
         Run the column blocks, leaves and merges as Dask tasks on this
         cluster (docs/cluster.md) instead of in this process. Same options, same
@@ -154,8 +157,12 @@ def factorize(scene: Scene, *, eps: float = 0.02, relative: bool = True,
 
     Notes
     -----
-    Memory: one n x block_size block (float64) plus the factors (O(nk)).
-    Time: for a scene, dominated by the form factors. docs/method.md
+    Memory, b = block_size, k = rank, s = the dtype's itemsize: about
+    ``24 n b + (2 n k + 3 k^2) s + 4 n k s`` bytes (three float64 column
+    blocks, the factors, a merge: :func:`hfrad.memory.precompute_bytes`), plus
+    the reciprocity tiles (at most ``n^2 s / 4``:
+    :func:`hfrad.formfactors.mirror.mirror_bytes`) and, with the near field of
+    c entries a row, O(n c). Time: for a scene, dominated by the form factors. docs/method.md
     explains the method; Aguerre & Fernández 2016.
 
     Examples
@@ -338,7 +345,7 @@ def _blas_threads(count: int | None):
     """Limit BLAS/LAPACK threads while the form-factor engine runs beside the factorization.
 
     The engine keeps the cores busy (numba kernel + Embree); multi-threaded
-    OpenBLAS competing with it spin-waits and slows the small SVDs by 10-50x.
+    OpenBLAS competing with it spin-waits and slows the small SVDs by an order of magnitude.
     """
     if count is None:
         yield
@@ -357,11 +364,10 @@ def _every_blas_thread_for_a_large_merge(blocks_done: int, n_blocks: int):
     """Every BLAS thread for the push of block ``blocks_done`` when it merges a quarter of the blocks or more.
 
     Such a merge (binary counter: the push of the c-th block forms a node of
-    ``c & -c`` blocks) is long - tens of seconds at rank ~5,000 - and the
-    form-factor workers, which are at most a few blocks ahead, stop within
-    seconds of its start; a single BLAS thread would leave a core idle for the
-    rest of it. Sponza at 20K patches, rank 4,889, two form-factor processes: HF 228 s -> 166 s
-    with this and the last merges on both cores (and the root's truncation without a product).
+    ``c & -c`` blocks) costs O(n k^2) flops at rank k, the most of the run, and
+    the form-factor workers, which are at most a few blocks ahead, stop soon
+    after its start; a single BLAS thread would leave the other cores idle for
+    the rest of it.
     """
     c = blocks_done + 1
     if (c & -c) < max(_LARGE_MERGE_SHARE * n_blocks, 4):
@@ -378,6 +384,7 @@ def _stream_blocks(blocks, stream: HFStream, stats: PassStatistics, rows_rho, n_
     stays relative to the block's full norm.
     """
     last_save, save_seconds = time.perf_counter(), 0.0
+    resumed = stream.blocks_done      # blocks the checkpoint held (said with the first status)
     time_ff = time_ckpt = 0.0
     t_ff = time.perf_counter()
     for start, stop, block in blocks:
@@ -394,7 +401,10 @@ def _stream_blocks(blocks, stream: HFStream, stats: PassStatistics, rows_rho, n_
         del G
         report(progress, stream.blocks_done, n_blocks)
         if status is not None:
-            status({"blocks": stream.blocks_done, "rank": stream.current_rank, "elapsed": time.perf_counter() - t0})
+            info = {"blocks": stream.blocks_done, "rank": stream.current_rank, "elapsed": time.perf_counter() - t0}
+            if resumed:
+                info["resumed"], resumed = resumed, 0
+            status(info)
         due = checkpoint_interval and max(checkpoint_interval, CHECKPOINT_COST_RATIO * save_seconds)
         if checkpoint is not None and time.perf_counter() - last_save > due and stream.blocks_done < n_blocks:
             t_save = time.perf_counter()

@@ -35,8 +35,9 @@ def find_benchmarks() -> Path | None:
 def register(app: typer.Typer) -> None:
     @app.command()
     def bench(
-        tier: str = typer.Option("quick", "--tier", help="quick (~2.5K patches, < 10 min on 2 cores) "
-                                 "or large (10K/20K patches, about an hour)."),
+        tier: str = typer.Option("quick", "--tier", help="quick (~2.5K patches) or large (10K and "
+                                 "20K patches; the dense baselines hold n x n float64 matrices, 8 n^2 bytes "
+                                 "each). Times of both: benchmarks/README.md."),
         only: Optional[str] = typer.Option(None, "--only", help=f"Comma list of parts: {', '.join(PARTS)}."),
     ) -> None:
         """Benchmark HF against full SVD, randomized SVD, sketching, LU and iterative solvers.

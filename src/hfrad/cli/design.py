@@ -30,8 +30,8 @@ def register(app: typer.Typer) -> None:
         unit: str = typer.Option("lux", "--unit", help="False-colour unit of --render: W/m2 or lux."),
         show: str = typer.Option("radiosity", "--show", help="What --render draws: radiosity (what the eye "
                                  "sees), or irradiance (light arriving; with --falsecolor --unit lux: illuminance)."),
-        width: int = typer.Option(640, "--width", min=1, help="--render width, pixels."),
-        height: int = typer.Option(480, "--height", min=1, help="--render height, pixels."),
+        width: int = typer.Option(640, "--width", min=1, help="--render width, pixels (at most 16,384)."),
+        height: int = typer.Option(480, "--height", min=1, help="--render height, pixels (at most 16,384)."),
         method: str = typer.Option("auto", "--method", help="auto (fewer solves), forward (one solve per "
                                    "emitter) or adjoint (one transposed solve per target row the goals need)."),
         plan: Optional[Path] = typer.Option(None, "--plan", help="Luminaire specs: also draw the first grid's "
@@ -74,6 +74,8 @@ def register(app: typer.Typer) -> None:
                 if show not in ("radiosity", "irradiance"):
                     raise InputError(f"--show must be radiosity or irradiance, got {show!r}")
                 Camera.parse(camera, np.array([[0.0, 0, 0], [1, 1, 1]]))  # fail on a bad camera before solving
+                from ..render.image import check_size
+                check_size(width, height, falsecolor=falsecolor)          # and on a picture too large
             if plan is not None and plan.suffix.lower() != ".png":
                 raise InputError(f"--plan must be a .png file, got '{plan}'")
             fac = common.load_factorization(factorization)

@@ -22,13 +22,13 @@ def register(app: typer.Typer) -> None:
         eps: float = typer.Option(0.02, "--eps", help="Target relative Frobenius error of RF ~ Q V^T, in (0, 1)."),
         max_edge: Optional[float] = common.MaxEdgeOption,
         patches: Optional[int] = common.PatchesOption,
-        refine: Optional[float] = typer.Option(None, "--refine", help="After cutting, solve once on those patches and split (conforming, one level) every patch on an edge where the luminance jumps by more than this fraction of the larger side, in (0, 1) (e.g. 0.2). At most 8,000 patches before refining."),
+        refine: Optional[float] = typer.Option(None, "--refine", help="After cutting, solve once on those patches and split (conforming, one level) every patch on an edge where the luminance jumps by more than this fraction of the larger side, in (0, 1) (e.g. 0.2). At most 8,000 patches before refining (the coarse solve is dense)."),
         block: Optional[int] = typer.Option(None, "--block", help=f"Column block width (patches); default min({DEFAULT_BLOCK_SIZE}, n)."),
         dtype: str = common.dtype_option("float32"),
         samples: Optional[int] = typer.Option(None, "--samples", help="Visibility rays per patch pair: 1, 4, 9, ... up to 1,024 (time grows in proportion); 0: no visibility (every pair sees each other)."),
         order: str = typer.Option("zorder", "--order", help="Internal patch order: zorder, hilbert, random, input."),
-        processes: Optional[int] = typer.Option(None, "--processes", help="Form-factor worker processes, each with its own Embree scene. Default: one per core from 4,000 patches on (idle 2 cores, 10K patches: form factors 9.9 s vs 18.4 s in one process), else this process."),
-        near_field: str = typer.Option("auto", "--near-field", help="Near-field split: pairs within the radius holding ~this many facing neighbours (nonzeros of a row of N) go into a sparse N, HF factors the smooth rest, the solver is Woodbury around I - D_c N (Neumann series per solve, sparse LU in the set-up). 'auto' (default): 120 from 2,000 patches on (Cornell box, 5K patches, eps 0.05: rank 1,081 -> 195 at lower radiosity error); 'off' or 0: plain Woodbury."),
+        processes: Optional[int] = typer.Option(None, "--processes", help="Form-factor worker processes, each with its own Embree scene. Default: one per core from 4,000 patches on (below, their start-up costs more than it saves), else this process; the result does not depend on it."),
+        near_field: str = typer.Option("auto", "--near-field", help="Near-field split: pairs within the radius holding ~this many facing neighbours (nonzeros of a row of N) go into a sparse N, HF factors the smooth rest, the solver is Woodbury around I - D_c N (Neumann series per solve, sparse LU in the set-up). 'auto' (default): 120 from 2,000 patches on, off below; the split lowers the rank HF needs and, at equal --eps, the radiosity error; 'off' or 0: plain Woodbury."),
         unit_scale: float = common.UnitScaleOption,
         emission: Optional[List[str]] = common.EmissionOption,
         area_light: Optional[str] = common.AreaLightOption,
@@ -44,25 +44,25 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Precompute a scene once: form factors with visibility, HF, Woodbury factors.
 
-        Memory: one n x BLOCK block of form factors (8 n BLOCK bytes) plus the
-        factors: Q, V and three k x k inverses, (2 n k + 3 k^2) x 4 bytes in
-        float32 (k = rank; k ~ 2,000 at 10K patches and eps 0.02 -> ~0.2 GB).
-        The n x n matrix is never stored; the form-factor pass keeps blocks'
-        rows for later blocks to copy by reciprocity (n^2/4 values of the
-        dtype at most, 1.6 GB at 39,482 patches in float32), up to a quarter of
-        the available memory and within 80% of it with the estimate below
-        (beyond it, blocks compute those rows). With the near field (default from
-        2,000 patches): N (~120 entries a row, ~40 bytes each while collected),
-        one n x k Z per distinct colour channel, and during the set-up one
-        channel's sparse LU (~9x N's entries). Measured peaks (built-in box):
-        5.6 GB at 39,482 patches and eps 0.02 (1.5 GB of it reciprocity
-        tiles); at eps 0.05 without the tiles, 5.5 GB plus 2.3 GB in the two
-        form-factor workers at 164,988.
-        A checkpoint (OUTPUT.partial) is written every 30 s (less often when a write is slow: at most ~2% of the run); rerun the same
-        command to resume after an interruption. With --scheduler or --workers
-        the work runs as Dask tasks (finished subtrees are kept in OUTPUT.partial.d/
-        until the file is saved: a rerun skips them); each worker needs about 25 n BLOCK bytes plus, for the
-        root merge, ~16 n k x 4 bytes (docs/cluster.md).
+        Memory, n patches, b = --block, k = rank, s = 4 bytes (float32) or 8
+        (float64): 24 n b (three float64 column blocks) + (2 n k + 3 k^2) s (Q, V
+        and three k x k inverses) + 4 n k s (a merge), hfrad.memory.precompute_bytes;
+        k is unknown before the run, so the check assumes k = min(n, 3000) and
+        refuses a run above 80% of the available memory. The n x n matrix is
+        never stored. Rows kept for the reciprocity copies take at most n^2 s / 4,
+        a quarter of the available memory and what the estimate leaves of 80% of
+        it (hfrad.formfactors.mirror.mirror_bytes); beyond it, blocks compute those
+        rows. With the near field (default from 2,000 patches, c = 120 entries a
+        row): about 40 n c bytes while N is collected, one n x k Z per distinct
+        colour channel (n k s each) and, during the set-up, one channel's sparse
+        LU (about 9 times N's entries).
+        A checkpoint (OUTPUT.partial) is written every 30 s, and at least 50
+        times as long as its last write took apart (writes cost at most ~2% of
+        the run); rerun the same command to resume after an interruption. With
+        --scheduler or --workers the work runs as Dask tasks (finished subtrees
+        are kept in OUTPUT.partial.d/ until the file is saved: a rerun skips
+        them); the busiest worker needs hfrad.distributed.worker_bytes(n, b, k),
+        about 160 MB + 2 KB n + max(25 n b, 14 n k s) + 2 n k s (docs/cluster.md).
         """
         from ..solve.hfr import save_hfr
         from ..pipeline import factorize
@@ -120,11 +120,15 @@ def register(app: typer.Typer) -> None:
                 _report(fac, output, time.perf_counter() - t0)
                 return
             checkpoint = output.with_name(output.name + ".partial")
-            if checkpoint.exists():
-                common.console.print(f"resuming from checkpoint {checkpoint}")
             t_load = time.perf_counter() - t0
             with common.progress_bar(f"precompute {s.n_patches:,} patches", quiet) as bar:
-                status = None if bar is None else (lambda info: bar.note(f"rank {info['rank']:,}"))
+                def status(info: dict) -> None:
+                    if info.get("resumed"):    # said only once factorize has accepted the checkpoint
+                        common.console.print(f"resumed from checkpoint {checkpoint} ({info['resumed']:,} "
+                                             "column blocks were done)", highlight=False)
+                    if bar is not None:
+                        bar.note(f"rank {info['rank']:,}")
+
                 fac = factorize(s, eps=eps, block_size=block, dtype=dtype, samples=samples, order=order,
                                 checkpoint=checkpoint, keep_checkpoint=True, progress=bar, status=status,
                                 processes=processes, near_field=_near_field(near_field))

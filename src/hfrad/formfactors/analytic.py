@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import math
 
+from ..errors import InputError
+
 __all__ = [
     "parallel_rectangles",
     "parallel_rectangles_offset",
@@ -28,7 +30,7 @@ __all__ = [
 def _positive(**values: float) -> None:
     for name, v in values.items():
         if not (v > 0 and math.isfinite(v)):
-            raise ValueError(f"{name} must be a positive finite length, got {v}")
+            raise InputError(f"{name} must be a positive finite length, got {v}")
 
 
 def parallel_rectangles(width: float, depth: float, distance: float) -> float:

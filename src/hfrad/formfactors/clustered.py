@@ -27,13 +27,10 @@ eq. 2), with a rule chosen by the centroid distance d:
 - *touching*, d < EXACT_NEAR (D_P + D_Q) and |P| |Q| <= EXACT_PAIRS:
   kernel.py's rules summed over every triangle pair (eq. 2 there: centroid,
   degree-4 and adaptive rules, the adaptive one to CLUSTER_TOLERANCE), as
-  for unclustered patches. Measured on Sponza at 5K patches (128 rows x all
-  columns, against all near pairs this way at tolerance 1e-3): the sum of
-  |F error| per row falls from 2.3% to 0.9% (mean) for 1.9x the kernel
-  time; on the conference room's worst rows the old rule gave row sums up to
-  1.165 where the exact double sum gives 1.065 (the rest is 4-ray
-  visibility and the mesh's overlapping faces). Opposed plates 0.2 apart,
-  clustered 1,600 -> 60: per-patch error 1.7% -> 0.06%;
+  for unclustered patches. Touching clusters are where the 32-point rule
+  below errs most (its points miss the integrand's peak along the shared
+  edge); the exact sum costs |P| |Q| pairs of kernel.py's work, hence the
+  EXACT_PAIRS cap;
 - *near*, otherwise: up to 32 weighted quadrature points spread over each patch's
   triangles (a triangle gets the centroids of an m x m split, m ~ sqrt(16
   A_t / A_P), or, for patches of more than 16 triangles, 16 triangles are
@@ -45,8 +42,7 @@ A patch of more than KERNEL_TRIANGLES triangles (micro-triangle crumbs such
 as screws that clustering joined to it) is integrated, as the target of eq.
 (3), over its KERNEL_TRIANGLES largest triangles, the sum scaled by A_P / (their
 area): the cost of a pair stays bounded; ``ClusterGeometry.dropped`` is the
-area fraction left out per patch (conference room at 5K patches: at most 3%,
-in one patch of 95K triangles).
+area fraction left out per patch (for a check of the approximation's reach).
 
 All three rules are symmetric in (P, Q), so A_P F_PQ = A_Q F_QP to rounding.
 A patch of one triangle gets the same points as in kernel.py (its centroid
@@ -79,7 +75,7 @@ EXACT_PAIRS = 1024
 EXACT_NEAR = 0.7
 
 #: Relative tolerance of kernel.py's adaptive rule on those pairs: looser than kernel.py's 1e-3,
-#: which costs 2.3x as much kernel time on Sponza at 5K patches for a smaller gain.
+#: which costs several times the kernel time there for a gain below the other rules' error.
 CLUSTER_TOLERANCE = 3e-2
 
 #: Most triangles of a patch that eq. (3) sums over (the largest; see the module docstring).

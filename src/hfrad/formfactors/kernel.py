@@ -27,8 +27,8 @@ and diameters (longest edges) D_t, D_u:
   midpoint rule's O((D/d)^2) bias for facing patches (without it the 12-split
   C-11 plates at d = 3 are 1.4e-3 off; with it 8.2e-4, the centroid rule there
   gave 7.0e-4). Almost all of the O(n^2) pairs of a large scene are distant,
-  and this rule has no arc tangent: the kernel runs 1.5-2x faster at 20K patches
-  (11.6 -> 17-23 M pairs/s, 2 threads; F changes by 7e-5 in the Frobenius norm);
+  and this rule needs no arc tangent and no clipping (the far rule's two
+  evaluations of (1) need both; F changes by ~7e-5 in the Frobenius norm);
 - *far* pairs, near * (D_t + D_u) <= d < FAR * (D_t + D_u): the symmetric centroid rule
   1/2 (A_t F_{c_t->u} + A_u F_{c_u->t}), two evaluations of (1), relative error
   O((D/d)^2) (median 0.2% at the switch for the default ``near`` = 3, and the
@@ -43,7 +43,7 @@ and diameters (longest edges) D_t, D_u:
 - *middle* pairs, adaptive * (D_t + D_u) <= d < near * (D_t + D_u): one
   6-point rule exact for polynomials of degree 4 (Dunavant) on the smaller
   triangle, error O((D/d)^6) (median 2e-6, 95th percentile 1e-3 at the inner
-  end, measured on random triangle pairs);
+  end, on random triangle pairs);
 - *near* pairs (closer, which includes every pair sharing an edge or a vertex:
   its centroids are less than ~0.7 (D_t + D_u) apart): the
   *adaptive* path integrates over the smaller triangle (the point side; ties go
@@ -54,8 +54,7 @@ and diameters (longest edges) D_t, D_u:
   into its four midpoint children; budget = tolerance x max(|A_t F_tu|, FLOOR A_t)
   (estimated on the whole triangle; FLOOR = 1% spares pairs that cannot matter).
   |Q6 - Q3| is essentially Q3's error, so Q6's own error is far below it
-  (measured at the default tolerance on the near pairs of a 3K Cornell box:
-  median relative error 7e-6, an absolute error of 3e-5 per row sum, 42
+  (at the default tolerance, typically ~1e-5 relative and a few tens of
   evaluations of (1) per pair). The estimate converges to the exact
   double-area integral as ``tolerance`` -> 0, including edge- and
   vertex-sharing pairs (the integrand F_{dx->u} is bounded there; only its
@@ -80,6 +79,8 @@ import math
 
 import numpy as np
 from numba import njit, prange
+
+from ..errors import InputError
 
 #: Bumped whenever the numbers produced by this module change (cache keys use it).
 #: 8: visibility's second round from max(F_ij, F_ji) = 1e-4 (was 3e-4): every Cornell row closes.
@@ -125,7 +126,7 @@ def split_centroids(m: int) -> np.ndarray:
     composite centroid rule. All points are strictly inside the triangle.
     """
     if m < 1:
-        raise ValueError(f"split count must be >= 1, got {m}")
+        raise InputError(f"split count must be >= 1, got {m}")
     out = []
     for j in range(m):
         for i in range(m - j):
@@ -181,9 +182,9 @@ class PatchGeometry:
     def __init__(self, scene, *, near: float = NEAR, adaptive: float = ADAPTIVE,
                  tolerance: float = TOLERANCE) -> None:
         if not (0 <= adaptive <= near and math.isfinite(near)):
-            raise ValueError(f"need finite 0 <= adaptive <= near, got adaptive={adaptive}, near={near}")
+            raise InputError(f"need finite 0 <= adaptive <= near, got adaptive={adaptive}, near={near}")
         if not (0 < tolerance < 1):
-            raise ValueError(f"tolerance must be in (0, 1), got {tolerance}")
+            raise InputError(f"tolerance must be in (0, 1), got {tolerance}")
         n_tri = len(scene.triangles)
         self.centre = 0.5 * (scene.bounds[0] + scene.bounds[1]) if n_tri else np.zeros(3)
         tri = np.ascontiguousarray(np.asarray(scene.triangles, dtype=np.float64) - self.centre)
@@ -214,7 +215,7 @@ class PatchGeometry:
 # ---------------------------------------------------------------------------
 # numba kernels (trust their input; validation happens in blocks.py). The helpers called once
 # per pair are inline="always": called as functions with a dozen array arguments, numba paid
-# their reference counts on every pair (one 164,988 x 256 block: 113-126 -> 27-32 ns a pair).
+# their reference counts on every pair (several times the pair's own arithmetic).
 
 
 @njit(cache=True, fastmath=False)

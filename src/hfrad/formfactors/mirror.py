@@ -17,10 +17,11 @@ blocks before it by more than ``MIRROR_LAG``), not of the number of processes
 or their timing, so a run gives the same F with any process count. Tiles live
 in memory: a block keeps its tiles for the ``band`` blocks that will copy them,
 and ``band`` is the widest whose peak fits ``budget_bytes`` (every earlier block
-when n^2/4 entries fit: 1.6 GB at 39,482 patches in float32). A band holds a
-tile only for ``band`` blocks, so a budget too small for all of them still
-copies much: at 164,988 patches, 5.8 GB hold a band of 202 of the 645 blocks,
-~52% of the copies all tiles would give. A pass resumed at block ``first`` copies only from the blocks it computed.
+when about n^2 s / 4 bytes fit, s the dtype's itemsize: :func:`mirror_bytes`).
+A band holds a tile only for ``band`` blocks, so a budget too small for all of
+them still copies much: each block copies from ``band`` blocks while the peak
+grows with the band more slowly than with all of them (:func:`band_for`).
+A pass resumed at block ``first`` copies only from the blocks it computed.
 """
 
 from __future__ import annotations

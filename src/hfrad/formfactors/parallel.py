@@ -56,7 +56,8 @@ from .visibility import DEFAULT_SAMPLES, RayBudget
 __all__ = ["ProcessEngine", "column_block", "default_workers",
            "MIN_PARALLEL_PATCHES", "remove_stale_segments", "SEGMENT_PREFIX"]
 
-#: Below this many patches the workers' start-up (~2 s) costs more than it saves.
+#: Below this many patches the workers' start-up (each a spawned interpreter that imports numpy,
+#: numba and Embree and builds the scene's ray-casting structure) costs more than it saves.
 MIN_PARALLEL_PATCHES = 4000
 
 # Environment of worker processes: one BLAS and one numba thread each, so that

@@ -23,10 +23,10 @@ covers half of the patch. Close pairs (centroid distance below
 ``PROBE_NEAR`` (D_i + D_j)) and large pairs (F_ij or F_ji >= PROBE_BELOW)
 always get every ray. Pairs no occluder can cut say "visible".
 
-Probes join centroids (kernel v6 used a point near a corner of each triangle): with
-corner probes, the neighbours of a 10K Cornell floor patch that saw 43-88% of a
-ceiling patch all probed "blocked" (their corners sat in the block's shadow),
-the pair kept 0, and the row lost 2.2e-3.
+Probes join centroids, not points near a corner of each triangle: corner
+points of a whole neighbourhood can sit in one occluder's shadow while most of
+each patch sees past it, so every neighbour probes "blocked", the pair keeps
+0, and its row loses a visible share of its sum.
 
 Every part of the decision is symmetric in (i, j) (the neighbour set, the
 pair states, the probe segment cast in canonical order, the distance and size
@@ -36,13 +36,11 @@ The states of neighbour pairs are geometric (silent: the patches do not face
 each other; visible: no occluder can cut the pair; else the probe), so the
 block's border (neighbour columns outside it) costs probes but no kernel.
 
-Measured with kernel v6 (4 plain rays per flagged pair; 2-core EPYC, idle):
-Cornell box at 19,596 patches, 8 Z-ordered blocks of 256 columns, one process:
-67.9 M -> 38.8 M rays, 8.05 s -> 6.27 s (1.28x); at 1,508 patches (all of F)
-rays per pair 2.79 -> 2.64 and the row sums unchanged (mean |sum - 1|
-8.37e-4 -> 8.41e-4, worst 9.28e-3 both). With 4 neighbours instead of 8 the
-worst row sum at 5,910 patches rose from 4.96e-3 to 7.59e-3; with 8 it stayed
-at 4.96e-3.
+Cost: one segment per pair that needs rays, plus the boundary rays of the
+flagged pairs, instead of ``samples`` segments for each; the saving grows with
+the share of pairs in full view or deep shadow (benchmarks/README.md records
+it). ``NEIGHBOURS`` = 8 per side: with 4, shadow boundaries between probes go
+unseen more often and the row sums' worst error grows.
 """
 
 from __future__ import annotations

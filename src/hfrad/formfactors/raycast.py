@@ -1,15 +1,15 @@
 """Ray casting with Intel Embree (through ``embreex``), batched.
 
 ``embreex``'s ``run`` holds the GIL for most of a batch, so splitting a batch
-across threads gains little (measured: ~10% on 2 cores); the form-factor
+across threads gains little; the form-factor
 engine gets its parallelism by overlapping Embree with the numba kernel,
 which does release the GIL. ``embreex`` is imported at first use so that a missing
 install gives a clear message with the pip command, not an import failure of
 hfrad itself.
 
 Embree works in float32 and silently misses every hit when coordinates are
-very large or very small (measured with embreex: a 2-unit triangle is hit up
-to a size of 1e12 and missed from 1e13 on, and missed below 1e-20), and
+very large or very small (a 2-unit triangle is hit up to coordinates of
+1e12 and missed from 1e13 on, and missed below 1e-20), and
 float32 cannot resolve a 1 m room 1e13 m from the origin at all. So the
 caster works in its own frame: the triangles are moved to the centre of their
 bounding box and divided by its size (metres per unit) before they reach

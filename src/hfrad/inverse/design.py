@@ -127,6 +127,8 @@ def design(fac, spec: "Mapping[str, Any] | DesignSpec | str", *, method: str = "
 
     Raises
     ------
+    InputError
+        A ``method`` other than "auto", "forward" or "adjoint", or a factorization without a scene.
     SpecError
         Malformed spec (names the field). Infeasibility is not an error: it
         is reported with ``feasible: false`` and the conflicting goals.
@@ -150,6 +152,8 @@ def design(fac, spec: "Mapping[str, Any] | DesignSpec | str", *, method: str = "
     True
     """
     t_start = time.perf_counter()
+    if method not in ("auto", "forward", "adjoint"):
+        raise InputError(f"method must be 'auto', 'forward' or 'adjoint', got {method!r}")
     scene = fac.scene
     if scene is None:
         raise InputError("the factorization carries no scene (patches); load it from an .hfr file "
@@ -161,8 +165,6 @@ def design(fac, spec: "Mapping[str, Any] | DesignSpec | str", *, method: str = "
     adjoint_total = adjoint_solves(spec) + int(any(r != "patches" for r in adjoint_rows(spec)))
     if method == "auto":
         method = "adjoint" if adjoint_total < forward_solves else "forward"
-    if method not in ("forward", "adjoint"):
-        raise ValueError(f"method must be 'auto', 'forward' or 'adjoint', got {method!r}")
     total = (forward_solves if method == "forward" else adjoint_total) + 1
     bar = None if progress is None else (lambda d, t: progress(d, total))
     resp = (response if method == "forward" else adjoint_response)(fac, spec, progress=bar)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..errors import InputError
 from ..io.emission import EmitterSetting, emission_overrides
 from ..scene.load import set_emission
 from .design import DesignResult
@@ -27,8 +28,8 @@ def emission_settings(result: DesignResult, scene) -> list[EmitterSetting]:
 
     Raises
     ------
-    ValueError
-        The design is infeasible.
+    InputError
+        The design is infeasible (there is no emission to write).
     SpecError
         An emitter was not selected by a single
         material or group name (an emission file can name nothing else), or
@@ -36,7 +37,8 @@ def emission_settings(result: DesignResult, scene) -> list[EmitterSetting]:
         like a material; a background set on other than whole materials).
     """
     if not result.feasible or result.exitance is None:
-        raise ValueError("no feasible design to write as an emission file")
+        raise InputError("no feasible design to write as an emission file (the result names the "
+                         "conflicting goals)")
     out = []
     if result.spec.background == "none":
         for m in scene.materials:

@@ -146,7 +146,7 @@ class Camera:
 
         Raises
         ------
-        ValueError
+        InputError
             For any other string, quoting it and the accepted forms.
         """
         if isinstance(spec, Camera):
@@ -157,15 +157,15 @@ class Camera:
         if text == "front":
             return cls.front(bounds, aspect=aspect)
         parts = text.split(":")
-        try:
-            if len(parts) not in (2, 3):
-                raise ValueError
-            pos = [float(v) for v in parts[0].split(",")]
-            tgt = [float(v) for v in parts[1].split(",")]
-            fov = float(parts[2]) if len(parts) == 3 else DEFAULT_FOV
-            if len(pos) != 3 or len(tgt) != 3:
-                raise ValueError
-        except ValueError:
-            raise InputError(f"camera must be 'auto', 'front' or 'x,y,z:tx,ty,tz[:fov_degrees]', "
-                             f"got '{text}'") from None
-        return cls(tuple(pos), tuple(tgt), (0.0, 1.0, 0.0), fov)
+        pos = tgt = ()
+        fov = DEFAULT_FOV
+        if len(parts) in (2, 3):
+            try:
+                pos = tuple(float(v) for v in parts[0].split(","))
+                tgt = tuple(float(v) for v in parts[1].split(","))
+                fov = float(parts[2]) if len(parts) == 3 else DEFAULT_FOV
+            except ValueError:              # a part that is not a number
+                pos = ()
+        if len(pos) != 3 or len(tgt) != 3:
+            raise InputError(f"camera must be 'auto', 'front' or 'x,y,z:tx,ty,tz[:fov_degrees]', got '{text}'")
+        return cls(pos, tgt, (0.0, 1.0, 0.0), fov)

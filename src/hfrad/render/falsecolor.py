@@ -42,7 +42,7 @@ _VIRIDIS = np.array([
 
 
 def check_unit(unit: str) -> str:
-    """``unit`` if it is one of :data:`UNITS`, else ValueError naming them."""
+    """``unit`` if it is one of :data:`UNITS`, else InputError naming them."""
     if unit not in UNITS:
         raise InputError(f"unit must be one of {', '.join(UNITS)}, got {unit!r}")
     return unit

@@ -44,8 +44,9 @@ def _check_radiosity(scene, radiosity) -> np.ndarray:
 #: Largest picture side, pixels: larger pictures are refused before any work.
 MAX_SIDE = 16384
 
-#: Peak memory of :func:`render_image` per pixel (rays, hits, radiance, tone mapping, the PNG copy);
-#: measured 191 B at 1,500 x 1,500 on a 300-patch Cornell box, 162 B in false colour.
+#: Peak memory of :func:`render_image` per pixel, bytes: an upper bound of what a pixel holds at
+#: once (its ray, hit, barycentrics and radiance in float64, the tone-mapped picture and the PNG
+#: copy); the memory check refuses ``BYTES_PER_PIXEL * width * height`` above 80% of what is free.
 BYTES_PER_PIXEL = 256
 
 #: Smallest false-colour picture: the colour bar and its labels need this much beside the scene
@@ -158,7 +159,7 @@ def render_image(scene, radiosity, *, camera: "Camera | str" = "auto", width: in
 
     Raises
     ------
-    ValueError
+    InputError (a ValueError)
         Wrong radiosity shape, bad size, camera string, exposure or unit.
 
     Notes

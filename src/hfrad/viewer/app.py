@@ -28,6 +28,7 @@ from ..errors import AccuracyWarning, InputError
 from ..io.emission import emission_json, loads_emission, write_emission
 from ..render.camera import Camera
 from ..render.falsecolor import UNITS
+from ..render.image import BYTES_PER_PIXEL
 from .coalesce import LatestWins
 from .display import MeshColors, MeshGLB, colorbar, precompensate_aces
 from .guard import PageGuard, UploadLimit, check_bindable, guarded_server, is_loopback, self_test, url_host
@@ -42,9 +43,6 @@ DEFAULT_PORT = 8080
 PNG_HEIGHT = 720
 #: Largest side, pixels, of a picture rendered for the page (the tab reports its aspect ratio).
 MAX_PICTURE_SIDE = 8192
-#: Peak memory of a render per pixel, bytes (measured ~200 for 2000 x 2000 of a Cornell box: rays,
-#: hits, barycentrics, radiance in float64).
-RENDER_BYTES_PER_PIXEL = 256
 #: Largest intensity, W/m^2, a control may set (the sun gives ~1e3; far from float32's 3.4e38).
 MAX_INTENSITY = 1e12
 #: Largest file the page's "load emission" accepts, bytes (an emission file is ~100 bytes per emitter).
@@ -221,7 +219,7 @@ class ViewerApp:
 
         Raises
         ------
-        ValueError
+        InputError
             An unknown name, an intensity outside [0, MAX_INTENSITY] W/m^2 or a colour outside [0, 1].
         """
         if "intensity" in changes:
@@ -238,7 +236,7 @@ class ViewerApp:
         """Make a material or group an emitter (white) and schedule an update."""
         with self._lock:
             if any(e.name == name for e in self.state.emitters):
-                raise ValueError(f"'{name}' is already an emitter")
+                raise InputError(f"'{name}' is already an emitter")
             self.lighting.masks((name,))           # unknown names fail here, with the list of names
             self.state.emitters.append(Emitter(name, intensity))
         self._build_lights()
@@ -464,7 +462,8 @@ class ViewerApp:
         for i, e in enumerate(self.state.emitters):
             if e.name == name:
                 return i
-        raise ValueError(f"no emitter named '{name}'")
+        raise InputError(f"no emitter named '{name}'; the emitters are "
+                         f"{', '.join(repr(e.name) for e in self.state.emitters) or 'none'}")
 
     # -- files -----------------------------------------------------------------------
     def new_file_name(self, prefix: str, suffix: str) -> Path:
@@ -515,7 +514,7 @@ class ViewerApp:
         if not 1 <= width <= MAX_PICTURE_SIDE:
             raise InputError(f"picture width must be in [1, {MAX_PICTURE_SIDE}] pixels, got height {height} x aspect "
                              f"{aspect:.4g} = {height * aspect:.6g}; make the browser window less wide")
-        memory.require(RENDER_BYTES_PER_PIXEL * width * height, f"a {width} x {height} picture")
+        memory.require(BYTES_PER_PIXEL * width * height, f"a {width} x {height} picture")
         with self._lock:
             B, E, exposure, falsecolor, unit = self._shown
         image = render_image(self.scene.replace(emission=E), B, camera=camera, width=width, height=int(height),

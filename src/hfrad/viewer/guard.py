@@ -167,7 +167,7 @@ class PageGuard:
         self.host = host
         self.token = new_token() if token is None else token
         if len(self.token) < 16:
-            raise ValueError("the token must be at least 16 characters of randomness")
+            raise InputError(f"the page token must be at least 16 characters of randomness; got {len(self.token)}")
         self.refused = 0
         self._names = self._allowed_names(host)
 

@@ -22,6 +22,7 @@ import time
 
 import numpy as np
 
+from ..errors import InputError
 from ..io.emission import EmitterSetting
 from ..scene.load import patches_named
 
@@ -51,11 +52,11 @@ class Emitter:
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.intensity) and self.intensity >= 0):
-            raise ValueError(f"emitter '{self.name}': intensity must be a finite number >= 0 W/m^2, "
+            raise InputError(f"emitter '{self.name}': intensity must be a finite number >= 0 W/m^2, "
                              f"got {self.intensity}")
         c = np.asarray(self.color, dtype=np.float64).reshape(-1)
         if c.shape != (3,) or not (np.isfinite(c).all() and (c >= 0).all() and (c <= 1).all()):
-            raise ValueError(f"emitter '{self.name}': color must be three numbers in [0, 1], got {self.color}")
+            raise InputError(f"emitter '{self.name}': color must be three numbers in [0, 1], got {self.color}")
         object.__setattr__(self, "color", tuple(float(x) for x in c))
         object.__setattr__(self, "intensity", float(self.intensity))
 
