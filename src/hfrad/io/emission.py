@@ -43,7 +43,9 @@ from ..validation import MAX_EXITANCE, clip_token
 #: Longest emitter name accepted (material and group names are short; a longer one is a broken file).
 MAX_NAME = 1000
 
+#: The ``format`` field of an emission file.
 FORMAT = "hfrad-emission"
+#: The ``version`` field written; files of a higher version are refused.
 VERSION = 1
 _TOP_FIELDS = ("format", "version", "emitters")
 _EMITTER_FIELDS = ("name", "exitance", "on")

@@ -1,14 +1,15 @@
 """Broken meshes: duplicate faces, coplanar overlapping faces, faces that touch face to face.
 
-Real meshes (CAD exports, scans, game levels, the shared McGuire Cornell box)
+Real meshes (CAD exports, scans, game levels, the Cornell boxes of McGuire's Computer Graphics Archive)
 contain faces that radiosity must not take at face value:
 
 - **duplicates**: two triangles with the same three corners (in any order or
   rotation; corners are compared after welding positions that agree to
   ``WELD`` x the scene size) and the same orientation. Both copies would get
-  the full form factor, so the light they reflect is counted twice (rows of F
-  sum to up to 1.45 on ``CornellBox-Original.obj``). They are merged by
-  default: the first copy is kept.
+  the full form factor, so the light they reflect is counted twice (a row i
+  of F sums to 1 plus the form factors F_ij to the extra copies, up to 2
+  where every face is doubled). They are merged by default: the first copy
+  is kept.
 - **coplanar overlaps**: two triangles in the same plane, same orientation,
   whose interiors overlap by more than ``MIN_OVERLAP`` of the smaller area
   (z-fighting geometry). Their light is partly double counted too, but

@@ -20,13 +20,22 @@ from .scene import Scene
 from .weld import weld_points
 
 
-#: Peak memory per patch while cutting faces into patches and holding the result. Measured on the
-#: built-in Cornell box (peak RSS above the uncut scene): 390 B a patch at 9,402 patches, 250 B at
-#: 87,416 and 745,030; 1 KB leaves room for the copies later stages make.
+#: Memory budgeted per patch for cutting faces into patches and holding the result, bytes. A cut
+#: scene of n one-triangle patches stores 108 n B (faces 24, material, group and parent 8 each,
+#: reflectance and emission 24 each, about half a vertex 12) and caches up to 224 n B of geometry
+#: (corners 72, cross products, area vectors, normals, triangle normals and centroids 24 each,
+#: areas, triangle areas, non-flatness and the patch map 8 each): 332 n B in all. The budget is
+#: three times that, for the cut's temporaries (points and their integer keys while welding) and
+#: the copies later stages make.
 MESH_BYTES_PER_PATCH = 1024
 
 #: Area of an equilateral triangle of unit edge, sqrt(3)/4: the largest triangle with no edge over 1.
 EQUILATERAL_AREA = math.sqrt(3) / 4
+
+#: First guess of a conforming mesh's mean patch area, as a fraction of EQUILATERAL_AREA h^2 (its
+#: patches are near-equilateral, minimum angle about 30 degrees, and edges up to h long); the
+#: count is then met by scaling h by sqrt(count / patches).
+MESH_FILL = 0.6
 
 
 def min_patches_for_edge(total_area: float, max_edge: float) -> float:
@@ -148,8 +157,9 @@ def subdivide(scene: Scene, *, max_edge: float | None = None, patches: int | Non
 
 def _mesh_for_count(scene: Scene, patches: int) -> Scene:
     """Conforming patches, about ``patches`` of them (a few meshings, h scaled by sqrt(count ratio))."""
-    # an equilateral patch of edge h has area sqrt(3)/4 h^2; Triangle's meshes average ~0.6 of that
-    h = math.sqrt(scene.total_area / patches / (0.6 * math.sqrt(3) / 4))
+    # an equilateral patch of edge h has area sqrt(3)/4 h^2; MESH_FILL of that is a first guess at a
+    # conforming mesh's mean patch area, corrected by the loop
+    h = math.sqrt(scene.total_area / patches / (MESH_FILL * EQUILATERAL_AREA))
     best = None
     for _ in range(6):
         mesh = conforming_subdivide(scene, h)
