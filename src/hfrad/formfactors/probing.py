@@ -163,11 +163,15 @@ def _probe(vis, R: np.ndarray, Cc: np.ndarray, state: np.ndarray) -> None:
         vis.rays_cast += m
 
 
-def full_ray_pairs(vis, F: np.ndarray, rows: np.ndarray, cols: np.ndarray, need: np.ndarray) -> np.ndarray:
+def full_ray_pairs(vis, F: np.ndarray, rows: np.ndarray, cols: np.ndarray, need: np.ndarray,
+                   overlay=None) -> np.ndarray:
     """The pairs of ``need`` that get every ray; the others take their probe's answer in ``F``.
 
     ``F`` (len(rows), len(cols)) is the unoccluded block; the probe-only pairs
-    whose probe was blocked are set to 0 here.
+    whose probe was blocked are set to 0 here. ``overlay(state, R, Cc)``, when
+    given, may set the (len(R), len(Cc)) int8 states of the pairs (neighbours
+    included: ``R``, ``Cc``) that another test decided before any probe is cast
+    (a pending pair set to visible or blocked gets no probe ray).
     """
     nb = vis.neighbours
     r, c = len(rows), len(cols)
@@ -175,6 +179,8 @@ def full_ray_pairs(vis, F: np.ndarray, rows: np.ndarray, cols: np.ndarray, need:
     state = np.empty((len(R), len(Cc)), np.int8)
     _pair_states(R, Cc, vis.points, vis.plane, vis.front_bits, vis.back_bits, vis.below_bits, vis.above_bits,
                  vis.cull, state)
+    if overlay is not None:
+        overlay(state, R, Cc)
     _probe(vis, R, Cc, state)
     n = len(nb)
     row_pos = np.full(n, -1, np.int64)
