@@ -98,7 +98,9 @@ def weld(vertices: np.ndarray, faces: np.ndarray, *, rel_tol: float = REL_TOL,
     if not faces.size:
         return faces.reshape(0, faces.shape[1] if faces.ndim == 2 else 3)
     if bounds is None:
-        used = vertices[faces.reshape(-1)]
+        in_use = np.zeros(len(vertices), bool)
+        in_use[faces.reshape(-1)] = True
+        used = vertices[in_use]
         bounds = np.array([used.min(axis=0), used.max(axis=0)])
     return weld_points(vertices, rel_tol=rel_tol, bounds=bounds)[faces]
 

@@ -11,9 +11,10 @@ radiosity systems):
    steps so that the patch count comes out within ~5 % of N).
 1b. Faces longer than PRESPLIT_EDGE sqrt(A*) are first cut by longest-edge
    bisection until no piece is (:func:`presplit`), and the pieces are grown
-   like any small face: a long thin face (a floor strip of a game level) would otherwise be a
-   long thin patch, one radiosity value along a strip; now its pieces join
-   their neighbours across the strip into compact patches.
+   like any small face: a long thin face (a floor strip of a game level)
+   would otherwise be a long thin patch, one radiosity value along a strip;
+   now its pieces join their neighbours across the strip into compact
+   patches.
 2. Faces larger than A* are split m x m, m = round(sqrt(area / A*)), as
    :func:`hfrad.scene.patches.subdivide` does; each piece is a patch.
 3. The other faces are grown into clusters. Seeds are taken along the Z-order

@@ -23,6 +23,18 @@ def presplit(scene: Scene, max_edge: float) -> Scene:
     well-shaped pieces. Area and orientation are kept exactly; coincident
     points are merged (the growing welds by position anyway); ``parent``
     still names the input face. Unchanged when no face is that long.
+
+    Parameters
+    ----------
+    scene : Scene
+        Unclustered (one triangle per patch).
+    max_edge : float, metres
+        Longest edge a piece may have.
+
+    Returns
+    -------
+    Scene
+        One patch per piece, the pieces of one face contiguous and in face order.
     """
     tri = scene.triangles
     owner = np.arange(len(tri))
