@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hfrad.errors import SceneError
+from hfrad.errors import InputError, SceneError
 from hfrad.scene import builtin_scene, subdivide, zorder_permutation
 from hfrad.scene.load import load_scene
 from hfrad.scene.zorder import morton_codes
@@ -237,3 +237,20 @@ def test_hilbert_order_steps_to_face_neighbours():
     assert np.allclose(np.linalg.norm(np.diff(pts[perm], axis=0), axis=1), 1.0)
     with pytest.raises(ValueError, match="order must be one of"):
         patch_order(pts, "spiral")
+
+
+@pytest.mark.parametrize("cut", ["subdivide", "load_scene"])
+@pytest.mark.parametrize("kwargs, match", [
+    ({"patches": 100, "max_edge": 0.1}, r"give either max_edge or patches, not both"),
+    ({"patches": 0}, r"patches must be a whole number >= 1, got 0"),
+    ({"patches": 99.5}, r"patches must be a whole number >= 1, got 99.5"),
+    ({"max_edge": float("nan")}, r"max_edge must be a positive finite length in metres, got nan"),
+    ({"max_edge": 0.0}, r"max_edge must be a positive finite length in metres, got 0.0"),
+])
+def test_a_bad_cut_request_is_one_input_error_everywhere(cut, kwargs, match):
+    """subdivide, load_scene and cluster share one check of patches / max_edge."""
+    with pytest.raises(InputError, match=match):
+        if cut == "subdivide":
+            subdivide(builtin_scene("cornell"), **kwargs)
+        else:
+            load_scene("cornell", **kwargs)
