@@ -109,7 +109,8 @@ def export_mesh(scene, radiosity: np.ndarray, path: "str | os.PathLike", *, colo
 
     Returns
     -------
-    Path of the written file.
+    Path
+        ``path``, written (a .glb or .ply file).
 
     Raises
     ------
@@ -234,13 +235,14 @@ def write_radiosity(scene, radiosity: np.ndarray, path: "str | os.PathLike", exi
 
     Returns
     -------
-    Path of the written file.
+    Path
+        ``path``, written in the format its extension names.
 
     Raises
     ------
     InputError (a ValueError)
-        Unknown extension (the message lists the supported ones) or arrays
-        of the wrong shape.
+        An extension not in RADIOSITY_FORMATS (the message lists them) or
+        arrays of the wrong shape.
 
     Examples
     --------
