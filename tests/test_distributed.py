@@ -86,6 +86,35 @@ def test_counter_tree_is_hfstream(m, monkeypatch):
     assert np.allclose(stats["sketch"], A @ probe_vectors(None, m * b))
 
 
+@pytest.mark.parametrize("dtype, panel_count", [(np.float64, 1), (np.float64, 3), (np.float32, 4)])
+def test_panelled_merge_is_the_serial_merge(dtype, panel_count):
+    """A merge by row panels (Gram per panel, small step, forming) gives merge_nodes' node: same rank and
+    discard, the same U S V^T, orthonormal factors."""
+    from hfrad.distributed import panels
+    from hfrad.lowrank.hf import ErrorBudget, compress_leaf, merge_nodes
+
+    rng = np.random.default_rng(panel_count)
+    n, b = 301, 40
+    A = (rng.standard_normal((n, 12)) @ rng.standard_normal((12, 2 * b))
+         + 1e-2 * rng.standard_normal((n, 2 * b))).astype(dtype)
+    budget = ErrorBudget(0.05, True, 2, 0.5)
+    left, right = compress_leaf(A[:, :b].copy(), budget, 0), compress_leaf(A[:, b:].copy(), budget, 1)
+    serial = merge_nodes(left, right, budget, "test")
+    rows = list(zip(*(lambda x: (x[:-1], x[1:]))(panels.panel_bounds(n, panel_count))))
+    G = sum(panels.panel_gram(left.U[a:c], right.U[a:c], slab=50) for a, c in rows)
+    out = panels.merge_small(G, tasks.node_meta(left), tasks.node_meta(right), budget.merge(left.norm2 + right.norm2))
+    U = np.concatenate([panels.panel_form(left.U[a:c], right.U[a:c], out["B"], dtype, slab=50) for a, c in rows])
+    V = np.concatenate([panels.chunk_update(left.V, out["W1"]), panels.chunk_update(right.V, out["W2"])])
+    s, meta = out["meta"]["s"], out["meta"]
+    # observed: float64 discard 2e-11 relative, product 2e-15, orthogonality 3e-15; float32 1.3e-6, 8e-7, 4e-7
+    tol = 1e-12 if dtype == np.float64 else 2e-5
+    assert s.size == serial.s.size > 0 and U.dtype == V.dtype == dtype
+    assert meta["discarded2"] == pytest.approx(serial.discarded2, rel=100 * tol)
+    assert meta["slack2"] == pytest.approx(serial.slack2, rel=100 * tol, abs=tol * left.norm2)
+    assert np.abs((U * s) @ V.T - (serial.U * serial.s) @ serial.V.T).max() <= 10 * tol * np.abs(A).max()
+    assert np.abs(U.T @ U - np.eye(s.size)).max() <= 10 * tol and np.abs(V.T @ V - np.eye(s.size)).max() <= 10 * tol
+
+
 def test_task_order_skips_saved_subtrees():
     """A saved node replaces its whole subtree: the tasks submitted are the saved nodes and what lies above them."""
     order = task_order(8)
@@ -108,10 +137,13 @@ def test_in_process_cluster_matches_local(cornell):
     assert {k: v for k, v in dist.params.items() if k not in ("backend", "workers")} == \
         {k: v for k, v in local.params.items() if k != "backend"}
     info = dist.lowrank.info
-    assert info["n_blocks"] == m and info["tasks"] == 2 * m - 1 == len(records) == info["tasks_run"]
+    tree = [r for r in records if r["kind"] in ("leaf", "merge")]
+    assert info["n_blocks"] == m and info["tasks"] == 2 * m - 1 == len(tree) == info["tasks_run"]
     assert info["time_formfactors"] > 0 and info["time_precompute"] > 0
     assert info["near_nnz"] == local.lowrank.info["near_nnz"] > 0
-    assert {r["kind"] for r in records} == {"leaf", "merge"}
+    # two workers: merges over more than ceil(m / 2) = 5 blocks (the 8-block node and the root) run by row panels
+    assert info["panel_leaves"] == 5 and info["row_panels"] == 2 and info["panelled_merges"] == 2
+    assert {r["kind"] for r in records} == {"leaf", "merge", "slice", "gram", "form", "chunk"}
 
 
 def _datasets(path):
@@ -272,6 +304,33 @@ def test_worker_processes_match_local_despite_a_killed_worker(cornell, process_c
     assert victim[0] not in client.run(os.getpid)  # that worker really is gone (its nanny started a new one)
 
 
+def test_panelled_merges_on_worker_processes_equal_serial_merges(cornell, process_cluster):
+    """Two single-thread worker processes: every merge by row panels (none holds a whole U) against every
+    merge whole: the same rank, error figures and Q V^T; each panel task saw only its panel's rows."""
+    from hfrad.distributed import factorize_distributed
+    from hfrad.solve.assemble import precompute_options
+
+    scene, _ = cornell
+    options = precompute_options(scene, eps=EPS, block_size=64, near_entries=NEAR, reciprocity=False)
+    runs = {}
+    for panel_leaves in (1, 10**9):
+        records = []
+        runs[panel_leaves] = factorize_distributed(scene, options, scheduler=process_cluster, records=records,
+                                                   panel_leaves=panel_leaves, row_panels=3), records
+    (whole, whole_records), (split, split_records) = runs[10**9], runs[1]
+    m = options.n_blocks
+    assert whole.lowrank.info["panelled_merges"] == 0 and split.lowrank.info["panelled_merges"] == m - 1
+    # float32 factors; observed: error figures 2.4e-8 and 1.9e-5 apart (relative), Q V^T 1.7e-6 of its largest entry
+    assert split.rank == whole.rank
+    assert split.relative_error == pytest.approx(whole.relative_error, rel=1e-6)
+    assert np.allclose(split.error_estimate().bound, whole.error_estimate().bound, rtol=2e-4)
+    QV, QV_whole = split.lowrank.Q @ split.lowrank.V.T, whole.lowrank.Q @ whole.lowrank.V.T
+    assert np.abs(QV - QV_whole).max() <= 2e-5 * np.abs(QV_whole).max()
+    panel_rows = {r["rows"] for r in split_records if r["kind"] in ("gram", "form")}
+    assert max(panel_rows) <= -(-scene.n_patches // 3)
+    assert {r["worker"] for r in split_records if r["kind"] == "gram"} == set(process_cluster.client.nthreads())
+
+
 def test_refuses_workers_too_small_for_one_leaf(cornell, monkeypatch):
     from hfrad.distributed.cluster import Cluster
     from hfrad.distributed.sizing import leaf_bytes
@@ -312,3 +371,19 @@ def test_a_damaged_checkpoint_part_is_refused(tmp_path):
         store.load_part(tmp_path, 9)
     store.drop_part(tmp_path, 9)
     assert store.open_folder(tmp_path, "k") == set()
+
+
+def test_root_share_per_worker_falls_as_one_over_workers():
+    """worker_bytes: with W workers the root's merge costs each worker 6 n k s / W + 192 k^2 bytes, not 14 n k s."""
+    from hfrad.distributed import sizing
+
+    n, k = 1_000_000, 2_000
+    assert sizing.root_worker_bytes(n, k, 1) == sizing.merge_bytes(n, k, k) == 14 * n * k * 4
+    assert sizing.root_worker_bytes(n, k, 64) == 6 * n * k * 4 // 64 + 192 * k * k
+    one = sizing.worker_bytes(n, 256, k, near_entries=120)
+    many = sizing.worker_bytes(n, 256, k, near_entries=120, workers=64, transition_rank=k // 4)
+    # the busiest of 64 workers holds the last whole merge (ranks k / 4: 14 n k s / 4 = 28 GB) and no longer
+    # the 112 GB root merge: 33 GB against 137 GB
+    assert many < 0.25 * one
+    assert many > sizing.merge_bytes(n, k // 4, k // 4)
+    assert many >= sizing.leaf_bytes(n, 256)

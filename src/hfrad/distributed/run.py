@@ -11,23 +11,29 @@ it up to rounding.
 from __future__ import annotations
 
 import collections
+import math
+import operator
 import time
 import uuid
+from dataclasses import dataclass
 from pathlib import Path
 
 import dask
+import numpy as np
 from distributed.scheduler import KilledWorker
 
 from ..errors import MemoryLimitError
+from ..lowrank.factors import LowRank
 from ..lowrank.hf import counter_tree
 from ..memory import human
 from ..progress import ProgressCallback, report
-from ..solve.assemble import PrecomputeOptions, assemble
+from ..solve.assemble import PrecomputeOptions, add_statistics, assemble, concat_near
 from ..solve.stats import PassStatistics
 from ..solve.woodbury import HFactorization
-from . import sizing, store
+from . import panels, sizing, store
 from .cluster import Cluster, WorkerLostError, connect
-from .tasks import Job, leaf_task, load_task, merge_task, root_task
+from .tasks import (Job, add_task, chunk_task, form_task, gram_task, leaf_task, load_task, merge_task,
+                    root_task, small_task, split_meta_task, split_rows_task, split_tail_task, split_v_task)
 
 _POLL_SECONDS = 0.2
 
@@ -35,7 +41,8 @@ _POLL_SECONDS = 0.2
 def factorize_distributed(scene, options: PrecomputeOptions, *, scheduler=None, workers: int | None = None,
                           task_threads: int | None = None, connect_timeout: float | None = None,
                           checkpoint=None, progress: ProgressCallback = None, status=None,
-                          records: list | None = None) -> HFactorization:
+                          records: list | None = None, panel_leaves: int | None = None,
+                          row_panels: int | None = None) -> HFactorization:
     """Precompute a scene on a Dask cluster: what :func:`hfrad.factorize` does, as Dask tasks.
 
     Users call ``hfrad.factorize(scene, scheduler=..., workers=...)``, which validates
@@ -71,7 +78,15 @@ def factorize_distributed(scene, options: PrecomputeOptions, *, scheduler=None, 
     records : list, optional
         Filled with one dict per task of the tree (kind, node, rank, columns,
         rows, seconds, form-factor and SVD seconds, ranks merged, worker, resumed):
-        the measured per-task costs behind docs/cluster.md's model.
+        the measured per-task costs behind docs/cluster.md's model. Then one dict per task of
+        the panelled merges (kind "slice", "gram", "form" or "chunk": node, seconds, cpu, rows or
+        columns, ranks).
+    panel_leaves : int, optional
+        Merges covering more than this many column blocks run by row panels
+        (:mod:`hfrad.distributed.panels`): no worker holds the whole of such a node.
+        Default :func:`default_panel_leaves` (``ceil(m / workers)``).
+    row_panels : int, optional
+        Row panels of those merges (default: one per worker).
 
     Returns
     -------
@@ -104,9 +119,11 @@ def factorize_distributed(scene, options: PrecomputeOptions, *, scheduler=None, 
                         "(or call hfrad.factorize(scene, scheduler=..., workers=...))")
     options = options.replace(reciprocity=False)   # every pair is computed on the workers
     if isinstance(scheduler, Cluster):
-        return _run(scheduler, scene, options, task_threads, checkpoint, progress, status, records)
+        return _run(scheduler, scene, options, task_threads, checkpoint, progress, status, records,
+                    panel_leaves, row_panels)
     with connect(scheduler, workers=workers, timeout=connect_timeout) as cluster:
-        return _run(cluster, scene, options, task_threads, checkpoint, progress, status, records)
+        return _run(cluster, scene, options, task_threads, checkpoint, progress, status, records,
+                    panel_leaves, row_panels)
 
 
 def _check_worker_memory(cluster: Cluster, n: int, block_size: int) -> None:
@@ -134,10 +151,46 @@ def task_order(m: int) -> list[tuple[str, int, tuple]]:
     return out
 
 
-def _submit(client, job_future, m: int, token: str, saved: set):
-    """Submit leaves and merges in the order HFStream would run them; returns (root future, parents, resumed).
+def default_panel_leaves(m: int, workers: int) -> int:
+    """Merges covering more than this many of the m leaves run by row panels (:mod:`hfrad.distributed.panels`).
+
+    ``ceil(m / workers)``: below, there are at least as many independent subtrees as workers
+    and whole-node merges keep every worker busy; above, fewer merges than workers remain and
+    a merge is the larger (ranks grow with the columns), so it is split over all workers.
+    One worker: none (the node's panels would all be on it anyway).
+    """
+    return m if workers <= 1 else max(1, -(-m // workers))
+
+
+@dataclass
+class _Panelled:
+    """A node of the tree held by row panels: futures of U's panels, of V's column chunks (in column
+    order, one per serial subtree below), of the bookkeeping dict, and of the serial subtrees' tails."""
+
+    U: list
+    V: list
+    meta: object
+    tails: list
+
+
+def _tree_shape(m: int, n: int, b: int) -> tuple[dict, dict]:
+    """Leaves and columns under each node of :func:`counter_tree`'s tree."""
+    leaves = {j: 1 for j in range(m)}
+    columns = {j: min(b, n - j * b) for j in range(m)}
+    for i, (left, right) in enumerate(counter_tree(m)):
+        leaves[m + i] = leaves[left] + leaves[right]
+        columns[m + i] = columns[left] + columns[right]
+    return leaves, columns
+
+
+def _submit(client, job_future, m: int, token: str, saved: set, *, n: int = 0, block_size: int = 1,
+            panel_leaves: int | None = None, bounds=None, workers=()):
+    """Submit leaves and merges in the order HFStream would run them; returns (final, parents, resumed).
 
     A node in ``saved`` (a checkpoint's) is read back by a load task and nothing below it is submitted.
+    Merges covering more than ``panel_leaves`` leaves run by the row panels ``bounds`` (panel p
+    preferably on ``workers[p % len(workers)]``). ``final`` is the root task's future, or a
+    :class:`_Panelled` of the root's truncated Q panels and V chunks.
     """
     order = task_order(m)
     parents = {c: node for kind, node, children in order for c in children}
@@ -145,6 +198,8 @@ def _submit(client, job_future, m: int, token: str, saved: set):
     for kind, node, children in reversed(order):   # parents before their children
         if node in saved or node in skipped:
             skipped.update(children)
+    leaves, columns = _tree_shape(m, n, block_size)
+    panel_leaves = m if panel_leaves is None else panel_leaves
     futures, resumed = {}, []
     for kind, node, children in order:
         if node in skipped:
@@ -154,6 +209,9 @@ def _submit(client, job_future, m: int, token: str, saved: set):
             resumed.append(node)
         elif kind == "leaf":
             futures[node] = client.submit(leaf_task, job_future, node, key=f"hfrad-leaf-{node}-{token}", pure=False)
+        elif leaves[node] > panel_leaves:
+            left, right = (_as_panels(client, job_future, c, futures.pop(c), bounds, token) for c in children)
+            futures[node] = _panel_merge(client, job_future, node, left, right, columns[node], bounds, workers, token)
         else:
             # a merge goes in as soon as both children are in: Dask then runs it before later leaves
             # (earlier submissions first, merges preferred), which keeps few nodes resident
@@ -161,8 +219,52 @@ def _submit(client, job_future, m: int, token: str, saved: set):
             futures[node] = client.submit(merge_task, job_future, node, futures.pop(left), futures.pop(right),
                                           children, key=f"hfrad-merge-{node}-{token}", pure=False, priority=1)
     (last,) = futures.values()  # the root: only it is held, so finished parts are freed as they merge
+    if isinstance(last, _Panelled):
+        Q = [client.submit(panels.root_panel, U, last.meta, key=f"hfrad-rootq-{p}-{token}", priority=2)
+             for p, U in enumerate(last.U)]
+        V = [client.submit(panels.root_chunk, V, last.meta, key=f"hfrad-rootv-{c}-{token}", priority=2)
+             for c, V in enumerate(last.V)]
+        return _Panelled(Q, V, last.meta, last.tails), parents, resumed
     root = client.submit(root_task, job_future, last, key=f"hfrad-root-{token}", pure=False, priority=2)
     return root, parents, resumed
+
+
+def _as_panels(client, job_future, node: int, part, bounds, token: str) -> _Panelled:
+    """A serial node (the future of a Part) cut into row panels where it lies; a _Panelled unchanged."""
+    if isinstance(part, _Panelled):
+        return part
+    U = [client.submit(split_rows_task, job_future, node, part, int(lo), int(hi),
+                       key=f"hfrad-rows-{node}-{p}-{token}", priority=1)
+         for p, (lo, hi) in enumerate(zip(bounds[:-1], bounds[1:]))]
+    return _Panelled(U, [client.submit(split_v_task, part, key=f"hfrad-v-{node}-{token}", priority=1)],
+                     client.submit(split_meta_task, part, key=f"hfrad-meta-{node}-{token}", priority=1),
+                     [client.submit(split_tail_task, part, key=f"hfrad-tail-{node}-{token}", priority=1)])
+
+
+def _panel_merge(client, job_future, node: int, left: _Panelled, right: _Panelled, columns: int, bounds,
+                 workers, token: str) -> _Panelled:
+    """Merge two panelled nodes: Gram per panel, a reduction, the small step, then U's panels and V's chunks."""
+    def on(p):   # panel p's worker: a preference (another worker takes it if that one is gone)
+        return {"workers": [workers[p % len(workers)]], "allow_other_workers": True} if workers else {}
+
+    P = len(left.U)
+    grams = [client.submit(gram_task, job_future, node, p, left.U[p], right.U[p], key=f"hfrad-gram-{node}-{p}-{token}",
+                           priority=1, **on(p)) for p in range(P)]
+    level = 0
+    while len(grams) > 1:
+        grams = [client.submit(add_task, grams[i], grams[i + 1], key=f"hfrad-add-{node}-{level}-{i}-{token}",
+                               priority=1) if i + 1 < len(grams) else grams[i] for i in range(0, len(grams), 2)]
+        level += 1
+    small = client.submit(small_task, job_future, node, grams[0], left.meta, right.meta, columns, P,
+                          key=f"hfrad-small-{node}-{token}", priority=1)
+    part = {name: client.submit(operator.getitem, small, name, key=f"hfrad-{name}-{node}-{token}", priority=1)
+            for name in ("B", "W1", "W2", "meta")}
+    U = [client.submit(form_task, job_future, node, p, left.U[p], right.U[p], part["B"],
+                       key=f"hfrad-form-{node}-{p}-{token}", priority=1, **on(p)) for p in range(P)]
+    V = [client.submit(chunk_task, job_future, node, V, part[w], key=f"hfrad-chunk-{node}-{side}{c}-{token}",
+                       priority=1)
+         for side, w, chunks in (("l", "W1", left.V), ("r", "W2", right.V)) for c, V in enumerate(chunks)]
+    return _Panelled(U, V, part["meta"], left.tails + right.tails)
 
 
 class _Tracker:
@@ -174,6 +276,7 @@ class _Tracker:
         self.rank_of: dict[int, int] = {}
         self.leaves_done: set[int] = set()
         self.executions = 0
+        self.task_records: list[dict] = []   # the panelled merges' panel tasks
 
     def handler(self, event) -> None:  # runs on the client's event-loop thread
         self.events.append(event[1] if isinstance(event, tuple) else event)
@@ -182,6 +285,9 @@ class _Tracker:
         changed = False
         while self.events:
             msg = self.events.popleft()
+            if msg["kind"] == "task":
+                self.task_records.append(msg["record"])
+                continue
             node = int(msg["node"])
             if msg["kind"] == "resumed":
                 self.leaves_done.update(int(j) for j in msg["leaves"])
@@ -202,10 +308,18 @@ class _Tracker:
         return sum(k for node, k in self.rank_of.items() if self.parents.get(node) not in self.rank_of)
 
 
-def _run(cluster: Cluster, scene, options: PrecomputeOptions, task_threads, checkpoint, progress, status,
-         records_out) -> HFactorization:
+def make_job(scene, options: PrecomputeOptions, task_threads: int | None, token: str, checkpoint=None) -> Job:
+    """The :class:`~hfrad.distributed.tasks.Job` a run scatters to its workers (also used by
+    benchmarks/bench_cluster_model.py to run single tasks)."""
     from ..formfactors.visibility import DEFAULT_SAMPLES
 
+    return Job(scene=scene, options=options, rows_rho=options.rows_rho(scene), weights=options.stats_weights(scene),
+               samples=DEFAULT_SAMPLES if options.samples is None else options.samples,
+               ray_budget=options.ray_budget(scene), task_threads=task_threads, token=token, checkpoint=checkpoint)
+
+
+def _run(cluster: Cluster, scene, options: PrecomputeOptions, task_threads, checkpoint, progress, status,
+         records_out, panel_leaves=None, row_panels=None) -> HFactorization:
     client = cluster.client
     n, block_size, m = options.n, options.block_size, options.n_blocks
     _check_worker_memory(cluster, n, block_size)
@@ -214,35 +328,43 @@ def _run(cluster: Cluster, scene, options: PrecomputeOptions, task_threads, chec
         checkpoint = str(Path(checkpoint).resolve())
         saved = store.open_folder(checkpoint, options.key(scene))
     token = uuid.uuid4().hex[:12]
-    job = Job(scene=scene, options=options, rows_rho=options.rows_rho(scene), weights=options.stats_weights(scene),
-              samples=DEFAULT_SAMPLES if options.samples is None else options.samples,
-              ray_budget=options.ray_budget(scene),
-              task_threads=task_threads if task_threads is not None else cluster.task_threads, token=token,
-              checkpoint=checkpoint)
+    job = make_job(scene, options, task_threads if task_threads is not None else cluster.task_threads, token,
+                   checkpoint)
     t0 = time.perf_counter()
     [job_future] = client.scatter([job], broadcast=True, hash=False)  # the scene travels once per worker
     time_scatter = time.perf_counter() - t0
     tracker = _Tracker(m)
     client.subscribe_topic(job.topic, tracker.handler)  # before the first task can report
     try:
-        root, tracker.parents, resumed = _submit(client, job_future, m, token, saved)
+        addresses = sorted(client.scheduler_info()["workers"])
+        if panel_leaves is None:
+            panel_leaves = default_panel_leaves(m, len(addresses))
+        bounds = panels.panel_bounds(n, len(addresses) if row_panels is None else row_panels)
+        root, tracker.parents, resumed = _submit(client, job_future, m, token, saved, n=n, block_size=block_size,
+                                                 panel_leaves=panel_leaves, bounds=bounds, workers=addresses)
+        final = [root] if not isinstance(root, _Panelled) else [*root.U, *root.V, root.meta, *root.tails]
         report(progress, 0, m)
-        while not root.done():
+        while not all(f.done() for f in final):
             time.sleep(_POLL_SECONDS)
             if tracker.drain():
                 report(progress, tracker.blocks, m)
                 if status is not None:
                     status({"blocks": tracker.blocks, "rank": tracker.rank, "elapsed": time.perf_counter() - t0})
         t_gather = time.perf_counter()
-        lowrank, records, stats_state, near = root.result()
+        if isinstance(root, _Panelled):
+            lowrank, records, stats_state, near = _gather_panelled(client, root, n, options)
+        else:
+            lowrank, records, stats_state, near = root.result()
+        del root, final
         time_gather = time.perf_counter() - t_gather
         tracker.drain()
     except KilledWorker as exc:
         client.cancel([job_future])
+        workers = cluster.n_workers
         raise WorkerLostError(
             f"{exc}: a task took down {dask.config.get('distributed.scheduler.allowed-failures')} workers in a "
             f"row, usually a worker out of memory; each worker needs about "
-            f"{human(sizing.worker_bytes(n, block_size, sizing.rank_guess(n, options.eps)))} here "
+            f"{human(sizing.worker_bytes(n, block_size, sizing.rank_guess(n, options.eps), workers=workers))} here "
             "(docs/cluster.md, 'Memory per worker')") from None
     except BaseException:
         client.cancel([job_future])  # Ctrl-C or a failure: stop the cluster's work on this run
@@ -252,27 +374,52 @@ def _run(cluster: Cluster, scene, options: PrecomputeOptions, task_threads, chec
     wall = time.perf_counter() - t0
     report(progress, m, m)
     del job_future
-    lowrank.info.update(_info(records, m, options, cluster, time_scatter, time_gather, wall,
-                              tracker.executions, len(resumed)))
+    lowrank.info.update(_info(records, tracker.task_records, m, options, cluster, time_scatter, time_gather, wall,
+                              tracker.executions, len(resumed), panel_leaves, bounds.size - 1))
     if records_out is not None:
-        records_out.extend(records)
+        records_out.extend(records + tracker.task_records)
     stats = PassStatistics.from_state({**stats_state, "weights": job.weights})
     return assemble(scene, options, lowrank, stats, near,
                     backend={"backend": "dask", "workers": cluster.n_workers})
 
 
-def _info(records, m, options, cluster, time_scatter, time_gather, wall, executions, resumed) -> dict:
+def _gather_panelled(client, root: _Panelled, n: int, options) -> tuple:
+    """The root's Q (panel by panel into one n x k array) and V, its error, the tails' records, statistics
+    and near entries (combined in column order) from a panelled root."""
+    meta = root.meta.result()
+    k, error = panels.root_error(meta)
+    Q = np.empty((n, k), np.dtype(options.dtype))
+    row = 0
+    for i in range(len(root.U)):
+        part = root.U[i].result()
+        Q[row:row + part.shape[0]] = part
+        row += part.shape[0]
+        root.U[i] = None   # frees the panel on its worker
+    V = np.concatenate([f.result() for f in root.V]) if root.V else np.zeros((0, k), Q.dtype)
+    records, stats, near = [], None, None
+    for f in root.tails:
+        r, st, nr = f.result()
+        records += r
+        stats, near = add_statistics(stats, st), concat_near(near, nr)
+    lowrank = LowRank(Q=Q, V=V, achieved_error=error, norm=math.sqrt(meta["norm2"]), eps=options.eps,
+                      relative=options.relative, method="hf", info={})
+    return lowrank, records + meta.get("records", []), stats, near
+
+
+def _info(records, task_records, m, options, cluster, time_scatter, time_gather, wall, executions, resumed,
+          panel_leaves, row_panels) -> dict:
     """Per-stage seconds (summed over the tasks of the final tree) and the run's shape, for the .hfr.
 
     ``task_executions`` counts the tasks' progress reports: above ``tasks_run`` when
     Dask re-ran tasks of a lost worker (a report still in flight at the end is missed).
     ``tasks_resumed``: nodes read back from a checkpoint (their subtrees were not run).
+    ``time_merge`` includes the panelled merges' panel tasks (as reported by their events).
     """
     leaves = sorted((r for r in records if r["kind"] == "leaf"), key=lambda r: r["node"])
     merges = [r for r in records if r["kind"] == "merge"]
     time_ff = sum(r["formfactors"] for r in leaves)
     time_leaf = sum(r["svd"] for r in leaves)
-    time_merge = sum(r["seconds"] for r in merges)
+    time_merge = sum(r["seconds"] for r in merges) + sum(r["seconds"] for r in task_records)
     return {"backend": "dask", "workers": cluster.n_workers, "scheduler": cluster.address,
             "cluster": cluster.kind, "n_blocks": m, "leaf_ranks": [r["rank"] for r in leaves],
             "dtype": options.dtype, "leaf_share": options.leaf_share,
@@ -280,4 +427,5 @@ def _info(records, m, options, cluster, time_scatter, time_gather, wall, executi
             "time_total": time_leaf + time_merge, "time_scatter": time_scatter, "time_gather": time_gather,
             "time_precompute": wall, "tasks": len(records),
             "tasks_run": sum(1 for r in records if not r.get("resumed")), "tasks_resumed": resumed,
-            "task_executions": executions}
+            "task_executions": executions, "panel_leaves": int(panel_leaves), "row_panels": int(row_panels),
+            "panelled_merges": sum(1 for r in merges if "panels" in r)}

@@ -25,7 +25,7 @@ from ..lowrank.nearfield import NearFieldSplit
 from ..formfactors.parallel import column_block
 from ..formfactors.visibility import RayBudget
 from ..solve.assemble import add_statistics, block_statistics, concat_near
-from . import store
+from . import panels, store
 
 
 @dataclass(frozen=True)
@@ -241,3 +241,84 @@ def root_task(job: Job, root: Part) -> tuple:
     """``Q V^T`` of the root with its achieved error (``Q`` and ``V`` are n x k), the task records,
     the statistics and the near entries of all columns."""
     return root_lowrank(root.node, job.options.eps, job.options.relative), root.records, root.stats, root.near
+
+
+# -- Panelled merges (hfrad.distributed.panels): the top of the tree, by row panels ---------------------
+
+def _record(job: Job, rec: dict) -> None:
+    """Send a panel task's record (kind, node, seconds, cpu, sizes) to the client with the progress events."""
+    rec["worker"] = _worker_name()
+    _announce(job, {"node": rec["node"], "kind": "task", "record": rec})
+
+
+def node_meta(node) -> dict:
+    """The small bookkeeping of a node (singular values, norms, discards, slack) a panelled merge needs."""
+    return {"s": np.asarray(node.s, np.float64), "norm2": float(node.norm2),
+            "discarded2": float(node.discarded2), "slack2": float(node.slack2)}
+
+
+def split_meta_task(part: Part) -> dict:
+    """A serial part's bookkeeping, for the panelled merge above it."""
+    return node_meta(part.node)
+
+
+def split_rows_task(job: Job, node_id: int, part: Part, lo: int, hi: int) -> np.ndarray:
+    """Rows ``lo:hi`` of a serial part's U (runs where the part is; the panel then moves alone)."""
+    out, rec = panels.timed("slice", node_id, lambda: np.ascontiguousarray(part.node.U[lo:hi]),
+                            rows=int(hi - lo), bytes=int((hi - lo) * part.node.U.shape[1] * part.node.U.itemsize))
+    _record(job, rec)
+    return out
+
+
+def split_v_task(part: Part) -> np.ndarray:
+    """A serial part's V: one column chunk of every panelled node above it (stays on this worker)."""
+    return part.node.V
+
+
+def split_tail_task(part: Part) -> tuple:
+    """A serial part's records, statistics and near entries (gathered by the client at the end)."""
+    return part.records, part.stats, part.near
+
+
+def gram_task(job: Job, node_id: int, p: int, U1: np.ndarray, U2: np.ndarray) -> np.ndarray:
+    """Panel ``p``'s float64 Gram matrix of ``[U1 U2]`` (:func:`hfrad.distributed.panels.panel_gram`)."""
+    G, rec = panels.timed("gram", node_id, panels.panel_gram, U1, U2, panel=int(p), rows=int(U1.shape[0]),
+                          ranks_in=[int(U1.shape[1]), int(U2.shape[1])])
+    _record(job, rec)
+    return G
+
+
+def add_task(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """One step of the Gram matrices' reduction."""
+    return a + b
+
+
+def small_task(job: Job, node_id: int, G: np.ndarray, left: dict, right: dict, columns: int,
+               panel_count: int) -> dict:
+    """The small step of panelled merge ``node_id`` (:func:`hfrad.distributed.panels.merge_small`)."""
+    t0, c0 = time.perf_counter(), time.process_time()
+    out = panels.merge_small(G, left, right, job.budget.merge(left["norm2"] + right["norm2"]))
+    rank = int(out["meta"]["s"].size)
+    own = {"kind": "merge", "node": int(node_id), "rank": rank, "rows": int(job.perm.size), "columns": int(columns),
+           "ranks_in": [int(left["s"].size), int(right["s"].size)], "panels": int(panel_count),
+           "seconds": time.perf_counter() - t0, "cpu": time.process_time() - c0, "worker": _worker_name()}
+    out["meta"]["records"] = left.get("records", []) + right.get("records", []) + [own]
+    _announce(job, {"node": node_id, "kind": "merge", "rank": rank})
+    return out
+
+
+def form_task(job: Job, node_id: int, p: int, U1: np.ndarray, U2: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """Panel ``p`` of the merged U (:func:`hfrad.distributed.panels.panel_form`)."""
+    U, rec = panels.timed("form", node_id, panels.panel_form, U1, U2, B, np.dtype(job.options.dtype),
+                          panel=int(p), rows=int(U1.shape[0]), ranks_in=[int(U1.shape[1]), int(U2.shape[1])],
+                          rank=int(B.shape[1]))
+    _record(job, rec)
+    return U
+
+
+def chunk_task(job: Job, node_id: int, V: np.ndarray, W: np.ndarray) -> np.ndarray:
+    """A column chunk of the merged V (:func:`hfrad.distributed.panels.chunk_update`)."""
+    out, rec = panels.timed("chunk", node_id, panels.chunk_update, V, W, columns=int(V.shape[0]),
+                            ranks_in=[int(W.shape[0])], rank=int(W.shape[1]))
+    _record(job, rec)
+    return out
