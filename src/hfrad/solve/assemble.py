@@ -260,6 +260,11 @@ def assemble(scene: Scene, options: PrecomputeOptions, lowrank: LowRank, stats: 
     -------
     HFactorization or NearFieldFactorization
         The latter with the near-field split.
+
+    Raises
+    ------
+    InputError
+        ``options.near_entries`` > 0 and ``near`` is None.
     """
     perm = options.perm
     warn_energy(scene, stats.row_sums[np.argsort(perm)])
@@ -270,7 +275,8 @@ def assemble(scene: Scene, options: PrecomputeOptions, lowrank: LowRank, stats: 
                              params=params, scene=scene, stats=stats)
     else:
         if near is None:
-            raise ValueError("the near-field split needs its near entries")
+            raise InputError(f"options.near_entries is {options.near_entries} (the near-field split) but no "
+                             "near entries were passed: assemble(..., near=near_state(rows, cols, values))")
         t1 = time.perf_counter()
         N = sp.csr_matrix((near["near_values"], (near["near_rows"], near["near_cols"])),
                           shape=(options.n, options.n))

@@ -51,6 +51,9 @@ class ErrorEstimate:
         (a secondary figure, kept for comparison with the paper).
     sigma_max : (3,) float
         Power-iteration estimate of sigma_max(Q_c V^T).
+
+    The arrays are float64 copies of what was given, read-only: a
+    factorization caches its estimate and hands these out.
     """
 
     bound: np.ndarray
@@ -61,6 +64,14 @@ class ErrorEstimate:
     contraction: np.ndarray | None
     eq5_bound: np.ndarray
     sigma_max: np.ndarray
+
+    def __post_init__(self) -> None:
+        for name in ("bound", "operator_error", "contraction", "eq5_bound", "sigma_max"):
+            value = getattr(self, name)
+            if value is not None:
+                value = np.array(value, dtype=np.float64)
+                value.flags.writeable = False
+                object.__setattr__(self, name, value)   # a frozen dataclass: set once, here
 
     def as_dict(self) -> dict:
         """JSON-ready figures (inf becomes None)."""

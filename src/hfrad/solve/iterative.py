@@ -14,6 +14,8 @@ import numba
 import numpy as np
 import scipy.sparse.linalg as spla
 
+from ..errors import InputError
+
 
 @dataclass
 class IterativeResult:
@@ -40,12 +42,16 @@ def _inputs(form_factors, reflectance, exitance):
     F = np.ascontiguousarray(form_factors, dtype=np.float64)
     rho = np.asarray(reflectance, np.float64)
     E = np.asarray(exitance, np.float64)
+    if F.ndim != 2 or F.shape[0] != F.shape[1]:
+        raise InputError(f"form_factors must be a square (n, n) matrix; got shape {F.shape}")
     n = F.shape[0]
     if E.ndim == 1:
         E = np.repeat(E[:, None], 3, axis=1)
-    if F.shape != (n, n) or rho.shape != (n, 3) or E.shape != (n, 3):
-        raise ValueError(f"expected F (n, n), reflectance (n, 3), exitance (n,) or (n, 3); "
-                         f"got {F.shape}, {rho.shape}, {E.shape}")
+    if rho.shape != (n, 3):
+        raise InputError(f"reflectance must have shape ({n}, 3) (n from form_factors); got {rho.shape}")
+    if E.shape != (n, 3):
+        raise InputError(f"exitance must have shape ({n},) or ({n}, 3) (n from form_factors); "
+                         f"got {np.shape(exitance)}")
     return F, rho, np.ascontiguousarray(E)
 
 

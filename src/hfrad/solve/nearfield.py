@@ -29,17 +29,20 @@ The adjoint solve (``trans="T"``) applies ``A_c^{-T}`` twice instead
 
 from __future__ import annotations
 
+from functools import cached_property
+
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.linalg import splu
 
-from ..errors import FactorizationError
+from ..errors import FactorizationError, InputError
 from ..lowrank.hf import SLAB_ROWS, spare_threads
 from ..lowrank.factors import LowRank
 from . import thin
 from .bounds import power_sigma_max
 from .neumann import neumann_solve, spectral_bound
 from .quantized import QuantizedRows
+from .readonly import read_only, read_only_csr
 from .sparselu import PanelSolver
 from .woodbury import (N_CHANNELS, HFactorization, capacitance_applied, invert_capacitance,
                        low_rank_correction)
@@ -48,16 +51,18 @@ __all__ = ["NearFieldFactorization", "SOLVER", "QUANTIZE_SHARE"]
 
 #: How the solve works, as recorded in .hfr files and reports.
 SOLVER = "woodbury+neumann(I - D_c N)"
-#: ``Z_c`` is stored in 16 bits when the operator error that adds is at most this share of the
-#: factorization's achieved error (measured: 5e-4 of it at 39,482 patches, 1.2e-3 on Sponza 20K).
+#: ``Z_c`` is stored in 16 bits when the operator error that adds (its bound
+#: ``(1 + ||N||_2) ||Z_c - Z~_c||_F ||V||_2``, :attr:`NearFieldFactorization.quantization_error`)
+#: is at most this share of the factorization's achieved error: the error figures then grow by
+#: at most 1%.
 QUANTIZE_SHARE = 0.01
 
 
 def _lu_solve(lu, X: np.ndarray, trans: str = "N") -> np.ndarray:
     """``A^{-1} X`` (or ``A^{-T} X``) column by column.
 
-    SuperLU's multi-right-hand-side solve is measured 6-10x slower here than a
-    loop of single solves (2,000 patches, 570 columns: 6.3 s vs 1.0 s).
+    A loop of single-column solves: SciPy's SuperLU solve with many columns is
+    the slower of the two for this use (``benchmarks/`` compares them).
     """
     if X.ndim == 1 or X.shape[1] == 1:
         return lu.solve(np.ascontiguousarray(X, dtype=np.float64), trans=trans)
@@ -65,6 +70,14 @@ def _lu_solve(lu, X: np.ndarray, trans: str = "N") -> np.ndarray:
     for j in range(X.shape[1]):
         out[:, j] = lu.solve(np.ascontiguousarray(X[:, j], dtype=np.float64), trans=trans)
     return out
+
+
+def _checked_near_field(N, n: int) -> sp.csr_matrix:
+    """N as float64 CSR (no copy when it is one), or InputError unless it is an (n, n) matrix."""
+    if not (sp.issparse(N) or isinstance(N, np.ndarray)) or N.ndim != 2 or N.shape != (n, n):
+        raise InputError(f"N (the near field) must be a sparse or dense ({n}, {n}) matrix in the internal "
+                         f"order; got {type(N).__name__} of shape {getattr(N, 'shape', None)}")
+    return sp.csr_matrix(N, dtype=np.float64)
 
 
 class NearFieldFactorization(HFactorization):
@@ -95,8 +108,19 @@ class NearFieldFactorization(HFactorization):
         (:attr:`quantization_error`) is at most ``QUANTIZE_SHARE`` of the
         achieved error (float64 factors keep float64 ``Z_c``).
 
+    Raises
+    ------
+    InputError
+        As :class:`HFactorization`; also N not (n, n), ``near_solution`` not
+        (d, n, k) for the d distinct channels.
+    FactorizationError
+        ``I - D_c N`` or a capacitance matrix ``K_c`` is singular.
+
     Notes
     -----
+    Immutable as :class:`HFactorization`: ``N`` (its ``data``, ``indices``,
+    ``indptr``), ``Z`` (array or :class:`QuantizedRows`) and
+    ``capacitance_inv`` are read-only too.
     Memory: Q, V and one ``Z`` per distinct channel (n k each, the factors'
     dtype, or 2 bytes an entry quantized), N (float64 and a copy in the factors' dtype) and the three k x k
     inverses ``K_c^{-1}``. Set-up holds one channel's SuperLU factors and
@@ -113,18 +137,19 @@ class NearFieldFactorization(HFactorization):
         self._sources = self._channel_sources()
         #: for each channel, its Z in the stack of distinct channels
         self._stored = [self.distinct_channels.index(s) for s in self._sources]
-        self.N = sp.csr_matrix(N, dtype=np.float64)
+        self.N = read_only_csr(_checked_near_field(N, self.n_patches))
         # the sweeps read N in the factors' precision (float32: half the traffic)
-        self._sweep_N = self.N.astype(self.dtype)
+        self._sweep_N = read_only_csr(self.N.astype(self.dtype))
         self._sweep_NT = None
         self._lus: dict[int, object] = {}
-        self._rho: float | None = None
         #: sweeps of the Neumann series in the last solve (0 when SuperLU solved it)
         self.last_sweeps = 0
         self._quantization_error: np.ndarray | None = None
         self._quantize = quantize
         with spare_threads():   # BLAS threads that other processes leave free (hfrad.lowrank.hf)
-            self.Z, self.capacitance_inv = self._near_solution(near_solution, capacitance, quantize)
+            Z, K_inv = self._near_solution(near_solution, capacitance, quantize)
+        self.Z = Z if isinstance(Z, QuantizedRows) else read_only(Z)   # QuantizedRows holds read-only arrays
+        self.capacitance_inv = read_only(K_inv)
 
     @property
     def distinct_channels(self) -> list[int]:
@@ -144,8 +169,8 @@ class NearFieldFactorization(HFactorization):
         try:
             # N's pattern is symmetric (near is a symmetric relation): minimum degree on A^T + A, and
             # SuperLU's symmetric mode (diagonal pivots preferred, a threshold of 0.1 still guards a small
-            # one; A is diagonally dominant): 10K near field, 7.0M entries in L + U either way, 2.3 s
-            # of CPU against 5.5 s, the same residual (3e-15)
+            # one; A is diagonally dominant, so the diagonal pivots are stable and the row
+            # permutation search of the general mode is wasted work)
             return splu(A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.1,
                         options={"SymmetricMode": True})
         except RuntimeError as exc:
@@ -158,7 +183,8 @@ class NearFieldFactorization(HFactorization):
         if stored_Z is not None and stored_K is not None:
             Z = stored_Z if isinstance(stored_Z, QuantizedRows) else np.asarray(stored_Z, self.dtype)
             if Z.shape != shape:
-                raise FactorizationError(f"near_solution must have shape {shape}; got {Z.shape}")
+                raise InputError(f"near_solution must have shape {shape} (one (n, k) A_c^-1 D_c Q per "
+                                 f"distinct channel {distinct}); got {Z.shape}")
             return Z, super()._capacitance_inv(stored_K)
         Z = np.empty(shape, self.dtype)
         for z, c in enumerate(distinct):
@@ -182,8 +208,8 @@ class NearFieldFactorization(HFactorization):
         """(k, k) float64 ``V^T Z``: products of row slabs in the factors' dtype, summed in float64.
 
         As the plain solver's capacitance (:func:`~hfrad.solve.woodbury.capacitance`): a float64
-        product was 2 n k^2 flops at half the speed plus an n x k float64 copy of V and of each Z
-        (10K patches, rank 2,083, three channels: 22 of the set-up's 73 CPU seconds, loaded machine).
+        product would be the same ``2 n k^2`` flops at half the float32 rate plus float64 copies
+        of V and of each Z (``8 n k`` bytes each); a slab's copy is ``slab k`` entries.
         Summing per slab keeps float32 rounding at that of a ``slab``-long dot product.
         """
         K = np.zeros((self.rank, self.rank))
@@ -205,16 +231,18 @@ class NearFieldFactorization(HFactorization):
         per_z = [(1 + norm_N) * coded[z].error_bound() * norm_V for z in range(coded.shape[0])]
         return np.array([per_z[z] for z in self._stored])
 
-    @property
+    @cached_property
     def quantization_error(self) -> np.ndarray:
-        """(3,) upper bound on the operator error that 16-bit ``Z_c`` add (0 for float ``Z_c``).
+        """(3,) float, read-only: upper bound on the operator error that 16-bit ``Z_c`` add (0 for float ``Z_c``).
 
-        Computed from the stored scales when not known from the set-up.
+        Known from the set-up when it quantized; otherwise (a loaded file) the
+        first access computes it from the stored scales, with a power
+        iteration for ``||V||_2`` (O(nk) per step); later accesses are free.
         """
-        if self._quantization_error is None:
-            self._quantization_error = (self._quantization_bound(self.Z) if isinstance(self.Z, QuantizedRows)
-                                        else np.zeros(N_CHANNELS))
-        return self._quantization_error
+        if self._quantization_error is not None:
+            return read_only(self._quantization_error)
+        return read_only(self._quantization_bound(self.Z) if isinstance(self.Z, QuantizedRows)
+                         else np.zeros(N_CHANNELS))
 
     @property
     def near_solution_storage(self) -> str:
@@ -273,17 +301,19 @@ class NearFieldFactorization(HFactorization):
             sigma[c] = sigma[s] if s != c else self._power_sigma(c)
         return sigma
 
-    @property
+    @cached_property
     def near_spectral_bound(self) -> float:
-        """Upper bound on the spectral radius of every ``D_c N`` (that of N; computed once)."""
-        if self._rho is None:
-            self._rho = spectral_bound(self.N)
-        return self._rho
+        """Upper bound on the spectral radius of every ``D_c N`` (that of N).
+
+        The first access runs a power iteration on ``|N|`` (O(nnz(N)) per
+        step, :func:`~hfrad.solve.neumann.spectral_bound`); later ones are free.
+        """
+        return spectral_bound(self.N)
 
     def _sweep_transposed(self) -> sp.csr_matrix:
         """N^T in the sweeps' precision (the adjoint's sweeps; its pattern guides the forward ones), made once."""
         if self._sweep_NT is None:
-            self._sweep_NT = self._sweep_N.T.tocsr()
+            self._sweep_NT = read_only_csr(self._sweep_N.T.tocsr())
         return self._sweep_NT
 
     def _near_inverse(self, X: np.ndarray, adjoint: bool) -> np.ndarray:

@@ -3,8 +3,8 @@
 The near-field solver (:mod:`hfrad.solve.nearfield`) applies ``A_c^{-1}``,
 ``A_c = I - D_c N``, to every new emission. SuperLU's triangular solves do it
 exactly but one right-hand side and one channel at a time, on one thread,
-through L and U (8-9x the entries of N on the gallery scenes): 30-40 ms per
-channel at 20K patches, six of them per RGB solve. Here ``T = D_c N`` (forward)
+through L and U (which hold several times the entries of N: fill-in), so an RGB
+solve reads ``nnz(L + U)`` entries three times. Here ``T = D_c N`` (forward)
 or ``T = N^T D_c`` (adjoint) is applied in sweeps, each reading N once for
 every channel and emission together on every core (numba ``prange`` over rows).
 While the iterate is local (a lamp: its emitters and, after t sweeps, t rings of
@@ -40,8 +40,8 @@ from numba import njit, prange
 __all__ = ["NEUMANN_TOL", "MAX_SWEEPS", "neumann_solve", "spectral_bound"]
 
 #: Relative residual (max norm) at which the sweeps stop: two orders below the smallest
-#: eps a precompute takes (1e-3), and above float32 rounding of N (the iterate stagnates
-#: near 1e-7 relative, measured on the gallery scenes).
+#: eps a precompute takes (1e-3), and two above float32 rounding (``2^-24 ~ 6e-8``), near
+#: which an iterate with float32 N stagnates.
 NEUMANN_TOL = 1e-5
 
 #: Sweeps before giving up (the caller then uses a sparse LU).
@@ -57,8 +57,7 @@ def _sweep(indptr, indices, data, rows, src, x, prev, b, scale, omega, out, chan
     ``out = prev + omega (y - prev)``; per listed row the largest residual ``|y - x|`` and ``|out|``.
 
     Columns go in groups of four with the sums in registers: accumulating into
-    ``out[i, c]`` made every entry a store and a reload (1.3-1.9x slower, 3.8x
-    with one column, measured at 40K patches).
+    ``out[i, c]`` would make every entry of N a store and a reload of ``out``.
     """
     w = x.shape[1]
     for r in prange(rows.shape[0]):

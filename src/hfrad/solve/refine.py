@@ -18,7 +18,7 @@ from ..scene.refine import marks_from_radiosity, refine_patches
 from ..scene.scene import Scene
 from .iterative import jacobi
 
-#: The coarse solve holds the dense n x n F (float32): 8,000 patches are 256 MB.
+#: The coarse solve holds the dense n x n F in float32: ``4 n^2`` bytes (256e6 at this limit).
 MAX_COARSE_PATCHES = 8000
 
 

@@ -3,9 +3,9 @@
 The near-field solver (:mod:`hfrad.solve.nearfield`) needs ``A^{-1} X`` for
 the k columns of ``X = D_c Q`` once per channel to set up its k x k
 capacitance matrices. SuperLU (``scipy.sparse.linalg.splu``) factors ``A``
-well, but its solve walks L and U once per right-hand side: at 20K patches
-and k ~ 5,000 the set-up read ~15,000 times a factor of ~10^7 entries
-(minutes). Here the triangular solves take the right-hand sides in panels of
+well, but its solve walks L and U once per right-hand side: the set-up reads
+``nnz(L + U)`` entries k times per distinct channel (k right-hand sides). Here
+the triangular solves take the right-hand sides in panels of
 :data:`PANEL` columns stored row-major, so each entry of L and U is read once
 per panel and applied to a contiguous row of the panel (vectorized), and the
 panels run in parallel (numba ``prange``): the same flops, ~PANEL times less
@@ -22,9 +22,9 @@ from numba import njit, prange
 
 __all__ = ["PANEL", "PanelSolver"]
 
-#: Right-hand sides per panel: a row of a panel is a few SIMD vectors, a panel of 20K rows
-#: 5 MB in float32 (near the cache). Measured on the Sponza 20K near field (15M entries in
-#: L + U, float32): 32 and 64 columns alike, 10x the column-by-column SuperLU solve.
+#: Right-hand sides per panel: a row of a panel is a few SIMD vectors, a panel of n rows
+#: ``4 n PANEL`` bytes in float32 (``8 n PANEL`` in float64); L and U are read
+#: ``ceil(k / PANEL)`` times per channel instead of k.
 PANEL = 64
 
 

@@ -8,12 +8,14 @@ while each column block streams past, measures the factorization error
 
 from __future__ import annotations
 
+import copy
 import math
 
 import numpy as np
 
 from ..lowrank.hf import SLAB_ROWS
 from .bounds import contraction_bound
+from .readonly import read_only
 
 __all__ = ["PassStatistics", "PROBES", "FAILURE_PROBABILITY", "probe_alpha", "probe_vectors"]
 
@@ -64,9 +66,9 @@ class PassStatistics:
     def add(self, start: int, stop: int, F_block: np.ndarray, rows_rho: np.ndarray) -> None:
         """Record columns ``start:stop`` of F (all rows, internal order); ``rows_rho`` is (n, 1) rho_max.
 
-        In float64, slab by slab of rows: a float64 copy of a whole float32 block (338 MB
-        at 164,988 patches) is fresh memory every block, and its page faults made this
-        0.9 s a block there (0.15 s in slabs).
+        In float64, slab by slab of ``SLAB_ROWS`` rows: a float64 copy of a whole block of
+        b columns would be ``8 n b`` bytes of fresh memory every block (page faults each
+        time), a slab's copy is ``8 SLAB_ROWS b`` bytes and stays in the cache.
         """
         omega = self._omega[start:stop]
         col_sums = np.zeros(stop - start)
@@ -83,6 +85,19 @@ class PassStatistics:
                "probes": self.probes, "seed": self.seed}
         if self.weights is not None:
             out["weights"] = self.weights
+        return out
+
+    def frozen(self) -> "PassStatistics":
+        """A shallow copy whose arrays are read-only views (what a factorization holds, no copy of data).
+
+        The error figures are computed from these sums and sketch; the copy
+        refuses :meth:`add` (``ValueError``), while ``self`` stays writable.
+        """
+        out = copy.copy(self)
+        for name in ("row_sums", "col_sums", "sketch", "weights", "_omega"):
+            value = getattr(self, name)
+            if value is not None:
+                setattr(out, name, read_only(value))
         return out
 
     @classmethod

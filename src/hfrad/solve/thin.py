@@ -3,9 +3,8 @@
 A relighting solve multiplies Q and V (n x k) by a handful of right-hand
 sides (3 m: three colour channels, m emissions). OpenBLAS's GEMM with so few
 columns packs the big operand first and runs at a fraction of the memory
-bandwidth (n = 10K, k = 1,869, float32, 3 columns: ~5x the time of reading
-Q once, ``benchmarks/bench_solve.py --relight``); three GEMVs read it three
-times. These kernels stream each row of the factor once through the cache
+bandwidth (``benchmarks/bench_solve.py --relight`` compares them); three
+GEMVs read it three times. These kernels stream each row of the factor once through the cache
 and do all the columns' work on it. Rows of ``X`` that are entirely zero
 (patches that do not emit) are skipped in ``A^T X``: their rows of A are not
 read at all.

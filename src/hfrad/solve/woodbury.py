@@ -7,7 +7,9 @@ D_c = diag(rho_c / rho_max), so ``R_c F ~= Q_c V^T`` with the same error bound.
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
+from functools import cached_property
 
 import numpy as np
 import scipy.linalg as sla
@@ -17,6 +19,7 @@ from ..lowrank.factors import LowRank
 from ..validation import as_real_array, check_exitance, check_finite, check_reflectance, check_trans
 from .bounds import ErrorEstimate, ResidualEstimate, estimate_errors, power_sigma_max, residual_estimate
 from . import thin
+from .readonly import read_only
 from .stats import FAILURE_PROBABILITY, PassStatistics
 
 N_CHANNELS = 3
@@ -40,7 +43,7 @@ def capacitance(Q: np.ndarray, V: np.ndarray, D: np.ndarray, dtype=None) -> np.n
         Channel scales ``rho_c / rho_max`` in internal order.
     dtype : numpy dtype, optional
         Precision of the n x k x k products (default: the factors' dtype;
-        benchmarks/bench_solve.py measures float32 against float64 here).
+        ``benchmarks/bench_solve.py`` compares float32 with float64 here).
 
     Returns
     -------
@@ -75,11 +78,13 @@ def invert_capacitance(M: np.ndarray, what: str, dtype=np.float64) -> np.ndarray
     LU-factored (LAPACK getrf), checked and inverted (getri) in float64; the
     inverse is returned C-contiguous in ``dtype`` (the factors' dtype). An
     explicit inverse, not the LU: applying it is one matrix-vector product
-    that streams its k^2 words, where two triangular solves of a single
-    right-hand side ran ~25x slower (k = 2,067, ``benchmarks/bench_solve.py
-    --relight``). ``M_c`` is well conditioned (about 2 on the test scenes),
-    so neither the inverse nor its float32 rounding costs accuracy that the
-    exact-solve tests can see.
+    that streams its k^2 words in parallel, where two triangular solves of a
+    single right-hand side are sequential, row after row
+    (``benchmarks/bench_solve.py --relight`` compares them). With V's columns
+    orthonormal (as the factorizers return them), ``||V^T D_c Q||_2 <= s =
+    sigma_max(Q_c V^T)``, and for ``s < 1`` the condition number of ``M_c``
+    is at most ``(1 + s) / (1 - s)``: the explicit inverse and its float32
+    rounding lose accuracy only where ``s`` approaches 1 (the check below).
 
     Raises
     ------
@@ -98,7 +103,7 @@ def invert_capacitance(M: np.ndarray, what: str, dtype=np.float64) -> np.ndarray
     if info != 0 or not rcond > _RCOND_MIN:
         raise FactorizationError(f"{what} ({k} x {k}) is singular (reciprocal condition {rcond:.2e}); "
                                  "R F has an eigenvalue near 1 (reflectance too close to 1?)")
-    # the blocked getri needs its workspace size: with the default (k) it is ~5x slower
+    # the blocked getri needs its workspace size: with the minimum (k) LAPACK runs the unblocked algorithm
     inv, info = sla.lapack.dgetri(lu, piv, lwork=max(int(sla.lapack.dgetri_lwork(k)[0]), k))
     return np.ascontiguousarray(inv, dtype)
 
@@ -159,6 +164,32 @@ def low_rank_correction(Q: np.ndarray, V: np.ndarray, D: np.ndarray, inverse: np
     return W.astype(np.float64) if adjoint else D[:, :, None] * W
 
 
+def _checked_arrays(perm, Q, V, rho_max, reflectance):
+    """The constructor's arrays as int64 / float arrays of consistent shapes, or InputError naming the first bad one."""
+    perm = np.asarray(perm)
+    if perm.ndim != 1 or not (perm.dtype.kind in "iu" or perm.size == 0):
+        raise InputError(f"perm must be a 1-D integer array (a permutation of the n patches); "
+                         f"got shape {perm.shape}, dtype {perm.dtype}")
+    perm = perm.astype(np.int64, copy=False)
+    n = perm.size
+    if n and (perm.min() < 0 or perm.max() >= n or np.bincount(perm, minlength=n).max() != 1):
+        raise InputError(f"perm must be a permutation of 0..{n - 1} (each patch once)")
+    Q = np.asarray(Q)
+    if Q.ndim != 2 or Q.shape[0] != n or Q.dtype.kind != "f":
+        raise InputError(f"Q must be a float array of shape ({n}, k) (n = len(perm)); "
+                         f"got shape {Q.shape}, dtype {Q.dtype}")
+    V = np.asarray(V)
+    if V.shape != Q.shape or V.dtype.kind != "f":
+        raise InputError(f"V must be a float array of Q's shape {Q.shape}; got shape {V.shape}, dtype {V.dtype}")
+    rho_max = np.asarray(rho_max, dtype=np.float64)
+    if rho_max.size != n:
+        raise InputError(f"rho_max must have one entry per patch ({n}); got shape {rho_max.shape}")
+    reflectance = np.asarray(reflectance, dtype=np.float64)
+    if reflectance.shape != (n, N_CHANNELS):
+        raise InputError(f"reflectance must have shape ({n}, {N_CHANNELS}); got {reflectance.shape}")
+    return perm, Q, V.astype(Q.dtype, copy=False), rho_max.reshape(n), reflectance
+
+
 class HFactorization:
     """A factored radiosity system: solve ``(I - R_c F) B_c = E_c`` for any E in O(nk).
 
@@ -190,9 +221,24 @@ class HFactorization:
     params : dict, optional
         Parameters of the run (block size, order, method...), for the record.
 
+    Raises
+    ------
+    InputError
+        ``perm`` is not a permutation of ``0..n-1``, Q and V are not both
+        (n, k), ``rho_max`` does not have n entries, ``reflectance`` is not
+        (n, 3), or ``capacitance`` is not (3, k, k).
+    FactorizationError
+        A capacitance matrix ``M_c`` is singular (R F has an eigenvalue near 1).
+
     Notes
     -----
     ``solver`` names the method ("woodbury"; the near-field split's subclass says its own).
+    Immutable arrays: ``perm``, ``inv_perm``, ``Q``, ``V``, ``rho_max``,
+    ``reflectance``, ``capacitance_inv``, ``lowrank.Q``/``lowrank.V`` and the
+    pass statistics' arrays are read-only views (writing raises
+    ``ValueError``; no data is copied): they were computed together, and
+    :meth:`with_reflectance` is the way to a factorization with other
+    reflectances. Arrays returned by :meth:`solve` are new and writable.
     Memory: Q and V (2 n k) and the three k x k inverses ``M_c^{-1}``
     (3 k^2, ``capacitance_inv``), all in the factors' dtype; nothing else
     n x k is kept. A solve of all three channels (and
@@ -207,7 +253,7 @@ class HFactorization:
     def __init__(self, perm, Q, V, rho_max, reflectance, lowrank: LowRank, *, capacitance=None,
                  sigma_max=None, params: dict | None = None, scene=None, stats: PassStatistics | None = None):
         self._set_state(perm, Q, V, rho_max, reflectance, lowrank, sigma_max, params, scene, stats)
-        self.capacitance_inv = self._capacitance_inv(capacitance)
+        self.capacitance_inv = read_only(self._capacitance_inv(capacitance))
 
     def _capacitance_inv(self, stored) -> np.ndarray:
         """(3, k, k) ``M_c^{-1}``, ``M_c = I_k - V^T D_c Q``: ``stored`` checked, or computed."""
@@ -222,23 +268,24 @@ class HFactorization:
                          for c in range(N_CHANNELS)])
 
     def _set_state(self, perm, Q, V, rho_max, reflectance, lowrank, sigma_max, params, scene, stats) -> None:
-        """What every solver of a factorization holds (shared with the near-field solver)."""
-        self.perm = np.asarray(perm, dtype=np.int64)
-        n = self.perm.size
-        self.inv_perm = np.empty(n, np.int64)
-        self.inv_perm[self.perm] = np.arange(n)
-        self.Q = np.asarray(Q)
-        self.V = np.asarray(V, dtype=self.Q.dtype)
-        self.rho_max = np.asarray(rho_max, dtype=np.float64).reshape(n)
-        self.reflectance = np.asarray(reflectance, dtype=np.float64).reshape(n, N_CHANNELS)
-        self.lowrank = lowrank
+        """What every solver of a factorization holds (shared with the near-field solver), read-only."""
+        perm, Q, V, rho_max, reflectance = _checked_arrays(perm, Q, V, rho_max, reflectance)
+        n = perm.size
+        inv_perm = np.empty(n, np.int64)
+        inv_perm[perm] = np.arange(n)
+        self.perm, self.inv_perm = read_only(perm), read_only(inv_perm)
+        self.Q, self.V = read_only(Q), read_only(V)
+        self.rho_max, self.reflectance = read_only(rho_max), read_only(reflectance)
+        # the LowRank's Q and V are the same data: read-only views there too (its info dict is shared)
+        self.lowrank = (dataclasses.replace(lowrank, Q=read_only(lowrank.Q), V=read_only(lowrank.V))
+                        if dataclasses.is_dataclass(lowrank) else lowrank)
         self.params = dict(params or {})
         self.scene = scene
         self.timings: dict = {}
-        self._D = _channel_scale(self.reflectance, self.rho_max)[self.perm]
-        self._sigma = None if sigma_max is None else np.asarray(sigma_max, np.float64)
+        self._D = read_only(_channel_scale(self.reflectance, self.rho_max)[self.perm])
+        self._sigma = None if sigma_max is None else read_only(np.asarray(sigma_max, np.float64))
         self._estimate: ErrorEstimate | None = None
-        self.stats = stats
+        self.stats = None if stats is None else stats.frozen()
 
     # -- sizes and accuracy ------------------------------------------------
     @property
@@ -269,7 +316,7 @@ class HFactorization:
         return self.lowrank.relative_error
 
     def error_estimate(self) -> ErrorEstimate:
-        """Accuracy figures of this factorization, per colour channel (computed once, cached).
+        """Accuracy figures of this factorization, per colour channel (computed on the first call, then cached).
 
         Returns
         -------
@@ -288,17 +335,18 @@ class HFactorization:
 
         Notes
         -----
-        O(n k p) for the probes and a power iteration on the factors for eq. 5
-        (O(nk) per step, a few hundred steps at most).
+        The first call costs O(n k p) for the p probes and, unless
+        :attr:`sigma_max` is known (stored in an .hfr file or read before), a
+        power iteration on the factors for eq. 5 (O(nk) per step, a few
+        hundred steps at most); later calls return the same object (the
+        factorization is immutable).
         """
         if self._estimate is None:
-            if self._sigma is None:
-                self._sigma = self._sigma_estimates()
             error = self.achieved_error + float(np.max(self._storage_error()))
             if self.stats is None:
-                est = estimate_errors(error, self._sigma)
+                est = estimate_errors(error, self.sigma_max)
             else:
-                est = estimate_errors(error, self._sigma, operator_error=self._operator_error(),
+                est = estimate_errors(error, self.sigma_max, operator_error=self._operator_error(),
                                       contraction=self.stats.contraction(self.reflectance[self.perm]),
                                       norm=self.stats.norm, failure_probability=FAILURE_PROBABILITY)
             bad = ~np.isfinite(est.bound)
@@ -324,19 +372,34 @@ class HFactorization:
         return np.array([power_sigma_max(self.Q * self._D[:, c:c + 1].astype(self.dtype), self.V)
                          for c in range(N_CHANNELS)])
 
-    @property
+    @cached_property
     def sigma_max(self) -> np.ndarray:
-        """(3,) float: sigma_max(Q_c V^T) per channel (stored by :meth:`error_estimate`)."""
-        return self.error_estimate().sigma_max
+        """(3,) float, read-only: sigma_max(Q_c V^T) per channel (the near-field split: of ``D_c (N + Q V^T)``).
 
-    @property
+        The first access runs a power iteration per distinct channel, O(nk)
+        per step (plus O(nnz(N)) with the near field), a few hundred steps at
+        most, unless the value was given (an .hfr file stores it); later
+        accesses return the cached array at no cost.
+        """
+        return self._sigma if self._sigma is not None else read_only(self._sigma_estimates())
+
+    @cached_property
     def error_bound(self) -> np.ndarray:
-        """(3,) float: the relative radiosity error bound per channel (see :meth:`error_estimate`)."""
+        """(3,) float, read-only: the relative radiosity error bound per channel (``error_estimate().bound``).
+
+        The first access computes :meth:`error_estimate` (O(n k p) for the
+        probes and, unless :attr:`sigma_max` is known, its power iteration,
+        O(nk) per step); later accesses are free.
+        """
         return self.error_estimate().bound
 
-    @property
+    @cached_property
     def eq5_bound(self) -> np.ndarray:
-        """(3,) float: the paper's eq. 5 figure per channel (see :meth:`error_estimate`)."""
+        """(3,) float, read-only: the paper's eq. 5 figure per channel (``error_estimate().eq5_bound``).
+
+        Costs as :attr:`error_bound` on the first access (the power
+        iteration of :attr:`sigma_max`, O(nk) per step); later accesses are free.
+        """
         return self.error_estimate().eq5_bound
 
     # -- solving -------------------------------------------------------------
@@ -399,8 +462,8 @@ class HFactorization:
         B = Ei + low_rank_correction(self.Q, self.V, self._D, self.capacitance_inv, Ei, adjoint)   # eq. (4)
         return self._to_user(B)
 
-    # np.take gathers whole rows: 4-5x faster than fancy indexing of (n, 3, m) arrays
-    # (0.4 vs 1.9 ms at 164,988 patches, a tenth of a lamp's solve)
+    # np.take gathers whole rows (one copy of 3 m contiguous values per patch); fancy
+    # indexing of an (n, 3, m) array goes through numpy's general indexing machinery
     def _to_internal(self, X: np.ndarray) -> np.ndarray:
         """Rows of X (user patch order) in the internal order."""
         return np.take(X, self.perm, axis=0)
@@ -521,7 +584,7 @@ class HFactorization:
 
         Raises
         ------
-        ValueError
+        InputError (a ValueError)
             Wrong shape, values outside [0, 1), or a patch whose reflectance
             exceeds the rho_max the factorization was built for (a new
             factorization is needed then).
