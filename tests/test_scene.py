@@ -254,3 +254,20 @@ def test_a_bad_cut_request_is_one_input_error_everywhere(cut, kwargs, match):
             subdivide(builtin_scene("cornell"), **kwargs)
         else:
             load_scene("cornell", **kwargs)
+
+
+def test_remeshed_triangles_take_their_owners_properties():
+    box = builtin_scene("cornell")
+    owner = np.array([3, 3, 0, box.n_patches - 1])
+    tri = box.triangles[owner]
+    s = box.remeshed(tri.reshape(-1, 3), np.arange(12).reshape(4, 3), owner, notes=("cut four",))
+    assert s.n_patches == 4 and not s.is_clustered
+    np.testing.assert_array_equal(s.material, box.material[owner])
+    np.testing.assert_array_equal(s.emission, box.emission[owner])
+    np.testing.assert_array_equal(s.parent, box.parent[owner])
+    np.testing.assert_allclose(s.areas, box.areas[owner], rtol=1e-15)
+    assert s.warnings == box.warnings + ("cut four",) and s.name == box.name
+    from hfrad.scene.cluster import cluster
+    clustered = cluster(subdivide(box, patches=300), patches=60)
+    with pytest.raises(SceneError, match="cannot remesh a clustered scene"):
+        clustered.remeshed(tri.reshape(-1, 3), np.arange(12).reshape(4, 3), owner)

@@ -278,10 +278,4 @@ def merge_duplicates(scene: Scene, *, keep_duplicates: bool = False) -> Scene:
         return scene.replace(warnings=scene.warnings + notes)
     keep = np.ones(scene.n_patches, bool)
     keep[report.duplicates[:, 1]] = False
-    return Scene(
-        vertices=scene.vertices, faces=scene.faces[keep], material=scene.material[keep],
-        materials=scene.materials, group=scene.group[keep], groups=scene.groups,
-        reflectance=scene.reflectance[keep], emission=scene.emission[keep], parent=scene.parent[keep],
-        occluder_vertices=scene.occluder_vertices, occluder_faces=scene.occluder_faces,
-        name=scene.name, warnings=scene.warnings + notes,
-    )
+    return scene.remeshed(scene.vertices, scene.faces[keep], np.flatnonzero(keep), notes=notes)

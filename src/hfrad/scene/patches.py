@@ -201,14 +201,7 @@ def split_faces(scene: Scene, splits: np.ndarray) -> tuple[Scene, np.ndarray]:
     vertices, faces_all = points_all[first], ids[faces_all]
     order = np.argsort(owner_all, kind="stable")  # keep patches of one face together
     faces_all, owner_all = faces_all[order], owner_all[order]
-    return Scene(
-        vertices=vertices, faces=faces_all, material=scene.material[owner_all],
-        materials=scene.materials, group=scene.group[owner_all], groups=scene.groups,
-        reflectance=scene.reflectance[owner_all], emission=scene.emission[owner_all],
-        parent=scene.parent[owner_all],
-        occluder_vertices=scene.occluder_vertices, occluder_faces=scene.occluder_faces,
-        name=scene.name, warnings=scene.warnings,
-    ), owner_all
+    return scene.remeshed(vertices, faces_all, owner_all), owner_all
 
 
 def drop_degenerate(scene: Scene, *, rel_area: float = 1e-12) -> Scene:
@@ -222,11 +215,4 @@ def drop_degenerate(scene: Scene, *, rel_area: float = 1e-12) -> Scene:
         raise SceneError(f"{scene.name}: every face is degenerate (zero area)")
     first = np.flatnonzero(~keep)[:5].tolist()
     note = f"dropped {dropped} degenerate (zero-area) faces, e.g. faces {first}"
-    return Scene(
-        vertices=scene.vertices, faces=scene.faces[keep], material=scene.material[keep],
-        materials=scene.materials, group=scene.group[keep], groups=scene.groups,
-        reflectance=scene.reflectance[keep], emission=scene.emission[keep],
-        parent=scene.parent[keep], occluder_vertices=scene.occluder_vertices,
-        occluder_faces=scene.occluder_faces, name=scene.name,
-        warnings=scene.warnings + (note,),
-    )
+    return scene.remeshed(scene.vertices, scene.faces[keep], np.flatnonzero(keep), notes=(note,))

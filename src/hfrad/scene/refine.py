@@ -113,10 +113,4 @@ def refine_patches(scene: Scene, marked: np.ndarray) -> Scene:
     owner = np.array(owner)
     faces = np.array(out, dtype=np.int64)
     used, faces = np.unique(faces, return_inverse=True)
-    return Scene(
-        vertices=V[used], faces=faces.reshape(-1, 3), material=scene.material[owner],
-        materials=scene.materials, group=scene.group[owner], groups=scene.groups,
-        reflectance=scene.reflectance[owner], emission=scene.emission[owner], parent=scene.parent[owner],
-        occluder_vertices=scene.occluder_vertices, occluder_faces=scene.occluder_faces, name=scene.name,
-        warnings=scene.warnings,
-    )
+    return scene.remeshed(V[used], faces.reshape(-1, 3), owner)

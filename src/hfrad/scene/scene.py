@@ -428,6 +428,44 @@ class Scene:
         mesh.face_attributes["emission"] = np.array(self.emission)
         return mesh
 
+    def remeshed(self, vertices: np.ndarray, faces: np.ndarray, owner: np.ndarray, *,
+                 notes: tuple[str, ...] = ()) -> "Scene":
+        """The same surfaces as new triangles: triangle k lies on patch ``owner[k]`` of this scene.
+
+        Cutting patches into pieces, dropping some and reordering them all
+        make a scene this way.
+
+        Parameters
+        ----------
+        vertices : (v, 3) float, metres
+        faces : (t, 3) int
+            The new triangles, one patch each.
+        owner : (t,) int
+            The patch of this (unclustered) scene each triangle comes from: it
+            takes that patch's material, group, reflectance, emission and
+            parent face.
+        notes : tuple of str
+            Added to ``warnings`` (what was changed).
+
+        Returns
+        -------
+        Scene
+            Unclustered; same materials, groups, occluder mesh and name.
+
+        Raises
+        ------
+        SceneError
+            This scene is clustered (its patches are sets of triangles).
+        """
+        if self.is_clustered:
+            raise SceneError(f"{self.name}: cannot remesh a clustered scene (patches are sets of triangles)")
+        owner = np.asarray(owner, dtype=np.int64)
+        return Scene(vertices=vertices, faces=faces, material=self.material[owner], materials=self.materials,
+                     group=self.group[owner], groups=self.groups, reflectance=self.reflectance[owner],
+                     emission=self.emission[owner], parent=self.parent[owner],
+                     occluder_vertices=self.occluder_vertices, occluder_faces=self.occluder_faces,
+                     name=self.name, warnings=self.warnings + tuple(notes))
+
     def replace(self, **changes) -> "Scene":
         """A copy with some fields changed (cached geometry is recomputed lazily)."""
         fields = {k: getattr(self, k) for k in self.__dataclass_fields__}

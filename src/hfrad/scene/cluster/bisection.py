@@ -64,8 +64,4 @@ def presplit(scene: Scene, max_edge: float) -> Scene:
     vertices = np.empty((int(ids.max()) + 1, 3))
     vertices[ids] = points
     faces = ids.reshape(-1, 3)
-    return Scene(vertices=vertices, faces=faces, material=scene.material[owner], materials=scene.materials,
-                 group=scene.group[owner], groups=scene.groups, reflectance=scene.reflectance[owner],
-                 emission=scene.emission[owner], parent=scene.parent[owner],
-                 occluder_vertices=scene.occluder_vertices, occluder_faces=scene.occluder_faces,
-                 name=scene.name, warnings=scene.warnings)
+    return scene.remeshed(vertices, faces, owner)
