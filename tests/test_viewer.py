@@ -13,7 +13,7 @@ from typer.testing import CliRunner
 
 import hfrad
 from hfrad.cli import app as cli_app
-from hfrad.errors import InputError
+from hfrad.errors import FileFormatError, InputError, SceneError
 from hfrad.render.tonemap import srgb_encode, tonemap
 from hfrad.viewer.coalesce import LatestWins
 from hfrad.viewer.display import MeshColors, MeshGLB, aces_filmic, precompensate_aces
@@ -58,7 +58,7 @@ def test_superposition_equals_direct_solves(fac):
     scene = fac.scene
     tall = scene.group == scene.groups.index("tall_block")
     assert np.allclose(E[tall], 2.0) and not E[scene.material == scene.material_names.index("green")].any()
-    with pytest.raises(InputError, match="no material or group named 'lamp'"):
+    with pytest.raises(SceneError, match="no material or group named 'lamp'"):
         lighting.radiosity([Emitter("lamp", 1.0)])
 
 
@@ -173,10 +173,10 @@ def test_server_survives_bad_clients(fac, tmp_path):
             recv_mesh(ws)                                    # the new colours
             ws.close()
         # a bad emission upload is refused with a message, the state unchanged
-        with pytest.raises(InputError, match="emitters\\[0\\].exitance"):
+        with pytest.raises(FileFormatError, match="emitters\\[0\\].exitance"):
             app.load_emission('{"format": "hfrad-emission", "version": 1, '
                               '"emitters": [{"name": "light", "exitance": [1, 2]}]}')
-        with pytest.raises(InputError, match="no material or group named 'lamp'"):
+        with pytest.raises(SceneError, match="no material or group named 'lamp'"):
             app.load_emission('{"format": "hfrad-emission", "version": 1, '
                               '"emitters": [{"name": "lamp", "exitance": [1, 2, 3]}]}')
         assert [e.name for e in app.state.emitters] == ["light"]
