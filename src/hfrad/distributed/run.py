@@ -1,7 +1,10 @@
 """The precomputation on a Dask cluster: the HF tree as a task graph.
 
 Leaves (column block generation + truncated SVD) are independent tasks;
-sibling merges form a tree reduction of depth ceil(log2 m). The tree is the
+sibling merges form a tree reduction of depth ceil(log2 m). The merges covering
+more than ``ceil(m / W)`` blocks (the top log2 W levels on W workers) run by
+row panels spread over all workers (:mod:`hfrad.distributed.panels`), so no
+worker holds a whole n x k factor of the top nodes. The tree is the
 one :class:`~hfrad.lowrank.hf.HFStream` builds (:func:`~hfrad.lowrank.hf.counter_tree`)
 with the same truncations and error budget, so the result has the same
 meaning as the local path (one pass over F, achieved error <= eps) and equals
