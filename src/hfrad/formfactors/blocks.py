@@ -27,7 +27,7 @@ from .engine import FormFactorEngine
 from .kernel import ADAPTIVE, KERNEL_VERSION, NEAR, TOLERANCE
 from .mirror import ReciprocityMirror, band_for, mirror_bytes
 from .parallel import MIN_PARALLEL_PATCHES, ProcessEngine, default_workers
-from .visibility import DEFAULT_SAMPLES, RayBudget, check_samples
+from .visibility import CLUSTER_VISIBILITY, DEFAULT_SAMPLES, PAIR_TEST, RayBudget, check_samples
 
 __all__ = ["FormFactorEngine", "iter_column_blocks", "form_factor_matrix", "row_sums",
            "available_memory", "DEFAULT_BLOCK_SIZE"]
@@ -49,6 +49,8 @@ def cache_key(scene, *, samples: int, block_size: int, order: np.ndarray, dtype,
               ray_budget: RayBudget | None = None) -> dict:
     """What a cached block depends on (see :mod:`hfrad.formfactors.cache`)."""
     extra = ray_budget.key() if ray_budget is not None else {}
+    if CLUSTER_VISIBILITY:  # the same F to Embree's rounding, but not bit for bit
+        extra = extra | {"cluster_visibility": int(CLUSTER_VISIBILITY), "pair_test": bool(PAIR_TEST)}
     return extra | {"scene_sha256": scene_hash(scene), "samples": int(samples), "block_size": int(block_size),
             "order_sha256": array_hash(order.astype(np.int64)), "dtype": np.dtype(dtype).str,
             "kernel_version": KERNEL_VERSION, "near": NEAR, "adaptive": ADAPTIVE, "tolerance": TOLERANCE,

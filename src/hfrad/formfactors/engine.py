@@ -42,6 +42,10 @@ class FormFactorEngine:
     ray_budget : RayBudget, optional
         Fewer rays for weak pairs (one, or ``samples`` instead of 16 where probes
         disagree; see :func:`hfrad.formfactors.budget.ray_budget`); default: off.
+    cluster_size : int, optional
+        Patches per cluster for visibility decided once per cluster pair where it is
+        all or nothing (:mod:`hfrad.formfactors.clustervis`); 0 = off; default
+        :data:`~hfrad.formfactors.visibility.CLUSTER_VISIBILITY`.
 
     Notes
     -----
@@ -52,11 +56,13 @@ class FormFactorEngine:
     """
 
     def __init__(self, scene, *, samples: int = DEFAULT_SAMPLES, near: float = NEAR,
-                 tolerance: float = TOLERANCE, ray_budget: RayBudget | None = None) -> None:
+                 tolerance: float = TOLERANCE, ray_budget: RayBudget | None = None,
+                 cluster_size: int | None = None) -> None:
         # patches that are clusters of triangles (hfrad.scene.cluster) have their own kernel
         self.geometry, self._unoccluded = kernel_for(scene, near=near, tolerance=tolerance)
         self.samples = int(samples)
-        self.visibility = Visibility(scene, samples=samples, ray_budget=ray_budget) if samples else None
+        self.visibility = (Visibility(scene, samples=samples, ray_budget=ray_budget, cluster_size=cluster_size)
+                           if samples else None)
         self.kernel_seconds = 0.0
         self.pairs = 0
         self._executor = None
