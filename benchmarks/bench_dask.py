@@ -108,7 +108,8 @@ def fit_costs(records: list[dict], wall: float, workers: int, overhead: float) -
     count the time other processes held the core.
     """
     leaves = [r for r in records if r["kind"] == "leaf"]
-    merges = [r for r in records if r["kind"] == "merge"]
+    # whole merges only: a row-panelled merge's record is its small step (its panel tasks have their own)
+    merges = [r for r in records if r["kind"] == "merge" and "panels" not in r]
     pairs = np.array([r["rows"] * r["columns"] for r in leaves], float)
     ff = np.array([r["cpu_formfactors"] for r in leaves])
     svd_units = np.array([r["rows"] * r["columns"] ** 2 for r in leaves], float)
@@ -127,6 +128,7 @@ def fit_costs(records: list[dict], wall: float, workers: int, overhead: float) -
 
 def fit_rank_profile(records: list[dict], n: int) -> dict:
     """Node rank / root rank as a power of the fraction of columns the node covers."""
+    records = [r for r in records if r["kind"] in ("leaf", "merge")]   # tree nodes, not panel tasks
     root_rank = max(r["rank"] for r in records if r["columns"] == n) if any(r["columns"] == n for r in records) \
         else max(r["rank"] for r in records)
     x = np.array([r["columns"] / n for r in records if r["rank"] > 0])
