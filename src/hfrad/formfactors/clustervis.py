@@ -1,8 +1,10 @@
 """Visibility decided once per pair of patch clusters, where it is all or nothing.
 
-Patches are grouped into *clusters*: runs of ``CLUSTER_SIZE`` consecutive
-patches in the Z-order of their centroids (computed here, from the scene alone,
-so every block, process and machine groups alike). Every segment between a
+Patches are grouped into *clusters*: runs of at most ``CLUSTER_SIZE``
+consecutive patches in the Z-order of their centroids that lie in one octree
+cell (of the finest level with at most n / ``CLUSTER_SIZE`` occupied cells), so
+a cluster is compact; computed here, from the scene alone, so every block,
+process and machine groups alike. Every segment between a
 point of cluster A and a point of cluster B lies in the convex hull H of the two
 clusters' bounding boxes (each padded by the end points' offset off their
 surfaces). For each cluster pair the occluder triangles are tested against H,
@@ -34,6 +36,15 @@ these pairs would have said, so they stand in for them as neighbour states
 pairs as before. Each test is symmetric and done once for the canonical pair
 (lower cluster first), so V_ij == V_ji still holds.
 
+Where the cluster pair is MIXED, visibility.py can run the same test on single
+patch pairs (each patch's box as its cluster), for the pairs that would get
+every ray whatever their probe says (close or large pairs, probing.py): one
+test there replaces tens to hundreds of rays, while for the others it would
+cost more than their one probe ray (:func:`costly_pairs`).
+
+Cluster-pair states are kept in a (K, K) int8 table, K >= n / ``CLUSTER_SIZE``
+(n^2 / 1024 bytes); patch-pair states are not kept.
+
 Candidate triangles come from a uniform grid over the occluders (about
 ``TRIANGLES_PER_CELL`` a cell): the cells within ``r + h`` of points spaced
 ``h`` along the segment between the box centres (r: the larger box's half
@@ -47,7 +58,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from ..scene.zorder import zorder_permutation
+from ..scene.zorder import BITS_PER_AXIS, morton_codes
 from .probing import _BLOCKED, _PENDING, _VISIBLE, _decide, _pair_states, _probe, _with_neighbours
 
 __all__ = ["ClusterVisibility", "costly_pairs", "CLUSTER_SIZE", "MIXED", "VISIBLE", "BLOCKED", "full_ray_pairs_clustered"]
@@ -96,11 +107,10 @@ class ClusterVisibility:
                  tol: float, size: int = CLUSTER_SIZE) -> None:
         n = len(centroids)
         size = max(1, int(size))
-        order = zorder_permutation(np.asarray(centroids, np.float64))
+        order, starts = _octree_runs(np.asarray(centroids, np.float64), size)
+        k = len(starts)
         self.cluster = np.empty(n, np.int64)
-        self.cluster[order] = np.arange(n) // size
-        k = -(-n // size)
-        starts = np.arange(0, n, size)
+        self.cluster[order] = np.repeat(np.arange(k), np.diff(np.r_[starts, n]))
         self.lo = np.ascontiguousarray(np.minimum.reduceat(np.asarray(lo, np.float64)[order], starts, axis=0))
         self.hi = np.ascontiguousarray(np.maximum.reduceat(np.asarray(hi, np.float64)[order], starts, axis=0))
         self.table = np.full((k, k), _UNKNOWN, np.int8)
@@ -169,6 +179,23 @@ class ClusterVisibility:
             self.table[a, b] = out
             self.table[b, a] = out
         return self.table[cr[:, None], cc[None, :]]
+
+
+def _octree_runs(centroids: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """Z-order permutation and the starts of its clusters: runs of at most ``size`` patches in one
+    octree cell, the cells of the finest level with at most n / ``size`` occupied cells."""
+    codes = morton_codes(centroids)
+    order = np.argsort(codes, kind="stable")
+    codes = codes[order]
+    n = len(codes)
+    shift = 0
+    while shift < 3 * BITS_PER_AXIS and len(np.unique(codes >> np.uint64(shift))) > max(1, n // size):
+        shift += 3
+    cell = codes >> np.uint64(shift)
+    new_cell = np.r_[True, cell[1:] != cell[:-1]]
+    cell_start = np.flatnonzero(new_cell)
+    within = np.arange(n) - np.repeat(cell_start, np.diff(np.r_[cell_start, n]))
+    return order, np.flatnonzero(within % size == 0)
 
 
 def full_ray_pairs_clustered(vis, clusters: ClusterVisibility, F: np.ndarray, rows: np.ndarray,

@@ -97,9 +97,9 @@ REFINE_ABOVE = 1e-4
 REFINE_NEAR = 2.0
 
 #: Patches per cluster for cluster-pair visibility (:mod:`hfrad.formfactors.clustervis`) by
-#: default; 0 = off. Off by default: it gives the same F, but on the built-in Cornell box at
-#: 3K-10K patches it saves a few per cent of the rays for about as much time in its tests (see
-#: tests/test_cluster_visibility.py); ``CLUSTER_SIZE`` turns it on.
+#: default; 0 = off. Off by default: the F is the same, and on the built-in scenes its tests cost
+#: about as much time as the rays they save (see tests/test_cluster_visibility.py);
+#: ``CLUSTER_SIZE`` turns it on.
 CLUSTER_VISIBILITY = 0
 
 #: Whether the cluster test is repeated per patch pair where the cluster pair is mixed.
