@@ -58,6 +58,12 @@ side" and one "wholly on the back side"; a pair needs rays only if some
 occluder is neither wholly in front of both patches nor wholly behind both and
 its box overlaps theirs (shaft culling with planes and boxes). In a room most
 pairs of wall patches need no ray at all.
+
+Optionally (``cluster_size``, off by default: ``CLUSTER_VISIBILITY``), pairs of
+patch clusters that no occluder can cut, or that one occluder triangle hides
+wholly, are decided without rays by an exact, conservative hull test, and so are
+the costly patch pairs of the other cluster pairs (:mod:`hfrad.formfactors.clustervis`);
+F is the same as with per-pair rays.
 """
 
 from __future__ import annotations
