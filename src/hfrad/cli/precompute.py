@@ -189,7 +189,7 @@ def _on_cluster(scene, scheduler: Optional[str], workers: Optional[int], quiet: 
             where = f"{cluster.n_workers} local worker processes" if cluster.kind == "local" else \
                 f"the Dask scheduler at {cluster.address} ({cluster.n_workers} workers)"
             common.console.print(
-                f"running on {where}; each worker needs up to ~{human(worker_bytes(n, block, k))} "
+                f"running on {where}; each worker needs up to ~{human(worker_bytes(n, block, k, workers=cluster.n_workers))} "
                 f"(n {n:,}, block {block}, rank ~{k:,} guessed)"
                 + (f"\nDask dashboard: {cluster.dashboard}" if cluster.dashboard else ""), highlight=False)
             with common.progress_bar(f"precompute {n:,} patches on Dask", quiet) as bar:

@@ -59,7 +59,7 @@ import numpy as np
 from numba import njit, prange
 
 from ..scene.zorder import BITS_PER_AXIS, morton_codes
-from .probing import _BLOCKED, _PENDING, _VISIBLE, _decide, _pair_states, _probe, _with_neighbours
+from .probing import _BLOCKED, _PENDING, _VISIBLE, full_ray_pairs
 
 __all__ = ["ClusterVisibility", "costly_pairs", "CLUSTER_SIZE", "MIXED", "VISIBLE", "BLOCKED", "full_ray_pairs_clustered"]
 
@@ -209,25 +209,14 @@ def full_ray_pairs_clustered(vis, clusters: ClusterVisibility, F: np.ndarray, ro
     ``block_states`` (len(rows), len(cols)): the states of the block's own pairs
     (with the pair-level test where it was run); neighbour pairs take their cluster pair's.
     """
-    nb = vis.neighbours
     r, c = len(rows), len(cols)
-    R, Cc = _with_neighbours(rows, nb), _with_neighbours(cols, nb)
-    state = np.empty((len(R), len(Cc)), np.int8)
-    _pair_states(R, Cc, vis.points, vis.plane, vis.front_bits, vis.back_bits, vis.below_bits, vis.above_bits,
-                 vis.cull, state)
-    cs = clusters.states(R, Cc)
-    cs[:r, :c] = block_states  # R and Cc start with rows and cols
-    _overlay(state, cs, np.int8(_PENDING), np.int8(_VISIBLE), np.int8(_BLOCKED))
-    _probe(vis, R, Cc, state)
-    n = len(nb)
-    row_pos = np.full(n, -1, np.int64)
-    row_pos[R] = np.arange(len(R))
-    col_pos = np.full(n, -1, np.int64)
-    col_pos[Cc] = np.arange(len(Cc))
-    full = np.empty((r, c), np.bool_)
-    _decide(state, row_pos, col_pos, rows, cols, nb, vis.centroids, vis.diameters, vis.probe_near,
-            F, vis.areas, vis.probe_below, need, full)
-    return full
+
+    def overlay(state, R, Cc):
+        cs = clusters.states(R, Cc)
+        cs[:r, :c] = block_states  # R and Cc start with rows and cols
+        _overlay(state, cs, np.int8(_PENDING), np.int8(_VISIBLE), np.int8(_BLOCKED))
+
+    return full_ray_pairs(vis, F, rows, cols, need, overlay=overlay)
 
 
 def costly_pairs(vis, F: np.ndarray, rows: np.ndarray, cols: np.ndarray, which: np.ndarray) -> np.ndarray:

@@ -76,7 +76,7 @@ import numpy as np
 from numba import njit, prange
 
 from ..errors import InputError
-from .clustervis import (BLOCKED, CLUSTER_SIZE, MIXED, ClusterVisibility, costly_pairs,
+from .clustervis import (BLOCKED, MIXED, ClusterVisibility, costly_pairs,
                          full_ray_pairs_clustered)
 from .kernel import points_on_triangles, split_centroids
 from .probing import NEIGHBOURS, PROBE_BELOW, PROBE_NEAR, cuttable, full_ray_pairs, nearest_patches

@@ -164,7 +164,7 @@ def _merge(a: _Node, b: _Node, share2: float, where: str) -> _Node:
     norm2 = a.norm2 + b.norm2
     budget2 = share2 + a.slack2 + b.slack2
     ka, kb = a.s.size, b.s.size
-    n, dtype = a.U.shape[0], a.U.dtype
+    dtype = a.U.dtype
     ba, bb = a.V.shape[0], b.V.shape[0]
     level = max(a.level, b.level) + 1
     if ka + kb == 0:

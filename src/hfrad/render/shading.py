@@ -41,7 +41,7 @@ from typing import Callable
 
 import numpy as np
 
-from ..scene.cluster import weld
+from ..scene.weld import weld
 
 #: Default largest angle between patch normals that are still smoothed together, degrees.
 CREASE_ANGLE = 30.0

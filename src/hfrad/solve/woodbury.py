@@ -559,7 +559,7 @@ class HFactorization:
             return self.stats.weights[self.inv_perm]
         return None
 
-    def save(self, path) -> "Path":
+    def save(self, path) -> "pathlib.Path":  # noqa: F821 - resolved lazily
         """Write this factorization (with its scene's patches) to an ``.hfr`` file, atomically."""
         from .hfr import save_hfr
 
