@@ -249,17 +249,22 @@ def cost_laws(meas: dict) -> dict:
 
 
 # -- the model -----------------------------------------------------------------------------------------
-def rank_law() -> dict:
-    """k(n) = a n^p through the measured eps-0.05 near-field ranks of the single-machine scale runs."""
-    pts = {}
+def _scale_runs() -> list[dict]:
+    """The eps-EPS runs of the single-machine scale results, oldest file first (a later file's run
+    of the same size wins in the dicts built from them)."""
+    out = []
     for path in sorted(RESULTS_DIR.glob("scale-*.json")):
         try:
             runs = json.loads(path.read_text()).get("runs", [])
         except (ValueError, OSError):
             continue
-        for r in runs:
-            if r.get("eps") == EPS and "near_nnz" in r and r.get("rank"):
-                pts[int(r["n_patches"])] = int(r["rank"])       # the latest file per size wins (sorted names)
+        out += [r for r in runs if r.get("eps") == EPS]
+    return out
+
+
+def rank_law() -> dict:
+    """k(n) = a n^p through the measured eps-0.05 near-field ranks of the single-machine scale runs."""
+    pts = {int(r["n_patches"]): int(r["rank"]) for r in _scale_runs() if "near_nnz" in r and r.get("rank")}
     a, p = fit_power(list(pts), list(pts.values()))
     return {"a": a, "p": p, "points": pts, "source": "benchmarks/results/scale-*.json (eps 0.05, near field)"}
 
@@ -282,15 +287,8 @@ ASSUMPTIONS = {
 
 
 def _client_assembly(n: int) -> tuple[float, dict]:
-    pts = {}
-    for path in sorted(RESULTS_DIR.glob("scale-*.json")):
-        try:
-            runs = json.loads(path.read_text()).get("runs", [])
-        except (ValueError, OSError):
-            continue
-        for r in runs:
-            if r.get("eps") == EPS and r.get("time_nearfield_setup") and r.get("time_woodbury"):
-                pts[int(r["n_patches"])] = float(r["time_nearfield_setup"]) + float(r["time_woodbury"])
+    pts = {int(r["n_patches"]): float(r["time_nearfield_setup"]) + float(r["time_woodbury"])
+           for r in _scale_runs() if r.get("time_nearfield_setup") and r.get("time_woodbury")}
     a, p = fit_power(list(pts), list(pts.values()))
     p_used = max(p, 1.0)    # no sublinear extrapolation: linear in n at least
     n0 = max(pts)

@@ -24,6 +24,12 @@ from ..errors import FactorizationError
 from .factors import LowRank, sign_fix, truncation_rank
 
 
+def _budget(A: np.ndarray, eps: float, relative: bool) -> tuple[float, float]:
+    """(||A||_F^2, the squared error budget) of a randomized baseline."""
+    norm2 = float(np.sum(np.square(A, dtype=np.float64)))
+    return norm2, _target2(eps, relative, norm2)
+
+
 def _target2(eps: float, relative: bool, norm2: float) -> float:
     return eps * eps * norm2 if relative else eps * eps
 
@@ -103,8 +109,7 @@ def randomized_factorization(A, *, eps: float = 0.02, relative: bool = True, dty
     rng = np.random.default_rng(rng)
     t0 = time.perf_counter()
     n, N = A.shape
-    norm2 = float(np.sum(np.square(A, dtype=np.float64)))
-    target2 = _target2(eps, relative, norm2)
+    norm2, target2 = _budget(A, eps, relative)
     l, passes = min(initial_rank + oversample, N, n), 0
     while True:
         Y = A @ rng.standard_normal((N, l)).astype(A.dtype)
@@ -193,8 +198,7 @@ def sketch_factorization(A, *, eps: float = 0.02, relative: bool = True, dtype=n
     rng = np.random.default_rng(rng)
     t0 = time.perf_counter()
     n, N = A.shape
-    norm2 = float(np.sum(np.square(A, dtype=np.float64)))
-    target2 = _target2(eps, relative, norm2)
+    norm2, target2 = _budget(A, eps, relative)
     k, passes = min(initial_rank, n, N), 0
     while True:
         U, s, Wt = _sketch_once(A, k, block_size, rng)
