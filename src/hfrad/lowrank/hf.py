@@ -90,7 +90,7 @@ def frobenius2(A: np.ndarray, slab: int = SLAB_ROWS) -> float:
     """``||A||_F^2`` accumulated in float64, slab by slab of rows.
 
     Not ``np.square(A, dtype=np.float64)``: that is an n x b float64 copy of every column
-    block (338 MB at 164,988 patches), fresh pages each time, whose faults cost more than the sum.
+    block (8 n b bytes), fresh pages each time, whose page faults cost more than the sum.
     """
     return float(sum(np.square(A[a:a + slab], dtype=np.float64).sum() for a in range(0, A.shape[0], slab)))
 
@@ -306,8 +306,8 @@ def spare_blas_threads(limit: int) -> int:
     """At most ``limit`` BLAS threads, one fewer per core the machine's other processes keep busy.
 
     Multi-threaded OpenBLAS on cores that other processes also want spin-waits at every
-    synchronisation: measured under a load average of ~14 on 2 cores, an 800 x 800 float32
-    SVD took 16-45 s with two threads against 3-4 s with one (2.5-5 s of CPU against 0.3 s).
+    synchronisation, so a BLAS call on a loaded machine can take several times longer with
+    two threads than with one (benchmarks/regression.md).
     This process's own children (the form-factor workers, which stop within a few blocks)
     are not counted. The measure is reused for ``_BUSY_REUSE`` seconds.
     """
@@ -442,7 +442,7 @@ def root_lowrank(root: _Node, eps: float, relative: bool) -> LowRank:
     """``Q V^T`` of the root node, spending the budget the tree left unused (its discard is
     orthogonal to all others), with the achieved error; ``info`` is left for the caller."""
     # the root is already an SVD: truncating it keeps leading columns (no product with an identity,
-    # which cost 2 n k^2 flops: 20 s at 20K patches and rank 4,889)
+    # which would cost 2 n k^2 flops)
     k, d2 = truncation_rank(root.s, root.slack2)
     Q, V = root.U[:, :k] * root.s[:k], np.ascontiguousarray(root.V[:, :k])
     return LowRank(Q=Q, V=V, achieved_error=math.sqrt(max(root.discarded2 + d2, 0.0)),

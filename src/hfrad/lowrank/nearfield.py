@@ -29,15 +29,11 @@ __all__ = ["NearFieldSplit", "near_radius", "DEFAULT_NEAR_ENTRIES"]
 #: Facing neighbours per row the default radius aims at: patches that can exchange light
 #: (each in front of the other), i.e. about the nonzero entries of a row of N. Counting
 #: facing patches, not all centroids, keeps nnz(N) - and SuperLU's fill - the same from
-#: scene to scene: 300 plain neighbours were ~100-140 nonzeros per row on the Cornell box
-#: (whose coplanar neighbours have F = 0), but a synthetic pattern with 300 nonzeros per row
-#: did not finish its sparse LU in 500 s at 20K patches. Measured on the Cornell box with
-#: the radius of 300 plain neighbours (~140 facing at 2K-5K patches, ~75 at 20K; HF rank
-#: and area-weighted radiosity error vs the exact solve, plain -> split): 2K patches eps
-#: 0.05: 591 -> 60, 0.75% -> 0.86%; eps 0.02: 740 -> 432, 0.24% -> 0.13%; 5K eps 0.05:
-#: 1,081 -> 195, 0.83% -> 0.55%; eps 0.02: 1,362 -> 1,307, 0.19% -> 0.10%. 64 plain
-#: neighbours only halved the rank at eps 0.05; 1,200 (~750 nonzeros) cut it further at
-#: eps 0.02 but the sparse LU took 170 s at 20K (300: 2.3 s, ~650 LU entries per row).
+#: scene to scene (coplanar neighbours have F = 0 and count for nothing). The split moves
+#: the near pairs - F's high-rank part - out of HF: HF's rank falls (most at larger eps),
+#: while the sparse LU of ``I - D_c N`` grows with the fill of N, about c log c entries a
+#: row for c nonzeros per row; too many entries cost more in the LU than they save in HF.
+#: benchmarks/README.md ("Figures moved out of docstrings") has the measurements behind 120.
 DEFAULT_NEAR_ENTRIES = 120
 
 _SAMPLE = 2048  # centroids sampled to pick the radius (deterministic: evenly spaced)
