@@ -196,3 +196,28 @@ def test_merges_on_a_busy_machine_run_on_one_blas_thread_and_give_the_same_facto
     assert seen and set(seen) == {1}
     assert busy.rank == free.rank
     np.testing.assert_allclose(busy.Q @ busy.V.T, free.Q @ free.V.T, atol=1e-12 * np.linalg.norm(A))
+
+
+def test_user_errors_of_the_low_rank_entry_points_are_input_errors():
+    import numpy as np
+    import pytest
+
+    from hfrad.errors import InputError
+    from hfrad.lowrank import hierarchical_factorization, lowrank_from_blocks, svd_factorization
+    from hfrad.lowrank.hf import HFStream
+
+    with pytest.raises(InputError, match="leaf_share must be in"):
+        HFStream(10, 2, leaf_share=1.5)
+    with pytest.raises(InputError, match="eps must be a finite number"):
+        HFStream(10, 2, eps=float("nan"))
+    stream = HFStream(10, 1)
+    with pytest.raises(InputError, match=r"column block 0 must have shape \(10, b\)"):
+        stream.push(np.ones((9, 5)))
+    with pytest.raises(InputError, match="expected a 2-D matrix"):
+        svd_factorization(np.ones(5), eps=0.1)
+    with pytest.raises(InputError, match="must be known up front"):
+        hierarchical_factorization(iter([np.ones((4, 2))]), 4, eps=0.1)
+    blocks = [(0, 2, np.ones((4, 2))), (3, 4, np.ones((4, 1)))]
+    with pytest.raises(InputError, match="must be consecutive: expected start 2, got 3"):
+        lowrank_from_blocks(iter(blocks), 4, np.ones(4), np.arange(4), eps=0.1, relative=True,
+                            dtype=np.float64, n_blocks=2)

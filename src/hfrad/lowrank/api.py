@@ -22,9 +22,9 @@ METHODS = ("hf", "svd", "rsvd", "sketch")
 
 
 def check_method(method: str) -> None:
-    """ValueError unless ``method`` is one of :data:`METHODS`."""
+    """InputError unless ``method`` is one of :data:`METHODS`."""
     if method not in METHODS:
-        raise ValueError(f"method must be one of {METHODS}; got {method!r}")
+        raise InputError(f"method must be one of {METHODS}; got {method!r}")
 
 
 def lowrank_from_matrix(F: np.ndarray, rho_max: np.ndarray, perm: np.ndarray, *, eps: float, relative: bool,
@@ -80,11 +80,11 @@ def lowrank_from_blocks(blocks: Iterable[tuple[int, int, np.ndarray]], n: int, r
     def scaled():
         for start, stop, Fb in blocks:
             if start != expected[0]:
-                raise ValueError(f"column blocks must be consecutive: expected start {expected[0]}, "
+                raise InputError(f"column blocks must be consecutive: expected start {expected[0]}, "
                                  f"got {start}")
             Fb = np.asarray(Fb, dtype=dtype)
             if Fb.shape != (n, stop - start):
-                raise ValueError(f"block {start}:{stop} must have shape ({n}, {stop - start}); got {Fb.shape}")
+                raise InputError(f"block {start}:{stop} must have shape ({n}, {stop - start}); got {Fb.shape}")
             if not np.isfinite(Fb).all():   # LAPACK runs unchecked: a NaN would give a silent rank-0 node
                 i, j = np.argwhere(~np.isfinite(Fb))[0]
                 raise InputError(f"column block {start}:{stop} has a NaN or infinite value at row {i}, "
@@ -95,6 +95,6 @@ def lowrank_from_blocks(blocks: Iterable[tuple[int, int, np.ndarray]], n: int, r
     lr = hierarchical_factorization(scaled(), n, eps=eps, relative=relative, dtype=dtype,
                                     leaf_share=leaf_share, n_blocks=n_blocks, progress=progress)
     if expected[0] != n:
-        raise ValueError(f"column blocks cover columns 0..{expected[0]}, expected 0..{n}")
+        raise InputError(f"column blocks cover columns 0..{expected[0]}, expected 0..{n}")
     lr.info["time_factor"] = lr.info["time_total"]
     return lr

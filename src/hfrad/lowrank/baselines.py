@@ -20,7 +20,7 @@ import time
 import numpy as np
 import scipy.linalg as sla
 
-from ..errors import FactorizationError
+from ..errors import FactorizationError, InputError
 from .factors import LowRank, sign_fix, truncation_rank
 
 
@@ -36,10 +36,10 @@ def _target2(eps: float, relative: bool, norm2: float) -> float:
 
 def _check(A, eps: float, dtype) -> np.ndarray:
     if not (eps >= 0 and np.isfinite(eps)):
-        raise ValueError(f"eps must be a finite number >= 0; got {eps!r}")
+        raise InputError(f"eps must be a finite number >= 0; got {eps!r}")
     A = np.asarray(A, dtype=dtype)
     if A.ndim != 2:
-        raise ValueError(f"expected a 2-D matrix; got shape {A.shape}")
+        raise InputError(f"expected a 2-D matrix; got shape {A.shape}")
     return A
 
 

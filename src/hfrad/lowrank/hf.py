@@ -35,7 +35,7 @@ from typing import Iterable
 import numpy as np
 import scipy.linalg as sla
 
-from ..errors import FactorizationError
+from ..errors import FactorizationError, InputError
 from ..progress import ProgressCallback, report
 from .factors import LowRank, sign_fix, truncation_rank
 
@@ -349,9 +349,9 @@ class HFStream:
     def __init__(self, n: int, n_blocks: int, *, eps: float = 0.02, relative: bool = True,
                  dtype=np.float32, leaf_share: float = 0.5) -> None:
         if not (eps >= 0 and np.isfinite(eps)):
-            raise ValueError(f"eps must be a finite number >= 0; got {eps!r}")
+            raise InputError(f"eps must be a finite number >= 0; got {eps!r}")
         if not (0.0 < leaf_share <= 1.0):
-            raise ValueError(f"leaf_share must be in (0, 1]; got {leaf_share!r}")
+            raise InputError(f"leaf_share must be in (0, 1]; got {leaf_share!r}")
         self.n, self.n_blocks = int(n), int(n_blocks)
         self.eps, self.relative, self.leaf_share = float(eps), bool(relative), float(leaf_share)
         self.dtype = np.dtype(dtype)
@@ -379,9 +379,9 @@ class HFStream:
         A = np.asarray(block, dtype=self.dtype)
         j = self.blocks_done
         if A.ndim != 2 or A.shape[0] != self.n:
-            raise ValueError(f"column block {j} must have shape ({self.n}, b); got {A.shape}")
+            raise InputError(f"column block {j} must have shape ({self.n}, b); got {A.shape}")
         if j >= self.n_blocks:
-            raise ValueError(f"more than the announced n_blocks={self.n_blocks} column blocks were pushed")
+            raise InputError(f"more than the announced n_blocks={self.n_blocks} column blocks were pushed")
         with spare_threads():   # a caller's BLAS threads, fewer where other processes want the cores
             t = time.perf_counter()
             node = compress_leaf(A, self._budget, j, norm2)
@@ -398,7 +398,7 @@ class HFStream:
     def finish(self) -> LowRank:
         """Merge what is left on the stack and return ``Q V^T`` with its achieved error."""
         if self.blocks_done != self.n_blocks:
-            raise ValueError(f"n_blocks={self.n_blocks} but {self.blocks_done} column blocks were given")
+            raise InputError(f"n_blocks={self.n_blocks} but {self.blocks_done} column blocks were given")
         t = time.perf_counter()
         stack = list(self.stack)
         if not stack:
@@ -485,7 +485,7 @@ def _count_blocks(blocks, n_blocks: int | None) -> int:
     try:
         return len(blocks)
     except TypeError:
-        raise ValueError("the number of column blocks must be known up front to split the error "
+        raise InputError("the number of column blocks must be known up front to split the error "
                          "budget: pass n_blocks=m, or give blocks as a sized sequence") from None
 
 
