@@ -202,7 +202,7 @@ def make_engine(scene, *, samples: int = DEFAULT_SAMPLES, processes: int | None 
     if processes is None:
         processes = default_workers() if scene.n_patches >= MIN_PARALLEL_PATCHES else 1
     if int(processes) != processes or int(processes) < 1:
-        raise ValueError(f"processes must be a positive integer (or None for one per core), got {processes}")
+        raise InputError(f"processes must be a positive integer (or None for one per core), got {processes}")
     if int(processes) > 1:
         return ProcessEngine(scene, workers=int(processes), samples=samples, ray_budget=ray_budget,
                              block_size=block_size, dtype=dtype)
