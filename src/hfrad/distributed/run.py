@@ -35,8 +35,10 @@ from ..solve.stats import PassStatistics
 from ..solve.woodbury import HFactorization
 from . import panels, sizing, store
 from .cluster import Cluster, WorkerLostError, connect
-from .tasks import (Job, add_task, chunk_task, form_task, gram_task, leaf_task, load_task, merge_task,
-                    root_task, small_task, split_meta_task, split_rows_task, split_tail_task, split_v_task)
+from . import tiles as tiles_mod
+from .tasks import (Job, add_task, chunk_task, form_task, gram_task, group_leaf_task, leaf_task, load_task,
+                    merge_task, root_task, small_task, split_meta_task, split_rows_task, split_tail_task,
+                    split_v_task, tile_task)
 
 _POLL_SECONDS = 0.2
 
@@ -45,7 +47,8 @@ def factorize_distributed(scene, options: PrecomputeOptions, *, scheduler=None, 
                           task_threads: int | None = None, connect_timeout: float | None = None,
                           checkpoint=None, progress: ProgressCallback = None, status=None,
                           records: list | None = None, panel_leaves: int | None = None,
-                          row_panels: int | None = None) -> HFactorization:
+                          row_panels: int | None = None, tile_group: int | None = None,
+                          tile_band: int | None = None, tile_bytes: int | None = None) -> HFactorization:
     """Precompute a scene on a Dask cluster: what :func:`hfrad.factorize` does, as Dask tasks.
 
     Users call ``hfrad.factorize(scene, scheduler=..., workers=...)``, which validates
@@ -55,8 +58,9 @@ def factorize_distributed(scene, options: PrecomputeOptions, *, scheduler=None, 
     ----------
     scene : Scene
     options : PrecomputeOptions
-        From :func:`hfrad.solve.assemble.precompute_options` (the local path's; the
-        reciprocity copy is not used here: every pair is computed).
+        From :func:`hfrad.solve.assemble.precompute_options` (the local path's). With
+        ``options.reciprocity`` each pair of groups of blocks within the band is computed
+        once and copied by reciprocity (:mod:`hfrad.distributed.tiles`).
     scheduler : str, distributed.Client or Cluster, optional
         ``tcp://HOST:PORT`` of a running scheduler, a connected Client, or a
         :class:`~hfrad.distributed.cluster.Cluster` from :func:`~hfrad.distributed.connect`.
@@ -90,6 +94,14 @@ def factorize_distributed(scene, options: PrecomputeOptions, *, scheduler=None, 
         Default :func:`default_panel_leaves` (``ceil(m / workers)``).
     row_panels : int, optional
         Row panels of those merges (default: one per worker).
+    tile_group : int, optional
+        With the reciprocity copy: blocks per group (default :func:`hfrad.distributed.tiles.default_group`).
+    tile_band : int, optional
+        With the reciprocity copy: groups at most this far apart share a tile (0: no copy); default
+        the widest whose waiting tiles fit ``tile_bytes`` per worker (:func:`hfrad.distributed.tiles.band_for`).
+    tile_bytes : int, optional
+        Bytes of waiting tiles allowed per worker (default ``TILE_SHARE`` of the smallest worker
+        memory limit or, with none, of this machine's available memory).
 
     Returns
     -------
@@ -120,13 +132,13 @@ def factorize_distributed(scene, options: PrecomputeOptions, *, scheduler=None, 
     if not isinstance(options, PrecomputeOptions):
         raise TypeError("options must come from hfrad.solve.assemble.precompute_options "
                         "(or call hfrad.factorize(scene, scheduler=..., workers=...))")
-    options = options.replace(reciprocity=False)   # every pair is computed on the workers
+    tiling = {"group": tile_group, "band": tile_band, "budget_bytes": tile_bytes}
     if isinstance(scheduler, Cluster):
         return _run(scheduler, scene, options, task_threads, checkpoint, progress, status, records,
-                    panel_leaves, row_panels)
+                    panel_leaves, row_panels, tiling)
     with connect(scheduler, workers=workers, timeout=connect_timeout) as cluster:
         return _run(cluster, scene, options, task_threads, checkpoint, progress, status, records,
-                    panel_leaves, row_panels)
+                    panel_leaves, row_panels, tiling)
 
 
 def _check_worker_memory(cluster: Cluster, n: int, block_size: int) -> None:
@@ -187,13 +199,15 @@ def _tree_shape(m: int, n: int, b: int) -> tuple[dict, dict]:
 
 
 def _submit(client, job_future, m: int, token: str, saved: set, *, n: int = 0, block_size: int = 1,
-            panel_leaves: int | None = None, bounds=None, workers=()):
+            panel_leaves: int | None = None, bounds=None, workers=(), plan=None):
     """Submit leaves and merges in the order HFStream would run them; returns (final, parents, resumed).
 
     A node in ``saved`` (a checkpoint's) is read back by a load task and nothing below it is submitted.
     Merges covering more than ``panel_leaves`` leaves run by the row panels ``bounds`` (panel p
     preferably on ``workers[p % len(workers)]``). ``final`` is the root task's future, or a
-    :class:`_Panelled` of the root's truncated Q panels and V chunks.
+    :class:`_Panelled` of the root's truncated Q panels and V chunks. With a tile ``plan``
+    (:mod:`hfrad.distributed.tiles`) the leaves come from group leaves and tiles, submitted row
+    by row as the leaves' order reaches each group.
     """
     order = task_order(m)
     parents = {c: node for kind, node, children in order for c in children}
@@ -204,12 +218,16 @@ def _submit(client, job_future, m: int, token: str, saved: set, *, n: int = 0, b
     leaves, columns = _tree_shape(m, n, block_size)
     panel_leaves = m if panel_leaves is None else panel_leaves
     futures, resumed = {}, []
+    groups = _GroupLeaves(client, job_future, plan, token, set(range(m)) - skipped - saved) \
+        if plan is not None else None
     for kind, node, children in order:
         if node in skipped:
             continue
         if node in saved:
             futures[node] = client.submit(load_task, job_future, node, key=f"hfrad-load-{node}-{token}", pure=False)
             resumed.append(node)
+        elif kind == "leaf" and groups is not None:
+            futures[node] = groups.leaf(node)
         elif kind == "leaf":
             futures[node] = client.submit(leaf_task, job_future, node, key=f"hfrad-leaf-{node}-{token}", pure=False)
         elif leaves[node] > panel_leaves:
@@ -230,6 +248,44 @@ def _submit(client, job_future, m: int, token: str, saved: set, *, n: int = 0, b
         return _Panelled(Q, V, last.meta, last.tails), parents, resumed
     root = client.submit(root_task, job_future, last, key=f"hfrad-root-{token}", pure=False, priority=2)
     return root, parents, resumed
+
+
+class _GroupLeaves:
+    """Submits the tiles and group leaves of a tile plan (:mod:`hfrad.distributed.tiles`) as leaves are asked for.
+
+    ``todo``: the leaves to compute (not resumed). A group with none of them is not computed;
+    its tile partners compute its rows themselves. When leaf j is asked for, group J = j // g
+    (if not yet submitted) gets its row of tiles ``(J, J+1 .. J+band)`` and then its group leaf;
+    leaf j is then a selection task on the group leaf's list of parts.
+    """
+
+    def __init__(self, client, job_future, plan, token: str, todo: set) -> None:
+        self.client, self.job, self.plan, self.token = client, job_future, plan, token
+        self.todo = todo
+        self.needed = {plan.group_of(j) for j in todo}
+        self.tiles: dict = {}      # (I, J) -> future, until both its group leaves are submitted
+        self.groups: dict = {}     # J -> (future of the group leaf, its leaves)
+
+    def _group(self, J: int):
+        if J in self.groups:
+            return self.groups[J]
+        plan, client = self.plan, self.client
+        direct, copied = plan.partners(J, self.needed)
+        for K in copied:     # this group's row of tiles, then its leaf (row by row: few tiles wait)
+            self.tiles[(J, K)] = client.submit(tile_task, self.job, plan, J, K, key=f"hfrad-tile-{J}-{K}-{self.token}",
+                                               pure=False)
+        leaves = tuple(j for j in plan.blocks_of(J) if j in self.todo)
+        inputs = [self.tiles.pop((I, J)) for I in direct] + [self.tiles[(J, K)] for K in copied]
+        future = client.submit(group_leaf_task, self.job, plan, J, leaves, tuple(direct), tuple(copied), *inputs,
+                               key=f"hfrad-group-{J}-{self.token}", pure=False)
+        self.groups[J] = (future, leaves)
+        return self.groups[J]
+
+    def leaf(self, j: int):
+        """The future of leaf j's Part."""
+        future, leaves = self._group(self.plan.group_of(j))
+        return self.client.submit(operator.getitem, future, leaves.index(j), key=f"hfrad-leafpart-{j}-{self.token}",
+                                  pure=False)
 
 
 def _as_panels(client, job_future, node: int, part, bounds, token: str) -> _Panelled:
@@ -321,8 +377,27 @@ def make_job(scene, options: PrecomputeOptions, task_threads: int | None, token:
                ray_budget=options.ray_budget(scene), task_threads=task_threads, token=token, checkpoint=checkpoint)
 
 
+def tile_plan(cluster: Cluster, options: PrecomputeOptions, group=None, band=None, budget_bytes=None):
+    """The run's :class:`~hfrad.distributed.tiles.TilePlan` (None without the reciprocity copy or with one block).
+
+    The tile budget per worker: ``budget_bytes``, else ``TILE_SHARE`` of the smallest worker memory
+    limit, else of this machine's available memory (workers without a limit: assumed alike).
+    """
+    if not options.reciprocity or options.n_blocks < 2:
+        return None
+    if budget_bytes is None:
+        limits = [x for x in cluster.worker_memory_limits() if x > 0]
+        if limits:
+            budget_bytes = int(tiles_mod.TILE_SHARE * min(limits))
+        else:
+            from ..memory import available_bytes
+            budget_bytes = int(tiles_mod.TILE_SHARE * available_bytes())
+    return tiles_mod.plan(options.n, options.block_size, np.dtype(options.dtype).itemsize, max(1, cluster.n_workers),
+                          group=group, band=band, budget_bytes=budget_bytes)
+
+
 def _run(cluster: Cluster, scene, options: PrecomputeOptions, task_threads, checkpoint, progress, status,
-         records_out, panel_leaves=None, row_panels=None) -> HFactorization:
+         records_out, panel_leaves=None, row_panels=None, tiling=None) -> HFactorization:
     client = cluster.client
     n, block_size, m = options.n, options.block_size, options.n_blocks
     _check_worker_memory(cluster, n, block_size)
@@ -343,8 +418,10 @@ def _run(cluster: Cluster, scene, options: PrecomputeOptions, task_threads, chec
         if panel_leaves is None:
             panel_leaves = default_panel_leaves(m, len(addresses))
         bounds = panels.panel_bounds(n, len(addresses) if row_panels is None else row_panels)
+        plan = tile_plan(cluster, options, **(tiling or {}))
         root, tracker.parents, resumed = _submit(client, job_future, m, token, saved, n=n, block_size=block_size,
-                                                 panel_leaves=panel_leaves, bounds=bounds, workers=addresses)
+                                                 panel_leaves=panel_leaves, bounds=bounds, workers=addresses,
+                                                 plan=plan)
         final = [root] if not isinstance(root, _Panelled) else [*root.U, *root.V, root.meta, *root.tails]
         report(progress, 0, m)
         while not all(f.done() for f in final):
@@ -378,7 +455,7 @@ def _run(cluster: Cluster, scene, options: PrecomputeOptions, task_threads, chec
     report(progress, m, m)
     del job_future
     lowrank.info.update(_info(records, tracker.task_records, m, options, cluster, time_scatter, time_gather, wall,
-                              tracker.executions, len(resumed), panel_leaves, bounds.size - 1))
+                              tracker.executions, len(resumed), panel_leaves, bounds.size - 1, plan))
     if records_out is not None:
         records_out.extend(records + tracker.task_records)
     stats = PassStatistics.from_state({**stats_state, "weights": job.weights})
@@ -410,19 +487,23 @@ def _gather_panelled(client, root: _Panelled, n: int, options) -> tuple:
 
 
 def _info(records, task_records, m, options, cluster, time_scatter, time_gather, wall, executions, resumed,
-          panel_leaves, row_panels) -> dict:
+          panel_leaves, row_panels, plan=None) -> dict:
     """Per-stage seconds (summed over the tasks of the final tree) and the run's shape, for the .hfr.
 
     ``task_executions`` counts the tasks' progress reports: above ``tasks_run`` when
     Dask re-ran tasks of a lost worker (a report still in flight at the end is missed).
     ``tasks_resumed``: nodes read back from a checkpoint (their subtrees were not run).
-    ``time_merge`` includes the panelled merges' panel tasks (as reported by their events).
+    ``time_merge`` includes the panelled merges' panel tasks (as reported by their events);
+    ``time_formfactors`` the tile tasks of the reciprocity copy. ``pairs_computed``: form factors
+    the leaves and tiles computed this run (copies excluded; n^2 without the copy and resumption);
+    ``tile_group``/``tile_band``: the tile plan (0/0 without the copy).
     """
     leaves = sorted((r for r in records if r["kind"] == "leaf"), key=lambda r: r["node"])
     merges = [r for r in records if r["kind"] == "merge"]
-    time_ff = sum(r["formfactors"] for r in leaves)
+    tiles = [r for r in task_records if r["kind"] == "tile"]
+    time_ff = sum(r["formfactors"] for r in leaves) + sum(r["seconds"] for r in tiles)
     time_leaf = sum(r["svd"] for r in leaves)
-    time_merge = sum(r["seconds"] for r in merges) + sum(r["seconds"] for r in task_records)
+    time_merge = sum(r["seconds"] for r in merges) + sum(r["seconds"] for r in task_records if r["kind"] != "tile")
     return {"backend": "dask", "workers": cluster.n_workers, "scheduler": cluster.address,
             "cluster": cluster.kind, "n_blocks": m, "leaf_ranks": [r["rank"] for r in leaves],
             "dtype": options.dtype, "leaf_share": options.leaf_share,
@@ -431,4 +512,8 @@ def _info(records, task_records, m, options, cluster, time_scatter, time_gather,
             "time_precompute": wall, "tasks": len(records),
             "tasks_run": sum(1 for r in records if not r.get("resumed")), "tasks_resumed": resumed,
             "task_executions": executions, "panel_leaves": int(panel_leaves), "row_panels": int(row_panels),
-            "panelled_merges": sum(1 for r in merges if "panels" in r)}
+            "panelled_merges": sum(1 for r in merges if "panels" in r),
+            "pairs_computed": sum(r.get("pairs", 0) for r in leaves if not r.get("resumed"))
+            + sum(r["pairs"] for r in tiles),
+            "tile_group": plan.group if plan is not None else 0, "tile_band": plan.band if plan is not None else 0,
+            "tile_tasks": len(tiles), "tile_bytes": sum(r["bytes"] for r in tiles)}

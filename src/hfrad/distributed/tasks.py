@@ -176,14 +176,26 @@ def leaf_task(job: Job, j: int) -> Part:
     """
     t0, cpu0 = time.perf_counter(), time.process_time()
     b = job.options.block_size
-    start = j * b
-    cols = job.perm[start:start + b]
+    cols = job.perm[j * b:(j + 1) * b]
     with _threads(job.task_threads):
         F = column_block(job.scene, cols, order=job.perm, samples=job.samples, ray_budget=job.ray_budget,
                          dtype=job.options.dtype)
     t1, cpu1 = time.perf_counter(), time.process_time()
+    return leaf_from_block(job, j, F, t0, cpu0, t1, cpu1, pairs=int(F.size))
+
+
+def leaf_from_block(job: Job, j: int, F: np.ndarray, t0: float, cpu0: float, t1: float, cpu1: float,
+                    pairs: int, extra: dict | None = None) -> Part:
+    """The leaf of column block ``j`` from its n x b block ``F`` (what :func:`leaf_task` does once F is made).
+
+    ``t0``/``cpu0``: wall and CPU clock when the leaf's form factors started, ``t1``/``cpu1``
+    when they were done; ``pairs``: form factors computed for this block (copies excluded);
+    ``extra``: more fields for the leaf's record.
+    """
+    b = job.options.block_size
+    start = j * b
     n = job.perm.size
-    stats = block_statistics(n, job.weights, start, start + len(cols), F, job.rows_rho)
+    stats = block_statistics(n, job.weights, start, start + F.shape[1], F, job.rows_rho)
     G = job.rows_rho * F
     del F
     norm2 = near = None
@@ -193,16 +205,81 @@ def leaf_task(job: Job, j: int) -> Part:
         G = split.split(G, start)
         near = split.state()
     node = compress_leaf(G, job.budget, j, norm2)
+    columns = int(G.shape[1])
     del G
     t2 = time.perf_counter()
     rank = int(node.s.size)
-    part = Part(node, [{"kind": "leaf", "node": j, "rank": rank, "columns": int(len(cols)), "rows": int(n),
-                        "seconds": t2 - t0, "formfactors": t1 - t0, "svd": t2 - t1,
-                        "cpu": time.process_time() - cpu0, "cpu_formfactors": cpu1 - cpu0,
-                        "worker": _worker_name()}], stats, near)
+    record = {"kind": "leaf", "node": j, "rank": rank, "columns": columns, "rows": int(n),
+              "seconds": t2 - t0, "formfactors": t1 - t0, "svd": t2 - t1,
+              "cpu": time.process_time() - cpu0, "cpu_formfactors": cpu1 - cpu0, "pairs": int(pairs),
+              "worker": _worker_name()}
+    part = Part(node, [record | (extra or {})], stats, near)
     _saved(job, j, part)
     _announce(job, {"node": j, "kind": "leaf", "rank": rank})
     return part
+
+
+# -- The reciprocity copy (hfrad.distributed.tiles): group-pair tiles and group leaves -----------------
+
+def tile_task(job: Job, plan, I: int, J: int) -> np.ndarray:
+    """Tile ``(I, J)`` of :mod:`hfrad.distributed.tiles`: ``F[rows of group I, cols of group J]`` in the
+    factors' dtype (gb x gb), for group J's leaves as it is and group I's by reciprocity."""
+    t0, c0 = time.perf_counter(), time.process_time()
+    rows, cols = plan.rows(I), plan.rows(J)
+    with _threads(job.task_threads):
+        T = column_block(job.scene, job.perm[cols], order=job.perm[rows], samples=job.samples,
+                         ray_budget=job.ray_budget, dtype=job.options.dtype)
+    _record(job, {"kind": "tile", "node": int(J), "group_rows": int(I), "rows": int(T.shape[0]),
+                  "columns": int(T.shape[1]), "pairs": int(T.size), "bytes": int(T.nbytes),
+                  "seconds": time.perf_counter() - t0, "cpu": time.process_time() - c0})
+    return T
+
+
+def group_leaf_task(job: Job, plan, J: int, leaves: tuple, direct_groups: tuple, copied_groups: tuple,
+                    *tiles: np.ndarray) -> list:
+    """The leaves ``leaves`` (block numbers) of group J, their rows from the tiles where a tile has them.
+
+    ``tiles``: the tiles (I, J) of ``direct_groups`` (in that order), then the tiles (J, K) of
+    ``copied_groups``. Each leaf computes the other rows (:meth:`~hfrad.distributed.tiles.TilePlan.own_rows`),
+    fills the rest from the tiles (:func:`~hfrad.distributed.tiles.fill_block`) and runs
+    :func:`leaf_from_block`. Returns the leaves' parts, in the order of ``leaves``. The tiles'
+    own cost is in their tile tasks' records, not in the leaves'.
+    """
+    direct = dict(zip(direct_groups, tiles[:len(direct_groups)]))
+    copied = dict(zip(copied_groups, tiles[len(direct_groups):]))
+    skip = np.zeros(plan.n, bool)
+    for K in (*direct_groups, *copied_groups):
+        skip[plan.rows(K)] = True
+    own = np.flatnonzero(~skip)
+    areas = np.asarray(job.scene.areas, np.float64)[job.perm]
+    copied_rows = int(skip.sum()) - sum(plan.rows(I).stop - plan.rows(I).start for I in direct_groups)
+    parts = []
+    for j in leaves:
+        t0, cpu0 = time.perf_counter(), time.process_time()
+        F = group_block(job, plan, J, j, own, areas, direct, copied)
+        t1, cpu1 = time.perf_counter(), time.process_time()
+        parts.append(leaf_from_block(job, j, F, t0, cpu0, t1, cpu1, pairs=int(own.size * F.shape[1]),
+                                     extra={"group": int(J), "copied_rows": copied_rows}))
+        del F
+    return parts
+
+
+def group_block(job: Job, plan, J: int, j: int, own: np.ndarray, areas: np.ndarray, direct: dict,
+                copied: dict) -> np.ndarray:
+    """Column block j (of group J), n x b in the factors' dtype: rows ``own`` (internal positions)
+    computed here, the others from the tiles (:func:`hfrad.distributed.tiles.fill_block`)."""
+    from .tiles import fill_block
+
+    b = job.options.block_size
+    cols = job.perm[j * b:(j + 1) * b]
+    with _threads(job.task_threads):
+        mine = column_block(job.scene, cols, order=job.perm[own], samples=job.samples,
+                            ray_budget=job.ray_budget, dtype=job.options.dtype)
+    F = np.empty((plan.n, cols.size), mine.dtype)
+    F[own] = mine
+    del mine
+    fill_block(F, plan, J, j, areas, direct, copied)
+    return F
 
 
 def merge_task(job: Job, node_id: int, left: Part, right: Part, children: tuple = ()) -> Part:
