@@ -13,6 +13,9 @@ streamed, cached on disk and resumed, or spread over machines.
 
 from __future__ import annotations
 
+import os
+import tempfile
+import warnings
 from typing import Iterator
 
 import numpy as np
@@ -25,7 +28,8 @@ from ..validation import check_permutation
 from .cache import BlockCache, array_hash, scene_hash
 from .engine import FormFactorEngine
 from .kernel import ADAPTIVE, KERNEL_VERSION, NEAR, TOLERANCE
-from .mirror import ReciprocityMirror, band_for, mirror_bytes
+from .mirror import (MIRROR_LAG, SCRATCH_SHARE, ReciprocityMirror, TileScratch, band_for, mirror_bytes,
+                     scratch_bytes, slot_bytes, spill_band_for)
 from .parallel import MIN_PARALLEL_PATCHES, ProcessEngine, default_workers
 from .visibility import CLUSTER_VISIBILITY, DEFAULT_SAMPLES, PAIR_TEST, RayBudget, check_samples
 
@@ -64,7 +68,8 @@ def iter_column_blocks(scene, block_size: int = DEFAULT_BLOCK_SIZE, *, order=Non
                        first_block: int = 0, processes: int | None = 1,
                        ray_budget: RayBudget | None = None,
                        reciprocity: bool = True,
-                       reserved_bytes: int = 0) -> Iterator[tuple[int, int, np.ndarray]]:
+                       reserved_bytes: int = 0, scratch=None,
+                       mirror_stats: dict | None = None) -> Iterator[tuple[int, int, np.ndarray]]:
     """Stream F in column blocks, rows and columns in the internal ``order``.
 
     Yields ``(start, stop, block)`` with
@@ -110,11 +115,28 @@ def iter_column_blocks(scene, block_size: int = DEFAULT_BLOCK_SIZE, *, order=Non
     reserved_bytes : int
         Memory the caller needs beside this pass (its estimate): the mirror's tiles
         leave it free.
+    scratch : str, Path or False, optional
+        Folder of the scratch file that takes the reciprocity tiles the memory band
+        cannot hold (:class:`~hfrad.formfactors.mirror.TileScratch`), so every pair is
+        computed once; default TMPDIR (``tempfile.gettempdir()``); False: no file,
+        the blocks beyond the memory band compute those rows. The file needs at most
+        about ``n^2 s / 4`` bytes (the peak of the tiles waiting on disk,
+        :func:`~hfrad.formfactors.mirror.scratch_bytes`) and takes at most
+        ``SCRATCH_SHARE`` of the folder's free space: with less, the copies cover a
+        share of the pairs (a ``ResourceWarning`` says which). It exists only while
+        the pass runs (unlinked at once: nothing is left after an error or Ctrl-C).
+    mirror_stats : dict, optional
+        Filled when the pass ends: ``band``, ``near`` (blocks copied from, in memory),
+        ``copied_pairs``, ``possible_pairs``, ``spilled_pairs``, ``scratch_bytes``,
+        ``scratch_written``, ``scratch_seconds`` (writing, reading, checksums),
+        ``repaired_tiles``.
 
     Raises
     ------
     ValueError
         Bad ``order``, ``samples`` or ``block_size``; zero-area patches.
+    WriteError
+        ``scratch`` is missing or not writable, or its disk filled up before the file was reserved.
     CacheMismatchError
         ``cache`` is a complete cache for another scene or other parameters.
 
@@ -138,11 +160,33 @@ def iter_column_blocks(scene, block_size: int = DEFAULT_BLOCK_SIZE, *, order=Non
     # Only flags are read up front: a cached block is read when its turn comes,
     # so a cache of an out-of-core matrix is streamed, not loaded.
     todo = [k for k in range(first_block, first_block + len(starts)) if store is None or not store.has(k)]
+    repair = {}
+
+    def recompute(rows: slice, cols: slice) -> np.ndarray:
+        # a scratch tile failed its checksum: compute its rows of the block here (rare). A fresh
+        # in-process engine: the pass's engine may be casting the next blocks' rays right now.
+        if "engine" not in repair:
+            repair["engine"] = FormFactorEngine(scene, samples=samples, ray_budget=ray_budget)
+        return repair["engine"].block(order[rows], order[cols])
+
+    # the scratch folder is checked (and its file reserved) before any work starts
+    copies = None
+    if reciprocity and todo:
+        try:
+            copies = _mirror_for(scene, order, block_size, first_block, dtype, reserved_bytes, scratch, recompute)
+        except BaseException:
+            if store is not None:
+                store.close()
+            raise
     own_engine = engine is None
     if todo and engine is None:
-        engine = make_engine(scene, samples=samples, processes=processes, ray_budget=ray_budget,
-                             block_size=block_size, dtype=dtype)
-    copies = _mirror_for(scene, order, block_size, first_block, dtype, reserved_bytes) if reciprocity else None
+        try:
+            engine = make_engine(scene, samples=samples, processes=processes, ray_budget=ray_budget,
+                                 block_size=block_size, dtype=dtype)
+        except BaseException:
+            if copies is not None:
+                copies.close()
+            raise
     skips: dict[int, slice] = {}
 
     def request(k: int):
@@ -177,19 +221,70 @@ def iter_column_blocks(scene, block_size: int = DEFAULT_BLOCK_SIZE, *, order=Non
         computed.close()
         if store is not None:
             store.close()
+        if copies is not None:
+            if mirror_stats is not None:
+                mirror_stats.update(_mirror_report(copies))
+            copies.close()
+        if "engine" in repair:
+            repair["engine"].close()
         if own_engine and engine is not None:
             engine.close()
 
 
 def _mirror_for(scene, order: np.ndarray, block_size: int, first_block: int, dtype,
-                reserved: int) -> ReciprocityMirror:
-    """The reciprocity mirror of a pass, its band sized by :func:`~hfrad.formfactors.mirror.mirror_bytes`."""
+                reserved: int, scratch=None, recompute=None) -> ReciprocityMirror:
+    """The reciprocity mirror of a pass: its memory band sized by :func:`~hfrad.formfactors.mirror.mirror_bytes`,
+    the rest of the blocks spilled to a scratch file in ``scratch`` (default TMPDIR) as far as its disk allows."""
+    from ..atomic import free_bytes
+    from ..errors import InputError, WriteError
+    from ..memory import human
+
     n = scene.n_patches
     starts = np.r_[np.arange(0, n, block_size), n]
+    blocks = len(starts) - 1
     itemsize = np.dtype(dtype).itemsize
     budget = mirror_bytes(n, itemsize, available_memory(), reserved)
-    band = band_for(len(starts) - 1, block_size, itemsize, budget)
-    return ReciprocityMirror(np.asarray(scene.areas, np.float64)[order], starts, band=band, first=first_block)
+    near = band_for(blocks, block_size, itemsize, budget)
+    full = max(0, blocks - MIRROR_LAG - 1)
+    band, tiles = near, None
+    if near < full and scratch is not False:
+        if scratch is not None and not isinstance(scratch, (str, os.PathLike)):
+            raise InputError(f"scratch must be a folder (str or Path), None (TMPDIR) or False (no file); "
+                             f"got {type(scratch).__name__}")
+        folder = tempfile.gettempdir() if scratch is None else os.fspath(scratch)
+        if not os.path.isdir(folder):
+            raise WriteError(f"scratch folder {folder} does not exist; create it or choose another "
+                             "(scratch=, or TMPDIR)")
+        free = free_bytes(folder)
+        band = spill_band_for(blocks, block_size, itemsize, near, int(SCRATCH_SHARE * free))
+        need = scratch_bytes(blocks, block_size, itemsize, near, full)
+        if band < full:
+            warnings.warn(f"the reciprocity copies need {human(need)} of scratch space in {folder} for every "
+                          f"pair, which has {human(free)} free (at most {SCRATCH_SHARE:.0%} of it is used); "
+                          f"each block copies from {band} of up to {full} earlier blocks. For all of them, "
+                          "choose a folder with more room (scratch=, TMPDIR, or the output's folder)",
+                          ResourceWarning, stacklevel=3)
+        if band > near:
+            slot = slot_bytes(block_size, itemsize)
+            slots = scratch_bytes(blocks, block_size, itemsize, near, band) // slot
+            tiles = TileScratch(folder, slots, slot)
+    try:
+        return ReciprocityMirror(np.asarray(scene.areas, np.float64)[order], starts, band=band, first=first_block,
+                                 near=near, scratch=tiles, recompute=recompute)
+    except BaseException:
+        if tiles is not None:
+            tiles.close()
+        raise
+
+
+def _mirror_report(m: ReciprocityMirror) -> dict:
+    """What the mirror of a pass did (``iter_column_blocks(mirror_stats=...)``)."""
+    t = m.scratch
+    return {"band": m.band, "near": m.near, "copied_pairs": m.copied_pairs, "possible_pairs": m.possible_pairs(),
+            "spilled_pairs": m.spilled_pairs, "repaired_tiles": m.repaired_tiles,
+            "scratch_bytes": 0 if t is None else t.slots * t.slot_bytes,
+            "scratch_written": 0 if t is None else t.written,
+            "scratch_seconds": 0.0 if t is None else t.seconds}
 
 
 def make_engine(scene, *, samples: int = DEFAULT_SAMPLES, processes: int | None = 1,

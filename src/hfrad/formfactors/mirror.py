@@ -22,14 +22,38 @@ A band holds a tile only for ``band`` blocks, so a budget too small for all of
 them still copies much: each block copies from ``band`` blocks while the peak
 grows with the band more slowly than with all of them (:func:`band_for`).
 A pass resumed at block ``first`` copies only from the blocks it computed.
+
+Tiles beyond the memory band spill to a scratch file (:class:`TileScratch`):
+the ``near`` nearest blocks' tiles stay in memory (each is taken soon after it
+is kept), the rest of the ``band`` go to disk, so with room for them every
+pair is computed once. The file holds equal slots of ``b^2 s`` bytes, reused
+as tiles are taken, so it needs the peak of the spilled tiles: at most about
+``n^2 s / 4`` bytes (every pair is still written and read once: about
+``n^2 s / 2`` bytes of I/O). Each tile is checksummed (CRC-32) when written and
+checked when read; a damaged tile is recomputed (or refused), never used. The
+file is unlinked as soon as it is created, so it vanishes when it is closed or
+the process ends, however it ends. Spilled or not, a copied tile holds the same
+bytes, so F is bit for bit the one an all-in-memory band gives.
 """
 
 from __future__ import annotations
 
+import errno
+import logging
+import mmap
+import os
+import tempfile
+import zlib
+from pathlib import Path
+from typing import Callable
+
 import numpy as np
 
-__all__ = ["ReciprocityMirror", "MIRROR_LAG", "MIRROR_SHARE", "RUN_FRACTION", "band_for", "mirror_bytes",
+__all__ = ["ReciprocityMirror", "TileScratch", "ScratchDamageError", "MIRROR_LAG", "MIRROR_SHARE",
+           "RUN_FRACTION", "SCRATCH_SHARE", "band_for", "spill_band_for", "scratch_bytes", "slot_bytes", "mirror_bytes",
            "block_request", "computed_rows", "put_computed_rows", "full_height"]
+
+log = logging.getLogger(__name__)
 
 #: Block b copies rows only from blocks before b - MIRROR_LAG: those are finished when b is
 #: handed to a worker (up to workers + 1 blocks are in flight), for any count up to 7 processes.
@@ -37,6 +61,10 @@ MIRROR_LAG = 8
 
 #: Share of the available memory that the kept tiles may take (iter_column_blocks' default).
 MIRROR_SHARE = 0.25
+
+#: Share of the scratch folder's free space the spilled tiles may take: the rest is left for the
+#: output (.hfr, checkpoint) and whoever else writes there.
+SCRATCH_SHARE = 0.5
 
 
 # -- block requests: the engines compute a column block without the rows a mirror fills -----------
@@ -94,12 +122,12 @@ def mirror_bytes(n: int, itemsize: int, available: int | None = None, reserved: 
                             RUN_FRACTION * available - reserved)))
 
 
-def _peak_tiles(blocks: int, lag: int, band: int) -> int:
-    """Most tiles held at once when block a keeps tiles for blocks a + lag + 1 .. a + lag + band."""
+def _peak_tiles(blocks: int, lag: int, band: int, near: int = 0) -> int:
+    """Most tiles held at once when block a keeps tiles for blocks a + lag + near + 1 .. a + lag + band."""
     source = np.arange(blocks)
     peak = 0
     for a in range(blocks):         # after block a is kept: tiles of blocks <= a for blocks > a
-        lo = np.maximum(a + 1, source[:a + 1] + lag + 1)
+        lo = np.maximum(a + 1, source[:a + 1] + lag + near + 1)
         hi = np.minimum(blocks - 1, source[:a + 1] + lag + band)
         peak = max(peak, int(np.clip(hi - lo + 1, 0, None).sum()))
     return peak
@@ -118,6 +146,173 @@ def band_for(blocks: int, block_size: int, itemsize: int, budget_bytes: int, lag
     return lo
 
 
+def slot_bytes(block_size: int, itemsize: int) -> int:
+    """Bytes of one scratch slot: a full tile, rounded up to whole pages (each slot is advised alone)."""
+    page = mmap.PAGESIZE
+    return -(-block_size * block_size * itemsize // page) * page
+
+
+def scratch_bytes(blocks: int, block_size: int, itemsize: int, near: int, band: int,
+                  lag: int = MIRROR_LAG) -> int:
+    """Bytes of the scratch file of a pass whose blocks copy from ``band`` blocks, ``near`` of them in memory.
+
+    The peak number of spilled tiles held at once times a slot (``block_size^2 itemsize``
+    rounded to pages); 0 when ``band <= near``. With every block copied from
+    (``band = blocks - lag - 1``) and no memory band, about ``n^2 s / 4``.
+    """
+    if band <= near:
+        return 0
+    return _peak_tiles(blocks, lag, band, near) * slot_bytes(block_size, itemsize)
+
+
+def spill_band_for(blocks: int, block_size: int, itemsize: int, near: int, disk_bytes: int,
+                   lag: int = MIRROR_LAG) -> int:
+    """The widest band (``>= near``) whose spilled tiles (those beyond the ``near`` memory band) fit ``disk_bytes``."""
+    lo, hi = min(near, max(0, blocks - lag - 1)), max(0, blocks - lag - 1)
+    while lo < hi:                  # the spilled peak grows with the band: bisect
+        mid = (lo + hi + 1) // 2
+        if scratch_bytes(blocks, block_size, itemsize, near, mid, lag) <= disk_bytes:
+            lo = mid
+        else:
+            hi = mid - 1
+    return lo
+
+
+class ScratchDamageError(OSError):
+    """A scratch tile failed its checksum and could not be recomputed: it is never used as data."""
+
+
+class TileScratch:
+    """Tiles written once and read once, in equal slots of a memory-mapped scratch file.
+
+    Parameters
+    ----------
+    folder : str or Path
+        Where the file goes (the output's folder, ``scratch=``, or TMPDIR).
+    slots : int
+        Slots of the file: the peak of tiles held at once (:func:`scratch_bytes`).
+    slot_bytes : int
+        Bytes of a slot (a multiple of the page size).
+
+    Raises
+    ------
+    hfrad.errors.WriteError
+        ``folder`` is missing or not writable, or its disk has no room for the
+        file (checked with statvfs, then reserved with ``posix_fallocate`` so a
+        full disk cannot fault a mapped page later).
+
+    Notes
+    -----
+    The file is unlinked as soon as it is open: the space comes back when
+    :meth:`close` runs or the process ends (an error, Ctrl-C, a kill). Every
+    tile carries its CRC-32; a slot is advised away from this process's memory
+    after each write and read, so the tiles weigh on the page cache, not on the
+    resident set.
+    """
+
+    def __init__(self, folder, slots: int, slot_bytes: int) -> None:
+        from ..atomic import free_bytes
+        from ..errors import WriteError
+        from ..memory import human
+
+        self.folder = Path(folder)
+        self.slot_bytes, self.slots = int(slot_bytes), int(slots)
+        size = self.slot_bytes * self.slots
+        if not self.folder.is_dir():
+            raise WriteError(f"scratch folder {self.folder} does not exist; create it or choose another "
+                             "(scratch=, or TMPDIR)")
+        free = free_bytes(self.folder)
+        if size > free:
+            raise WriteError(f"the reciprocity scratch file needs {human(size)} in {self.folder}, which has "
+                             f"{human(free)} free; choose a folder with more room (scratch=, or TMPDIR) or "
+                             "turn spilling off (scratch=False: fewer pairs copied)")
+        try:
+            fd, name = tempfile.mkstemp(prefix="hfrad-tiles-", suffix=".scratch", dir=self.folder)
+        except OSError as exc:
+            raise WriteError(f"cannot create a scratch file in {self.folder}: {exc.strerror}; choose another "
+                             "folder (scratch=, or TMPDIR)") from exc
+        self.path = Path(name)
+        try:
+            os.unlink(name)       # anonymous from now on: nothing is left behind, however the run ends
+            try:
+                os.posix_fallocate(fd, 0, size)
+            except OSError as exc:
+                if exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG):
+                    raise WriteError(f"the reciprocity scratch file needs {human(size)} in {self.folder}: "
+                                     f"{exc.strerror}; choose a folder with more room (scratch=, or TMPDIR)") from exc
+                os.ftruncate(fd, size)     # a file system without fallocate: the statvfs check must do
+            self._map = mmap.mmap(fd, size) if size else None
+        except BaseException:
+            os.close(fd)
+            raise
+        self._fd = fd
+        self._free = list(range(self.slots - 1, -1, -1))      # slot 0 first: the file is used from its start
+        self._index: dict = {}                                 # key -> (slot, shape, dtype, crc)
+        self.written = self.read = 0                           # bytes
+        self.seconds = 0.0                                     # writing, reading and checking
+
+    def put(self, key, tile: np.ndarray) -> None:
+        """Write ``tile`` (C-contiguous) into a free slot under ``key``."""
+        import time
+        t0 = time.perf_counter()
+        slot = self._free.pop()
+        data = np.ascontiguousarray(tile)
+        raw = data.view(np.uint8).reshape(-1)
+        off = slot * self.slot_bytes
+        self._map[off:off + raw.size] = raw
+        self._index[key] = (slot, data.shape, data.dtype, zlib.crc32(raw))
+        self._drop(off)
+        self.written += raw.size
+        self.seconds += time.perf_counter() - t0
+
+    def take(self, key) -> np.ndarray | None:
+        """The tile kept under ``key``, its slot freed; None when its checksum fails (damaged)."""
+        import time
+        t0 = time.perf_counter()
+        slot, shape, dtype, crc = self._index.pop(key)
+        off = slot * self.slot_bytes
+        nbytes = int(np.prod(shape)) * dtype.itemsize
+        raw = np.frombuffer(self._map, np.uint8, nbytes, off).copy()
+        self._drop(off)
+        self._free.append(slot)
+        self.read += nbytes
+        self.seconds += time.perf_counter() - t0
+        if zlib.crc32(raw) != crc:
+            log.warning("reciprocity scratch tile %s failed its checksum", key)
+            return None
+        return raw.view(dtype).reshape(shape)
+
+    def drop(self, key) -> None:
+        """Free the slot of ``key`` unread."""
+        self._free.append(self._index.pop(key)[0])
+
+    def keys(self):
+        return list(self._index)
+
+    def _drop(self, off: int) -> None:
+        # the pages stay in the page cache (written back when the kernel likes), out of our resident set
+        if hasattr(self._map, "madvise"):
+            self._map.madvise(mmap.MADV_DONTNEED, off, self.slot_bytes)
+
+    def damage(self, key) -> None:
+        """Flip a byte of the tile under ``key`` (tests: a disk that lies)."""
+        off = self._index[key][0] * self.slot_bytes
+        self._map[off] = self._map[off] ^ 0xFF
+
+    def close(self) -> None:
+        """Unmap and close the file: its space goes back to the disk. Safe to call twice."""
+        if getattr(self, "_fd", None) is None:
+            return
+        if self._map is not None:
+            self._map.close()
+        os.close(self._fd)
+        self._fd = None
+        self._index.clear()
+
+    def __del__(self):
+        self.close()
+
+
 class ReciprocityMirror:
     """Tiles of finished column blocks, and the rows of later blocks they give.
 
@@ -130,21 +325,37 @@ class ReciprocityMirror:
         ``starts[b]:starts[b + 1]``.
     band : int
         Block b copies the rows of blocks ``b - lag - band .. b - lag - 1`` (from ``first`` on);
-        :func:`band_for` sizes it for a memory budget.
+        :func:`band_for` sizes it for a memory budget, :func:`spill_band_for` for memory and disk.
     first : int
         The first block of this pass (resumed passes start later).
     lag : int
+    near : int, optional
+        Of the ``band``, the nearest blocks whose tiles stay in memory (default: all of
+        them); the tiles of blocks farther than ``lag + near`` go to ``scratch``.
+    scratch : TileScratch, optional
+        Where the far tiles go; required when ``near < band``. The mirror closes it.
+    recompute : callable (rows, cols) -> array, optional
+        ``F[rows, cols]`` (slices in the internal order, float64) for a scratch tile
+        that fails its checksum; without it such a tile raises :class:`ScratchDamageError`.
     """
 
-    def __init__(self, areas, starts, *, band: int, first: int = 0, lag: int = MIRROR_LAG) -> None:
+    def __init__(self, areas, starts, *, band: int, first: int = 0, lag: int = MIRROR_LAG,
+                 near: int | None = None, scratch: TileScratch | None = None,
+                 recompute: Callable[[slice, slice], np.ndarray] | None = None) -> None:
         self.areas = np.asarray(areas, dtype=np.float64)
         self.starts = np.asarray(starts, dtype=np.int64)
         self.band, self.first, self.lag = int(band), int(first), int(lag)
+        self.near = self.band if near is None else min(int(near), self.band)
+        if self.near < self.band and scratch is None:
+            raise ValueError(f"a band of {self.band} blocks with {self.near} in memory needs a scratch file")
+        self.scratch, self.recompute = scratch, recompute
         self.tiles: dict[tuple[int, int], np.ndarray] = {}
         self.bytes = 0
         self.peak_bytes = 0
         self.kept = self.first   # blocks first .. kept - 1 have kept their tiles
         self.copied_pairs = 0
+        self.spilled_pairs = 0   # of the copied pairs, those read back from the scratch file
+        self.repaired_tiles = 0  # scratch tiles that failed their checksum and were computed again
 
     @property
     def n_blocks(self) -> int:
@@ -162,6 +373,14 @@ class ReciprocityMirror:
             return slice(0, 0)
         return slice(int(self.starts[lo]), int(self.starts[hi]))
 
+    def possible_pairs(self) -> int:
+        """Pairs a full band would copy in this pass (blocks ``first`` on): the denominator of the share."""
+        sizes = np.diff(self.starts)
+        total = 0
+        for b in range(self.first + self.lag + 1, self.n_blocks):
+            total += int(self.starts[b - self.lag] - self.starts[self.first]) * int(sizes[b])
+        return total
+
     def fill(self, b: int, block: np.ndarray, rows: slice) -> None:
         """Write ``rows`` (as :meth:`copied_rows` gave when b was handed out) of block b from kept tiles."""
         if rows.stop <= rows.start:
@@ -171,9 +390,22 @@ class ReciprocityMirror:
         last = int(np.searchsorted(self.starts, rows.stop))
         for a in range(first, last):
             lo, hi = int(self.starts[a]), int(self.starts[a + 1])
-            tile = self.tiles.pop((b, a))                               # F[J_b, J_a]
-            self.bytes -= tile.nbytes
             ratio = self.areas[cols][None, :] / self.areas[lo:hi, None]    # A_j / A_i
+            tile = self.tiles.pop((b, a), None)                          # F[J_b, J_a]
+            if tile is not None:
+                self.bytes -= tile.nbytes
+            else:
+                tile = self.scratch.take((b, a))
+                if tile is None:                  # damaged on disk: compute these rows instead
+                    if self.recompute is None:
+                        raise ScratchDamageError(
+                            f"reciprocity scratch tile (block {b}, rows of block {a}) failed its checksum "
+                            f"(file in {self.scratch.folder}); the disk returned other bytes than were "
+                            "written. Rerun (a checkpoint resumes), or choose another scratch folder")
+                    block[lo:hi] = self.recompute(slice(lo, hi), cols)
+                    self.repaired_tiles += 1
+                    continue
+                self.spilled_pairs += tile.size
             block[lo:hi] = ratio * tile.T
             self.copied_pairs += tile.size
 
@@ -181,14 +413,28 @@ class ReciprocityMirror:
         """Drop the tiles kept for block b (it came from elsewhere, e.g. a block cache)."""
         for key in [key for key in self.tiles if key[0] == b]:
             self.bytes -= self.tiles.pop(key).nbytes
+        if self.scratch is not None:
+            for key in [key for key in self.scratch.keys() if key[0] == b]:
+                self.scratch.drop(key)
 
     def keep(self, a: int, block: np.ndarray) -> None:
-        """Keep the tiles of block a that the next blocks will copy (``band`` of them)."""
+        """Keep the tiles of block a that the next blocks will copy (``band`` of them; beyond ``near``, on disk)."""
         if a != self.kept:
             raise ValueError(f"blocks must be kept in order: expected block {self.kept}, got {a}")
         for x in range(a + self.lag + 1, min(self.n_blocks, a + self.lag + self.band + 1)):
-            tile = block[self.starts[x]:self.starts[x + 1]].copy()
-            self.tiles[(x, a)] = tile
-            self.bytes += tile.nbytes
+            tile = block[self.starts[x]:self.starts[x + 1]]
+            if x - a <= self.lag + self.near:
+                tile = tile.copy()
+                self.tiles[(x, a)] = tile
+                self.bytes += tile.nbytes
+            else:
+                self.scratch.put((x, a), tile)
         self.peak_bytes = max(self.peak_bytes, self.bytes)
         self.kept += 1
+
+    def close(self) -> None:
+        """Drop every tile and close the scratch file (its space goes back). Safe to call twice."""
+        self.tiles.clear()
+        self.bytes = 0
+        if self.scratch is not None:
+            self.scratch.close()
