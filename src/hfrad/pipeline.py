@@ -287,10 +287,13 @@ def _factorize_scene(scene: Scene, options: PrecomputeOptions, *, checkpoint, ch
     ff_kwargs = {} if options.samples is None else {"samples": options.samples}
     if options.samples != 0:
         ff_kwargs["ray_budget"] = options.ray_budget(scene)
-    # the reciprocity tiles leave free what the rest of the run is estimated to need
+    # the reciprocity tiles leave free what the rest of the run is estimated to need; those beyond
+    # the memory band spill to a scratch file beside the output (its checkpoint), else in TMPDIR
     blocks = iter_column_blocks(scene, block_size, order=perm, first_block=stream.blocks_done,
                                 processes=processes, dtype=dt, reciprocity=options.reciprocity,
-                                reserved_bytes=precompute_bytes(n, block_size, itemsize=dt.itemsize), **ff_kwargs)
+                                reserved_bytes=precompute_bytes(n, block_size, itemsize=dt.itemsize),
+                                scratch=None if checkpoint is None else Path(checkpoint).parent,
+                                **ff_kwargs)
     rows_rho = options.rows_rho(scene)
     split = None
     if options.near_entries:
