@@ -49,9 +49,9 @@ class FormFactorEngine:
 
     Notes
     -----
-    :meth:`iter_blocks` overlaps the two halves of the work: Embree (which
-    holds the GIL in ``embreex``) casts the rays of one batch in a worker
-    thread while the numba kernel (``nogil``, all cores) computes the next
+    :meth:`iter_blocks` overlaps the two halves of the work: Embree casts the
+    rays of one batch in a worker thread (packets from numba, no GIL held: see
+    :mod:`hfrad.formfactors.raycast`) while the numba kernel computes the next
     block, so the ray casting is mostly hidden behind the kernel.
     """
 

@@ -429,7 +429,7 @@ class Visibility:
             yield RayJob(pairs, first, o, d, t, w, buf, pool, r_idx, c_idx, final)
 
     def cast(self, job: "RayJob") -> np.ndarray:
-        """(r,) bool: blocked segments of a job (Embree; holds the GIL, so one call at a time)."""
+        """(r,) bool: blocked segments of a job (Embree, in packets of 16; holds no GIL)."""
         return self.cast_segments(job.o, job.d, job.t)
 
     def cast_segments(self, o: np.ndarray, d: np.ndarray, t: np.ndarray) -> np.ndarray:
