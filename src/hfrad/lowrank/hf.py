@@ -155,11 +155,83 @@ def _orthogonalize(U1: np.ndarray, U2: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return C, Q2, R2
 
 
+#: The merge's core ``M`` ((ka + p) x (ka + kb)) is truncated from its Gram matrix (below) where
+#: ``ka + kb`` is at least this (smaller cores cost gesdd little) ...
+_GRAM_MERGE_MIN_WIDTH = 256
+#: ... and the working dtype is no finer than this: the float64 Gram squares M's condition, so it
+#: resolves singular values down to ~sqrt(eps64) sigma_1 (1.5e-8 sigma_1), finer than float32's
+#: eps sigma_1 but not float64's.
+_GRAM_MERGE_MAX_DTYPE_EPS_RATIO = 1e6    # np.finfo(dtype).eps / np.finfo(float64).eps at least this
+_EPS64 = float(np.finfo(np.float64).eps)
+
+
+def _gram_merge_applies(ka: int, kb: int, dtype) -> bool:
+    """Whether a merge of ranks ``ka`` and ``kb`` in ``dtype`` tries the Gram core first."""
+    return (ka + kb >= _GRAM_MERGE_MIN_WIDTH
+            and float(np.finfo(dtype).eps) >= _GRAM_MERGE_MAX_DTYPE_EPS_RATIO * _EPS64)
+
+
+def _merge_core_gram(M: np.ndarray, ka: int, budget2: float):
+    """The merge's truncated core from ``M^T M`` in float64 (eigh) instead of gesdd of ``M``.
+
+    ``M = [[S1, C S2], [0, R2 S2]]`` (working dtype, (ka + p) x (ka + kb)), R2 upper triangular.
+    Its Gram matrix is assembled from the blocks (``S1^2``, ``S1 (C S2)``, and the SYRK of the
+    right block column: a third of the flops of ``M^T M``), its eigenvectors ``W`` (float64,
+    divide and conquer) pick the kept right subspace ``W_k`` within ``_GRAM_MARGIN`` of the
+    budget, and ``Y = M W_k`` (float64) gives ``M W_k W_k^T = U_r S W_k^T`` with
+    ``S = ||y_i||``, ``U_r = Y / S``. That is the exact orthogonal projection of M onto
+    ``W_k``, so its discard is measured by Pythagoras, ``||M||^2 - ||Y||^2`` in float64 (not taken
+    from the eigenvalues), as the module's error accounting needs.
+
+    Returns
+    -------
+    (U_r (ka + p, k), s (k,), W_t (k, ka + kb), discarded2), in M's dtype, sign-fixed; or None
+    where the budget is too small for the Gram's rounding (``_GRAM_MIN_EPS`` eps64 ``||M||^2``),
+    the measured discard exceeds the budget, or ``U_r`` is not orthonormal to the working
+    precision (``max |U_r^T U_r - I| > eps(dtype)``, measured in float64): the caller then
+    runs gesdd on M.
+    """
+    dtype = M.dtype
+    right = M[:, ka:].astype(np.float64)               # [C S2; R2 S2], (ka + p) x kb
+    s1 = M[np.arange(ka), np.arange(ka)].astype(np.float64)
+    m2 = float(np.dot(s1, s1)) + float(np.einsum("ij,ij->", right, right))
+    if budget2 < _GRAM_MIN_EPS * _EPS64 * m2:
+        return None
+    width = M.shape[1]
+    G = np.empty((width, width))
+    G[:ka, :ka] = np.diag(s1 * s1)
+    G[:ka, ka:] = s1[:, None] * right[:ka]
+    G[ka:, :ka] = G[:ka, ka:].T
+    G[ka:, ka:] = right.T @ right
+    lam, W = sla.eigh(G, overwrite_a=True, check_finite=False, driver="evd")   # ascending
+    del G
+    lam = np.clip(lam[::-1], 0.0, None)
+    k, _ = truncation_rank(np.sqrt(lam), _GRAM_MARGIN * budget2)
+    Wk = W[:, ::-1][:, :k]
+    del W
+    Y = right @ Wk[ka:]                                 # M W_k, using M's zero and diagonal blocks
+    Y[:ka] += s1[:, None] * Wk[:ka]
+    s = np.sqrt(np.einsum("ij,ij->j", Y, Y))
+    order = np.argsort(-s, kind="stable")              # near-equal eigenvalues may swap
+    s, Y, Wk = s[order], Y[:, order], Wk[:, order]
+    discarded2 = max(m2 - float(np.dot(s, s)), 0.0)
+    if discarded2 > budget2 or (k and not s[-1] > 0.0):
+        return None
+    Y /= s
+    if k and np.max(np.abs(Y.T @ Y - np.eye(k))) > float(np.finfo(dtype).eps):
+        return None
+    Ur, Wt = Y.astype(dtype), np.ascontiguousarray(Wk.T, dtype=dtype)
+    sign_fix(Ur, Wt)
+    return Ur, s.astype(dtype), Wt, discarded2
+
+
 def _merge(a: _Node, b: _Node, share2: float, where: str) -> _Node:
     """Merge two adjacent nodes (a left of b) into one, truncating within budget.
 
     ``[Q1 Q2] = [U1 Q2~] M`` with ``M = [[S1, C S2], [0, R2 S2]]``, ``M = U_r S W^T``;
-    then ``Q = [U1 Q2~] U_r S`` and ``V = blockdiag(V1, V2) W``.
+    then ``Q = [U1 Q2~] U_r S`` and ``V = blockdiag(V1, V2) W``. The truncated ``U_r S W^T``
+    comes from M's float64 Gram matrix where :func:`_gram_merge_applies` and the budget allows
+    (:func:`_merge_core_gram`; its discard is measured on the projection), else from gesdd.
     """
     norm2 = a.norm2 + b.norm2
     budget2 = share2 + a.slack2 + b.slack2
@@ -187,8 +259,14 @@ def _merge(a: _Node, b: _Node, share2: float, where: str) -> _Node:
     M[np.arange(ka), np.arange(ka)] = a.s
     M[:ka, ka:] = C * b.s
     M[ka:, ka:] = R2 * b.s
-    Ur, s, Wt = _svd(M, where)
-    Ur, s, Wt, d2 = _truncate(Ur, s, Wt, budget2)
+    core = None
+    if _gram_merge_applies(ka, kb, dtype):
+        core = _merge_core_gram(M, ka, budget2)
+    if core is None:
+        Ur, s, Wt = _svd(M, where)
+        Ur, s, Wt, d2 = _truncate(Ur, s, Wt, budget2)
+    else:
+        Ur, s, Wt, d2 = core
     U = a.U @ Ur[:ka] + Q2 @ Ur[ka:]
     V = np.empty((ba + bb, s.size), dtype)
     V[:ba] = a.V @ Wt[:, :ka].T
