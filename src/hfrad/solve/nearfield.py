@@ -47,7 +47,8 @@ from .sparselu import PanelSolver
 from .woodbury import (N_CHANNELS, HFactorization, capacitance_applied, invert_capacitance,
                        low_rank_correction)
 
-__all__ = ["NearFieldFactorization", "SOLVER", "QUANTIZE_SHARE"]
+__all__ = ["NearFieldFactorization", "SOLVER", "QUANTIZE_SHARE", "InProcess", "channel_solver", "solver_order",
+           "near_columns", "row_maxima", "column_products", "factor_near"]
 
 #: How the solve works, as recorded in .hfr files and reports.
 SOLVER = "woodbury+neumann(I - D_c N)"
@@ -80,6 +81,123 @@ def _checked_near_field(N, n: int) -> sp.csr_matrix:
     return sp.csr_matrix(N, dtype=np.float64)
 
 
+def near_operator(N: sp.csr_matrix, d: np.ndarray) -> sp.csc_matrix:
+    """``A_c = I - D_c N`` (CSC) for the channel scale ``d`` (n,)."""
+    return (sp.identity(N.shape[0], format="csr") - sp.diags(d) @ N).tocsc()
+
+
+def factor_near(N: sp.csr_matrix, d: np.ndarray, channel: int = 0, order=None):
+    """SuperLU of ``A_c = I - D_c N`` (``A_c[order][:, order]`` when ``order`` is given: no reordering).
+
+    N's pattern is symmetric (near is a symmetric relation): minimum degree on
+    ``A^T + A``, and SuperLU's symmetric mode (diagonal pivots preferred, a threshold
+    of 0.1 still guards a small one; A is diagonally dominant, so the diagonal pivots
+    are stable and the row permutation search of the general mode is wasted work).
+    Every channel's ``A_c`` has N's pattern, so one channel's fill-reducing order
+    serves the others (``order``): the ordering is about half of a factorization's time.
+
+    Raises
+    ------
+    FactorizationError
+        ``A_c`` is singular (``channel`` names it).
+    """
+    A = near_operator(N, d)
+    spec = "MMD_AT_PLUS_A"
+    if order is not None:
+        A, spec = A[order][:, order].tocsc(), "NATURAL"
+    try:
+        return splu(A, permc_spec=spec, diag_pivot_thresh=0.1, options={"SymmetricMode": True})
+    except RuntimeError as exc:
+        raise FactorizationError(f"channel {channel}: I - D_c N is singular ({exc})") from exc
+
+
+# -- The set-up in pieces: pure functions, run in this process or as Dask tasks ---------------------
+
+def channel_solver(N: sp.csr_matrix, d: np.ndarray, dtype, channel: int = 0, order=None) -> PanelSolver:
+    """Piece 1, once per distinct channel: ``A_c = I - D_c N`` factored, L and U laid out for panels.
+
+    ``order`` (n,) reuses another channel's fill-reducing order (:attr:`PanelSolver.order`).
+    """
+    return PanelSolver(factor_near(N, d, channel, order), dtype, order=order)
+
+
+def solver_order(solver: PanelSolver) -> np.ndarray:
+    """(n,) int64 the fill-reducing order of a channel's factors (to factor the other channels without reordering)."""
+    return solver.order
+
+
+def near_columns(solver: PanelSolver, d: np.ndarray, Q_cols: np.ndarray) -> np.ndarray:
+    """Piece 2, per channel and column panel: ``Z_c[:, cols] = A_c^{-1} D_c Q[:, cols]``, (n, w) in Q's dtype.
+
+    Each column is solved on its own (:class:`PanelSolver`): any split of the k columns
+    gives the same Z. In float32 the panels are ~1e-6 relative, far below the factorization's eps.
+    """
+    return solver.solve(d[:, None].astype(Q_cols.dtype) * Q_cols)
+
+
+def row_maxima(Z_cols: np.ndarray) -> np.ndarray:
+    """(n,) largest magnitude per row of a column panel (the 16-bit scales are the maxima over panels)."""
+    return np.abs(Z_cols).max(axis=1) if Z_cols.shape[1] else np.zeros(Z_cols.shape[0], Z_cols.dtype)
+
+
+def column_products(Z_cols: np.ndarray, V: np.ndarray, scale=None, slab: int = SLAB_ROWS):
+    """Piece 3, per channel and column panel: the stored ``Z_c[:, cols]`` and ``V^T`` times it.
+
+    Parameters
+    ----------
+    Z_cols : (n, w) float
+    V : (n, k) float, the factors' dtype
+    scale : (n,) float32, optional
+        Whole rows' 16-bit scales (:meth:`QuantizedRows.row_scale`): the panel is stored
+        coded and the product taken with the decoded values, which the solve reads.
+
+    Returns
+    -------
+    codes : (n, w) int16 or None
+        None without ``scale`` (``Z_cols`` is stored as it is).
+    VtZ : (k, w) float64
+        Products of row slabs in the factors' dtype, summed in float64: a float64
+        product would be the same ``2 n k w`` flops at half the float32 rate plus
+        float64 copies of V and Z; summing per slab keeps float32 rounding at that
+        of a ``slab``-long dot product.
+    """
+    n, w = Z_cols.shape
+    codes = None if scale is None else QuantizedRows.encode_with(Z_cols, scale)
+    out = np.zeros((V.shape[1], w))
+    for a in range(0, n, slab):
+        rows = slice(a, min(a + slab, n))
+        part = Z_cols[rows] if codes is None else codes[rows].astype(np.float32) * scale[rows, None]
+        out += (V[rows].T @ part.astype(V.dtype, copy=False)).astype(np.float64)
+    return codes, out
+
+
+class InProcess:
+    """Runs the set-up's pieces here, one after the other (the local backend).
+
+    A runner has ``scatter(x)`` (data many pieces read), ``submit(fn, *args)`` (a piece;
+    arguments may be what ``scatter``/``submit`` returned), ``gather(xs)`` (results as
+    arrays), ``release(x)``, and two choices: ``columns`` (column panel width; None:
+    all k at once) and ``share_order`` (factor the first distinct channel, then the
+    others in its fill-reducing order: less work; False factors all at once: a
+    shorter critical path). :mod:`hfrad.distributed.assembly` has the Dask one.
+    """
+
+    columns = None
+    share_order = True
+
+    def scatter(self, x):
+        return x
+
+    def submit(self, fn, *args):
+        return fn(*args)
+
+    def gather(self, xs):
+        return list(xs)
+
+    def release(self, x) -> None:
+        pass
+
+
 class NearFieldFactorization(HFactorization):
     """A factored radiosity system ``G = N + Q V^T``: solve ``(I - R_c F) B_c = E_c``.
 
@@ -107,6 +225,9 @@ class NearFieldFactorization(HFactorization):
         (default) does for float32 factors where the operator error that adds
         (:attr:`quantization_error`) is at most ``QUANTIZE_SHARE`` of the
         achieved error (float64 factors keep float64 ``Z_c``).
+    runner : optional
+        Where the set-up's pieces run (:class:`InProcess`, the default, or
+        :class:`hfrad.distributed.assembly.DaskRunner`); the result is the same.
 
     Raises
     ------
@@ -132,7 +253,7 @@ class NearFieldFactorization(HFactorization):
 
     def __init__(self, perm, Q, V, N, rho_max, reflectance, lowrank: LowRank, *, capacitance=None,
                  near_solution=None, quantize: bool | None = None, sigma_max=None, params: dict | None = None,
-                 scene=None, stats=None):
+                 scene=None, stats=None, runner=None):
         self._set_state(perm, Q, V, rho_max, reflectance, lowrank, sigma_max, params, scene, stats)
         self._sources = self._channel_sources()
         #: for each channel, its Z in the stack of distinct channels
@@ -147,7 +268,7 @@ class NearFieldFactorization(HFactorization):
         self._quantization_error: np.ndarray | None = None
         self._quantize = quantize
         with spare_threads():   # BLAS threads that other processes leave free (hfrad.lowrank.hf)
-            Z, K_inv = self._near_solution(near_solution, capacitance, quantize)
+            Z, K_inv = self._near_solution(near_solution, capacitance, quantize, runner or InProcess())
         self.Z = Z if isinstance(Z, QuantizedRows) else read_only(Z)   # QuantizedRows holds read-only arrays
         self.capacitance_inv = read_only(K_inv)
 
@@ -165,18 +286,9 @@ class NearFieldFactorization(HFactorization):
 
     def _factor(self, c: int):
         """SuperLU of ``A_c = I - D_c N`` (a fresh factorization; callers keep or drop it)."""
-        A = (sp.identity(self.n_patches, format="csr") - sp.diags(self._D[:, c]) @ self.N).tocsc()
-        try:
-            # N's pattern is symmetric (near is a symmetric relation): minimum degree on A^T + A, and
-            # SuperLU's symmetric mode (diagonal pivots preferred, a threshold of 0.1 still guards a small
-            # one; A is diagonally dominant, so the diagonal pivots are stable and the row
-            # permutation search of the general mode is wasted work)
-            return splu(A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.1,
-                        options={"SymmetricMode": True})
-        except RuntimeError as exc:
-            raise FactorizationError(f"channel {c}: I - D_c N is singular ({exc})") from exc
+        return factor_near(self.N, self._D[:, c], c)
 
-    def _near_solution(self, stored_Z, stored_K, quantize: bool | None):
+    def _near_solution(self, stored_Z, stored_K, quantize: bool | None, runner):
         """``Z`` (distinct channels, n, k; array or QuantizedRows) and ``K_c^{-1}`` (3, k, k): as stored, or computed."""
         distinct = self.distinct_channels
         shape = (len(distinct), self.n_patches, self.rank)
@@ -186,49 +298,85 @@ class NearFieldFactorization(HFactorization):
                 raise InputError(f"near_solution must have shape {shape} (one (n, k) A_c^-1 D_c Q per "
                                  f"distinct channel {distinct}); got {Z.shape}")
             return Z, super()._capacitance_inv(stored_K)
-        Z = np.empty(shape, self.dtype)
+        if not self.rank:
+            return np.empty(shape, self.dtype), np.empty((N_CHANNELS, 0, 0), self.dtype)
+        return self._near_setup(quantize, runner)
+
+    def _near_setup(self, quantize: bool | None, runner):
+        """The set-up in pieces (:func:`channel_solver`, :func:`near_columns`, :func:`column_products`) on ``runner``.
+
+        Per distinct channel c: factor ``A_c``; solve the column panels of ``D_c Q``; the
+        rows' 16-bit scales from the panels' row maxima; whether to store ``Z`` coded
+        (:data:`QUANTIZE_SHARE`); then per panel the stored ``Z_c`` columns and
+        ``V^T Z_c`` columns; ``K_c = I - V^T Z_c`` is inverted here. The panels are
+        independent columns, so any runner and panel width give the same ``Z``, and
+        ``K_c`` equal to float32 rounding (the products' blocking).
+        """
+        distinct, k, n = self.distinct_channels, self.rank, self.n_patches
+        width = k if runner.columns is None else max(int(runner.columns), 1)
+        panels = [slice(j, min(j + width, k)) for j in range(0, k, width)]
+        N = runner.scatter(self.N)
+        V = runner.scatter(np.asarray(self.V))
+        Qp = [runner.scatter(np.ascontiguousarray(self.Q[:, cols])) for cols in panels]
+        d = {c: np.ascontiguousarray(self._D[:, c]) for c in distinct}
+        cols, order = {}, None
+        for c in distinct:
+            solver = runner.submit(channel_solver, N, d[c], self.dtype, c, order)
+            if runner.share_order and order is None and len(distinct) > 1:
+                order = runner.submit(solver_order, solver)
+            for j in range(len(panels)):
+                cols[c, j] = runner.submit(near_columns, solver, d[c], Qp[j])
+            runner.release(solver)      # the LU lives until its panels are solved (one channel at a time here)
+        maxima = runner.gather([runner.submit(row_maxima, cols[c, j]) for c in distinct for j in range(len(panels))])
+        scales = [QuantizedRows.row_scale(np.max(maxima[z * len(panels):(z + 1) * len(panels)], axis=0))
+                  for z in range(len(distinct))]
+        error = self._quantization_bound_of(scales)
+        coded = quantize is not False and (
+            quantize or (self.dtype == np.float32 and error.max() <= QUANTIZE_SHARE * self.achieved_error))
+        parts = runner.gather([runner.submit(column_products, cols[c, j], V, scales[z] if coded else None)
+                               for z, c in enumerate(distinct) for j in range(len(panels))])
+        if not coded:
+            Zs = runner.gather([cols[c, j] for c in distinct for j in range(len(panels))])
+        for key in cols:
+            runner.release(cols[key])
+        Z = (np.empty((len(distinct), n, k), np.int16) if coded else np.empty((len(distinct), n, k), self.dtype))
+        K_inv = np.empty((N_CHANNELS, k, k), self.dtype)
         for z, c in enumerate(distinct):
-            if self.rank:
-                Z[z] = self._ainv_dq(c)
-        if quantize is not False and self.rank:
-            coded = QuantizedRows.stack([QuantizedRows.encode(Zz) for Zz in Z])
-            error = self._quantization_bound(coded)
-            if quantize or (self.dtype == np.float32 and error.max() <= QUANTIZE_SHARE * self.achieved_error):
-                Z, self._quantization_error = coded, error
-        K_inv = np.empty((N_CHANNELS, self.rank, self.rank), self.dtype)
-        for z, c in enumerate(distinct):
-            if self.rank:   # K from the Z the solve reads: Woodbury then inverts A_c - A_c Z_c V^T exactly
-                K = np.eye(self.rank) - self._vt_times(Z[z])
-                K_inv[c] = invert_capacitance(K, f"channel {c}: I - V^T A_c^-1 D_c Q", self.dtype)
+            VtZ = np.empty((k, k))
+            for j, sl in enumerate(panels):
+                i = z * len(panels) + j
+                Z[z, :, sl] = parts[i][0] if coded else Zs[i]
+                VtZ[:, sl] = parts[i][1]
+            # K from the Z the solve reads: Woodbury then inverts A_c - A_c Z_c V^T exactly
+            K_inv[c] = invert_capacitance(np.eye(k) - VtZ, f"channel {c}: I - V^T A_c^-1 D_c Q", self.dtype)
         for c, s in enumerate(self._sources):
             K_inv[c] = K_inv[s]
+        if coded:
+            self._quantization_error = error
+            return QuantizedRows(Z, np.stack(scales)), K_inv
         return Z, K_inv
 
     def _vt_times(self, Zz, slab: int = SLAB_ROWS) -> np.ndarray:
-        """(k, k) float64 ``V^T Z``: products of row slabs in the factors' dtype, summed in float64.
-
-        As the plain solver's capacitance (:func:`~hfrad.solve.woodbury.capacitance`): a float64
-        product would be the same ``2 n k^2`` flops at half the float32 rate plus float64 copies
-        of V and of each Z (``8 n k`` bytes each); a slab's copy is ``slab k`` entries.
-        Summing per slab keeps float32 rounding at that of a ``slab``-long dot product.
-        """
-        K = np.zeros((self.rank, self.rank))
-        for a in range(0, self.n_patches, slab):
-            rows = slice(a, min(a + slab, self.n_patches))
-            part = Zz.decode(rows) if isinstance(Zz, QuantizedRows) else Zz[rows]
-            K += (self.V[rows].T @ part.astype(self.dtype, copy=False)).astype(np.float64)
-        return K
+        """(k, k) float64 ``V^T Z`` of a stored (n, k) Z (array or QuantizedRows), as :func:`column_products`."""
+        if isinstance(Zz, QuantizedRows):
+            return column_products(Zz.decode(), self.V, slab=slab)[1]
+        return column_products(np.asarray(Zz), self.V, slab=slab)[1]
 
     def _quantization_bound(self, coded: QuantizedRows) -> np.ndarray:
-        """(3,) bound on ``||A_c (Z_c - coded_c) V^T||_2``: ``(1 + ||N||_2) ||dZ_c||_F ||V||_2``.
+        """(3,) bound on ``||A_c (Z_c - coded_c) V^T||_2`` (:meth:`_quantization_bound_of` its scales)."""
+        return self._quantization_bound_of([coded.scale[z] for z in range(coded.shape[0])])
+
+    def _quantization_bound_of(self, scales) -> np.ndarray:
+        """(3,) ``(1 + ||N||_2) ||dZ_c||_F ||V||_2`` for 16-bit ``Z_c`` with row scales ``scales[z]`` (n,).
 
         ``||N||_2 <= sqrt(max row sum * max column sum)`` (N >= 0) and ``D_c <= 1``;
-        ``||V||_2`` by power iteration (from below: 1% margin).
+        ``||dZ_c||_F`` by :meth:`QuantizedRows.scale_error`; ``||V||_2`` by power
+        iteration (from below: 1% margin).
         """
         absN = abs(self.N)
         norm_N = float(np.sqrt(absN.sum(axis=1).max() * absN.sum(axis=0).max())) if self.N.nnz else 0.0
         norm_V = 1.01 * power_sigma_max(self.V, np.eye(self.rank, dtype=self.dtype))
-        per_z = [(1 + norm_N) * coded[z].error_bound() * norm_V for z in range(coded.shape[0])]
+        per_z = [(1 + norm_N) * QuantizedRows.scale_error(sc, self.rank) * norm_V for sc in scales]
         return np.array([per_z[z] for z in self._stored])
 
     @cached_property
@@ -248,20 +396,6 @@ class NearFieldFactorization(HFactorization):
     def near_solution_storage(self) -> str:
         """How ``Z_c`` is stored: ``"int16 rows"`` or the factors' dtype name."""
         return "int16 rows" if isinstance(self.Z, QuantizedRows) else self.Z.dtype.name
-
-    def _ainv_dq(self, c: int, chunk: int = 1024) -> np.ndarray:
-        """(n, k) ``A_c^{-1} D_c Q`` in the factors' dtype: k right-hand sides through SuperLU in panels.
-
-        The LU and its panel copy live only for this call (one channel at a time).
-        In float32 the panels are ~1e-6 relative, far below the factorization's eps.
-        """
-        solver = PanelSolver(self._factor(c), self.dtype)
-        d = self._D[:, c:c + 1].astype(self.dtype)
-        out = np.empty((self.n_patches, self.rank), self.dtype)
-        for j in range(0, self.rank, chunk):
-            cols = slice(j, min(j + chunk, self.rank))
-            out[:, cols] = solver.solve(d * self.Q[:, cols])
-        return out
 
     def _storage_error(self) -> np.ndarray:
         return self.quantization_error

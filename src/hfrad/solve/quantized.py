@@ -94,11 +94,8 @@ class QuantizedRows:
     def encode(cls, A: np.ndarray) -> "QuantizedRows":
         """Round each row of ``A`` (n, k) to ``CODE_MAX`` steps of its largest magnitude."""
         A = np.asarray(A)
-        scale = (np.abs(A).max(axis=-1) / CODE_MAX).astype(np.float32) if A.shape[-1] else \
-            np.zeros(A.shape[:-1], np.float32)
-        safe = np.where(scale > 0, scale, 1).astype(A.dtype)
-        codes = np.rint(A / safe[..., None])
-        return cls(np.clip(codes, -CODE_MAX, CODE_MAX).astype(np.int16), scale)
+        scale = cls.row_scale(np.abs(A).max(axis=-1)) if A.shape[-1] else np.zeros(A.shape[:-1], np.float32)
+        return cls(cls.encode_with(A, scale), scale)
 
     @classmethod
     def stack(cls, parts: list["QuantizedRows"]) -> "QuantizedRows":
@@ -123,8 +120,27 @@ class QuantizedRows:
 
     def error_bound(self) -> float:
         """Upper bound on ``||A - decode()||_F``: each entry is off by at most half its row's step."""
-        k = self.codes.shape[-1]
-        return 0.5 * math.sqrt(k) * float(np.linalg.norm(self.scale.astype(np.float64)))
+        return self.scale_error(self.scale, self.codes.shape[-1])
+
+    @staticmethod
+    def row_scale(row_max: np.ndarray) -> np.ndarray:
+        """(n,) float32 scales of rows whose largest magnitudes are ``row_max``: as :meth:`encode` sets them."""
+        return (np.asarray(row_max) / CODE_MAX).astype(np.float32)
+
+    @staticmethod
+    def encode_with(A: np.ndarray, scale: np.ndarray) -> np.ndarray:
+        """(n, w) int16 codes of ``A`` (n, w), some columns of rows whose scales are ``scale`` (n,).
+
+        The codes :meth:`encode` gives those columns when ``scale`` comes from the whole
+        rows (:meth:`row_scale` of the row maxima): a column panel is coded on its own.
+        """
+        safe = np.where(scale > 0, scale, 1).astype(A.dtype)
+        return np.clip(np.rint(A / safe[..., None]), -CODE_MAX, CODE_MAX).astype(np.int16)
+
+    @staticmethod
+    def scale_error(scale: np.ndarray, k: int) -> float:
+        """:meth:`error_bound` of a matrix with k columns and row scales ``scale``."""
+        return 0.5 * math.sqrt(k) * float(np.linalg.norm(np.asarray(scale, np.float32).astype(np.float64)))
 
     def matmul(self, S: np.ndarray) -> np.ndarray:
         """``decode() @ S`` for S (k, r), float32 (n, r), without decoding the matrix at once."""

@@ -77,6 +77,9 @@ class PanelSolver:
         SIMD width; L and U are rounded to it).
     panel : int
         Columns solved together (see :data:`PANEL`).
+    order : (n,) int, optional
+        ``lu`` factors ``A[order][:, order]`` (a symmetric permutation, e.g. another
+        matrix's fill-reducing order reused); the solves are still with A.
 
     Notes
     -----
@@ -85,7 +88,7 @@ class PanelSolver:
     per :meth:`solve`. Results equal ``lu.solve`` to the rounding of ``dtype``.
     """
 
-    def __init__(self, lu, dtype=np.float64, panel: int = PANEL) -> None:
+    def __init__(self, lu, dtype=np.float64, panel: int = PANEL, order=None) -> None:
         self.dtype, self.panel = np.dtype(dtype), int(panel)
         L, U = lu.L.tocsc(), lu.U.tocsc()
         self._L = (L.indptr, L.indices, L.data.astype(self.dtype))
@@ -94,6 +97,15 @@ class PanelSolver:
         self._rows = np.empty(self.n, np.int64)
         self._rows[lu.perm_r] = np.arange(self.n)      # (Pr b)[perm_r[i]] = b[i]
         self._cols = np.asarray(lu.perm_c, np.int64)   # x = Pc y: x[i] = y[perm_c[i]]
+        if order is None:
+            #: the fill-reducing order: ``A[order][:, order]`` factors without reordering (``A Pc = A[:, order]``)
+            self.order = np.argsort(self._cols)
+        else:
+            # lu factors A[order][:, order]: A x = b is that matrix's system in y = x[order], b[order]
+            order = np.asarray(order, np.int64)
+            self.order = order
+            self._rows = order[self._rows]
+            self._cols = self._cols[np.argsort(order)]
 
     def solve(self, X: np.ndarray) -> np.ndarray:
         """``A^{-1} X`` for X (n, m); returns (n, m) in the solver's dtype."""
