@@ -128,8 +128,8 @@ def iter_column_blocks(scene, block_size: int = DEFAULT_BLOCK_SIZE, *, order=Non
     mirror_stats : dict, optional
         Filled when the pass ends: ``band``, ``near`` (blocks copied from, in memory),
         ``copied_pairs``, ``possible_pairs``, ``spilled_pairs``, ``scratch_bytes``,
-        ``scratch_written``, ``scratch_seconds`` (writing, reading, checksums),
-        ``repaired_tiles``.
+        ``scratch_written``, ``scratch_seconds`` (this thread: copies, reads, checks),
+        ``scratch_write_seconds`` (the writer thread), ``repaired_tiles``.
 
     Raises
     ------
@@ -284,7 +284,8 @@ def _mirror_report(m: ReciprocityMirror) -> dict:
             "spilled_pairs": m.spilled_pairs, "repaired_tiles": m.repaired_tiles,
             "scratch_bytes": 0 if t is None else t.slots * t.slot_bytes,
             "scratch_written": 0 if t is None else t.written,
-            "scratch_seconds": 0.0 if t is None else t.seconds}
+            "scratch_seconds": 0.0 if t is None else t.seconds,
+            "scratch_write_seconds": 0.0 if t is None else t.write_seconds}
 
 
 def make_engine(scene, *, samples: int = DEFAULT_SAMPLES, processes: int | None = 1,
