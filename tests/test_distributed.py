@@ -26,7 +26,8 @@ NEAR = 32        # near field forced on at this size ("auto" turns it on from 2,
 def cornell():
     """A 600-patch Cornell box and its local (in-process, streaming) factorization with the near field."""
     scene = load_scene("cornell", patches=600)
-    # reciprocity=False: every pair computed, as on Dask
+    # reciprocity=False: every pair computed; the Dask runs below copy by group-pair tiles
+    # (hfrad.distributed.tiles) unless told not to: the same F to rounding
     return scene, factorize(scene, eps=EPS, block_size=64, near_field=NEAR, reciprocity=False)
 
 
@@ -134,8 +135,9 @@ def test_in_process_cluster_matches_local(cornell):
     assert seen[-1] == (m, m)
     assert dist.params["backend"] == "dask" and dist.params["workers"] == 2
     assert local.params["backend"] == "local"
-    assert {k: v for k, v in dist.params.items() if k not in ("backend", "workers")} == \
-        {k: v for k, v in local.params.items() if k != "backend"}
+    assert dist.params["reciprocity"] and not local.params["reciprocity"]   # as asked; the rest is the same
+    assert {k: v for k, v in dist.params.items() if k not in ("backend", "workers", "reciprocity")} == \
+        {k: v for k, v in local.params.items() if k not in ("backend", "reciprocity")}
     info = dist.lowrank.info
     tree = [r for r in records if r["kind"] in ("leaf", "merge")]
     assert info["n_blocks"] == m and info["tasks"] == 2 * m - 1 == len(tree) == info["tasks_run"]
@@ -143,7 +145,8 @@ def test_in_process_cluster_matches_local(cornell):
     assert info["near_nnz"] == local.lowrank.info["near_nnz"] > 0
     # two workers: merges over more than ceil(m / 2) = 5 blocks (the 8-block node and the root) run by row panels
     assert info["panel_leaves"] == 5 and info["row_panels"] == 2 and info["panelled_merges"] == 2
-    assert {r["kind"] for r in records} == {"leaf", "merge", "slice", "gram", "form", "chunk"}
+    assert {r["kind"] for r in records} == {"leaf", "merge", "slice", "gram", "form", "chunk", "tile"}
+    assert info["tile_tasks"] > 0 and info["pairs_computed"] < scene.n_patches ** 2
 
 
 def _datasets(path):
@@ -164,7 +167,7 @@ def test_both_backends_write_the_same_hfr(cornell, tmp_path):
 
     scene, local = cornell
     with connect(workers=1, processes=False) as cluster:
-        dist = factorize(scene, scheduler=cluster, eps=EPS, block_size=64, near_field=NEAR)
+        dist = factorize(scene, scheduler=cluster, eps=EPS, block_size=64, near_field=NEAR, reciprocity=False)
     save_hfr(local, tmp_path / "local.hfr")
     save_hfr(dist, tmp_path / "dask.hfr")
     (d_local, a_local), (d_dask, a_dask) = _datasets(tmp_path / "local.hfr"), _datasets(tmp_path / "dask.hfr")

@@ -23,18 +23,21 @@ small selection task per leaf, so ``tiles / m`` ~ ``band / g`` extra tasks per l
 Pairs computed (:meth:`TilePlan.pairs_computed`): n^2 without the copy; with a
 full band (``band = G - 1``) ``(g b)^2 G (G + 1) / 2`` ~ ``n^2 (1 + 1/G) / 2``.
 
-Bytes moved: each tile travels to at most two group leaves (none where it was made
-on the leaf's worker): at most ``2 (g b)^2 s`` per tile, ``2 band g b^2 s`` per leaf
-(s the factors' itemsize), ``2 n^2 s`` in all with a full band... of which a tile's
-own group-leaf worker keeps its share local. Without the copy nothing but factors moves.
+Bytes moved over the network: each tile travels to at most two group leaves (none
+where the leaf runs on the tile's worker): at most ``2 (g b)^2 s`` per tile (s the
+factors' itemsize), so at most ``2 band g b^2 s`` per leaf and ``2 s (g b)^2 #tiles``
+in all, about ``n^2 s`` with a full band (each computed pair moves at most twice).
+Without the copy nothing but the leaves' factors moves.
 
-Memory: a group leaf holds its tiles (at most ``2 band g b x g b``, no more than
-the ``n x gb`` strip) plus one leaf (:func:`hfrad.distributed.sizing.leaf_bytes`);
-tiles wait on the worker that made them until both their group leaves ran. Submitted
-row by row (tiles ``(I, I+1 .. I+band)``, then group leaf I), at most about
-``band (band + 1) / 2 + workers x band`` tiles wait at once over the cluster
-(:func:`resident_tiles`); ``band`` is the widest whose share per worker fits the
-tile budget (:func:`band_for`, an option or a share of the workers' memory limit).
+Memory per worker: a group leaf holds its tiles (at most ``2 band`` of ``(g b)^2 s``
+bytes each, never more than the ``n x g b`` strip) plus one leaf
+(:func:`hfrad.distributed.sizing.leaf_bytes`); tiles wait on the worker that made them
+until both their group leaves ran. Submitted row by row (tiles ``(I, I+1 .. I+band)``,
+then group leaf I), at most about ``band (band + 1) / 2 + workers x band`` tiles wait
+at once over the cluster (:func:`resident_tiles`), ``1 / workers`` of them per worker
+when Dask spreads them. :func:`tile_bytes_per_worker` adds the two; ``band`` is the
+widest for which it fits the tile budget (:func:`band_for`: an option, or
+``TILE_SHARE`` of the smallest worker memory limit).
 
 Copied entries equal computed ones to rounding (float64: ~1e-16 relative; with
 float32 factors one more float32 rounding, the copy scaling a float32 tile).
@@ -136,11 +139,19 @@ def resident_tiles(groups: int, band: int, workers: int) -> int:
     return band * (band + 1) // 2 + workers * band
 
 
-def band_for(groups: int, group_columns: int, itemsize: int, workers: int, budget_bytes: int) -> int:
-    """The widest band whose waiting tiles, spread over ``workers``, fit ``budget_bytes`` per worker."""
+def tile_bytes_per_worker(groups: int, band: int, group_columns: int, itemsize: int, workers: int) -> int:
+    """Tile bytes on one worker: its share of the waiting tiles plus one group leaf's ``2 band`` input tiles,
+    ``(resident_tiles / workers + 2 band) (g b)^2 s``."""
     tile = group_columns * group_columns * itemsize
+    band = min(band, max(0, groups - 1))
+    return int((resident_tiles(groups, band, workers) / max(1, workers) + 2 * band) * tile)
+
+
+def band_for(groups: int, group_columns: int, itemsize: int, workers: int, budget_bytes: int) -> int:
+    """The widest band whose :func:`tile_bytes_per_worker` fits ``budget_bytes``."""
     band = 0
-    while band < groups - 1 and resident_tiles(groups, band + 1, workers) * tile <= budget_bytes * max(1, workers):
+    while band < groups - 1 and \
+            tile_bytes_per_worker(groups, band + 1, group_columns, itemsize, workers) <= budget_bytes:
         band += 1
     return band
 
