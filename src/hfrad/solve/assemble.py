@@ -238,7 +238,7 @@ def concat_near(a: dict | None, b: dict | None) -> dict | None:
 # -- The one assembly step ---------------------------------------------------------------------------
 
 def assemble(scene: Scene, options: PrecomputeOptions, lowrank: LowRank, stats: PassStatistics,
-             near: dict | None = None, *, backend: dict | None = None) -> HFactorization:
+             near: dict | None = None, *, backend: dict | None = None, runner=None) -> HFactorization:
     """Low-rank factors + near field + pass statistics + parameters -> the solver object.
 
     Parameters
@@ -255,6 +255,10 @@ def assemble(scene: Scene, options: PrecomputeOptions, lowrank: LowRank, stats: 
         of G); required when ``options.near_entries`` > 0.
     backend : dict, optional
         Recorded in ``params`` beside the options (``backend``, ``workers``).
+    runner : optional
+        Where the near-field set-up's pieces run: this process by default
+        (:class:`~hfrad.solve.nearfield.InProcess`), Dask workers with
+        :func:`hfrad.distributed.assembly.assemble_on_cluster`. The same object either way.
 
     Returns
     -------
@@ -282,7 +286,7 @@ def assemble(scene: Scene, options: PrecomputeOptions, lowrank: LowRank, stats: 
                           shape=(options.n, options.n))
         lowrank.info.update({"near_radius": options.near_radius, "near_nnz": int(N.nnz)})
         fac = NearFieldFactorization(perm, lowrank.Q, lowrank.V, N, rho_max, scene.reflectance, lowrank,
-                                     params=params, scene=scene, stats=stats)
+                                     params=params, scene=scene, stats=stats, runner=runner)
         lowrank.info["time_nearfield_setup"] = time.perf_counter() - t1
     lowrank.info["solver"] = fac.solver
     return fac
