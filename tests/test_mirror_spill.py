@@ -176,7 +176,7 @@ def test_spilling_pass_matches_the_all_in_memory_pass(box, tmp_path, monkeypatch
     np.testing.assert_allclose(off, memory, rtol=0, atol=2e-7 * memory.max())
     # a short disk: spill what fits, say so
     monkeypatch.setattr("hfrad.atomic.free_bytes", lambda folder: 2 * stats["scratch_bytes"] // 3)
-    with pytest.warns(ResourceWarning, match="copies from"):
+    with pytest.warns(RuntimeWarning, match="copies from"):
         short, pairs_short, stats_short = _F(scene, order, scratch=tmp_path)
     assert stats_short["near"] < stats_short["band"] < stats["band"]
     assert pairs_spilled < pairs_short < pairs_off

@@ -29,7 +29,7 @@ from .cache import BlockCache, array_hash, scene_hash
 from .engine import FormFactorEngine
 from .kernel import ADAPTIVE, KERNEL_VERSION, NEAR, TOLERANCE
 from .mirror import (MIRROR_LAG, SCRATCH_SHARE, ReciprocityMirror, TileScratch, band_for, mirror_bytes,
-                     scratch_bytes, slot_bytes, spill_band_for)
+                     band_pairs, scratch_bytes, slot_bytes, spill_band_for)
 from .parallel import MIN_PARALLEL_PATCHES, ProcessEngine, default_workers
 from .visibility import CLUSTER_VISIBILITY, DEFAULT_SAMPLES, PAIR_TEST, RayBudget, check_samples
 
@@ -123,7 +123,7 @@ def iter_column_blocks(scene, block_size: int = DEFAULT_BLOCK_SIZE, *, order=Non
         about ``n^2 s / 4`` bytes (the peak of the tiles waiting on disk,
         :func:`~hfrad.formfactors.mirror.scratch_bytes`) and takes at most
         ``SCRATCH_SHARE`` of the folder's free space: with less, the copies cover a
-        share of the pairs (a ``ResourceWarning`` says which). It exists only while
+        share of the pairs (a ``RuntimeWarning`` says which). It exists only while
         the pass runs (unlinked at once: nothing is left after an error or Ctrl-C).
     mirror_stats : dict, optional
         Filled when the pass ends: ``band``, ``near`` (blocks copied from, in memory),
@@ -261,9 +261,11 @@ def _mirror_for(scene, order: np.ndarray, block_size: int, first_block: int, dty
         if band < full:
             warnings.warn(f"the reciprocity copies need {human(need)} of scratch space in {folder} for every "
                           f"pair, which has {human(free)} free (at most {SCRATCH_SHARE:.0%} of it is used); "
-                          f"each block copies from {band} of up to {full} earlier blocks. For all of them, "
+                          f"each block copies from {band} of up to {full} earlier blocks, "
+                          f"{band_pairs(starts, band, first_block) / max(1, band_pairs(starts, full, first_block)):.0%} "
+                          "of the pairs it could copy. For all of them, "
                           "choose a folder with more room (scratch=, TMPDIR, or the output's folder)",
-                          ResourceWarning, stacklevel=3)
+                          RuntimeWarning, stacklevel=3)
         if band > near:
             slot = slot_bytes(block_size, itemsize)
             slots = scratch_bytes(blocks, block_size, itemsize, near, band) // slot

@@ -54,7 +54,7 @@ import numpy as np
 from numba import njit
 
 __all__ = ["ReciprocityMirror", "TileScratch", "ScratchDamageError", "MIRROR_LAG", "MIRROR_SHARE",
-           "RUN_FRACTION", "SCRATCH_SHARE", "band_for", "spill_band_for", "scratch_bytes", "slot_bytes", "mirror_bytes",
+           "RUN_FRACTION", "SCRATCH_SHARE", "band_for", "band_pairs", "spill_band_for", "scratch_bytes", "slot_bytes", "mirror_bytes",
            "block_request", "computed_rows", "put_computed_rows", "full_height"]
 
 log = logging.getLogger(__name__)
@@ -365,6 +365,14 @@ class TileScratch:
         self.close()
 
 
+def band_pairs(starts, band: int, first: int = 0, lag: int = MIRROR_LAG) -> int:
+    """Pairs a pass from block ``first`` copies with a band of ``band`` blocks (block boundaries ``starts``)."""
+    starts = np.asarray(starts, np.int64)
+    b = np.arange(first + lag + 1, len(starts) - 1)
+    lo = np.maximum(first, b - lag - band)
+    return int(((starts[b - lag] - starts[lo]).clip(0) * (starts[b + 1] - starts[b])).sum())
+
+
 class ReciprocityMirror:
     """Tiles of finished column blocks, and the rows of later blocks they give.
 
@@ -427,11 +435,7 @@ class ReciprocityMirror:
 
     def possible_pairs(self) -> int:
         """Pairs a full band would copy in this pass (blocks ``first`` on): the denominator of the share."""
-        sizes = np.diff(self.starts)
-        total = 0
-        for b in range(self.first + self.lag + 1, self.n_blocks):
-            total += int(self.starts[b - self.lag] - self.starts[self.first]) * int(sizes[b])
-        return total
+        return band_pairs(self.starts, self.n_blocks, self.first, self.lag)
 
     def fill(self, b: int, block: np.ndarray, rows: slice) -> None:
         """Write ``rows`` (as :meth:`copied_rows` gave when b was handed out) of block b from kept tiles."""
