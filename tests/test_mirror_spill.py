@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import hfrad.formfactors.blocks as blocks_mod
-from hfrad.errors import WriteError
+from hfrad.errors import InputError, WriteError
 from hfrad.formfactors import iter_column_blocks
 from hfrad.formfactors.blocks import FormFactorEngine
 from hfrad.formfactors.mirror import (MIRROR_LAG, ReciprocityMirror, ScratchDamageError, TileScratch, band_for,
@@ -198,3 +198,5 @@ def test_abandoned_pass_leaves_no_file(box, tmp_path, monkeypatch):
         warnings.simplefilter("error")
         with pytest.raises(WriteError, match="does not exist"):
             next(iter_column_blocks(scene, BLOCK, order=order, scratch=tmp_path / "missing"))
+        with pytest.raises(InputError, match="scratch must be a folder"):
+            next(iter_column_blocks(scene, BLOCK, order=order, scratch=3))

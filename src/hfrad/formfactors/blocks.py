@@ -247,10 +247,10 @@ def _mirror_for(scene, order: np.ndarray, block_size: int, first_block: int, dty
     near = band_for(blocks, block_size, itemsize, budget)
     full = max(0, blocks - MIRROR_LAG - 1)
     band, tiles = near, None
+    if scratch is not None and scratch is not False and not isinstance(scratch, (str, os.PathLike)):
+        raise InputError(f"scratch must be a folder (str or Path), None (TMPDIR) or False (no file); "
+                         f"got {type(scratch).__name__}")
     if near < full and scratch is not False:
-        if scratch is not None and not isinstance(scratch, (str, os.PathLike)):
-            raise InputError(f"scratch must be a folder (str or Path), None (TMPDIR) or False (no file); "
-                             f"got {type(scratch).__name__}")
         folder = tempfile.gettempdir() if scratch is None else os.fspath(scratch)
         if not os.path.isdir(folder):
             raise WriteError(f"scratch folder {folder} does not exist; create it or choose another "

@@ -362,7 +362,10 @@ class TileScratch:
         self._index.clear()
 
     def __del__(self):
-        self.close()
+        try:
+            self.close()
+        except Exception:    # interpreter shutdown: the process's end frees the file anyway
+            pass
 
 
 def band_pairs(starts, band: int, first: int = 0, lag: int = MIRROR_LAG) -> int:
