@@ -63,10 +63,11 @@ def test_band_fits_the_budget():
     # (resident / W + 2 band) tiles: 2 tiles per band step at least
     assert tiles.tile_bytes_per_worker(G, 3, w, s, W) == (tiles.resident_tiles(G, 3, W) / W + 6) * tile
     # the default group keeps the tile tasks per leaf bounded (full band)
-    for m in (16, 160, 645):
+    for m in (16, 160, 645, 3907):
         g = tiles.default_group(m, m * 256, 256, 4)
         G = -(-m // g)
-        assert G * (G - 1) / 2 <= tiles.TILE_TASKS_PER_LEAF * m or 2 * g * 256 * m * 256 * 4 > tiles.STRIP_BYTES
+        assert G * (G - 1) / 2 <= tiles.TILE_TASKS_PER_LEAF * m or (2 * g * 256) ** 2 * 4 > tiles.TILE_BYTES
+        assert g == 1 or (-(-m // (g // 2))) * (-(-m // (g // 2)) - 1) / 2 > tiles.TILE_TASKS_PER_LEAF * m
 
 
 @pytest.mark.parametrize("dtype, tol", [("float64", 1e-15), pytest.param("float32", 2e-7, marks=pytest.mark.slow)])

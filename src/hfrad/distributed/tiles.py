@@ -49,13 +49,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-#: Tile tasks per leaf that :func:`plan` allows by default (Dask costs 1-6 ms per task at the scheduler).
-TILE_TASKS_PER_LEAF = 4
+#: Tile tasks per leaf that :func:`plan` allows by default: Dask costs 1-6 ms per task at the scheduler,
+#: well below a tile of b x b pairs at ~2 us each (0.13 s at b = 256), so the limit is the scheduler's
+#: load (m = 645 at 163K: g = 8, 3,240 tiles). Smaller groups copy more: a group's own
+#: g b x g b diagonal tile is computed whole, about 1 / G of the pairs more than half.
+TILE_TASKS_PER_LEAF = 8
 #: Share of the smallest worker memory limit the waiting tiles may take on one worker (as the local
 #: path's MIRROR_SHARE of the available memory).
 TILE_SHARE = 0.25
-#: Largest group strip ``n x g b`` (bytes of the factors' dtype) the default group size allows.
-STRIP_BYTES = 1 << 30
+#: Largest tile ``(g b)^2 s`` the default group size allows (a tile task holds it in float64 too).
+TILE_BYTES = 1 << 28
 
 
 @dataclass(frozen=True)
@@ -158,13 +161,14 @@ def band_for(groups: int, group_columns: int, itemsize: int, workers: int, budge
 
 def default_group(m: int, n: int, block_size: int, itemsize: int) -> int:
     """Smallest power-of-two group size with at most TILE_TASKS_PER_LEAF tile tasks per leaf (full band),
-    and a group strip ``n g b s`` of at most STRIP_BYTES (that one wins)."""
+    unless the tile ``(g b)^2 s`` would then pass TILE_BYTES (that limit wins)."""
     g = 1
-    while True:
+    while g < m:
         G = -(-m // g)
-        if G * (G - 1) / 2 <= TILE_TASKS_PER_LEAF * m or 2 * g * block_size * n * itemsize > STRIP_BYTES or g >= m:
+        if G * (G - 1) / 2 <= TILE_TASKS_PER_LEAF * m or (2 * g * block_size) ** 2 * itemsize > TILE_BYTES:
             return g
         g *= 2
+    return g
 
 
 def plan(n: int, block_size: int, itemsize: int, workers: int, *, group: int | None = None,
