@@ -105,13 +105,19 @@ def test_copied_blocks_equal_computed_blocks(dtype, tol):
 def test_dask_copy_equals_dask_without_and_local(cornell):
     """Two in-process workers: the run with the copy computes ~(1 + 1/G)/2 of the pairs and gives the
     factorization of the run without it (same rank, error figures to 1e-5, radiosity to 1e-5) and of the
-    local path (which copies other rows: its own mirror)."""
+    local path (which copies other rows: its own mirror). Merges whole, as the local path's (the panelled
+    merges round differently: test_distributed.py compares those)."""
+    from hfrad.distributed import factorize_distributed
+
     scene = cornell
     n = scene.n_patches
     with connect(workers=2, processes=False) as cluster:
         records = []
-        copy = factorize(scene, scheduler=cluster, eps=EPS, block_size=64, near_field=NEAR, records=records)
-        plain = factorize(scene, scheduler=cluster, eps=EPS, block_size=64, near_field=NEAR, reciprocity=False)
+        runs = [factorize_distributed(scene, precompute_options(scene, eps=EPS, block_size=64, near_entries=NEAR,
+                                                                reciprocity=r),
+                                      scheduler=cluster, panel_leaves=10**9, records=records if r else None)
+                for r in (True, False)]
+    copy, plain = runs
     local = factorize(scene, eps=EPS, block_size=64, near_field=NEAR)
     info = copy.lowrank.info
     assert plain.lowrank.info["pairs_computed"] == n * n and plain.lowrank.info["tile_tasks"] == 0
