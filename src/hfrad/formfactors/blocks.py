@@ -204,7 +204,10 @@ def iter_column_blocks(scene, block_size: int = DEFAULT_BLOCK_SIZE, *, order=Non
             if block is not None and copies is not None:
                 copies.discard(index)                  # read, not computed: its tiles are not needed
             if block is None:
-                block = next(computed).astype(dtype, copy=False)
+                with np.errstate(over="ignore", invalid="ignore"):
+                    # the rows the mirror fills next are unspecified (np.empty) until then: their
+                    # garbage must not warn "overflow encountered in cast"
+                    block = next(computed).astype(dtype, copy=False)
                 if copies is not None:
                     copies.fill(index, block, skips.pop(index))
                 if store is not None:
