@@ -11,7 +11,7 @@ import pytest
 
 from hfrad.distributed import connect, tiles
 from hfrad.distributed.run import make_job
-from hfrad.distributed.tasks import group_block, tile_task
+from hfrad.distributed.tasks import _block, group_block, tile_task
 from hfrad.formfactors.parallel import column_block
 from hfrad.pipeline import factorize
 from hfrad.scene.load import load_scene
@@ -28,8 +28,8 @@ def cornell():
 
 @pytest.mark.parametrize("n, b, g, band", [(512, 64, 2, 3), (612, 64, 2, 4), (612, 64, 3, 1), (600, 50, 4, 0)])
 def test_pairs_computed_by_formula(n, b, g, band):
-    """Every pair is computed once or copied from a computed one; a full band halves the pairs (plus the
-    diagonal groups): (g b)^2 G (G + 1) / 2 when b g divides n."""
+    """Every pair is computed once or copied from a computed one; a full band halves the pairs (plus
+    half the diagonal cells): (g b)^2 G (G - 1) / 2 + sum_J diagonal_pairs(J) when b g divides n."""
     plan = tiles.TilePlan(n=n, block_size=b, group=g, band=band)
     G = plan.groups
     covered = np.zeros((n, n), np.int64)       # times each pair (row, col) is computed, copies counted apart
@@ -37,6 +37,13 @@ def test_pairs_computed_by_formula(n, b, g, band):
     for J in range(G):
         cols = plan.rows(J)
         covered[plan.own_rows(J), cols] += 1
+        calls = []                        # the diagonal tile: computed cells and their copies
+        D = tiles.diagonal_tile(plan, J, np.ones(n), lambda r, c: calls.append((r, c)) or np.ones((r.stop - r.start,
+                                                                                               c.stop - c.start)))
+        for r, c in calls:
+            covered[r, c] += 1
+            copied[c, r] = r != c
+        assert D.shape == (cols.stop - cols.start,) * 2
         direct, copies = plan.partners(J)
         for K in copies:
             copied[plan.rows(K), cols] = True
@@ -46,9 +53,11 @@ def test_pairs_computed_by_formula(n, b, g, band):
     assert np.array_equal(covered + copied, np.ones((n, n), np.int64))     # each pair exactly once
     assert np.array_equal(copied.T & copied, np.zeros_like(copied))           # a copy's source is computed
     if band == G - 1 and n % (g * b) == 0:
-        assert plan.pairs_computed() == (g * b) ** 2 * G * (G + 1) // 2
+        cell = b // tiles.DIAGONAL_CUTS        # the diagonal tile: (w^2 + sum of cells^2) / 2
+        assert plan.pairs_computed() == (g * b) ** 2 * G * (G - 1) // 2 + G * ((g * b) ** 2 + g * b * cell) // 2
     if band == 0:
-        assert plan.pairs_computed() == n * n and not plan.tiles()
+        assert not plan.tiles() and plan.pairs_computed() == n * n - sum(
+            (plan.rows(J).stop - plan.rows(J).start) ** 2 - plan.diagonal_pairs(J) for J in range(G))
 
 
 def test_band_fits_the_budget():
@@ -86,9 +95,10 @@ def test_copied_blocks_equal_computed_blocks(dtype, tol):
     for J in range(plan.groups):
         direct, copies = plan.partners(J)
         own = plan.own_rows(J)
+        diag = tiles.diagonal_tile(plan, J, areas, lambda r, c: _block(job, r, c))
         for j in plan.blocks_of(J):
             F = group_block(job, plan, J, j, own, areas, {I: made[(I, J)] for I in direct},
-                            {K: made[(J, K)] for K in copies})
+                            {K: made[(J, K)] for K in copies}, diag)
             whole = column_block(scene, job.perm[j * 32:(j + 1) * 32], order=job.perm, samples=job.samples,
                                  ray_budget=job.ray_budget, dtype=dtype)
             assert F.dtype == whole.dtype
@@ -103,7 +113,7 @@ def test_copied_blocks_equal_computed_blocks(dtype, tol):
 
 @pytest.mark.slow
 def test_dask_copy_equals_dask_without_and_local(cornell):
-    """Two in-process workers: the run with the copy computes ~(1 + 1/G)/2 of the pairs and gives the
+    """Two in-process workers: the run with the copy computes about half the pairs and gives the
     factorization of the run without it (same rank, error figures to 1e-5, radiosity to 1e-5) and of the
     local path (which copies other rows: its own mirror). Merges whole, as the local path's (the panelled
     merges round differently: test_distributed.py compares those)."""
@@ -124,8 +134,8 @@ def test_dask_copy_equals_dask_without_and_local(cornell):
     plan = tiles.TilePlan(n=n, block_size=64, group=info["tile_group"], band=info["tile_band"])
     assert info["tile_band"] == plan.groups - 1        # the budget holds every tile at this size
     assert info["pairs_computed"] == plan.pairs_computed()
-    G = plan.groups
-    assert info["pairs_computed"] / n**2 == pytest.approx((1 + 1 / G) / 2, rel=0.05)
+    # half the pairs, plus half of the diagonal cells (b / DIAGONAL_CUTS wide): ~ 1/2 + cell / (2 n)
+    assert info["pairs_computed"] / n**2 == pytest.approx(0.5 + 64 / tiles.DIAGONAL_CUTS / (2 * n), rel=0.02)
     assert info["tile_tasks"] == len(plan.tiles()) == sum(1 for r in records if r["kind"] == "tile")
     assert copy.params["reciprocity"] is True
     for other in (plain, local):

@@ -245,29 +245,44 @@ def group_leaf_task(job: Job, plan, J: int, leaves: tuple, direct_groups: tuple,
     :func:`leaf_from_block`. Returns the leaves' parts, in the order of ``leaves``. The tiles'
     own cost is in their tile tasks' records, not in the leaves'.
     """
+    from .tiles import diagonal_tile
+
     direct = dict(zip(direct_groups, tiles[:len(direct_groups)]))
     copied = dict(zip(copied_groups, tiles[len(direct_groups):]))
     skip = np.zeros(plan.n, bool)
-    for K in (*direct_groups, *copied_groups):
+    for K in (J, *direct_groups, *copied_groups):
         skip[plan.rows(K)] = True
     own = np.flatnonzero(~skip)
     areas = np.asarray(job.scene.areas, np.float64)[job.perm]
-    copied_rows = int(skip.sum()) - sum(plan.rows(I).stop - plan.rows(I).start for I in direct_groups)
+    copied_rows = int(skip.sum()) - sum(plan.rows(I).stop - plan.rows(I).start for I in (J, *direct_groups))
+    t0, cpu0 = time.perf_counter(), time.process_time()
+    diag = diagonal_tile(plan, J, areas, lambda rows, cols: _block(job, rows, cols))
+    # the diagonal tile serves all the group's blocks: each leaf's record carries its share
+    share = (time.perf_counter() - t0) / len(leaves), (time.process_time() - cpu0) / len(leaves)
+    diag_pairs = plan.diagonal_pairs(J) / len(leaves)
     parts = []
     for j in leaves:
-        t0, cpu0 = time.perf_counter(), time.process_time()
-        F = group_block(job, plan, J, j, own, areas, direct, copied)
+        t0, cpu0 = time.perf_counter() - share[0], time.process_time() - share[1]
+        F = group_block(job, plan, J, j, own, areas, direct, copied, diag)
         t1, cpu1 = time.perf_counter(), time.process_time()
-        parts.append(leaf_from_block(job, j, F, t0, cpu0, t1, cpu1, pairs=int(own.size * F.shape[1]),
+        parts.append(leaf_from_block(job, j, F, t0, cpu0, t1, cpu1, pairs=int(own.size * F.shape[1] + diag_pairs),
                                      extra={"group": int(J), "copied_rows": copied_rows}))
         del F
     return parts
 
 
+def _block(job: Job, rows: slice, cols: slice) -> np.ndarray:
+    """F of internal positions ``rows`` x ``cols`` in the factors' dtype."""
+    with _threads(job.task_threads):
+        return column_block(job.scene, job.perm[cols], order=job.perm[rows], samples=job.samples,
+                            ray_budget=job.ray_budget, dtype=job.options.dtype)
+
+
 def group_block(job: Job, plan, J: int, j: int, own: np.ndarray, areas: np.ndarray, direct: dict,
-                copied: dict) -> np.ndarray:
+                copied: dict, diag: np.ndarray) -> np.ndarray:
     """Column block j (of group J), n x b in the factors' dtype: rows ``own`` (internal positions)
-    computed here, the others from the tiles (:func:`hfrad.distributed.tiles.fill_block`)."""
+    computed here, group J's rows from its diagonal tile ``diag`` (:func:`hfrad.distributed.tiles.diagonal_tile`),
+    the others from the tiles (:func:`hfrad.distributed.tiles.fill_block`)."""
     from .tiles import fill_block
 
     b = job.options.block_size
@@ -278,6 +293,8 @@ def group_block(job: Job, plan, J: int, j: int, own: np.ndarray, areas: np.ndarr
     F = np.empty((plan.n, cols.size), mine.dtype)
     F[own] = mine
     del mine
+    lo = j * b - plan.rows(J).start
+    F[plan.rows(J)] = diag[:, lo:lo + cols.size]
     fill_block(F, plan, J, j, areas, direct, copied)
     return F
 
