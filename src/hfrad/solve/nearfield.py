@@ -10,10 +10,14 @@ Sherman-Morrison-Woodbury around ``A_c``:
     B_c = x_c + Z_c K_c^{-1} V^T x_c,   x_c = A_c^{-1} E_c,
     Z_c = A_c^{-1} D_c Q  (n x k),      K_c = I_k - V^T Z_c  (k x k, inverted once).
 
-Set-up (once): SciPy's SuperLU factors ``A_c`` (``scipy.sparse.linalg.splu``)
-and takes the k columns of ``D_c Q`` in panels
+Set-up (once): SciPy's SuperLU factors ``A_c`` (``scipy.sparse.linalg.splu``;
+the channels after the first in its fill-reducing order, as every ``A_c`` has N's
+pattern) and takes the k columns of ``D_c Q`` in panels
 (:class:`~hfrad.solve.sparselu.PanelSolver`) to give ``Z_c`` and ``K_c``; the
-LU is then dropped. A relighting solve applies ``A_c^{-1}`` once, by the
+LU is then dropped. The set-up is pure functions (:func:`channel_solver`,
+:func:`near_columns`, :func:`row_maxima`, :func:`column_products`) that a runner
+runs in this process (:class:`InProcess`) or as Dask tasks
+(:mod:`hfrad.distributed.assembly`), with the same result. A relighting solve applies ``A_c^{-1}`` once, by the
 Chebyshev-accelerated Neumann series of ``D_c N`` (:mod:`hfrad.solve.neumann`:
 every channel and emission in one pass over N per sweep, on every core; only the rows a
 local emission has reached so far), and reads V (its rows under a nonzero ``x``) and
