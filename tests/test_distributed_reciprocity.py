@@ -76,7 +76,9 @@ def test_band_fits_the_budget():
         g = tiles.default_group(m, m * 256, 256, 4)
         G = -(-m // g)
         assert G * (G - 1) / 2 <= tiles.TILE_TASKS_PER_LEAF * m or (2 * g * 256) ** 2 * 4 > tiles.TILE_BYTES
-        assert g == 1 or (-(-m // (g // 2))) * (-(-m // (g // 2)) - 1) / 2 > tiles.TILE_TASKS_PER_LEAF * m
+        assert g * 256 >= tiles.MIN_GROUP_COLUMNS
+        assert g * 256 == tiles.MIN_GROUP_COLUMNS or \
+            (-(-m // (g // 2))) * (-(-m // (g // 2)) - 1) / 2 > tiles.TILE_TASKS_PER_LEAF * m
 
 
 @pytest.mark.parametrize("dtype, tol", [("float64", 1e-15), pytest.param("float32", 2e-7, marks=pytest.mark.slow)])
@@ -125,7 +127,8 @@ def test_dask_copy_equals_dask_without_and_local(cornell):
         records = []
         runs = [factorize_distributed(scene, precompute_options(scene, eps=EPS, block_size=64, near_entries=NEAR,
                                                                 reciprocity=r),
-                                      scheduler=cluster, panel_leaves=10**9, records=records if r else None)
+                                      scheduler=cluster, panel_leaves=10**9, records=records if r else None,
+                                      tile_group=2)    # 5 groups of 2 blocks
                 for r in (True, False)]
     copy, plain = runs
     local = factorize(scene, eps=EPS, block_size=64, near_field=NEAR)

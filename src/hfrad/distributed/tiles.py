@@ -60,8 +60,13 @@ TILE_SHARE = 0.25
 #: Largest tile ``(g b)^2 s`` the default group size allows (a tile task holds it in float64 too).
 TILE_BYTES = 1 << 28
 #: Cells per block on a group's diagonal tile (:func:`diagonal_tile`): the cell pairs below the
-#: diagonal are copied; more cuts copy more of the costly diagonal blocks, with more, smaller calls.
-DIAGONAL_CUTS = 4
+#: diagonal are copied. 1: a block's own b x b tile is computed whole (1 / m of the pairs); more cuts
+#: copy half of it too, in more, smaller engine calls, which cost a few ms each: measured at 4K
+#: patches, the diagonal blocks took ~13% of the form-factor CPU, less than those calls cost.
+DIAGONAL_CUTS = 1
+#: Fewest columns of a group by default: the engine's fixed cost per call (a few ms) stays small
+#: beside a tile of at least 512 x 512 pairs.
+MIN_GROUP_COLUMNS = 512
 
 
 @dataclass(frozen=True)
@@ -159,11 +164,9 @@ class TilePlan:
 def diagonal_tile(plan: TilePlan, J: int, areas: np.ndarray, compute) -> np.ndarray:
     """Group J's diagonal tile ``F[rows J, cols J]`` with its lower half copied by reciprocity.
 
-    Near pairs (neighbouring patches: adaptive quadrature, every ray) sit on the diagonal, so
-    its tiles cost far more per pair than the rest (at 4K patches the 17 diagonal b x b blocks,
-    6% of the pairs, took ~45% of the form-factor time). The tile is computed by cells
-    (:meth:`TilePlan.cells`: blocks, each cut in DIAGONAL_CUTS): a block pair P < Q whole
-    (one call), the cell pairs p <= q within a block; the other cell pairs are copied.
+    The tile is computed by cells (:meth:`TilePlan.cells`: blocks, each cut in DIAGONAL_CUTS):
+    a block pair P < Q whole (one engine call), the cell pairs p <= q within a block; the
+    other cell pairs are copied.
     ``compute(rows, cols)``: F of those internal positions (slices); ``areas``: (n,) internal order.
     """
     rows = plan.rows(J)
@@ -210,9 +213,12 @@ def band_for(groups: int, group_columns: int, itemsize: int, workers: int, budge
 
 
 def default_group(m: int, n: int, block_size: int, itemsize: int) -> int:
-    """Smallest power-of-two group size with at most TILE_TASKS_PER_LEAF tile tasks per leaf (full band),
-    unless the tile ``(g b)^2 s`` would then pass TILE_BYTES (that limit wins)."""
+    """Smallest power-of-two group size of at least MIN_GROUP_COLUMNS columns with at most
+    TILE_TASKS_PER_LEAF tile tasks per leaf (full band), unless the tile ``(g b)^2 s`` would then
+    pass TILE_BYTES (that limit wins)."""
     g = 1
+    while g < m and g * block_size < MIN_GROUP_COLUMNS:
+        g *= 2
     while g < m:
         G = -(-m // g)
         if G * (G - 1) / 2 <= TILE_TASKS_PER_LEAF * m or (2 * g * block_size) ** 2 * itemsize > TILE_BYTES:
