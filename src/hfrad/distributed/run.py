@@ -125,7 +125,9 @@ def factorize_distributed(scene, options: PrecomputeOptions, *, scheduler=None, 
     -----
     The scene travels to each worker once (scattered); each worker builds its
     Embree scene once; a block never leaves its worker, only its factors, its
-    statistics (n x 22 floats) and its near entries do. A worker lost mid-run costs
+    statistics (n x 22 floats) and its near entries do, and with the reciprocity
+    copy the group-pair tiles (at most ``2 (g b)^2 s`` bytes per tile, ``2 band g b^2 s``
+    per leaf: :mod:`hfrad.distributed.tiles`). A worker lost mid-run costs
     only its tasks: Dask recomputes them from the graph. Memory per worker:
     :func:`hfrad.distributed.sizing.worker_bytes`.
     """

@@ -90,7 +90,9 @@ class Part:
     ``rows``, ``seconds`` (task wall time), ``cpu`` (CPU seconds of the worker process during the
     task: with one task at a time, the task's own, and not inflated by other processes competing
     for the cores), ``formfactors``, ``svd`` and ``cpu_formfactors`` seconds (leaves),
-    ``ranks_in`` (merges), ``worker``, ``resumed`` (read back from a checkpoint, not run now).
+    ``ranks_in`` (merges), ``worker``, ``resumed`` (read back from a checkpoint, not run now),
+    ``pairs`` (leaves: form factors computed for the block, copies excluded; with the reciprocity
+    copy also ``group`` and ``copied_rows``: :mod:`hfrad.distributed.tiles`).
     """
 
     node: object
