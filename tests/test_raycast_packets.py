@@ -6,6 +6,10 @@ say the same for every ray (random rays over random triangles, negative and
 zero lengths included), and the form factors computed with either must be the
 same bit for bit: on the built-in Cornell box (all of F, probes and both
 refinement rounds) and on a clustered Sponza (three column blocks).
+
+Observed by hand (too slow for a test): the 28,339,901 rays of two column blocks of a
+10,057-patch Sponza answer alike in both; with Embree's default multi-threaded
+BVH build (not the one-thread build embreex uses) 59 of them did not.
 """
 
 from __future__ import annotations
