@@ -288,8 +288,13 @@ def process_cluster():
         yield cluster
 
 
-def test_worker_processes_match_local_despite_a_killed_worker(cornell, process_cluster):
-    """Kill one worker process (SIGKILL) mid-run: Dask re-runs its tasks and the result is still the local one."""
+def test_worker_processes_match_local_despite_a_killed_worker(cornell, process_cluster, monkeypatch):
+    """Kill one worker process (SIGKILL) mid-run: Dask re-runs its tasks (leaves and reciprocity tiles) and the
+    result is still the local one."""
+    from hfrad.distributed import tiles
+
+    # groups of 2 blocks (5 groups, 10 tiles): leaves finish in pairs, so the kill comes while blocks remain
+    monkeypatch.setattr(tiles, "MIN_GROUP_COLUMNS", 128)
     scene, local = cornell
     client = process_cluster.client
     pids = client.run(os.getpid)  # {worker address: pid}
