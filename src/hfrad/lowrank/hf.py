@@ -177,8 +177,7 @@ def _merge_core_gram(M: np.ndarray, ka: int, budget2: float):
     ``M = [[S1, C S2], [0, R2 S2]]`` (working dtype, (ka + p) x (ka + kb)), R2 upper triangular.
     Its Gram matrix is assembled from the blocks (``S1^2``, ``S1 (C S2)``, and the SYRK of the
     right block column: a third of the flops of ``M^T M``), its eigenvectors ``W`` (float64,
-    divide and conquer) pick the kept right subspace ``W_k`` within ``_GRAM_MARGIN`` of the
-    budget, and ``Y = M W_k`` (float64) gives ``M W_k W_k^T = U_r S W_k^T`` with
+    divide and conquer) pick the kept right subspace ``W_k`` within the budget, and ``Y = M W_k`` (float64) gives ``M W_k W_k^T = U_r S W_k^T`` with
     ``S = ||y_i||``, ``U_r = Y / S``. That is the exact orthogonal projection of M onto
     ``W_k``, so its discard is measured by Pythagoras, ``||M||^2 - ||Y||^2`` in float64 (not taken
     from the eigenvalues), as the module's error accounting needs.
@@ -206,7 +205,10 @@ def _merge_core_gram(M: np.ndarray, ka: int, budget2: float):
     lam, W = sla.eigh(G, overwrite_a=True, check_finite=False, driver="evd")   # ascending
     del G
     lam = np.clip(lam[::-1], 0.0, None)
-    k, _ = truncation_rank(np.sqrt(lam), _GRAM_MARGIN * budget2)
+    # the whole budget, as gesdd's truncation (and the row-panelled merge of hfrad.distributed)
+    # spends it: float64 eigenvalues and the float64 measure below agree to ~1e-13 ||M||^2, so a
+    # measured discard over the budget (then gesdd) needs a tail within that of the budget
+    k, _ = truncation_rank(np.sqrt(lam), budget2)
     Wk = W[:, ::-1][:, :k]
     del W
     Y = right @ Wk[ka:]                                 # M W_k, using M's zero and diagonal blocks
