@@ -287,13 +287,14 @@ def _factorize_scene(scene: Scene, options: PrecomputeOptions, *, checkpoint, ch
     ff_kwargs = {} if options.samples is None else {"samples": options.samples}
     if options.samples != 0:
         ff_kwargs["ray_budget"] = options.ray_budget(scene)
+    mirror_stats: dict = {}   # what the reciprocity copy did (pairs copied, scratch I/O), kept in info
     # the reciprocity tiles leave free what the rest of the run is estimated to need; those beyond
     # the memory band spill to a scratch file beside the output (its checkpoint), else in TMPDIR
     blocks = iter_column_blocks(scene, block_size, order=perm, first_block=stream.blocks_done,
                                 processes=processes, dtype=dt, reciprocity=options.reciprocity,
                                 reserved_bytes=precompute_bytes(n, block_size, itemsize=dt.itemsize),
                                 scratch=None if checkpoint is None else Path(checkpoint).parent,
-                                **ff_kwargs)
+                                mirror_stats=mirror_stats, **ff_kwargs)
     rows_rho = options.rows_rho(scene)
     split = None
     if options.near_entries:
@@ -308,6 +309,8 @@ def _factorize_scene(scene: Scene, options: PrecomputeOptions, *, checkpoint, ch
     lowrank = stream.finish()
     lowrank.info.update({"time_formfactors": time_ff, "time_checkpoints": time_ckpt,
                          "time_precompute": time.perf_counter() - t0})
+    if mirror_stats:
+        lowrank.info["reciprocity"] = mirror_stats
     fac = assemble(scene, options, lowrank, stats, None if split is None else split.state(),
                    backend={"backend": "local"})
     if checkpoint is not None and not keep_checkpoint:

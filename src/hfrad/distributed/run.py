@@ -369,6 +369,13 @@ class _Tracker:
         return sum(k for node, k in self.rank_of.items() if self.parents.get(node) not in self.rank_of)
 
 
+#: The near-field set-up runs as Dask tasks (one sparse LU per colour channel, then column panels)
+#: from this many workers on; below, the client runs it in-process: with two workers the three
+#: channels' LUs compete for the cores and the tasks' transfers cost more than they spread
+#: (benchmarks/README.md, "Assembly in pieces").
+ASSEMBLY_MIN_WORKERS = 3
+
+
 def make_job(scene, options: PrecomputeOptions, task_threads: int | None, token: str, checkpoint=None) -> Job:
     """The :class:`~hfrad.distributed.tasks.Job` a run scatters to its workers (also used by
     benchmarks/bench_cluster_model.py to run single tasks)."""
@@ -461,8 +468,13 @@ def _run(cluster: Cluster, scene, options: PrecomputeOptions, task_threads, chec
     if records_out is not None:
         records_out.extend(records + tracker.task_records)
     stats = PassStatistics.from_state({**stats_state, "weights": job.weights})
-    return assemble(scene, options, lowrank, stats, near,
-                    backend={"backend": "dask", "workers": cluster.n_workers})
+    backend = {"backend": "dask", "workers": cluster.n_workers}
+    if cluster.n_workers < ASSEMBLY_MIN_WORKERS:
+        return assemble(scene, options, lowrank, stats, near, backend=backend)
+    from .assembly import assemble_on_cluster
+
+    return assemble_on_cluster(cluster.client, scene, options, lowrank, stats, near, backend=backend,
+                               records=records_out)
 
 
 def _gather_panelled(client, root: _Panelled, n: int, options) -> tuple:

@@ -1,7 +1,8 @@
 """Form-factor column blocks in worker processes.
 
-``embreex`` holds the GIL while it casts, so threads cannot run two Embree
-batches at once. Here each worker *process* receives the scene once (pickled
+Embree casts without the GIL (raycast.py), but the kernel and the ray
+preparation around the casts are not all GIL-free, so worker *processes*, not
+threads, use every core. Here each worker *process* receives the scene once (pickled
 at start-up), builds its own kernel geometry and Embree scene, and computes
 whole column blocks ``F[order][:, cols]`` into a slot of shared memory; the
 parent yields them in block order. A block depends only on (scene, engine
