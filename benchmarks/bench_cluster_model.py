@@ -274,8 +274,22 @@ ASSUMPTIONS = {
     "latency_s": 1e-3,                  # per transfer or scheduler round trip on the critical path
     "scheduler_s_per_task": 6e-3,       # Dask's cost per task, measured with no-op tasks on this machine (5-6 ms)
     "core_efficiency": 1.0,             # a task on one core of a c-core worker runs as on one core here
-    "client_assembly": "near-field set-up + Woodbury on the client, power law through the 39K and 163K "
-                       "single-machine measurements (2 cores; not on the workers)",
+    "client_assembly": "the single-machine runs' assembly (time_woodbury = everything after the stream: "
+                       "near-field set-up + Woodbury; the near-field set-up is part of it, not added), power law "
+                       "through the 39K and 163K measurements, at least linear in n",
+    "assembly_on_cluster": "from 3 workers the near-field set-up runs as Dask tasks (one LU per channel, then "
+                           "64-column panels): its wall is the client's part plus the critical path (one LU + one "
+                           "panel solve + products), a share of the serial assembly measured at 20K on "
+                           "LocalCluster(2): (2.67 + 7.22) / 25.3 CPU s (benchmarks/README.md, 'Assembly in pieces')",
+    "assembly_spread_share": (2.67 + 7.22) / 25.3,
+    "worker_memory_bytes": {"2": 16e9, "32": 64e9},   # per worker, by cores; the tiles get TILE_SHARE of it
+    "reciprocity": "Dask's reciprocity copy (hfrad.distributed.tiles): pairs computed from the tile plan the run "
+                   "makes (group, band within TILE_SHARE of the worker memory); each pair saved costs a share "
+                   "of a computed one, from the measured 4,120-patch ratio: form-factor CPU 0.63 for 0.531 of the "
+                   "pairs (1.19x per pair: the engine's per-call cost on 512-column tiles; held at 163K and 1M, "
+                   "where tiles are 2,048-4,096 columns); tiles move at the network rate, not overlapped; "
+                   "one Dask task per tile, per group leaf and per leaf selection",
+    "reciprocity_cost_per_pair": 0.63 / 0.531,
     "tasks_per_worker": "one task per core for 2-core workers; 4 tasks x 8 numba threads for 32-core workers "
                         "(leaf memory), leaf SVD on 1 BLAS thread per task",
     "startup_s": "10 s cluster start + the scene sent from the client to each worker in turn + each "
@@ -287,12 +301,29 @@ ASSUMPTIONS = {
 
 
 def _client_assembly(n: int) -> tuple[float, dict]:
-    pts = {int(r["n_patches"]): float(r["time_nearfield_setup"]) + float(r["time_woodbury"])
-           for r in _scale_runs() if r.get("time_nearfield_setup") and r.get("time_woodbury")}
+    """Seconds of the single machine's serial assembly at n: ``time_woodbury`` of the scale runs, which is
+    everything after the stream (the near-field set-up included: not added to it again)."""
+    pts = {int(r["n_patches"]): float(r["time_woodbury"]) for r in _scale_runs() if r.get("time_woodbury")}
     a, p = fit_power(list(pts), list(pts.values()))
     p_used = max(p, 1.0)    # no sublinear extrapolation: linear in n at least
     n0 = max(pts)
     return pts[n0] * (n / n0) ** p_used, {"points": pts, "fitted_p": p, "used_p": p_used}
+
+
+def reciprocity_terms(n: int, workers: int, cores: int) -> dict:
+    """The Dask reciprocity copy's plan at n on ``workers`` workers: share of the pairs computed, tiles
+    per worker (bytes), bytes a leaf receives, extra tasks (:mod:`hfrad.distributed.tiles`)."""
+    from hfrad.distributed import tiles
+
+    s = 4
+    budget = tiles.TILE_SHARE * ASSUMPTIONS["worker_memory_bytes"][str(cores)]
+    plan = tiles.plan(n, BLOCK, s, workers, budget_bytes=int(budget))
+    m, G, g = plan.blocks, plan.groups, plan.group
+    share = plan.pairs_computed() / float(n) ** 2
+    rows_in = min(2 * plan.band * g * BLOCK, n - g * BLOCK)       # rows a leaf takes from tiles
+    return {"group": g, "groups": G, "band": plan.band, "pairs_share": share,
+            "tile_bytes_per_worker": tiles.tile_bytes_per_worker(G, plan.band, g * BLOCK, s, workers),
+            "bytes_per_leaf": rows_in * BLOCK * s, "extra_tasks": len(plan.tiles()) + G + m}
 
 
 def startup_costs(meas: dict) -> dict:
@@ -313,12 +344,12 @@ def startup_costs(meas: dict) -> dict:
 
 
 def predict(n: int, workers: int, cores: int, laws: dict, ranks: dict, name: str, start: dict,
-            pairs: float = 1.0, assembly_share: float = 1.0) -> dict:
+            copy: bool = True, assembly_on_cluster: bool = True) -> dict:
     """Wall time and the busiest worker's memory of one configuration.
 
-    ``pairs``: share of the form-factor pairs computed (0.5 with a reciprocity copy, which the Dask
-    leaves do not have); ``assembly_share``: share of the client's assembly left serial. Both are
-    what-ifs for what is not built; the model's own figures use 1.
+    ``copy``: Dask's reciprocity copy (on by default in the runs); ``assembly_on_cluster``: the
+    near-field set-up as Dask tasks (what runs do from 3 workers on). Both False: the model of the
+    last stop (every pair computed, the assembly serial on the client).
     """
     A = ASSUMPTIONS
     bw, lat = A["network_bytes_per_s"], A["latency_s"]
@@ -333,6 +364,8 @@ def predict(n: int, workers: int, cores: int, laws: dict, ranks: dict, name: str
     # p > 0 (the fitted p < 0 would make pairs cheaper at 1M than measured: not assumed)
     n_s = max(int(x) for x in ff["measured"])
     per_pair = {int(x): v for x, v in ff["measured"].items()}[n_s]
+    rec = reciprocity_terms(n, workers, cores) if copy and workers > 1 else None
+    pairs = 1.0 if rec is None else min(1.0, rec["pairs_share"] * A["reciprocity_cost_per_pair"])
     leaf_ff = pairs * per_pair * max(n / n_s, 1.0) ** max(ff["p"], 0.0) * n * b
     leaf_svd = laws["leaf_other_s_per_nb2"]["rate"] * n * b * b
     slots = workers * cores                                   # cores doing leaves at once
@@ -340,6 +373,8 @@ def predict(n: int, workers: int, cores: int, laws: dict, ranks: dict, name: str
     leaves_cpu = m * (leaf_ff + leaf_svd)
     # leaves: form factors use every core (numba threads), the SVD part one core per task
     leaves_wall = m * leaf_ff / slots + m * leaf_svd / (workers * tasks_per_worker)
+    if rec is not None:     # the tiles a worker's leaves receive, not overlapped with their work
+        leaves_wall += m / workers * rec["bytes_per_leaf"] / bw
     # merges: level l has m / 2^l merges of K = 2 k_l, k_l from k_leaf up to k (geometric in the levels)
     levels = max(1, math.ceil(math.log2(m)))
     rate = laws["merge_s_per_nK2"]["rate"]
@@ -367,10 +402,11 @@ def predict(n: int, workers: int, cores: int, laws: dict, ranks: dict, name: str
     # the tree after the last leaf: its merges up to the root are the critical path (overlap: all merges
     # but those on the path run while leaves are computed)
     compute_wall = max(leaves_wall + critical, (leaves_cpu + merge_cpu) / slots + critical)
-    scheduler = A["scheduler_s_per_task"] * (2 * m + workers * levels * 4)
+    scheduler = A["scheduler_s_per_task"] * (2 * m + workers * levels * 4 + (rec["extra_tasks"] if rec else 0))
     near_bytes = 24 * 120 * n
     gather = (2 * n * k * 4 + near_bytes + 3 * 176 * n) / bw
-    assembly = assembly_share * _client_assembly(n)[0]
+    spread = assembly_on_cluster and workers >= 3          # run.ASSEMBLY_MIN_WORKERS
+    assembly = _client_assembly(n)[0] * (A["assembly_spread_share"] if spread else 1.0)
     startup = 10.0 + start["scene_bytes_per_patch"] * n * workers / bw + start["engine_s_per_patch"] * n
     wall = startup + compute_wall + scheduler + gather + assembly
     # memory of the busiest worker (bytes)
@@ -379,12 +415,14 @@ def predict(n: int, workers: int, cores: int, laws: dict, ranks: dict, name: str
     k_t = k_leaf * (k / k_leaf) ** ((lt - 1) / max(levels - 1, 1))
     mem = sizing.worker_bytes(n, b, int(k), near_entries=120, workers=workers, tasks=tasks_per_worker,
                               transition_rank=int(k_t))
+    mem += rec["tile_bytes_per_worker"] if rec else 0
     return {"case": name, "n": n, "workers": workers, "cores_per_worker": cores, "blocks": m, "rank": round(k),
             "leaf_rank": round(k_leaf), "leaf_ff_cpu_s": leaf_ff, "leaf_svd_cpu_s": leaf_svd,
             "leaves_cpu_s": leaves_cpu, "merges_cpu_s": merge_cpu, "leaves_wall_s": leaves_wall,
             "critical_merges_s": critical, "scheduler_s": scheduler, "gather_s": gather,
             "client_assembly_s": assembly, "startup_s": startup, "wall_s": wall,
-            "worker_memory_gb": mem / 1e9, "panel_leaves": panel_leaves}
+            "worker_memory_gb": mem / 1e9, "panel_leaves": panel_leaves, "pairs_computed": pairs,
+            "reciprocity": rec, "assembly_on_cluster": bool(spread)}
 
 
 def model(meas: dict) -> dict:
@@ -396,9 +434,11 @@ def model(meas: dict) -> dict:
              predict(1_000_000, 64, 32, laws, ranks, "1M, 64 x 32 cores", start)]
     # check against this machine: the model's own 163K on 1 worker of 2 cores
     here = predict(164988, 1, 2, laws, ranks, "163K, 1 x 2 cores (this machine)", start)
-    whatif = [predict(164988, 8, 2, laws, ranks, "what-if: 163K, 8 x 2, reciprocity copy", start, pairs=0.5),
-              predict(164988, 64, 2, laws, ranks, "what-if: 163K, 64 x 2, reciprocity + assembly / 3", start,
-                      pairs=0.5, assembly_share=1 / 3)]
+    # the last stop's model (no copy, serial assembly), for comparison
+    whatif = [predict(164988, 8, 2, laws, ranks, "before: 163K, 8 x 2, no copy, serial assembly", start,
+                      copy=False, assembly_on_cluster=False),
+              predict(164988, 64, 2, laws, ranks, "before: 163K, 64 x 2, no copy, serial assembly", start,
+                      copy=False, assembly_on_cluster=False)]
     reference = json.loads((RESULTS_DIR / "scale-163k-v11.json").read_text())["runs"][0]
     t_ref = float(reference["time_precompute"])
     for c in cases + whatif + [here]:

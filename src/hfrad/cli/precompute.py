@@ -51,8 +51,13 @@ def register(app: typer.Typer) -> None:
         refuses a run above 80% of the available memory. The n x n matrix is
         never stored. Rows kept for the reciprocity copies take at most n^2 s / 4,
         a quarter of the available memory and what the estimate leaves of 80% of
-        it (hfrad.formfactors.mirror.mirror_bytes); beyond it, blocks compute those
-        rows. With the near field (default from 2,000 patches, c = 120 entries a
+        it (hfrad.formfactors.mirror.mirror_bytes); the rest wait in a scratch file
+        beside OUTPUT of about n^2 s / 4 bytes less what memory holds
+        (hfrad.formfactors.mirror.scratch_bytes), at most half the folder's free
+        space; with less room, blocks compute the rows that do not fit and a warning
+        gives the share of pairs copied. The file is unlinked as soon as it is
+        created (nothing is left after an error or Ctrl-C); damaged tiles are
+        detected by checksum and recomputed. With the near field (default from 2,000 patches, c = 120 entries a
         row): about 40 n c bytes while N is collected, one n x k Z per distinct
         colour channel (n k s each) and, during the set-up, one channel's sparse
         LU (about 9 times N's entries).
@@ -100,10 +105,14 @@ def register(app: typer.Typer) -> None:
                 from ..memory import human, precompute_bytes
                 estimate = precompute_bytes(s.n_patches, block or DEFAULT_BLOCK_SIZE,
                                             itemsize=common.check_dtype(dtype).itemsize)
-                mirror = mirror_bytes(s.n_patches, common.check_dtype(dtype).itemsize, reserved=estimate)
+                itemsize = common.check_dtype(dtype).itemsize
+                mirror = mirror_bytes(s.n_patches, itemsize, reserved=estimate)
+                scratch = _scratch_estimate(s.n_patches, block or DEFAULT_BLOCK_SIZE, itemsize, mirror)
                 common.console.print(f"memory estimate: about {human(estimate)} for {s.n_patches:,} patches "
                                      "(rank guessed; refused above 80% of the available memory), plus up to "
-                                     f"{human(mirror)} of form factors kept for reciprocity", highlight=False)
+                                     f"{human(mirror)} of form factors kept for reciprocity"
+                                     + (f" and up to {human(scratch)} of them in a scratch file beside the output"
+                                        if scratch else ""), highlight=False)
             if scheduler is not None or workers is not None:
                 if processes not in (None, 1):
                     raise InputError("--processes is for the in-process path; with --scheduler or --workers "
@@ -208,3 +217,12 @@ def _report(fac, output: Path, seconds: float) -> None:
         f"factorization {info.get('time_total', 0):.1f} s"
         + (f"; summed over {info['workers']} Dask workers" if info.get("backend") == "dask" else "") + ")",
         highlight=False)
+
+
+def _scratch_estimate(n: int, block_size: int, itemsize: int, memory_band_bytes: int) -> int:
+    """Bytes of the reciprocity scratch file when the memory band holds ``memory_band_bytes``."""
+    from ..formfactors.mirror import MIRROR_LAG, band_for, scratch_bytes
+
+    blocks = -(-n // block_size)
+    near = band_for(blocks, block_size, itemsize, memory_band_bytes)
+    return scratch_bytes(blocks, block_size, itemsize, near, max(blocks - MIRROR_LAG - 1, 0))
