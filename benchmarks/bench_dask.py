@@ -73,6 +73,8 @@ def one_run(config: str, patches: int, eps: float, block: int, out_npy: str) -> 
             result["peak_rss_worker_gb"] = max(rss.values())
             result["task_overhead_s"] = _task_overhead(cluster.client, workers)
     info = fac.lowrank.info
+    result.update({"precompute_s": info.get("time_precompute"), "nearfield_setup_s": info.get("time_nearfield_setup"),
+                   "near_prefetched": info.get("near_prefetched", 0)})
     result.update({"rank": fac.rank, "achieved_error": fac.relative_error, "solver": fac.solver,
                    "error_bound_kind": fac.error_estimate().kind,
                    "formfactors_s": info["time_formfactors"], "leaf_svd_s": info["time_leaf"],
@@ -196,6 +198,7 @@ def main() -> None:
     p.add_argument("--block", type=int, default=256)
     p.add_argument("--model-sizes", default="163000,1000000")
     p.add_argument("--model-workers", default="8,64")
+    p.add_argument("--name", default="dask", help="results/NAME.json (default dask)")
     p.add_argument("--one", help=argparse.SUPPRESS)
     p.add_argument("--out", help=argparse.SUPPRESS)
     args = p.parse_args()
@@ -227,7 +230,8 @@ def main() -> None:
     print_table("Precompute (factorize) wall time", runs,
                 [("config", "backend"), ("patches", "n"), ("wall_s", "wall s"), ("startup_s", "cluster start s"),
                  ("formfactors_s", "form factors s (sum)"), ("leaf_svd_s", "leaf SVD s"), ("merge_s", "merges s"),
-                 ("scatter_s", "scatter s"), ("rank", "rank"), ("achieved_error", "achieved"),
+                 ("scatter_s", "scatter s"), ("precompute_s", "tree s"), ("nearfield_setup_s", "near set-up s"),
+                 ("near_prefetched", "LUs prefetched"), ("rank", "rank"), ("achieved_error", "achieved"),
                  ("radiosity_diff", "max |B - B_local|/max B"), ("peak_rss_worker_gb", "peak GB/worker"),
                  ("speedup_vs_local", "vs local"), ("loadavg_before", "load before")])
     print(f"\nparallel efficiency T(1 worker) / (2 T(2 workers)) = {efficiency:.2f}; "
@@ -276,7 +280,7 @@ def main() -> None:
     for r in runs:
         r["tasks_cpu_s"] = sum(x["cpu"] for x in r["records"])
         r.pop("records")
-    write_json("dask", {"machine": m, "patches": runs[0]["patches"], "n_patches": runs[0]["patches"],
+    write_json(args.name, {"machine": m, "patches": runs[0]["patches"], "n_patches": runs[0]["patches"],
                         "eps": args.eps, "block": args.block, "runs": runs, "parallel_efficiency": efficiency,
                         "model_this_scene": here, "model_parallel_efficiency": model_efficiency,
                         "costs": costs, "rank_profile": profile, "model": model, "assumptions": assumptions,

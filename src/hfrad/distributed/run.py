@@ -35,6 +35,7 @@ from ..solve.stats import PassStatistics
 from ..solve.woodbury import HFactorization
 from . import panels, sizing, store
 from .cluster import Cluster, WorkerLostError, connect
+from .prefetch import NearPrefetch
 from . import tiles as tiles_mod
 from .tasks import (Job, add_task, chunk_task, form_task, gram_task, group_leaf_task, leaf_task, load_task,
                     merge_task, root_task, small_task, split_meta_task, split_rows_task, split_tail_task,
@@ -48,7 +49,8 @@ def factorize_distributed(scene, options: PrecomputeOptions, *, scheduler=None, 
                           checkpoint=None, progress: ProgressCallback = None, status=None,
                           records: list | None = None, panel_leaves: int | None = None,
                           row_panels: int | None = None, tile_group: int | None = None,
-                          tile_band: int | None = None, tile_bytes: int | None = None) -> HFactorization:
+                          tile_band: int | None = None, tile_bytes: int | None = None,
+                          near_prefetch: bool = True) -> HFactorization:
     """Precompute a scene on a Dask cluster: what :func:`hfrad.factorize` does, as Dask tasks.
 
     Users call ``hfrad.factorize(scene, scheduler=..., workers=...)``, which validates
@@ -102,6 +104,10 @@ def factorize_distributed(scene, options: PrecomputeOptions, *, scheduler=None, 
     tile_bytes : int, optional
         Bytes of waiting tiles allowed per worker (default ``TILE_SHARE`` of the smallest worker
         memory limit or, with none, of this machine's available memory).
+    near_prefetch : bool
+        With the near field, a row-panelled top and an in-process assembly (fewer than
+        ``ASSEMBLY_MIN_WORKERS`` workers): factor the channels' ``I - D_c N`` in the client
+        while the top merges run (:mod:`hfrad.distributed.prefetch`; the same result).
 
     Returns
     -------
@@ -137,10 +143,10 @@ def factorize_distributed(scene, options: PrecomputeOptions, *, scheduler=None, 
     tiling = {"group": tile_group, "band": tile_band, "budget_bytes": tile_bytes}
     if isinstance(scheduler, Cluster):
         return _run(scheduler, scene, options, task_threads, checkpoint, progress, status, records,
-                    panel_leaves, row_panels, tiling)
+                    panel_leaves, row_panels, tiling, near_prefetch)
     with connect(scheduler, workers=workers, timeout=connect_timeout) as cluster:
         return _run(cluster, scene, options, task_threads, checkpoint, progress, status, records,
-                    panel_leaves, row_panels, tiling)
+                    panel_leaves, row_panels, tiling, near_prefetch)
 
 
 def _check_worker_memory(cluster: Cluster, n: int, block_size: int) -> None:
@@ -406,7 +412,7 @@ def tile_plan(cluster: Cluster, options: PrecomputeOptions, group=None, band=Non
 
 
 def _run(cluster: Cluster, scene, options: PrecomputeOptions, task_threads, checkpoint, progress, status,
-         records_out, panel_leaves=None, row_panels=None, tiling=None) -> HFactorization:
+         records_out, panel_leaves=None, row_panels=None, tiling=None, near_prefetch=True) -> HFactorization:
     client = cluster.client
     n, block_size, m = options.n, options.block_size, options.n_blocks
     _check_worker_memory(cluster, n, block_size)
@@ -421,6 +427,7 @@ def _run(cluster: Cluster, scene, options: PrecomputeOptions, task_threads, chec
     [job_future] = client.scatter([job], broadcast=True, hash=False)  # the scene travels once per worker
     time_scatter = time.perf_counter() - t0
     tracker = _Tracker(m)
+    tails = prefetch = None
     client.subscribe_topic(job.topic, tracker.handler)  # before the first task can report
     try:
         addresses = sorted(client.scheduler_info()["workers"])
@@ -432,16 +439,23 @@ def _run(cluster: Cluster, scene, options: PrecomputeOptions, task_threads, chec
                                                  panel_leaves=panel_leaves, bounds=bounds, workers=addresses,
                                                  plan=plan)
         final = [root] if not isinstance(root, _Panelled) else [*root.U, *root.V, root.meta, *root.tails]
+        # the near field is complete once the serial subtrees are: an in-process assembly's LUs
+        # start then, beside the panelled top merges (hfrad.distributed.prefetch)
+        early = isinstance(root, _Panelled) and bool(options.near_entries) \
+            and cluster.n_workers < ASSEMBLY_MIN_WORKERS and near_prefetch
         report(progress, 0, m)
         while not all(f.done() for f in final):
             time.sleep(_POLL_SECONDS)
+            if early and tails is None and all(f.done() for f in root.tails):
+                tails = client.gather(list(root.tails))
+                prefetch = NearPrefetch(_near_of(tails), n, scene.reflectance, options.perm, options.dtype)
             if tracker.drain():
                 report(progress, tracker.blocks, m)
                 if status is not None:
                     status({"blocks": tracker.blocks, "rank": tracker.rank, "elapsed": time.perf_counter() - t0})
         t_gather = time.perf_counter()
         if isinstance(root, _Panelled):
-            lowrank, records, stats_state, near = _gather_panelled(client, root, n, options)
+            lowrank, records, stats_state, near = _gather_panelled(client, root, n, options, tails)
         else:
             lowrank, records, stats_state, near = root.result()
         del root, final
@@ -457,6 +471,8 @@ def _run(cluster: Cluster, scene, options: PrecomputeOptions, task_threads, chec
             "(docs/cluster.md, 'Memory per worker')") from None
     except BaseException:
         client.cancel([job_future])  # Ctrl-C or a failure: stop the cluster's work on this run
+        if prefetch is not None:
+            prefetch.close()
         raise
     finally:
         client.unsubscribe_topic(job.topic)
@@ -470,16 +486,31 @@ def _run(cluster: Cluster, scene, options: PrecomputeOptions, task_threads, chec
     stats = PassStatistics.from_state({**stats_state, "weights": job.weights})
     backend = {"backend": "dask", "workers": cluster.n_workers}
     if cluster.n_workers < ASSEMBLY_MIN_WORKERS:
-        return assemble(scene, options, lowrank, stats, near, backend=backend)
+        if prefetch is None:
+            return assemble(scene, options, lowrank, stats, near, backend=backend)
+        try:
+            fac = assemble(scene, options, lowrank, stats, near, backend=backend, runner=prefetch.runner())
+        finally:
+            prefetch.close()
+        lowrank.info["near_prefetched"] = prefetch.hits   # channels whose LU the prefetch made
+        return fac
     from .assembly import assemble_on_cluster
 
     return assemble_on_cluster(cluster.client, scene, options, lowrank, stats, near, backend=backend,
                                records=records_out)
 
 
-def _gather_panelled(client, root: _Panelled, n: int, options) -> tuple:
+def _near_of(tails) -> dict | None:
+    """The near entries of gathered tails (records, statistics, near), combined in column order."""
+    near = None
+    for _, _, nr in tails:
+        near = concat_near(near, nr)
+    return near
+
+
+def _gather_panelled(client, root: _Panelled, n: int, options, tails=None) -> tuple:
     """The root's Q (panel by panel into one n x k array) and V, its error, the tails' records, statistics
-    and near entries (combined in column order) from a panelled root."""
+    and near entries (combined in column order) from a panelled root (``tails``: those already gathered)."""
     meta = root.meta.result()
     k, error = panels.root_error(meta)
     Q = np.empty((n, k), np.dtype(options.dtype))
@@ -491,8 +522,7 @@ def _gather_panelled(client, root: _Panelled, n: int, options) -> tuple:
         root.U[i] = None   # frees the panel on its worker
     V = np.concatenate([f.result() for f in root.V]) if root.V else np.zeros((0, k), Q.dtype)
     records, stats, near = [], None, None
-    for f in root.tails:
-        r, st, nr = f.result()
+    for r, st, nr in (tails if tails is not None else (f.result() for f in root.tails)):
         records += r
         stats, near = add_statistics(stats, st), concat_near(near, nr)
     lowrank = LowRank(Q=Q, V=V, achieved_error=error, norm=math.sqrt(meta["norm2"]), eps=options.eps,

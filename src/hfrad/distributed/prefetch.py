@@ -1,0 +1,189 @@
+"""The near-field LUs factored in the client while the workers finish the tree's top.
+
+With fewer than :data:`~hfrad.distributed.run.ASSEMBLY_MIN_WORKERS` workers the
+near-field set-up runs in the client once the tree is done
+(:func:`hfrad.solve.assemble.assemble`, :class:`~hfrad.solve.nearfield.InProcess`).
+Its sparse LUs (:func:`~hfrad.solve.nearfield.channel_solver`, one per distinct
+colour channel, single-threaded) need only the near field N, which is complete once
+every leaf is: for a panelled root that is when the serial subtrees' tails are done,
+before the row-panelled top merges, whose serial steps (the small step, the Gram
+reduction) leave cores idle. :class:`NearPrefetch` factors the channels then, in a
+background thread of the client at a lower CPU priority (``nice``), so it takes the
+cores the workers leave idle first; :meth:`NearPrefetch.runner` gives the in-process
+runner that hands those factors to the assembly.
+
+The assembly is unchanged: the runner returns a prefetched factor only for the very
+call it was made for (same N, same channel scale, dtype and order: compared entry by
+entry), and computes anything else itself, so the object is the one
+:class:`~hfrad.solve.nearfield.InProcess` makes, bit for bit.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import os
+import threading
+
+import numpy as np
+import scipy.sparse as sp
+
+from ..solve.nearfield import InProcess, channel_solver, solver_order
+from ..solve.woodbury import N_CHANNELS
+
+__all__ = ["NearPrefetch", "PrefetchRunner", "PREFETCH_NICE", "PREFETCH_MAX_SHARE"]
+
+#: Niceness of the prefetching thread (Linux: per thread): the worker processes on the same
+#: cores keep their share while they are busy; the LU takes what they leave idle.
+PREFETCH_NICE = 10
+#: The channels after the first are prefetched only while their factors (each about the size
+#: of the first one's) fit this share of the available memory; the rest are factored by the
+#: assembly, one at a time, as without the prefetch.
+PREFETCH_MAX_SHARE = 0.25
+
+
+def channel_scales(reflectance: np.ndarray, perm: np.ndarray) -> tuple[list[int], dict[int, np.ndarray]]:
+    """The distinct channels and their scales ``d_c = rho_c / rho_max`` (internal order), as the assembly's.
+
+    Returns
+    -------
+    distinct : list of int
+        Channels whose ``d_c`` differs from every earlier channel's.
+    d : dict channel -> (n,) float64
+    """
+    reflectance = np.asarray(reflectance, np.float64)
+    rho_max = reflectance.max(axis=1)
+    D = np.zeros_like(reflectance)
+    np.divide(reflectance, rho_max[:, None], out=D, where=rho_max[:, None] > 0)
+    D = D[perm]
+    distinct = [c for c in range(N_CHANNELS) if not any(np.array_equal(D[:, s], D[:, c]) for s in range(c))]
+    return distinct, {c: np.ascontiguousarray(D[:, c]) for c in distinct}
+
+
+def near_matrix(near: dict, n: int) -> sp.csr_matrix:
+    """N (n x n float64 CSR) from the near entries, as :func:`hfrad.solve.assemble.assemble` builds it."""
+    N = sp.csr_matrix((near["near_values"], (near["near_rows"], near["near_cols"])), shape=(n, n))
+    return sp.csr_matrix(N, dtype=np.float64)
+
+
+def _same_matrix(a, b) -> bool:
+    return (a.shape == b.shape and np.array_equal(a.indptr, b.indptr) and np.array_equal(a.indices, b.indices)
+            and np.array_equal(a.data, b.data))
+
+
+class NearPrefetch:
+    """Factors ``A_c = I - D_c N`` of each distinct channel in a background thread, in the order and with
+    the arguments :class:`~hfrad.solve.nearfield.InProcess` would (the first channel, then the others
+    in its fill-reducing order).
+
+    Parameters
+    ----------
+    near : dict
+        The near entries of all n columns (``near_rows``, ``near_cols``, ``near_values``).
+    n : int
+    reflectance : (n, 3) array
+        The scene's reflectances (user order).
+    perm : (n,) int
+        The internal order.
+    dtype : numpy dtype
+        The factors' dtype (the solvers' panels).
+    nice : int
+        Niceness added to the prefetching thread (0: none).
+    """
+
+    def __init__(self, near: dict, n: int, reflectance, perm, dtype, *, nice: int = PREFETCH_NICE) -> None:
+        self.N = near_matrix(near, n)
+        self.distinct, self.d = channel_scales(reflectance, perm)
+        self.dtype = np.dtype(dtype)
+        self.nice = int(nice)
+        self._solvers = {c: concurrent.futures.Future() for c in self.distinct}
+        self._order = None
+        self._tid = None
+        self._stop = False
+        self.hits = 0
+        self._thread = threading.Thread(target=self._work, name="hfrad-near-prefetch", daemon=True)
+        self._thread.start()
+
+    def _work(self) -> None:
+        self._tid = threading.get_native_id()
+        if self.nice and hasattr(os, "setpriority"):
+            try:
+                os.setpriority(os.PRIO_PROCESS, self._tid, os.getpriority(os.PRIO_PROCESS, self._tid) + self.nice)
+            except OSError:
+                pass
+        from ..memory import available_bytes
+
+        for i, c in enumerate(self.distinct):
+            future = self._solvers.get(c)
+            if future is not None and self._stop:
+                future.cancel()       # its taker computes it (take sees it cancelled)
+            if future is None or self._stop or not future.set_running_or_notify_cancel():
+                continue
+            try:
+                solver = channel_solver(self.N, self.d[c], self.dtype, c, self._order)
+            except BaseException as exc:   # the assembly computes it again and raises there
+                future.set_exception(exc)
+                continue
+            future.set_result(solver)
+            if i == 0 and len(self.distinct) > 1:
+                self._order = solver_order(solver)
+                bytes_each = sum(x.nbytes for x in (*getattr(solver, "_L", ()), *getattr(solver, "_U", ())))
+                if bytes_each * (len(self.distinct) - 1) > PREFETCH_MAX_SHARE * available_bytes():
+                    self._stop = True
+
+    def _hurry(self) -> None:
+        """Back to the process's niceness: the client now waits for the thread (fails quietly where
+        raising the priority again needs privileges)."""
+        if self.nice and self._tid is not None and hasattr(os, "setpriority"):
+            try:
+                os.setpriority(os.PRIO_PROCESS, self._tid, os.getpriority(os.PRIO_PROCESS, 0))
+            except OSError:
+                pass
+
+    def take(self, N, d, dtype, channel: int, order):
+        """The prefetched solver for exactly these arguments of :func:`channel_solver`, or None."""
+        future = self._solvers.get(channel)
+        if future is None:
+            return None
+        expected = None if channel == self.distinct[0] else self._order
+        if (np.dtype(dtype) != self.dtype or not np.array_equal(np.asarray(d), self.d[channel])
+                or (order is None) != (expected is None)
+                or (order is not None and not np.array_equal(np.asarray(order), expected))
+                or not _same_matrix(N, self.N)):
+            return None
+        self._hurry()
+        try:
+            # the thread takes the channels in the assembly's order: a pending one is next, or cancelled
+            solver = future.result()
+        except (Exception, concurrent.futures.CancelledError):  # noqa: BLE001 - the caller computes it
+            return None
+        self._solvers[channel] = None   # the assembly holds it now (and drops it when done)
+        self.hits += 1
+        return solver
+
+    def close(self) -> None:
+        """Stop after the current factorization and drop the unused solvers."""
+        self._stop = True
+        for future in self._solvers.values():
+            if future is not None:
+                future.cancel()
+        self._hurry()
+        self._thread.join()
+        self._solvers.clear()
+
+    def runner(self) -> "PrefetchRunner":
+        return PrefetchRunner(self)
+
+
+class PrefetchRunner(InProcess):
+    """:class:`~hfrad.solve.nearfield.InProcess` that takes a :class:`NearPrefetch`'s factors when the
+    assembly asks for exactly them."""
+
+    def __init__(self, prefetch: NearPrefetch) -> None:
+        self.prefetch = prefetch
+
+    def submit(self, fn, *args):
+        if fn is channel_solver:
+            solver = self.prefetch.take(*args)
+            if solver is not None:
+                return solver
+        return fn(*args)

@@ -1,0 +1,96 @@
+"""The near-field LUs prefetched in the client (hfrad.distributed.prefetch): the same solver object as the
+plain in-process assembly, used only for the very calls it was made for."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hfrad.distributed import connect
+from hfrad.distributed.prefetch import NearPrefetch, channel_scales
+from hfrad.pipeline import factorize
+from hfrad.scene.load import load_scene
+from hfrad.solve.assemble import assemble, precompute_options
+from hfrad.solve.nearfield import InProcess
+
+EPS = 0.02
+NEAR = 32
+
+
+@pytest.fixture(scope="module")
+def parts():
+    """A 600-patch Cornell box factored locally, and what its assembly step takes (options, factors,
+    statistics, near entries)."""
+    scene = load_scene("cornell", patches=600)
+    fac = factorize(scene, eps=EPS, block_size=64, near_field=NEAR, reciprocity=False)
+    options = precompute_options(scene, eps=EPS, block_size=64, near_entries=NEAR, reciprocity=False)
+    n = scene.n_patches
+    N = fac.N.tocoo()
+    near = {"near_rows": N.row.astype(np.int64), "near_cols": N.col.astype(np.int64), "near_values": N.data}
+    return scene, options, fac, near, n
+
+
+def _same(a, b):
+    assert type(a) is type(b) and a.rank == b.rank
+    Za, Zb = (np.asarray(getattr(x.Z, "codes", x.Z)) for x in (a, b))
+    assert np.array_equal(Za, Zb)
+    assert np.array_equal(a.capacitance_inv, b.capacitance_inv)
+
+
+def test_channel_scales_are_the_assemblys(parts):
+    scene, options, fac, near, n = parts
+    distinct, d = channel_scales(scene.reflectance, options.perm)
+    assert distinct == fac.distinct_channels and len(distinct) > 1      # the Cornell box's walls are coloured
+    for c in distinct:
+        assert np.array_equal(d[c], fac._D[:, c])
+
+
+def test_prefetched_assembly_is_the_plain_one(parts):
+    """Every distinct channel's LU comes from the prefetch, and Z and K^-1 are bit for bit the plain ones."""
+    scene, options, fac, near, n = parts
+    plain = assemble(scene, options, fac.lowrank, fac.stats, near, runner=InProcess())
+    pre = NearPrefetch(near, n, scene.reflectance, options.perm, options.dtype)
+    try:
+        got = assemble(scene, options, fac.lowrank, fac.stats, near, runner=pre.runner())
+    finally:
+        pre.close()
+    assert pre.hits == len(plain.distinct_channels)
+    _same(got, plain)
+    B, B_plain = got.solve(scene.emission), plain.solve(scene.emission)
+    assert np.array_equal(B, B_plain)
+
+
+def test_prefetch_of_another_near_field_is_not_used(parts):
+    """A prefetch made from other near entries (one value changed) is ignored: the assembly factors
+    its own N and the result is the plain one."""
+    scene, options, fac, near, n = parts
+    other = dict(near, near_values=near["near_values"].copy())
+    other["near_values"][0] *= 0.5
+    plain = assemble(scene, options, fac.lowrank, fac.stats, near, runner=InProcess())
+    pre = NearPrefetch(other, n, scene.reflectance, options.perm, options.dtype)
+    try:
+        got = assemble(scene, options, fac.lowrank, fac.stats, near, runner=pre.runner())
+    finally:
+        pre.close()
+    assert pre.hits == 0
+    _same(got, plain)
+
+
+def test_two_workers_prefetch_beside_the_panelled_top(parts):
+    """LocalCluster(2) (in-process workers), near field on, a panelled root: the run prefetches every
+    distinct channel's LU, and gives what the run without the prefetch gives."""
+    scene, options, fac, near, n = parts
+    with connect(workers=2, processes=False) as cluster:
+        runs = [factorize(scene, scheduler=cluster, eps=EPS, block_size=64, near_field=NEAR) for _ in range(1)]
+        from hfrad.distributed import factorize_distributed
+
+        opts = precompute_options(scene, eps=EPS, block_size=64, near_entries=NEAR)
+        off = factorize_distributed(scene, opts, scheduler=cluster, near_prefetch=False)
+    on = runs[0]
+    assert on.lowrank.info["panelled_merges"] > 0
+    assert on.lowrank.info["near_prefetched"] == len(on.distinct_channels)
+    assert "near_prefetched" not in off.lowrank.info
+    assert on.rank == off.rank
+    B, B_off = on.solve(scene.emission), off.solve(scene.emission)
+    # separate runs: merges on other BLAS threads round apart (float32 factors), nothing more
+    assert np.abs(B - B_off).max() <= 1e-5 * np.abs(B_off).max()
