@@ -19,7 +19,13 @@ Task graph per distinct channel c (d channels, ``P = ceil(k / columns)`` panels)
         -> column_products(panel, V, scale)        P tasks: codes (n x w int16) and V^T Z (k x w) back
 
 The client then decides the 16-bit storage from the row scales, inverts the d
-``k x k`` matrices and builds the object. The channels are factored at once
+``k x k`` matrices and builds the object.
+
+With ``neumann=True`` (what runs on 3 or more workers do) there is no LU: one task bounds
+N's spectral radius, and each column panel's task applies ``A_c^{-1}`` by the
+Chebyshev-accelerated Neumann series over N (:class:`NeumannColumns`), so the critical
+path is one panel's sweeps, not a channel's factorization; Z then equals the LU path's
+to :data:`SETUP_TOL` (the float64 LU's to ~1e-8 relative, closer than the float32 panels). The channels are factored at once
 (``share_order=False``: the shortest critical path); in one process the later
 channels reuse the first one's fill-reducing order instead (less work in all).
 """
@@ -29,11 +35,21 @@ from __future__ import annotations
 import os
 import time
 
+import numpy as np
+
 from ..solve.assemble import PrecomputeOptions, assemble
+from ..solve.nearfield import channel_solver
+from ..solve.neumann import neumann_solve, spectral_bound
 from ..solve.sparselu import PANEL
 from ..solve.stats import PassStatistics
 
-__all__ = ["DaskRunner", "assemble_on_cluster", "ASSEMBLY_TOPIC"]
+__all__ = ["DaskRunner", "assemble_on_cluster", "ASSEMBLY_TOPIC", "NeumannColumns", "neumann_channel",
+           "SETUP_TOL"]
+
+#: Relative residual (max norm) at which a column panel's Neumann sweeps stop in the set-up: Z_c is then
+#: within ~``SETUP_TOL / (1 - rho)`` of ``A_c^{-1} D_c Q``, as close as the LU path's float32 panels
+#: (~1e-6), and far below the 16-bit storage's rounding (~1.5e-5 of a row's largest entry).
+SETUP_TOL = 1e-7
 
 #: The Dask event topic the pieces log their times under (``client.get_events(ASSEMBLY_TOPIC)``).
 ASSEMBLY_TOPIC = "hfrad-assembly"
@@ -56,6 +72,56 @@ def _timed(fn, *args):
     return out
 
 
+class NeumannColumns:
+    """``A_c^{-1} X`` for ``A_c = I - D_c N`` by the Chebyshev-accelerated Neumann series over N
+    (:func:`hfrad.solve.neumann.neumann_solve`): the ``solve`` of a channel's solver that
+    :func:`~hfrad.solve.nearfield.near_columns` calls, without a sparse LU.
+
+    Each column panel's task sweeps N itself (float64, every core of its worker), so no task
+    waits for a factorization: the set-up's critical path is one panel's sweeps instead of one
+    channel's LU and one panel's triangular solves. Where the series does not converge (the bound
+    on the spectral radius of ``D_c N`` not below 1, or ``MAX_SWEEPS`` reached) the panel is
+    solved by the channel's LU instead (:func:`~hfrad.solve.nearfield.channel_solver`).
+
+    Parameters
+    ----------
+    N : (n, n) float64 CSR
+        The near field (internal order).
+    d : (n,) float64
+        The channel's scale ``rho_c / rho_max``.
+    dtype : numpy dtype
+        Of the returned columns (the factors').
+    channel : int
+    rho : float
+        Upper bound on the spectral radius of ``N`` (:func:`~hfrad.solve.neumann.spectral_bound`;
+        it bounds ``D_c N``'s too, ``0 <= D_c <= 1``).
+    tol : float
+        The sweeps' stopping residual (:data:`SETUP_TOL`).
+    """
+
+    def __init__(self, N, d, dtype, channel: int, rho: float, tol: float = SETUP_TOL) -> None:
+        self.N, self.d, self.dtype = N, np.asarray(d, np.float64), np.dtype(dtype)
+        self.channel, self.rho, self.tol = int(channel), float(rho), float(tol)
+        #: sweeps of the last solve (0: it fell back to the LU)
+        self.last_sweeps = 0
+
+    def solve(self, X: np.ndarray) -> np.ndarray:
+        """``A_c^{-1} X`` for X (n, w); (n, w) in ``dtype``."""
+        n, w = X.shape
+        post = np.broadcast_to(self.d[:, None], (n, w))
+        x, sweeps = neumann_solve(self.N, X, rho=self.rho, post=post, tol=self.tol)
+        if x is None:   # no convergence: the exact solve
+            self.last_sweeps = 0
+            return channel_solver(self.N, self.d, self.dtype, self.channel).solve(X)
+        self.last_sweeps = sweeps
+        return x.astype(self.dtype)
+
+
+def neumann_channel(N, d, dtype, channel: int, rho: float, tol: float = SETUP_TOL) -> NeumannColumns:
+    """Piece 1 without a factorization: the channel's :class:`NeumannColumns` (nothing computed yet)."""
+    return NeumannColumns(N, d, dtype, channel, rho, tol)
+
+
 class DaskRunner:
     """Runs the near-field set-up's pieces as Dask tasks (the runner interface of
     :class:`~hfrad.solve.nearfield.InProcess`).
@@ -70,15 +136,26 @@ class DaskRunner:
     share_order : bool
         Factor the first distinct channel, then the others in its order (less CPU,
         a longer critical path); default False.
+    neumann : bool
+        No sparse LUs: each column panel's task applies ``A_c^{-1}`` by Neumann sweeps over N
+        (:class:`NeumannColumns`; one task bounds N's spectral radius first). Z equals the LU
+        path's to :data:`SETUP_TOL` instead of to rounding. Default False.
     """
 
-    def __init__(self, client, *, columns: int = PANEL, share_order: bool = False) -> None:
-        self.client, self.columns, self.share_order = client, int(columns), bool(share_order)
+    def __init__(self, client, *, columns: int = PANEL, share_order: bool = False, neumann: bool = False) -> None:
+        self.client, self.columns, self.share_order = client, int(columns), bool(share_order) and not neumann
+        self.neumann = bool(neumann)
+        self._rho = None
 
     def scatter(self, x):
         return self.client.scatter(x, hash=False)
 
     def submit(self, fn, *args):
+        if self.neumann and fn is channel_solver:
+            N, d, dtype, channel = args[:4]
+            if self._rho is None:    # one bound serves every channel (0 <= D_c <= 1)
+                self._rho = self.client.submit(_timed, spectral_bound, N, pure=False)
+            return self.client.submit(_timed, neumann_channel, N, d, dtype, channel, self._rho, pure=False)
         return self.client.submit(_timed, fn, *args, pure=False)
 
     def gather(self, xs):
@@ -90,7 +167,7 @@ class DaskRunner:
 
 def assemble_on_cluster(client, scene, options: PrecomputeOptions, lowrank, stats: PassStatistics,
                         near: dict | None = None, *, backend: dict | None = None, columns: int = PANEL,
-                        share_order: bool = False, records: list | None = None):
+                        share_order: bool = False, neumann: bool = False, records: list | None = None):
     """:func:`hfrad.solve.assemble.assemble` with the near-field set-up's pieces on Dask workers.
 
     Parameters
@@ -98,7 +175,7 @@ def assemble_on_cluster(client, scene, options: PrecomputeOptions, lowrank, stat
     client : distributed.Client or hfrad.distributed.Cluster
     scene, options, lowrank, stats, near, backend
         As for :func:`~hfrad.solve.assemble.assemble`.
-    columns, share_order
+    columns, share_order, neumann
         As for :class:`DaskRunner`.
     records : list, optional
         Extended with one dict per piece (``piece``, ``wall_s``, ``cpu_s``, ``worker``):
@@ -111,7 +188,7 @@ def assemble_on_cluster(client, scene, options: PrecomputeOptions, lowrank, stat
         inputs (``time_nearfield_setup`` in ``lowrank.info`` is this call's wall time).
     """
     client = getattr(client, "client", client)   # a hfrad Cluster holds its Client
-    runner = DaskRunner(client, columns=columns, share_order=share_order)
+    runner = DaskRunner(client, columns=columns, share_order=share_order, neumann=neumann)
     start = time.time()
     fac = assemble(scene, options, lowrank, stats, near, backend=backend, runner=runner)
     if records is not None:

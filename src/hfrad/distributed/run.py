@@ -380,6 +380,10 @@ class _Tracker:
 #: channels' LUs compete for the cores and the tasks' transfers cost more than they spread
 #: (benchmarks/README.md, "Assembly in pieces").
 ASSEMBLY_MIN_WORKERS = 3
+#: Columns of ``D_c Q`` per task of the cluster's assembly (Neumann sweeps, no LU: a task costs
+#: its columns times the sweeps times nnz(N), so narrow panels spread over many workers and
+#: shorten the critical path; each panel is a few tasks more at the scheduler).
+NEUMANN_COLUMNS = 16
 
 
 def make_job(scene, options: PrecomputeOptions, task_threads: int | None, token: str, checkpoint=None) -> Job:
@@ -496,8 +500,9 @@ def _run(cluster: Cluster, scene, options: PrecomputeOptions, task_threads, chec
         return fac
     from .assembly import assemble_on_cluster
 
+    # no sparse LU on the critical path: every column panel sweeps N on its own worker
     return assemble_on_cluster(cluster.client, scene, options, lowrank, stats, near, backend=backend,
-                               records=records_out)
+                               records=records_out, neumann=True, columns=NEUMANN_COLUMNS)
 
 
 def _near_of(tails) -> dict | None:
