@@ -37,7 +37,8 @@ from . import panels, sizing, store
 from .cluster import Cluster, WorkerLostError, connect
 from .prefetch import NearPrefetch
 from . import tiles as tiles_mod
-from .tasks import (Job, add_task, chunk_task, form_task, gram_task, group_leaf_task, leaf_task, load_task,
+from .tasks import (Job, add_task, chunk_task, form_task, gram_task, group_leaf_task, group_tree_task, leaf_task,
+                    load_task,
                     merge_task, root_task, small_task, split_meta_task, split_rows_task, split_tail_task,
                     split_v_task, tile_task)
 
@@ -207,7 +208,7 @@ def _tree_shape(m: int, n: int, b: int) -> tuple[dict, dict]:
 
 
 def _submit(client, job_future, m: int, token: str, saved: set, *, n: int = 0, block_size: int = 1,
-            panel_leaves: int | None = None, bounds=None, workers=(), plan=None):
+            panel_leaves: int | None = None, bounds=None, workers=(), plan=None, fuse: bool = True):
     """Submit leaves and merges in the order HFStream would run them; returns (final, parents, resumed).
 
     A node in ``saved`` (a checkpoint's) is read back by a load task and nothing below it is submitted.
@@ -215,7 +216,9 @@ def _submit(client, job_future, m: int, token: str, saved: set, *, n: int = 0, b
     preferably on ``workers[p % len(workers)]``). ``final`` is the root task's future, or a
     :class:`_Panelled` of the root's truncated Q panels and V chunks. With a tile ``plan``
     (:mod:`hfrad.distributed.tiles`) the leaves come from group leaves and tiles, submitted row
-    by row as the leaves' order reaches each group.
+    by row as the leaves' order reaches each group; with ``fuse`` (runs without a checkpoint: a
+    cancelled task runs on and would drop its children's files under a rerun) a group whose blocks
+    form a node of the tree is one task, leaves and merges (:func:`_fused_groups`).
     """
     order = task_order(m)
     parents = {c: node for kind, node, children in order for c in children}
@@ -228,8 +231,13 @@ def _submit(client, job_future, m: int, token: str, saved: set, *, n: int = 0, b
     futures, resumed = {}, []
     groups = _GroupLeaves(client, job_future, plan, token, set(range(m)) - skipped - saved) \
         if plan is not None else None
+    fused = _fused_groups(order, m, plan, skipped | saved, panel_leaves) if plan is not None and fuse else {}
+    inside = {x for _, merges in fused.values() for _, left, right in merges for x in (left, right)}
     for kind, node, children in order:
-        if node in skipped:
+        if node in skipped or node in inside:
+            continue
+        if node in fused:
+            futures[node] = groups.tree(*fused[node])
             continue
         if node in saved:
             futures[node] = client.submit(load_task, job_future, node, key=f"hfrad-load-{node}-{token}", pure=False)
@@ -258,6 +266,34 @@ def _submit(client, job_future, m: int, token: str, saved: set, *, n: int = 0, b
     return root, parents, resumed
 
 
+def _fused_groups(order, m: int, plan, excluded: set, panel_leaves: int) -> dict:
+    """Groups whose leaves and merges run as one task (:func:`~hfrad.distributed.tasks.group_tree_task`).
+
+    A group of at least two blocks is fused when a node of the tree covers exactly its blocks (g a power
+    of two, the group whole), none of them is resumed or saved (``excluded``), and that node is merged
+    whole (at most ``panel_leaves`` leaves). Returns {group node: (J, ((node, left, right), ...))} with
+    the merges under it in the tree's order.
+    """
+    g = plan.group
+    if g < 2 or g > panel_leaves:
+        return {}
+    span = {j: (j, j + 1) for j in range(m)}
+    within: dict = collections.defaultdict(list)   # group -> merges inside it so far
+    out = {}
+    for kind, node, children in order:
+        if kind != "merge":
+            continue
+        left, right = children
+        lo, hi = span[node] = (span[left][0], span[right][1])
+        J = lo // g
+        if (hi - 1) // g != J:
+            continue
+        within[J].append((node, left, right))
+        if hi - lo == g and not any(x in excluded for x in range(lo, hi)) and node not in excluded:
+            out[node] = (J, tuple(within.pop(J)))
+    return out
+
+
 class _GroupLeaves:
     """Submits the tiles and group leaves of a tile plan (:mod:`hfrad.distributed.tiles`) as leaves are asked for.
 
@@ -274,7 +310,9 @@ class _GroupLeaves:
         self.tiles: dict = {}      # (I, J) -> future, until both its group leaves are submitted
         self.groups: dict = {}     # J -> (future of the group leaf, its leaves)
 
-    def _group(self, J: int):
+    def _group(self, J: int, merges: tuple | None = None):
+        """Submit group J's row of tiles, then its group leaf (with ``merges``: the group's whole tree,
+        :func:`~hfrad.distributed.tasks.group_tree_task`)."""
         if J in self.groups:
             return self.groups[J]
         plan, client = self.plan, self.client
@@ -284,10 +322,18 @@ class _GroupLeaves:
                                                pure=False)
         leaves = tuple(j for j in plan.blocks_of(J) if j in self.todo)
         inputs = [self.tiles.pop((I, J)) for I in direct] + [self.tiles[(J, K)] for K in copied]
-        future = client.submit(group_leaf_task, self.job, plan, J, leaves, tuple(direct), tuple(copied), *inputs,
-                               key=f"hfrad-group-{J}-{self.token}", pure=False)
+        if merges is None:
+            future = client.submit(group_leaf_task, self.job, plan, J, leaves, tuple(direct), tuple(copied),
+                                   *inputs, key=f"hfrad-group-{J}-{self.token}", pure=False)
+        else:
+            future = client.submit(group_tree_task, self.job, plan, J, leaves, tuple(direct), tuple(copied), merges,
+                                   *inputs, key=f"hfrad-group-{J}-{self.token}", pure=False)
         self.groups[J] = (future, leaves)
         return self.groups[J]
+
+    def tree(self, J: int, merges: tuple):
+        """The future of group J's node: its leaves and the merges among them in one task."""
+        return self._group(J, merges)[0]
 
     def leaf(self, j: int):
         """The future of leaf j's Part."""
@@ -441,7 +487,7 @@ def _run(cluster: Cluster, scene, options: PrecomputeOptions, task_threads, chec
         plan = tile_plan(cluster, options, **(tiling or {}))
         root, tracker.parents, resumed = _submit(client, job_future, m, token, saved, n=n, block_size=block_size,
                                                  panel_leaves=panel_leaves, bounds=bounds, workers=addresses,
-                                                 plan=plan)
+                                                 plan=plan, fuse=checkpoint is None)
         final = [root] if not isinstance(root, _Panelled) else [*root.U, *root.V, root.meta, *root.tails]
         # the near field is complete once the serial subtrees are: an in-process assembly's LUs
         # start then, beside the panelled top merges (hfrad.distributed.prefetch)

@@ -273,6 +273,24 @@ def group_leaf_task(job: Job, plan, J: int, leaves: tuple, direct_groups: tuple,
     return parts
 
 
+def group_tree_task(job: Job, plan, J: int, leaves: tuple, direct_groups: tuple, copied_groups: tuple,
+                    merges: tuple, *tiles: np.ndarray) -> Part:
+    """Group J's leaves (:func:`group_leaf_task`) and then the tree's merges among them, in one task.
+
+    ``merges``: ``(node, left, right)`` of the merges whose leaves are all in the group, in the tree's
+    order (:func:`hfrad.distributed.run.task_order`); the last one is the group's node. Each is
+    :func:`merge_task` (the same records, events and checkpoint files as a merge task of its own).
+    One task instead of ``2 g`` (g leaf selections and g - 1 merges): the scheduler's cost per task
+    is what limits a large cluster, and the merges of a group's small leaves cost little.
+    Returns the group node's Part.
+    """
+    parts = dict(zip(leaves, group_leaf_task(job, plan, J, leaves, direct_groups, copied_groups, *tiles)))
+    for node, left, right in merges:
+        parts[node] = merge_task(job, node, parts.pop(left), parts.pop(right), (left, right))
+    (part,) = parts.values()
+    return part
+
+
 def _block(job: Job, rows: slice, cols: slice) -> np.ndarray:
     """F of internal positions ``rows`` x ``cols`` in the factors' dtype."""
     with _threads(job.task_threads):
