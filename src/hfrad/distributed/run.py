@@ -37,7 +37,7 @@ from . import panels, sizing, store
 from .cluster import Cluster, WorkerLostError, connect
 from .prefetch import NearPrefetch
 from . import tiles as tiles_mod
-from .tasks import (Job, add_task, chunk_task, form_task, gram_task, group_leaf_task, group_tree_task, leaf_task,
+from .tasks import (Job, chunk_task, form_task, gram_task, group_leaf_task, group_tree_task, leaf_task,
                     load_task,
                     merge_task, root_task, small_task, split_meta_task, split_rows_task, split_tail_task,
                     split_v_task, tile_task)
@@ -175,15 +175,24 @@ def task_order(m: int) -> list[tuple[str, int, tuple]]:
     return out
 
 
+#: At most the merges covering more than ``1 / PANELLED_TOP`` of the blocks run by row panels
+#: (:func:`default_panel_leaves`): the top ``log2 PANELLED_TOP`` levels of the tree.
+PANELLED_TOP = 8
+
+
 def default_panel_leaves(m: int, workers: int) -> int:
     """Merges covering more than this many of the m leaves run by row panels (:mod:`hfrad.distributed.panels`).
 
-    ``ceil(m / workers)``: below, there are at least as many independent subtrees as workers
-    and whole-node merges keep every worker busy; above, fewer merges than workers remain and
-    a merge is the larger (ranks grow with the columns), so it is split over all workers.
+    ``ceil(m / min(workers, PANELLED_TOP))``: below ``m / workers`` there are at least as many
+    independent subtrees as workers and whole-node merges keep every worker busy; above, fewer
+    merges than workers remain and a merge is the larger (ranks grow with the columns), so it is
+    split over all workers. On many workers only the top levels are split: a panelled merge is
+    about 3 P + 8 Dask tasks for P row panels (one per worker), so panelling the top ``log2 W``
+    levels (W - 1 merges) would cost the scheduler ~3 W^2 tasks, while the merges between
+    ``m / W`` and ``m / PANELLED_TOP`` blocks still run side by side, at least PANELLED_TOP at once.
     One worker: none (the node's panels would all be on it anyway).
     """
-    return m if workers <= 1 else max(1, -(-m // workers))
+    return m if workers <= 1 else max(1, -(-m // min(workers, PANELLED_TOP)))
 
 
 @dataclass
@@ -363,12 +372,8 @@ def _panel_merge(client, job_future, node: int, left: _Panelled, right: _Panelle
     P = len(left.U)
     grams = [client.submit(gram_task, job_future, node, p, left.U[p], right.U[p], key=f"hfrad-gram-{node}-{p}-{token}",
                            priority=1, **on(p)) for p in range(P)]
-    level = 0
-    while len(grams) > 1:
-        grams = [client.submit(add_task, grams[i], grams[i + 1], key=f"hfrad-add-{node}-{level}-{i}-{token}",
-                               priority=1) if i + 1 < len(grams) else grams[i] for i in range(0, len(grams), 2)]
-        level += 1
-    small = client.submit(small_task, job_future, node, grams[0], left.meta, right.meta, columns, P,
+    # the Gram matrices are summed by the small step itself: P - 1 tasks fewer than a reduction tree
+    small = client.submit(small_task, job_future, node, grams[0], left.meta, right.meta, columns, P, *grams[1:],
                           key=f"hfrad-small-{node}-{token}", priority=1)
     part = {name: client.submit(operator.getitem, small, name, key=f"hfrad-{name}-{node}-{token}", priority=1)
             for name in ("B", "W1", "W2", "meta")}

@@ -402,15 +402,18 @@ def gram_task(job: Job, node_id: int, p: int, U1: np.ndarray, U2: np.ndarray) ->
     return G
 
 
-def add_task(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """One step of the Gram matrices' reduction."""
-    return a + b
-
-
 def small_task(job: Job, node_id: int, G: np.ndarray, left: dict, right: dict, columns: int,
-               panel_count: int) -> dict:
-    """The small step of panelled merge ``node_id`` (:func:`hfrad.distributed.panels.merge_small`)."""
+               panel_count: int, *more_grams: np.ndarray) -> dict:
+    """The small step of panelled merge ``node_id`` (:func:`hfrad.distributed.panels.merge_small`).
+
+    ``G`` and ``more_grams``: the panels' Gram matrices, summed here (one task instead of a
+    reduction tree of ``P - 1``: P (K x K) float64 matrices are a few MB each).
+    """
     t0, c0 = time.perf_counter(), time.process_time()
+    if more_grams:
+        G = G.copy()
+        for other in more_grams:
+            G += other
     out = panels.merge_small(G, left, right, job.budget.merge(left["norm2"] + right["norm2"]))
     rank = int(out["meta"]["s"].size)
     own = {"kind": "merge", "node": int(node_id), "rank": rank, "rows": int(job.perm.size), "columns": int(columns),
