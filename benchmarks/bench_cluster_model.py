@@ -282,6 +282,18 @@ ASSUMPTIONS = {
                            "panel solve + products), a share of the serial assembly measured at 20K on "
                            "LocalCluster(2): (2.67 + 7.22) / 25.3 CPU s (benchmarks/README.md, 'Assembly in pieces')",
     "assembly_spread_share": (2.67 + 7.22) / 25.3,
+    "assembly_neumann": "from 3 workers the near-field set-up has no LU (hfrad.distributed.assembly, neumann=True): "
+                        "its wall is the client's part (2.67 of the 25.3 serial CPU s at 20K, as measured on "
+                        "LocalCluster(2)) plus the critical path: N's spectral bound (one task) and one 16-column "
+                        "panel's Neumann sweeps (+ its products), measured at 9,986 patches (nnz(N) 1.03 M, rho "
+                        "0.397, 11 sweeps to SETUP_TOL 1e-7: 1.11 s per 64 columns, bound 0.095 s; 2 numba threads "
+                        "at load ~3, taken as one core's), linear in n (nnz(N) ~ n, the sweeps independent of n)",
+    "assembly_client_share": 2.67 / 25.3,
+    "neumann_measured": {"n": 9986, "panel_s_per_column": 1.109 / 64, "bound_s": 0.0947, "columns": 16},
+    "tasks": "the Dask tasks the built code submits (hfrad.distributed.run._submit run against a counting client with "
+             "the tile plan of the run: fused group tasks, tiles, merges, panelled merges) plus the assembly's "
+             "(a spectral bound, and per distinct channel (3) and 16-column panel: near columns, row maxima, "
+             "products), each costing the scheduler scheduler_s_per_task, not overlapped with the work",
     "worker_memory_bytes": {"2": 16e9, "32": 64e9},   # per worker, by cores; the tiles get TILE_SHARE of it
     "reciprocity": "Dask's reciprocity copy (hfrad.distributed.tiles): pairs computed from the tile plan the run "
                    "makes (group, band within TILE_SHARE of the worker memory); each pair saved costs a share "
@@ -308,6 +320,37 @@ def _client_assembly(n: int) -> tuple[float, dict]:
     p_used = max(p, 1.0)    # no sublinear extrapolation: linear in n at least
     n0 = max(pts)
     return pts[n0] * (n / n0) ** p_used, {"points": pts, "fitted_p": p, "used_p": p_used}
+
+
+def task_count(n: int, workers: int, cores: int, copy: bool = True) -> dict:
+    """The Dask tasks of the tree at n on ``workers`` workers as the built code submits them
+    (:func:`hfrad.distributed.run._submit` against a client that only counts), by kind."""
+    import collections
+
+    from hfrad.distributed import panels, run, tiles
+
+    class _Future:
+        def done(self):
+            return True
+
+    class _Counter:
+        def __init__(self):
+            self.kinds = collections.Counter()
+
+        def submit(self, fn, *args, key=None, **kw):
+            self.kinds[(key or fn.__name__).split("-")[1]] += 1
+            return _Future()
+
+    m = math.ceil(n / BLOCK)
+    plan = None
+    if copy and workers > 1:
+        budget = tiles.TILE_SHARE * ASSUMPTIONS["worker_memory_bytes"][str(cores)]
+        plan = tiles.plan(n, BLOCK, 4, workers, budget_bytes=int(budget))
+    client = _Counter()
+    run._submit(client, _Future(), m, "count", set(), n=n, block_size=BLOCK,
+                panel_leaves=run.default_panel_leaves(m, workers), bounds=panels.panel_bounds(n, workers),
+                workers=[f"w{i}" for i in range(workers)], plan=plan)
+    return {"total": int(sum(client.kinds.values())), "by_kind": dict(client.kinds)}
 
 
 def reciprocity_terms(n: int, workers: int, cores: int) -> dict:
@@ -344,11 +387,12 @@ def startup_costs(meas: dict) -> dict:
 
 
 def predict(n: int, workers: int, cores: int, laws: dict, ranks: dict, name: str, start: dict,
-            copy: bool = True, assembly_on_cluster: bool = True) -> dict:
+            copy: bool = True, assembly_on_cluster: bool = True, neumann: bool = True) -> dict:
     """Wall time and the busiest worker's memory of one configuration.
 
     ``copy``: Dask's reciprocity copy (on by default in the runs); ``assembly_on_cluster``: the
-    near-field set-up as Dask tasks (what runs do from 3 workers on). Both False: the model of the
+    near-field set-up as Dask tasks (what runs do from 3 workers on); ``neumann``: those tasks
+    without LUs (what runs do; False: one LU per channel on the critical path, as measured). Both False: the model of the
     last stop (every pair computed, the assembly serial on the client).
     """
     A = ASSUMPTIONS
@@ -379,7 +423,9 @@ def predict(n: int, workers: int, cores: int, laws: dict, ranks: dict, name: str
     levels = max(1, math.ceil(math.log2(m)))
     rate = laws["merge_s_per_nK2"]["rate"]
     merge_cpu, critical, transfer_crit = 0.0, 0.0, 0.0
-    panel_leaves = max(1, math.ceil(m / workers)) if workers > 1 else m
+    from hfrad.distributed.run import default_panel_leaves
+
+    panel_leaves = default_panel_leaves(m, workers)
     for lvl in range(1, levels + 1):
         kl = k_leaf * (k / k_leaf) ** ((lvl - 1) / max(levels - 1, 1))
         count = max(1, m // 2 ** lvl)
@@ -402,11 +448,23 @@ def predict(n: int, workers: int, cores: int, laws: dict, ranks: dict, name: str
     # the tree after the last leaf: its merges up to the root are the critical path (overlap: all merges
     # but those on the path run while leaves are computed)
     compute_wall = max(leaves_wall + critical, (leaves_cpu + merge_cpu) / slots + critical)
-    scheduler = A["scheduler_s_per_task"] * (2 * m + workers * levels * 4 + (rec["extra_tasks"] if rec else 0))
+    tasks = task_count(n, workers, cores, copy=copy)
+    spread = assembly_on_cluster and workers >= 3          # run.ASSEMBLY_MIN_WORKERS
+    nm = A["neumann_measured"]
+    assembly_tasks = 1 + 3 * 3 * math.ceil(k / nm["columns"]) if spread else 0
+    scheduler = A["scheduler_s_per_task"] * (tasks["total"] + assembly_tasks)
     near_bytes = 24 * 120 * n
     gather = (2 * n * k * 4 + near_bytes + 3 * 176 * n) / bw
-    spread = assembly_on_cluster and workers >= 3          # run.ASSEMBLY_MIN_WORKERS
-    assembly = _client_assembly(n)[0] * (A["assembly_spread_share"] if spread else 1.0)
+    serial_assembly = _client_assembly(n)[0]
+    if spread and neumann:      # no LU: the client's part, N's bound, one panel's sweeps (linear in n)
+        grow = n / nm["n"]
+        assembly_critical = (nm["bound_s"] + nm["panel_s_per_column"] * nm["columns"]) * grow + 3 * lat
+        assembly = serial_assembly * A["assembly_client_share"] + assembly_critical
+    elif spread:
+        assembly_critical = serial_assembly * (A["assembly_spread_share"] - A["assembly_client_share"])
+        assembly = serial_assembly * A["assembly_spread_share"]
+    else:
+        assembly_critical, assembly = 0.0, serial_assembly
     startup = 10.0 + start["scene_bytes_per_patch"] * n * workers / bw + start["engine_s_per_patch"] * n
     wall = startup + compute_wall + scheduler + gather + assembly
     # memory of the busiest worker (bytes)
@@ -420,7 +478,8 @@ def predict(n: int, workers: int, cores: int, laws: dict, ranks: dict, name: str
             "leaf_rank": round(k_leaf), "leaf_ff_cpu_s": leaf_ff, "leaf_svd_cpu_s": leaf_svd,
             "leaves_cpu_s": leaves_cpu, "merges_cpu_s": merge_cpu, "leaves_wall_s": leaves_wall,
             "critical_merges_s": critical, "scheduler_s": scheduler, "gather_s": gather,
-            "client_assembly_s": assembly, "startup_s": startup, "wall_s": wall,
+            "client_assembly_s": assembly, "assembly_critical_s": assembly_critical, "tasks": tasks["total"],
+            "tasks_by_kind": tasks["by_kind"], "assembly_tasks": assembly_tasks, "startup_s": startup, "wall_s": wall,
             "worker_memory_gb": mem / 1e9, "panel_leaves": panel_leaves, "pairs_computed": pairs,
             "reciprocity": rec, "assembly_on_cluster": bool(spread)}
 
@@ -491,8 +550,8 @@ def main(argv=None) -> int:
     mo = out["model"]
     print_table("Per-task cost laws (CPU seconds on one core of this machine)",
                 [{"law": k, "value": json.dumps(v)[:110]} for k, v in mo["laws"].items()], ["law", "value"])
-    cols = ["case", "rank", "leaves_wall_s", "critical_merges_s", "scheduler_s", "gather_s", "client_assembly_s",
-            "startup_s",
+    cols = ["case", "rank", "leaves_wall_s", "critical_merges_s", "tasks", "scheduler_s", "gather_s",
+            "client_assembly_s", "assembly_critical_s", "startup_s",
             "wall_s", "speedup_vs_measured_163k", "worker_memory_gb"]
     print_table("Model", mo["cases"] + [mo["this_machine_model"]] + mo.get("what_if", []), cols)
     print(f"\nmeasured 163K on this machine: {mo['measured_163k_single_machine_s']:.0f} s; goals: {mo['goals_met']}")
