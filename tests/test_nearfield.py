@@ -8,7 +8,7 @@ import pytest
 from hfrad.lowrank.nearfield import NearFieldSplit, near_radius
 from hfrad.formfactors import form_factor_matrix
 from hfrad.solve.hfr import load_hfr, read_hfr_metadata, save_hfr
-from hfrad.pipeline import factorize, near_entries
+from hfrad.pipeline import factorize, near_entries, near_field_pays_from
 from hfrad.scene.load import load_scene
 from hfrad.solve.nearfield import NearFieldFactorization
 
@@ -136,6 +136,20 @@ def test_near_field_option():
     assert near_entries("auto", 100) == 0 and near_entries("auto", 10 ** 6) > 0
     with pytest.raises(ValueError, match="near_field"):
         near_entries("big", 100)
+
+
+def test_near_field_auto_where_it_pays():
+    """"auto" splits where the measured crossover says it pays (benchmarks/results/nearfield-pays.json).
+
+    eps 0.02: 10K patches 1.26x faster without the split, 20K even; eps 0.05: 5K even,
+    10K 1.42x faster with it; an absolute eps keeps the 2,000-patch floor.
+    """
+    assert near_entries("auto", 10_000, 0.02) == 0 and near_entries("auto", 20_000, 0.02) > 0
+    assert near_entries("auto", 10_000, 0.05) > 0 and near_entries("auto", 4_000, 0.05) == 0
+    assert near_field_pays_from(0.05) == 5060 and near_field_pays_from(0.02) == 20_000
+    assert near_field_pays_from(0.5) == 2000                   # never below the floor
+    assert near_field_pays_from(1e-3, relative=False) == 2000  # absolute eps: no rank to judge by
+    assert near_field_pays_from(0.01) > near_field_pays_from(0.02)   # tighter eps: later
 
 
 def test_panel_solver_equals_superlu():

@@ -32,8 +32,18 @@ from .solve.stats import PassStatistics
 from .solve.woodbury import HFactorization
 from .validation import check_areas, check_form_factors, check_permutation, check_reflectance
 
-#: ``near_field="auto"`` splits the near field from this many patches on (below, it does not pay).
+#: ``near_field="auto"`` never splits the near field below this many patches.
 NEAR_FIELD_MIN_PATCHES = 2000
+#: ... and from this many patches on at a relative eps of ``NEAR_FIELD_REFERENCE_EPS``:
+#: there the split's set-up (a sparse LU and k right-hand sides per colour channel) costs
+#: what its lower rank saves HF (Cornell box, eps 0.02: about even at 20K patches,
+#: 1.26x slower with the split at 10K; benchmarks/README.md, "Where the near field pays").
+NEAR_FIELD_PAYS_FROM = 20000
+NEAR_FIELD_REFERENCE_EPS = 0.02
+#: ... scaled by ``(NEAR_FIELD_REFERENCE_EPS / eps) ** NEAR_FIELD_EPS_POWER``: a looser eps
+#: leaves the far field a lower rank, so the near pairs' high rank is the larger share of
+#: it sooner (eps 0.05: about even at 5K patches, 1.42x faster with the split at 10K).
+NEAR_FIELD_EPS_POWER = 1.5
 #: Prefix of the pass statistics among a checkpoint's extra arrays.
 _STATS = "stats_"
 #: A checkpoint is written at most once per this many times its last write took, so that
@@ -114,9 +124,10 @@ def factorize(scene: Scene, *, eps: float = 0.02, relative: bool = True,
         pairs within a radius holding about this many neighbours per row go into
         a sparse N, HF factors only ``G - N``, and the solver is Woodbury around a
         sparse LU of ``I - D_c N`` (:class:`~hfrad.solve.nearfield.NearFieldFactorization`).
-        "auto" (default): ``DEFAULT_NEAR_ENTRIES`` (120) facing neighbours per row from
-        ``NEAR_FIELD_MIN_PATCHES`` (2,000) patches on, off below; None or 0: off (plain
-        Woodbury). The split lowers the rank HF needs (the near pairs hold F's
+        "auto" (default): ``DEFAULT_NEAR_ENTRIES`` (120) facing neighbours per row where
+        the split pays, off below (:func:`near_field_pays_from`: from 20,000 patches at
+        eps 0.02, ``20,000 (0.02 / eps)^1.5`` patches at other relative eps (5,060 at 0.05), never below
+        2,000); None or 0: off (plain Woodbury). The split lowers the rank HF needs (the near pairs hold F's
         high-rank part) and, at equal eps, the radiosity error; it costs a sparse LU
         of ``I - D_c N`` (about 12 bytes per entry, ``n * near_field`` entries).
     reciprocity : bool
@@ -182,7 +193,7 @@ def factorize(scene: Scene, *, eps: float = 0.02, relative: bool = True,
     options = precompute_options(scene, eps=eps, relative=relative, block_size=block_size,
                                  dtype=dtype, samples=samples, order="zorder" if order is None else order,
                                  leaf_share=leaf_share, one_ray_tol=one_ray_tol,
-                                 near_entries=near_entries(near_field, scene.n_patches),
+                                 near_entries=near_entries(near_field, scene.n_patches, eps, relative),
                                  reciprocity=reciprocity)
     if scheduler is not None or workers is not None:
         if processes not in (None, 1):
@@ -328,10 +339,26 @@ def _open_stats(stream: HFStream, n: int, weights) -> PassStatistics:
     return PassStatistics.from_state(state)
 
 
-def near_entries(near_field, n: int) -> int:
-    """Neighbours per row of the near field for ``factorize(near_field=...)`` (0 = no split)."""
+def near_field_pays_from(eps: float, relative: bool = True) -> int:
+    """Patches from which ``near_field="auto"`` splits the near field, at this ``eps``.
+
+    An absolute eps says nothing of the rank before ``||G||_F`` is known: the split
+    then starts at ``NEAR_FIELD_MIN_PATCHES``.
+    """
+    if not relative or not eps > 0:
+        return NEAR_FIELD_MIN_PATCHES
+    scaled = NEAR_FIELD_PAYS_FROM * (NEAR_FIELD_REFERENCE_EPS / eps) ** NEAR_FIELD_EPS_POWER
+    return max(NEAR_FIELD_MIN_PATCHES, int(math.ceil(scaled)))
+
+
+def near_entries(near_field, n: int, eps: float = NEAR_FIELD_REFERENCE_EPS, relative: bool = True) -> int:
+    """Neighbours per row of the near field for ``factorize(near_field=...)`` (0 = no split).
+
+    "auto": ``DEFAULT_NEAR_ENTRIES`` where the split pays (from
+    :func:`near_field_pays_from` patches on at this ``eps``), else 0.
+    """
     if near_field == "auto":
-        return DEFAULT_NEAR_ENTRIES if n >= NEAR_FIELD_MIN_PATCHES else 0
+        return DEFAULT_NEAR_ENTRIES if n >= near_field_pays_from(eps, relative) else 0
     if near_field is None or near_field is False:
         return 0
     if isinstance(near_field, str) or int(near_field) != near_field or near_field < 0:

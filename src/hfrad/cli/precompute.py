@@ -28,7 +28,7 @@ def register(app: typer.Typer) -> None:
         samples: Optional[int] = typer.Option(None, "--samples", help="Visibility rays per patch pair: 1, 4, 9, ... up to 1,024 (time grows in proportion); 0: no visibility (every pair sees each other)."),
         order: str = typer.Option("zorder", "--order", help="Internal patch order: zorder, hilbert, random, input."),
         processes: Optional[int] = typer.Option(None, "--processes", help="Form-factor worker processes, each with its own Embree scene. Default: one per core from 4,000 patches on (below, their start-up costs more than it saves), else this process; the result does not depend on it."),
-        near_field: str = typer.Option("auto", "--near-field", help="Near-field split: pairs within the radius holding ~this many facing neighbours (nonzeros of a row of N) go into a sparse N, HF factors the smooth rest, the solver is Woodbury around I - D_c N (Neumann series per solve, sparse LU in the set-up). 'auto' (default): 120 from 2,000 patches on, off below; the split lowers the rank HF needs and, at equal --eps, the radiosity error; 'off' or 0: plain Woodbury."),
+        near_field: str = typer.Option("auto", "--near-field", help="Near-field split: pairs within the radius holding ~this many facing neighbours (nonzeros of a row of N) go into a sparse N, HF factors the smooth rest, the solver is Woodbury around I - D_c N (Neumann series per solve, sparse LU in the set-up). 'auto' (default): 120 where the split pays, from 20,000 (0.02 / eps)^1.5 patches on (20,000 at --eps 0.02, 5,060 at 0.05; 2,000 at least), off below; the split lowers the rank HF needs and, at equal --eps, the radiosity error; 'off' or 0: plain Woodbury."),
         unit_scale: float = common.UnitScaleOption,
         emission: Optional[List[str]] = common.EmissionOption,
         area_light: Optional[str] = common.AreaLightOption,
@@ -57,7 +57,7 @@ def register(app: typer.Typer) -> None:
         space; with less room, blocks compute the rows that do not fit and a warning
         gives the share of pairs copied. The file is unlinked as soon as it is
         created (nothing is left after an error or Ctrl-C); damaged tiles are
-        detected by checksum and recomputed. With the near field (default from 2,000 patches, c = 120 entries a
+        detected by checksum and recomputed. With the near field (by default from 20,000 (0.02 / eps)^1.5 patches, c = 120 entries a
         row): about 40 n c bytes while N is collected, one n x k Z per distinct
         colour channel (n k s each) and, during the set-up, one channel's sparse
         LU (about 9 times N's entries).
