@@ -199,6 +199,8 @@ def main() -> None:
     p.add_argument("--model-sizes", default="163000,1000000")
     p.add_argument("--model-workers", default="8,64")
     p.add_argument("--name", default="dask", help="results/NAME.json (default dask)")
+    p.add_argument("--configs", default="local,dask-1,dask-2",
+                   help="which runs, in this order (local first; without dask-1 no parallel efficiency)")
     p.add_argument("--one", help=argparse.SUPPRESS)
     p.add_argument("--out", help=argparse.SUPPRESS)
     args = p.parse_args()
@@ -208,7 +210,10 @@ def main() -> None:
     m = header(f"Dask backend: Cornell box, {args.patches} patches, eps {args.eps}, block {args.block}")
     runs = []
     with tempfile.TemporaryDirectory() as tmp:
-        for config in ("local", "dask-1", "dask-2"):
+        configs = args.configs.split(",")
+        if configs[0] != "local" or "dask-2" not in configs:
+            sys.exit("--configs must start with local and include dask-2")
+        for config in configs:
             out = os.path.join(tmp, f"{config}.npy")
             proc = subprocess.run([sys.executable, __file__, "--one", config, "--patches", str(args.patches),
                                    "--eps", str(args.eps), "--block", str(args.block), "--out", out],
@@ -223,10 +228,11 @@ def main() -> None:
             runs.append(run)
             print(f"{config}: {run['wall_s']:.1f} s (load {run['loadavg_before']:.2f} -> {run['loadavg_after']:.2f})",
                   flush=True)
-    t_local, t1, t2 = (r["wall_s"] for r in runs)
+    walls = {r["config"]: r["wall_s"] for r in runs}
+    t_local, t1, t2 = walls["local"], walls.get("dask-1"), walls["dask-2"]
     for r in runs:
         r["speedup_vs_local"] = t_local / r["wall_s"]
-    efficiency = t1 / (2 * t2)
+    efficiency = t1 / (2 * t2) if t1 else None
     print_table("Precompute (factorize) wall time", runs,
                 [("config", "backend"), ("patches", "n"), ("wall_s", "wall s"), ("startup_s", "cluster start s"),
                  ("formfactors_s", "form factors s (sum)"), ("leaf_svd_s", "leaf SVD s"), ("merge_s", "merges s"),
@@ -234,13 +240,15 @@ def main() -> None:
                  ("near_prefetched", "LUs prefetched"), ("rank", "rank"), ("achieved_error", "achieved"),
                  ("radiosity_diff", "max |B - B_local|/max B"), ("peak_rss_worker_gb", "peak GB/worker"),
                  ("speedup_vs_local", "vs local"), ("loadavg_before", "load before")])
-    print(f"\nparallel efficiency T(1 worker) / (2 T(2 workers)) = {efficiency:.2f}; "
-          f"2 workers vs local: {t_local / t2:.2f}x")
+    print(f"\nparallel efficiency T(1 worker) / (2 T(2 workers)) = "
+          f"{'-' if efficiency is None else f'{efficiency:.2f}'}; 2 workers vs local: {t_local / t2:.2f}x "
+          f"(LocalCluster(2) wall / local wall {t2 / t_local:.2f})")
 
-    records = runs[2]["records"]
-    costs = fit_costs(records, t2, 2, runs[2]["task_overhead_s"])
-    profile = fit_rank_profile(records, runs[2]["patches"])
-    here = [simulate(runs[2]["patches"], args.block, w, costs, profile) for w in (1, 2)]
+    two = next(r for r in runs if r["config"] == "dask-2")
+    records = two["records"]
+    costs = fit_costs(records, t2, 2, two["task_overhead_s"])
+    profile = fit_rank_profile(records, two["patches"])
+    here = [simulate(two["patches"], args.block, w, costs, profile) for w in (1, 2)]
     model_efficiency = here[0]["wall_s"] / (2 * here[1]["wall_s"])
     print(f"model of this scene on dedicated cores (measured CPU costs): 1 worker {here[0]['wall_s']:.1f} s, "
           f"2 workers {here[1]['wall_s']:.1f} s, efficiency {model_efficiency:.2f}; tasks' CPU seconds summed: "
