@@ -518,6 +518,8 @@ def _run(cluster: Cluster, scene, options: PrecomputeOptions, task_threads, chec
         tracker.drain()
     except KilledWorker as exc:
         client.cancel([job_future])
+        if prefetch is not None:
+            prefetch.close()
         workers = cluster.n_workers
         raise WorkerLostError(
             f"{exc}: a task took down {dask.config.get('distributed.scheduler.allowed-failures')} workers in a "
