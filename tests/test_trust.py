@@ -15,7 +15,7 @@ from conftest import Interrupt, interrupt_at
 
 import hfrad
 from hfrad.errors import AccuracyWarning, FileFormatError
-from hfrad.solve.bounds import power_sigma_max
+from hfrad.solve.bounds import power_sigma_max, power_sigma_max_scaled
 from hfrad.solve.stats import probe_alpha
 
 
@@ -72,6 +72,9 @@ def test_figures_bound_the_exact_operator_norms(cornell):
         # sigma_max of eq. 5, by power iteration on the factors, against LAPACK
         Qc = fac.Q * (fac._D[:, c:c + 1])
         assert power_sigma_max(Qc, fac.V) == pytest.approx(np.linalg.norm(Qc @ fac.V.T, 2), rel=1e-6)
+        # the block iteration of every channel at once (what fac.sigma_max runs), against LAPACK too
+        assert fac.sigma_max[c] == pytest.approx(np.linalg.norm(Qc @ fac.V.T, 2), rel=1e-6)
+    assert power_sigma_max_scaled(fac.Q, fac.V, np.zeros((fac.n_patches, 2))).tolist() == [0.0, 0.0]
 
 
 def test_bounds_hold_against_the_dense_solve(cornell):

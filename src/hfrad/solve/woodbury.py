@@ -17,7 +17,7 @@ import scipy.linalg as sla
 from ..errors import AccuracyWarning, FactorizationError, InputError
 from ..lowrank.factors import LowRank
 from ..validation import as_real_array, check_exitance, check_finite, check_reflectance, check_trans
-from .bounds import ErrorEstimate, ResidualEstimate, estimate_errors, power_sigma_max, residual_estimate
+from .bounds import ErrorEstimate, ResidualEstimate, estimate_errors, power_sigma_max_scaled, residual_estimate
 from . import thin
 from .readonly import read_only
 from .stats import FAILURE_PROBABILITY, PassStatistics
@@ -369,8 +369,7 @@ class HFactorization:
 
     def _sigma_estimates(self) -> np.ndarray:
         """(3,) power-iteration estimates of sigma_max(Q_c V^T), for eq. 5."""
-        return np.array([power_sigma_max(self.Q * self._D[:, c:c + 1].astype(self.dtype), self.V)
-                         for c in range(N_CHANNELS)])
+        return power_sigma_max_scaled(self.Q, self.V, self._D)
 
     @cached_property
     def sigma_max(self) -> np.ndarray:
