@@ -44,7 +44,7 @@ NETWORK_BYTES_PER_S = 1.0e9
 
 
 # -- one configuration, in its own process ---------------------------------------------------
-def one_run(config: str, patches: int, eps: float, block: int, out_npy: str) -> dict:
+def one_run(config: str, patches: int, eps: float, block: int, out_npy: str, near_field="auto") -> dict:
     from hfrad.distributed import connect
     from hfrad.pipeline import factorize
     from hfrad.scene.load import load_scene
@@ -54,7 +54,7 @@ def one_run(config: str, patches: int, eps: float, block: int, out_npy: str) -> 
     result: dict = {"config": config, "patches": scene.n_patches}
     if config == "local":
         t = time.perf_counter()
-        fac = factorize(scene, eps=eps, block_size=block)
+        fac = factorize(scene, eps=eps, block_size=block, near_field=near_field)
         result["wall_s"] = time.perf_counter() - t
         result["startup_s"] = 0.0
         result["peak_rss_worker_gb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
@@ -67,7 +67,8 @@ def one_run(config: str, patches: int, eps: float, block: int, out_npy: str) -> 
             result["startup_s"] = time.perf_counter() - t
             records: list = []
             t = time.perf_counter()
-            fac = factorize(scene, eps=eps, block_size=block, scheduler=cluster, records=records)
+            fac = factorize(scene, eps=eps, block_size=block, scheduler=cluster, records=records,
+                            near_field=near_field)
             result["wall_s"] = time.perf_counter() - t
             rss = cluster.client.run(lambda: resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20)
             result["peak_rss_worker_gb"] = max(rss.values())
@@ -199,13 +200,16 @@ def main() -> None:
     p.add_argument("--model-sizes", default="163000,1000000")
     p.add_argument("--model-workers", default="8,64")
     p.add_argument("--name", default="dask", help="results/NAME.json (default dask)")
+    p.add_argument("--near-field", default="auto",
+                   help="factorize(near_field=): auto (default) or neighbours per row (120: the split on)")
     p.add_argument("--configs", default="local,dask-1,dask-2",
                    help="which runs, in this order (local first; without dask-1 no parallel efficiency)")
     p.add_argument("--one", help=argparse.SUPPRESS)
     p.add_argument("--out", help=argparse.SUPPRESS)
     args = p.parse_args()
     if args.one:
-        print(json.dumps(one_run(args.one, args.patches, args.eps, args.block, args.out)))
+        near = args.near_field if args.near_field == "auto" else int(args.near_field)
+        print(json.dumps(one_run(args.one, args.patches, args.eps, args.block, args.out, near)))
         return
     m = header(f"Dask backend: Cornell box, {args.patches} patches, eps {args.eps}, block {args.block}")
     runs = []
@@ -216,7 +220,8 @@ def main() -> None:
         for config in configs:
             out = os.path.join(tmp, f"{config}.npy")
             proc = subprocess.run([sys.executable, __file__, "--one", config, "--patches", str(args.patches),
-                                   "--eps", str(args.eps), "--block", str(args.block), "--out", out],
+                                   "--eps", str(args.eps), "--block", str(args.block), "--out", out,
+                                   "--near-field", str(args.near_field)],
                                   capture_output=True, text=True)
             if proc.returncode:
                 sys.exit(f"{config} failed:\n{proc.stderr}")
@@ -289,6 +294,7 @@ def main() -> None:
         r["tasks_cpu_s"] = sum(x["cpu"] for x in r["records"])
         r.pop("records")
     write_json(args.name, {"machine": m, "patches": runs[0]["patches"], "n_patches": runs[0]["patches"],
+                           "near_field": args.near_field,
                         "eps": args.eps, "block": args.block, "runs": runs, "parallel_efficiency": efficiency,
                         "model_this_scene": here, "model_parallel_efficiency": model_efficiency,
                         "costs": costs, "rank_profile": profile, "model": model, "assumptions": assumptions,
