@@ -45,16 +45,23 @@ def test_channel_scales_are_the_assemblys(parts):
         assert np.array_equal(d[c], fac._D[:, c])
 
 
-def test_prefetched_assembly_is_the_plain_one(parts):
-    """Every distinct channel's LU comes from the prefetch, and Z and K^-1 are bit for bit the plain ones."""
+def _assembled_with_prefetch(parts, prefetch_near):
+    """The assembly with LUs prefetched from ``prefetch_near``, the plain one, and the prefetch's hits."""
     scene, options, fac, near, n = parts
     plain = assemble(scene, options, fac.lowrank, fac.stats, near, runner=InProcess())
-    pre = NearPrefetch(near, n, scene.reflectance, options.perm, options.dtype)
+    pre = NearPrefetch(prefetch_near, n, scene.reflectance, options.perm, options.dtype)
     try:
         got = assemble(scene, options, fac.lowrank, fac.stats, near, runner=pre.runner())
     finally:
         pre.close()
-    assert pre.hits == len(plain.distinct_channels)
+    return got, plain, pre.hits
+
+
+def test_prefetched_assembly_is_the_plain_one(parts):
+    """Every distinct channel's LU comes from the prefetch, and Z and K^-1 are bit for bit the plain ones."""
+    scene, options, fac, near, n = parts
+    got, plain, hits = _assembled_with_prefetch(parts, near)
+    assert hits == len(plain.distinct_channels)
     _same(got, plain)
     B, B_plain = got.solve(scene.emission), plain.solve(scene.emission)
     assert np.array_equal(B, B_plain)
@@ -63,16 +70,11 @@ def test_prefetched_assembly_is_the_plain_one(parts):
 def test_prefetch_of_another_near_field_is_not_used(parts):
     """A prefetch made from other near entries (one value changed) is ignored: the assembly factors
     its own N and the result is the plain one."""
-    scene, options, fac, near, n = parts
+    near = parts[3]
     other = dict(near, near_values=near["near_values"].copy())
     other["near_values"][0] *= 0.5
-    plain = assemble(scene, options, fac.lowrank, fac.stats, near, runner=InProcess())
-    pre = NearPrefetch(other, n, scene.reflectance, options.perm, options.dtype)
-    try:
-        got = assemble(scene, options, fac.lowrank, fac.stats, near, runner=pre.runner())
-    finally:
-        pre.close()
-    assert pre.hits == 0
+    got, plain, hits = _assembled_with_prefetch(parts, other)
+    assert hits == 0
     _same(got, plain)
 
 
