@@ -161,67 +161,43 @@ def contraction_bound(reflectance, row_sums, col_sums=None, *, weighted: bool = 
     return rho.max(axis=0) * norm_F
 
 
-def power_sigma_max(Q: np.ndarray, V: np.ndarray, *, rtol: float = 1e-7, max_iter: int = 500) -> float:
-    """Largest singular value of ``Q V^T`` by power iteration on the factors, O(nk) per step."""
+def power_sigma_max(Q: np.ndarray, V: np.ndarray, *, row_scale: np.ndarray | None = None, rtol: float = 1e-7,
+                    max_iter: int = 500) -> float:
+    """Largest singular value of ``diag(row_scale) Q V^T`` (``Q V^T`` without it) by power iteration on
+    the factors, O(nk) per step, in float64 (float64 Q and V are used without a copy)."""
     k = Q.shape[1]
     if k == 0:
         return 0.0
+    Q64, V64 = Q.astype(np.float64, copy=False), V.astype(np.float64, copy=False)
+    d = np.ones(Q.shape[0]) if row_scale is None else np.asarray(row_scale, np.float64)
+    d2 = d * d
     x = np.ones(V.shape[0]) / math.sqrt(V.shape[0])
-    Q64, V64 = Q.astype(np.float64), V.astype(np.float64)
     sigma = 0.0
     for _ in range(max_iter):
-        y = Q64 @ (V64.T @ x)                   # A x
-        z = V64 @ (Q64.T @ y)                   # A^T A x
+        z = V64 @ (Q64.T @ (d2 * (Q64 @ (V64.T @ x))))    # A^T A x
         nz = np.linalg.norm(z)
         if nz == 0.0:
             return 0.0
         new = math.sqrt(nz)                     # ||A^T A x|| -> sigma^2 as x converges
         x = z / nz
         if abs(new - sigma) <= rtol * new:
-            sigma = new
             break
         sigma = new
-    return float(np.linalg.norm(Q64 @ (V64.T @ x)))
+    return float(np.linalg.norm(d * (Q64 @ (V64.T @ x))))
 
 
-def power_sigma_max_scaled(Q: np.ndarray, V: np.ndarray, D: np.ndarray, *, rtol: float = 1e-7,
-                           max_iter: int = 500) -> np.ndarray:
-    """(C,) largest singular value of ``diag(D[:, c]) Q V^T`` for every column c of D.
+def power_sigma_max_scaled(Q: np.ndarray, V: np.ndarray, D: np.ndarray, **kwargs) -> np.ndarray:
+    """(C,) :func:`power_sigma_max` of ``diag(D[:, c]) Q V^T`` for every column c of D.
 
-    :func:`power_sigma_max` per channel on one float64 copy of Q and V (made once, not per
-    channel), the row scales applied to the n-vectors; equal columns of D are iterated once.
-    Matrix-vector products, not one product with C columns: OpenBLAS streams an n x k
-    matrix several times slower through a 3-column GEMM than through GEMV.
-
-    Parameters
-    ----------
-    Q, V : (n, k) float
-    D : (n, C) float
-        Row scales per channel (``rho_c / rho_max``).
+    One float64 copy of Q and V for every channel (not one per channel); equal columns of D
+    are iterated once. Matrix-vector products, not one product with C columns: OpenBLAS
+    streams an n x k matrix several times slower through a 3-column GEMM than through GEMV.
     """
-    n, k = Q.shape
-    C = D.shape[1]
-    if k == 0:
-        return np.zeros(C)
-    Q64, V64, D64 = Q.astype(np.float64), V.astype(np.float64), np.asarray(D, np.float64)
-    sigma = np.zeros(C)
-    for c in range(C):
-        same = next((e for e in range(c) if np.array_equal(D64[:, e], D64[:, c])), None)
-        if same is not None:
-            sigma[c] = sigma[same]
-            continue
-        d, d2 = D64[:, c], D64[:, c] * D64[:, c]
-        x, s = np.full(n, 1.0 / math.sqrt(n)), 0.0
-        for _ in range(max_iter):
-            z = V64 @ (Q64.T @ (d2 * (Q64 @ (V64.T @ x))))    # A_c^T A_c x, A_c = diag(d) Q V^T
-            nz = float(np.linalg.norm(z))
-            if nz == 0.0:
-                break
-            new, x = math.sqrt(nz), z / nz
-            if abs(new - s) <= rtol * new:
-                break
-            s = new
-        sigma[c] = float(np.linalg.norm(d * (Q64 @ (V64.T @ x))))
+    Q64, V64 = Q.astype(np.float64), V.astype(np.float64)
+    sigma = np.zeros(D.shape[1])
+    for c in range(D.shape[1]):
+        same = next((e for e in range(c) if np.array_equal(D[:, e], D[:, c])), None)
+        sigma[c] = sigma[same] if same is not None else power_sigma_max(Q64, V64, row_scale=D[:, c], **kwargs)
     return sigma
 
 
