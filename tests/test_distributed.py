@@ -17,6 +17,8 @@ from hfrad.distributed.tasks import Job
 from hfrad.lowrank.hf import HFStream, counter_tree
 from hfrad.pipeline import factorize
 from hfrad.scene.load import load_scene
+from hfrad.solve.assemble import far_block
+from hfrad.solve.stats import PassStatistics
 
 EPS = 0.02
 NEAR = 32        # near field forced on at this size ("auto" turns it on from 2,000 patches)
@@ -65,8 +67,10 @@ def test_counter_tree_is_hfstream(m, monkeypatch):
     n, b = 7 * m, 7
     A = rng.standard_normal((n, 6)) @ rng.standard_normal((6, m * b)) + 1e-3 * rng.standard_normal((n, m * b))
     stream = HFStream(n, m, eps=0.05, dtype=np.float64)
-    for j in range(m):
-        stream.push(A[:, j * b:(j + 1) * b])
+    stats = PassStatistics(n)
+    for j in range(m):   # as the local pipeline pushes a block: its norms from the pass over it
+        G, norm2, block_norm2 = far_block(stats, j * b, (j + 1) * b, A[:, j * b:(j + 1) * b], np.ones((n, 1)))
+        stream.push(G, norm2=norm2, block_norm2=block_norm2)
     expected = stream.finish()
 
     # "F" is A itself: the leaves read its columns instead of computing form factors

@@ -100,3 +100,18 @@ def test_bands_and_budgets():
     assert (lag + 2, 0) not in m.tiles and m.bytes == sum(t.nbytes for t in m.tiles.values())
     with pytest.raises(ValueError, match="in order"):
         m.keep(0, F[:, :b])
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_copy_kernel_rounds_as_numpy_does(dtype):
+    """The fill kernel gives NumPy's ``(A_j / A_i) * tile.T`` stored in the block's dtype, bit for bit."""
+    from hfrad.formfactors.mirror import _copy_transposed
+
+    rng = np.random.default_rng(11)
+    tile = (rng.random((48, 40)) ** 3 * 1e-2).astype(dtype)      # F[J_b, J_a]: 48 columns of b, 40 rows of a
+    col_areas, row_areas = rng.uniform(1e-4, 3.0, 48), rng.uniform(1e-4, 3.0, 40)
+    out = np.full((40, 48), np.nan, dtype)
+    _copy_transposed(out, tile, col_areas, row_areas)
+    expected = np.empty_like(out)
+    expected[:] = (col_areas[None, :] / row_areas[:, None]) * tile.T
+    assert np.array_equal(out, expected)

@@ -20,14 +20,14 @@ import numpy as np
 from .defaults import DEFAULT_BLOCK_SIZE
 from .errors import InputError
 from .lowrank.api import check_method, lowrank_from_blocks, lowrank_from_matrix
-from .lowrank.hf import HFStream, frobenius2
+from .lowrank.hf import HFStream
 from .lowrank.nearfield import DEFAULT_NEAR_ENTRIES, NearFieldSplit
 from .lowrank.streaming import load_checkpoint, save_checkpoint
 from .formfactors.parallel import default_workers
 from .memory import precompute_bytes
 from .progress import ProgressCallback, report
 from .scene.scene import Scene
-from .solve.assemble import PrecomputeOptions, assemble, precompute_options
+from .solve.assemble import PrecomputeOptions, assemble, far_block, precompute_options
 from .solve.stats import PassStatistics
 from .solve.woodbury import HFactorization
 from .validation import check_areas, check_form_factors, check_permutation, check_reflectance
@@ -422,15 +422,11 @@ def _stream_blocks(blocks, stream: HFStream, stats: PassStatistics, rows_rho, n_
     t_ff = time.perf_counter()
     for start, stop, block in blocks:
         time_ff += time.perf_counter() - t_ff
-        G = rows_rho * block  # G = diag(rho_max) F, rows in internal order
-        stats.add(start, stop, block, rows_rho)
+        # G = diag(rho_max) F (rows in internal order), less the near field; the budget's norm is G's before the split
+        G, norm2, block_norm2 = far_block(stats, start, stop, block, rows_rho, split)
         del block
-        norm2 = None  # the budget's norm: the block's own, or its norm before the near split
-        if split is not None:
-            norm2 = frobenius2(G)
-            G = split.split(G, start)
         with _every_blas_thread_for_a_large_merge(stream.blocks_done, n_blocks):
-            stream.push(G, norm2=norm2)
+            stream.push(G, norm2=norm2, block_norm2=block_norm2)
         del G
         report(progress, stream.blocks_done, n_blocks)
         if status is not None:

@@ -20,11 +20,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..lowrank.hf import ErrorBudget, compress_leaf, frobenius2, merge_nodes, root_lowrank
+from ..lowrank.hf import ErrorBudget, compress_leaf, merge_nodes, root_lowrank
 from ..lowrank.nearfield import NearFieldSplit
 from ..formfactors.parallel import column_block
 from ..formfactors.visibility import RayBudget
-from ..solve.assemble import add_statistics, block_statistics, concat_near
+from ..solve.assemble import add_statistics, concat_near, far_block, statistics_state
+from ..solve.stats import PassStatistics
 from . import panels, store
 
 
@@ -84,7 +85,7 @@ class Job:
 class Part:
     """A factored column range, what the pass recorded on it, and the records of the tasks that made it.
 
-    ``stats``: the pass statistics of these columns (:func:`~hfrad.solve.assemble.block_statistics`,
+    ``stats``: the pass statistics of these columns (:func:`~hfrad.solve.assemble.far_block`,
     additive). ``near``: their near-field entries (None without the split). ``records`` has one
     dict per task in the subtree: ``kind`` ("leaf" or "merge"), ``node``, ``rank``, ``columns``,
     ``rows``, ``seconds`` (task wall time), ``cpu`` (CPU seconds of the worker process during the
@@ -197,16 +198,13 @@ def leaf_from_block(job: Job, j: int, F: np.ndarray, t0: float, cpu0: float, t1:
     b = job.options.block_size
     start = j * b
     n = job.perm.size
-    stats = block_statistics(n, job.weights, start, start + F.shape[1], F, job.rows_rho)
-    G = job.rows_rho * F
+    block_stats = PassStatistics(n, job.weights)
+    split = _splitter(job) if job.options.near_entries else None
+    G, norm2, block_norm2 = far_block(block_stats, start, start + F.shape[1], F, job.rows_rho, split)
     del F
-    norm2 = near = None
-    if job.options.near_entries:
-        norm2 = frobenius2(G)
-        split = _splitter(job)
-        G = split.split(G, start)
-        near = split.state()
-    node = compress_leaf(G, job.budget, j, norm2)
+    stats = statistics_state(block_stats)
+    near = None if split is None else split.state()
+    node = compress_leaf(G, job.budget, j, norm2, block_norm2)
     columns = int(G.shape[1])
     del G
     t2 = time.perf_counter()

@@ -194,6 +194,21 @@ def _fletcher(words: np.ndarray) -> tuple[int, int]:
     return s1, s2
 
 
+@njit(cache=True, nogil=True)
+def _copy_transposed(out, tile, col_areas, row_areas) -> None:  # pragma: no cover (numba)
+    """``out[i, j] = (col_areas[j] / row_areas[i]) tile[j, i]``: reciprocity, ``F_ij = F_ji A_j / A_i``.
+
+    The float64 ratio times the tile's entry, rounded once to ``out``'s dtype: what NumPy's
+    ``(col_areas[None, :] / row_areas[:, None]) * tile.T`` stored into ``out`` gives, without
+    its two float64 temporaries.
+    """
+    rows, cols = out.shape
+    for i in range(rows):
+        area_i = row_areas[i]
+        for j in range(cols):
+            out[i, j] = (col_areas[j] / area_i) * np.float64(tile[j, i])
+
+
 def tile_checksum(raw: np.ndarray) -> tuple[int, int]:
     """Checksum of a tile's bytes (``raw``: 1-D uint8): Fletcher-64 sums of its 32-bit words, or CRC-32."""
     if raw.size % 4:
@@ -449,7 +464,6 @@ class ReciprocityMirror:
         last = int(np.searchsorted(self.starts, rows.stop))
         for a in range(first, last):
             lo, hi = int(self.starts[a]), int(self.starts[a + 1])
-            ratio = self.areas[cols][None, :] / self.areas[lo:hi, None]    # A_j / A_i
             tile = self.tiles.pop((b, a), None)                          # F[J_b, J_a]
             if tile is not None:
                 self.bytes -= tile.nbytes
@@ -465,7 +479,7 @@ class ReciprocityMirror:
                     self.repaired_tiles += 1
                     continue
                 self.spilled_pairs += tile.size
-            block[lo:hi] = ratio * tile.T
+            _copy_transposed(block[lo:hi], tile, self.areas[cols], self.areas[lo:hi])    # F_ij = F_ji A_j / A_i
             self.copied_pairs += tile.size
 
     def discard(self, b: int) -> None:

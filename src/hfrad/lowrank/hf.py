@@ -452,12 +452,13 @@ class HFStream:
         """Sum of the ranks on the stack: the width of what is held now."""
         return int(sum(node.s.size for node in self.stack))
 
-    def push(self, block: np.ndarray, norm2: float | None = None) -> None:
+    def push(self, block: np.ndarray, norm2: float | None = None, *, block_norm2: float | None = None) -> None:
         """Compress the next column block (n x b) and merge along the binary counter.
 
         ``norm2`` overrides ``||block||_F^2`` as the measure the relative error
         budget is taken from (the near-field split passes the norm of the block
-        before its near entries were moved out, so eps stays relative to ``||G||_F``).
+        before its near entries were moved out, so eps stays relative to ``||G||_F``);
+        ``block_norm2`` is ``||block||_F^2`` (float64) when the caller has it.
         """
         A = np.asarray(block, dtype=self.dtype)
         j = self.blocks_done
@@ -467,7 +468,7 @@ class HFStream:
             raise InputError(f"more than the announced n_blocks={self.n_blocks} column blocks were pushed")
         with spare_threads():   # a caller's BLAS threads, fewer where other processes want the cores
             t = time.perf_counter()
-            node = compress_leaf(A, self._budget, j, norm2)
+            node = compress_leaf(A, self._budget, j, norm2, block_norm2)
             self.leaf_ranks.append(node.s.size)
             self.time_leaf += time.perf_counter() - t
             t = time.perf_counter()
@@ -504,15 +505,17 @@ class HFStream:
 # HFStream runs these pieces in a loop; hfrad.distributed runs them as tasks on a
 # cluster. Sharing them keeps both backends' truncations, budgets and results equal.
 
-def compress_leaf(A: np.ndarray, budget: ErrorBudget, j: int, norm2: float | None = None) -> _Node:
+def compress_leaf(A: np.ndarray, budget: ErrorBudget, j: int, norm2: float | None = None,
+                  block_norm2: float | None = None) -> _Node:
     """Leaf ``j`` of the tree: the truncated SVD of one column block ``A`` (n x b), within its share.
 
     ``A`` must already be in the working dtype; its norm accumulates in float64. ``norm2``
-    overrides the norm the relative budget is taken from (see ``HFStream.push``).
+    overrides the norm the relative budget is taken from (see ``HFStream.push``);
+    ``block_norm2`` is ``||A||_F^2`` (float64) when the caller has it (not read again).
     """
-    a2 = None  # ||A||^2, when computed here the leaf need not compute it again
+    a2 = block_norm2  # ||A||^2: when known, the leaf need not compute it again
     if norm2 is None:
-        norm2 = a2 = frobenius2(A)
+        norm2 = a2 = frobenius2(A) if a2 is None else a2
     return _leaf(A, norm2, budget.leaf(norm2), j, a2)
 
 

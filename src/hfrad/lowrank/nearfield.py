@@ -92,6 +92,8 @@ class NearFieldSplit:
     ----------
     rows, cols, values : lists of arrays
         Coordinates (internal order) and values of the near entries so far.
+    moved2 : float
+        Sum of the squares of the entries the last :meth:`split` moved out.
     """
 
     def __init__(self, centroids: np.ndarray, radius: float) -> None:
@@ -102,6 +104,7 @@ class NearFieldSplit:
         self.rows: list[np.ndarray] = []
         self.cols: list[np.ndarray] = []
         self.values: list[np.ndarray] = []
+        self.moved2 = 0.0
 
     def split(self, block: np.ndarray, start: int) -> np.ndarray:
         """Move the near entries of ``block`` (= G[:, start:start + b]) out; zeroes them in place.
@@ -117,7 +120,10 @@ class NearFieldSplit:
         keep = v != 0
         self.rows.append(r[keep])
         self.cols.append(c[keep] + start)
-        self.values.append(v[keep].astype(np.float64))
+        moved = v[keep].astype(np.float64)
+        self.values.append(moved)
+        #: the squares of the entries the last :meth:`split` moved out, summed (float64)
+        self.moved2 = float(np.dot(moved, moved))
         block[r, c] = 0
         return block
 

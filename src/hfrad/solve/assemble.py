@@ -5,7 +5,7 @@ or as Dask tasks (:mod:`hfrad.distributed`); the backend only decides where colu
 blocks, leaves and merges run. Both take a :class:`PrecomputeOptions` (validated
 once, here) and end in :func:`assemble`: low-rank factors + near-field entries +
 pass statistics + parameters -> the solver object. Per column block both do the
-same (:func:`block_statistics`, :class:`~hfrad.lowrank.nearfield.NearFieldSplit`,
+same (:func:`far_block`: the pass statistics, G and the near-field split in one read of F;
 :func:`~hfrad.lowrank.hf.compress_leaf`), so the two give the same class, the
 same ``.hfr`` contents (apart from the recorded backend and timings) and the same
 error figures.
@@ -26,7 +26,7 @@ from ..defaults import DEFAULT_BLOCK_SIZE
 from ..errors import InputError, SceneError
 from ..lowrank.hf import ErrorBudget
 from ..lowrank.factors import LowRank
-from ..lowrank.nearfield import near_radius
+from ..lowrank.nearfield import NearFieldSplit, near_radius
 from ..formfactors.energy import warn_energy
 from ..formfactors.budget import default_one_ray_tol
 from ..scene.scene import Scene
@@ -36,7 +36,7 @@ from .nearfield import NearFieldFactorization
 from .stats import PassStatistics
 from .woodbury import HFactorization
 
-__all__ = ["PrecomputeOptions", "precompute_options", "assemble", "block_statistics", "add_statistics",
+__all__ = ["PrecomputeOptions", "precompute_options", "assemble", "far_block", "statistics_state", "add_statistics",
            "near_state", "concat_near"]
 
 #: The arrays of the near field's coordinate lists (:meth:`NearFieldSplit.state`).
@@ -200,14 +200,35 @@ def precompute_options(scene: Scene, *, eps: float = 0.02, relative: bool = True
 
 # -- What a column block adds: additive over blocks, so a Dask leaf returns its share -------------
 
-def block_statistics(n: int, weights, start: int, stop: int, F_block: np.ndarray, rows_rho: np.ndarray) -> dict:
-    """The pass statistics of columns ``start:stop`` alone (:meth:`PassStatistics.add`), as a state.
+def far_block(stats: PassStatistics, start: int, stop: int, F_block: np.ndarray, rows_rho: np.ndarray,
+              split: NearFieldSplit | None = None) -> tuple[np.ndarray, float, float]:
+    """What HF gets of columns ``start:stop`` of F, recorded in ``stats`` on the way (both backends' leaves).
 
-    The states of disjoint column ranges add up (:func:`add_statistics`) to the
-    statistics of their union: row sums and the probe sketch are sums over columns.
+    One read of F gives the pass statistics, ``G = rows_rho F`` and ``||G||_F^2``
+    (:meth:`PassStatistics.add_scaled`); ``split`` then moves G's near entries out.
+
+    Returns
+    -------
+    G : (n, b) array, F's dtype
+        The block of G, less its near entries with a ``split``.
+    norm2 : float
+        ``||G||_F^2`` before the split: the norm the leaf's relative budget is taken from.
+    block_norm2 : float
+        ``||G||_F^2`` of the returned block (``norm2`` less the squares moved out).
     """
-    stats = PassStatistics(n, weights)
-    stats.add(start, stop, F_block, rows_rho)
+    G, norm2 = stats.add_scaled(start, stop, F_block, rows_rho)
+    if split is None:
+        return G, norm2, norm2
+    G = split.split(G, start)
+    return G, norm2, max(norm2 - split.moved2, 0.0)
+
+
+def statistics_state(stats: PassStatistics) -> dict:
+    """``stats`` as a state that adds to others' (:func:`add_statistics`): without the weights.
+
+    The states of disjoint column ranges add up to the statistics of their union: row
+    sums and the probe sketch are sums over columns.
+    """
     state = stats.state()
     state.pop("weights", None)
     return state
