@@ -128,6 +128,9 @@ class PassStatistics:
         separate NumPy passes (the product, float64 slabs for the sums and the probe GEMM,
         the norm) read a 165K x 256 block four times and cost ~0.5 s a block at 163K.
         """
+        if not all(a.flags.writeable for a in (self.row_sums, self.col_sums, self.sketch)):
+            raise ValueError("these pass statistics are read-only (a factorization's frozen copy): "
+                             "record columns on the PassStatistics they were frozen from")
         F_block = np.ascontiguousarray(F_block)
         if F_block.ndim != 2 or F_block.shape != (self.n, stop - start):
             raise ValueError(f"a block of columns {start}:{stop} must be ({self.n}, {stop - start}); got {F_block.shape}")
