@@ -73,8 +73,8 @@ def test_far_block_moves_the_near_entries_and_keeps_both_norms():
     near = split.matrix().toarray()[:, start:start + b]
     assert np.count_nonzero(near) > 10 * b                     # the split moved something
     assert np.array_equal(G + near.astype(np.float32), G_full)  # moved out exactly, nothing else touched
-    assert norm2 == pytest.approx(float(np.sum(G_full.astype(np.float64) ** 2)), rel=1e-13, abs=0)
-    assert block_norm2 == pytest.approx(float(np.sum(G.astype(np.float64) ** 2)), rel=1e-12, abs=0)
+    assert norm2 == pytest.approx(float(np.sum(G_full.astype(np.float64) ** 2)), rel=3e-14, abs=0)   # observed 6.4e-15
+    assert block_norm2 == pytest.approx(float(np.sum(G.astype(np.float64) ** 2)), rel=3e-14, abs=0)   # observed 6.7e-15
     assert block_norm2 < 0.99 * norm2
     G2, n2, own2 = far_block(PassStatistics(n, weights), start, start + b, F, rows_rho)
     assert np.array_equal(G2, G_full) and n2 == own2 == norm2
