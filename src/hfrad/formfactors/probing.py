@@ -57,11 +57,13 @@ unseen more often and the row sums' worst error grows.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numba import njit, prange
 from scipy.spatial import cKDTree
 
-from .segments import RAY_BATCH, fill_rays
+from .segments import RAY_BATCH
 
 #: Pairs with F_ij or F_ji at least this large always get every ray: a row's sum is made of
 #: few such pairs, so a probe that happens to agree with its neighbours must not decide them.
@@ -82,7 +84,6 @@ PROBE_GROUP = 4
 #: in a room, neighbouring patches are farther apart and every patch is its own group.
 PROBE_REACH = 0.02
 
-_ZERO = np.zeros(1, np.int64)
 
 # neighbour-pair states
 _VISIBLE, _BLOCKED, _SILENT, _PENDING = 0, 1, 2, 3
@@ -168,26 +169,58 @@ def _probe(vis, R: np.ndarray, Cc: np.ndarray, state: np.ndarray, wanted: np.nda
     """
     nc = len(Cc)
     step = max(1, RAY_BATCH // max(nc, 1))
+    mask = _NO_MASK if wanted is None else wanted
+    where = None
     for r0 in range(0, len(R), step):
-        part = state[r0:r0 + step]
-        todo = part == _PENDING
-        if wanted is not None:
-            todo &= wanted[r0:r0 + step]
-        pending = np.flatnonzero(todo.ravel())
-        m = len(pending)
-        if m == 0:
-            continue
-        r_idx, c_idx = R[r0:r0 + step][pending // nc], Cc[pending % nc]
-        one = np.ones((m, 1), np.bool_)
-        buf = vis.buffers.get(m)  # reused: fresh pages cost page faults
-        o, d, t, w = buf[0][:m], buf[1][:m], buf[2][:m], buf[3][:m]
-        first = np.arange(m + 1, dtype=np.int64)
-        fill_rays(vis.probe_points, vis.plane, _ZERO, r_idx, c_idx, one, first, o, d, t, w)
-        hit = vis.cast_segments(o, d, t)
+        r1 = min(len(R), r0 + step)
+        cap = (r1 - r0) * nc
+        buf = vis.buffers.get(cap)  # reused: fresh pages cost page faults
+        if where is None or len(where) < cap:
+            where = np.empty(cap, np.int64)
+        m = _gather_probes(state, mask, wanted is not None, R, Cc, r0, r1, vis.probe_points, buf[0], buf[1],
+                           buf[2], where)
+        if m:
+            hit = vis.cast_segments(buf[0][:m], buf[1][:m], buf[2][:m])
+            _store_probes(state, nc, where, hit, m)
+            vis.rays_probe += m
+            vis.rays_cast += m
         vis.buffers.put(buf)
-        part.reshape(-1)[pending] = np.where(hit, np.int8(_BLOCKED), np.int8(_VISIBLE))
-        vis.rays_probe += m
-        vis.rays_cast += m
+
+
+@njit(cache=True, nogil=True)
+def _gather_probes(state, wanted, masked, R, Cc, r0, r1, P, o, d, t, where):
+    """The probe segments (centroid points ``P[:, 0]``, lower patch first) of the pending (and
+    wanted) pairs of rows r0..r1, written to o, d, t; ``where`` gets their flat positions.
+    Returns their count. (One pass in numba: no index arrays gathered in NumPy.)"""
+    nc = Cc.shape[0]
+    m = 0
+    for r in range(r0, r1):
+        for c in range(nc):
+            if state[r, c] != _PENDING or (masked and not wanted[r, c]):
+                continue
+            a = min(R[r], Cc[c])  # canonical direction: V_ij == V_ji exactly
+            b = max(R[r], Cc[c])
+            dx = P[b, 0, 0] - P[a, 0, 0]
+            dy = P[b, 0, 1] - P[a, 0, 1]
+            dz = P[b, 0, 2] - P[a, 0, 2]
+            L = math.sqrt(dx * dx + dy * dy + dz * dz)
+            inv = 1.0 / L if L > 0.0 else 0.0
+            o[m, 0] = P[a, 0, 0]
+            o[m, 1] = P[a, 0, 1]
+            o[m, 2] = P[a, 0, 2]
+            d[m, 0] = dx * inv
+            d[m, 1] = dy * inv
+            d[m, 2] = dz * inv
+            t[m] = L
+            where[m] = r * nc + c
+            m += 1
+    return m
+
+
+@njit(cache=True, nogil=True)
+def _store_probes(state, nc, where, hit, m):
+    for k in range(m):
+        state[where[k] // nc, where[k] % nc] = _BLOCKED if hit[k] else _VISIBLE
 
 
 def full_ray_pairs(vis, F: np.ndarray, rows: np.ndarray, cols: np.ndarray, need: np.ndarray,

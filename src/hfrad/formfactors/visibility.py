@@ -557,9 +557,38 @@ def _pack_bits(flags: np.ndarray, words: int) -> np.ndarray:
     return np.ascontiguousarray(by).view(np.uint64).reshape(p, words)
 
 
-@njit(parallel=True, cache=True, nogil=True)
 def _needs_rays(F, rows, cols, front, back, below, above, cull, need):
     """need[r, c]: F > 0 and some occluder can cut the pair's segments (bitwise test)."""
+    if cull and front.shape[1] == 1:  # at most 64 occluders: one word per mask
+        bits = np.ascontiguousarray(np.column_stack([front[:, 0], back[:, 0], below[:, :, 0], above[:, :, 0]]))
+        _needs_rays_one_word(F, rows, cols, bits, np.ascontiguousarray(bits[cols]), need)
+    else:
+        _needs_rays_words(F, rows, cols, front, back, below, above, cull, need)
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def _needs_rays_one_word(F, rows, cols, bits, col_bits, need):
+    """:func:`_needs_rays` with one 64-bit word per mask: ``bits`` (n, 8) = front, back, below (3
+    axes), above (3 axes) of each patch, ``col_bits`` the columns' rows of it (the same test as
+    :func:`~hfrad.formfactors.probing.cuttable`, the row's words loaded once)."""
+    for r in prange(rows.shape[0]):
+        i = rows[r]
+        f, b = bits[i, 0], bits[i, 1]
+        lx, ly, lz, ax, ay, az = bits[i, 2], bits[i, 3], bits[i, 4], bits[i, 5], bits[i, 6], bits[i, 7]
+        for c in range(cols.shape[0]):
+            if not F[r, c] > 0.0:
+                need[r, c] = False
+                continue
+            m = ~((f & col_bits[c, 0]) | (b & col_bits[c, 1]))
+            m &= (lx | col_bits[c, 2]) & (ax | col_bits[c, 5])
+            m &= (ly | col_bits[c, 3]) & (ay | col_bits[c, 6])
+            m &= (lz | col_bits[c, 4]) & (az | col_bits[c, 7])
+            need[r, c] = m != 0
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def _needs_rays_words(F, rows, cols, front, back, below, above, cull, need):
+    """:func:`_needs_rays`, any number of words per mask (or no culling)."""
     for r in prange(rows.shape[0]):
         i = rows[r]
         for c in range(cols.shape[0]):
