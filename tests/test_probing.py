@@ -87,3 +87,35 @@ def test_nearest_patches_keeps_ties_and_skips_itself():
     assert sorted(nb[centre][nb[centre] >= 0]) == [7, 11, 13, 17]
     # (0, 0): two at distance 1, one at sqrt 2, then two tied at distance 2 for the 4th place
     assert sorted(nb[0][nb[0] >= 0]) == [1, 2, 5, 6, 10]
+
+
+def test_probe_segments_and_cull_test_match_the_general_routines(both):
+    """The probes' one-pass gather writes fill_rays' segments bit for bit, and the one-word cull
+    test (at most 64 occluders) decides as the word-by-word one."""
+    from hfrad.formfactors.probing import _PENDING, _gather_probes
+    from hfrad.formfactors.segments import fill_rays
+    from hfrad.formfactors.visibility import _needs_rays, _needs_rays_words
+
+    scene, probed, F, _, _ = both
+    vis = probed.visibility
+    rows, cols = np.arange(scene.n_patches)[::-1].copy(), np.arange(200, 330)
+    state = np.where(np.random.default_rng(3).random((len(rows), len(cols))) < 0.4, _PENDING, 0).astype(np.int8)
+    cap = state.size
+    o, d, t, where = np.empty((cap, 3), np.float32), np.empty((cap, 3), np.float32), np.empty(cap, np.float32), \
+        np.empty(cap, np.int64)
+    m = _gather_probes(state, rows, cols, 0, len(rows), vis.probe_points, o, d, t, where)
+    flat = np.flatnonzero(state.ravel() == _PENDING)
+    assert m == len(flat) > 0 and np.array_equal(where[:m], flat)
+    o2, d2, t2, w2 = np.empty((m, 3), np.float32), np.empty((m, 3), np.float32), np.empty(m, np.float32), np.empty(m)
+    fill_rays(vis.probe_points, vis.plane, np.zeros(1, np.int64), rows[flat // len(cols)], cols[flat % len(cols)],
+              np.ones((m, 1), np.bool_), np.arange(m + 1), o2, d2, t2, w2)
+    for a, b in ((o[:m], o2), (d[:m], d2), (t[:m], t2)):
+        np.testing.assert_array_equal(a, b)
+    assert vis.front_bits.shape[1] == 1  # the built-in box has at most 64 occluders: the one-word path
+    sub = F[:, 200:330]
+    args = (sub, np.arange(scene.n_patches), cols, vis.front_bits, vis.back_bits, vis.below_bits, vis.above_bits, True)
+    one, words = np.empty(sub.shape, np.bool_), np.empty(sub.shape, np.bool_)
+    _needs_rays(*args, one)
+    _needs_rays_words(*args, words)
+    assert one.any() and not one.all()
+    np.testing.assert_array_equal(one, words)

@@ -59,7 +59,7 @@ import numpy as np
 from numba import njit, prange
 
 from ..scene.zorder import BITS_PER_AXIS, morton_codes
-from .probing import _BLOCKED, _PENDING, _VISIBLE, PROBE_GROUP, PROBE_REACH, full_ray_pairs
+from .probing import _BLOCKED, _PENDING, _VISIBLE, full_ray_pairs
 
 __all__ = ["ClusterVisibility", "costly_pairs", "CLUSTER_SIZE", "MIXED", "VISIBLE", "BLOCKED", "full_ray_pairs_clustered"]
 
@@ -196,45 +196,6 @@ def _octree_runs(centroids: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarr
     cell_start = np.flatnonzero(new_cell)
     within = np.arange(n) - np.repeat(cell_start, np.diff(np.r_[cell_start, n]))
     return order, np.flatnonzero(within % size == 0)
-
-
-def probe_groups(centroids: np.ndarray, normals: np.ndarray, size: int = PROBE_GROUP,
-                 reach: float = PROBE_REACH) -> np.ndarray:
-    """(n,) int64: each patch's probe-group representative, whose probes weak pairs share
-    (:mod:`hfrad.formfactors.probing`).
-
-    Groups are the runs of at most ``size`` patches in one octree cell (as the clusters here),
-    split by plane and reach: a patch joins the first earlier patch of its run that lies in its
-    plane (same normal, centroid in that plane to 1e-6 of the frame) within ``reach`` (centroid
-    distance, in units of the scene's size), or represents itself. A group that spanned a corner
-    would give a floor patch the probes of a wall patch, which sees past the occluders that
-    shadow the floor; a wide one would blur shadows by its width (on the 2,974-patch Cornell
-    box, groups of 0.2 scene sizes left a floor row's sum 6.6% off). A function of the centroids
-    and normals alone (``centroids`` in the visibility frame: centred, in units of the scene's size).
-    """
-    order, starts = _octree_runs(np.asarray(centroids, np.float64), size)
-    rep = np.empty(len(order), np.int64)
-    _coplanar_reps(order, np.r_[starts, len(order)].astype(np.int64), np.asarray(centroids, np.float64),
-                   np.asarray(normals, np.float64), float(reach) ** 2, rep)
-    return rep
-
-
-@njit(cache=True)
-def _coplanar_reps(order, bounds, C, N, reach2, rep):
-    for g in range(bounds.shape[0] - 1):
-        for a in range(bounds[g], bounds[g + 1]):
-            m = order[a]
-            rep[m] = m
-            for b in range(bounds[g], a):
-                r = order[b]
-                if rep[r] != r:
-                    continue
-                same = N[m, 0] * N[r, 0] + N[m, 1] * N[r, 1] + N[m, 2] * N[r, 2] >= 1.0 - 1e-9
-                h = N[r, 0] * (C[m, 0] - C[r, 0]) + N[r, 1] * (C[m, 1] - C[r, 1]) + N[r, 2] * (C[m, 2] - C[r, 2])
-                dx, dy, dz = C[m, 0] - C[r, 0], C[m, 1] - C[r, 1], C[m, 2] - C[r, 2]
-                if same and abs(h) <= 1e-6 and dx * dx + dy * dy + dz * dz <= reach2:
-                    rep[m] = r
-                    break
 
 
 def full_ray_pairs_clustered(vis, clusters: ClusterVisibility, F: np.ndarray, rows: np.ndarray,

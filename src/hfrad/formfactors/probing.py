@@ -36,18 +36,6 @@ The states of neighbour pairs are geometric (silent: the patches do not face
 each other; visible: no occluder can cut the pair; else the probe), so the
 block's border (neighbour columns outside it) costs probes but no kernel.
 
-With a ray budget (``RayBudget.one_ray_below``, visibility.py) the *weak* pairs, those whose
-``A_i F_ij`` is below the one-ray threshold, get neither their own probe nor more rays: each
-takes the probe of its *group pair* (``(rep_i, rep_j)``, where ``rep`` is the first patch of a
-patch's group: runs of at most ``PROBE_GROUP`` patches in one octree cell, in Z-order, in one
-plane and within ``PROBE_REACH`` of the first; chosen from the scene alone). The threshold is where the one-ray rule already gives such a pair a
-single ray; together they hold at most ``one_ray_tol^2`` of ``||F||_F^2``, so any visibility
-in [0, 1] for them moves F by at most ``one_ray_tol ||F||_F`` (budget.py), and one group probe
-serves up to ``PROBE_GROUP^2`` of them. Only the other (*strong*) pairs and their neighbour
-pairs are probed one by one; a weak pair whose group pair does not face (or is one group)
-counts as strong. On the 164,988-patch Cornell box at eps 0.05, 56-88% of the pairs that need
-rays are weak.
-
 Cost: one segment per pair that needs rays, plus the boundary rays of the
 flagged pairs, instead of ``samples`` segments for each; the saving grows with
 the share of pairs in full view or deep shadow (benchmarks/README.md records
@@ -75,15 +63,6 @@ PROBE_NEAR = 2.0
 
 #: Nearest patches whose pairs a pair's probe is compared with (per side).
 NEIGHBOURS = 8
-
-#: Patches per probe group: weak pairs take the probe of their groups' first patches (see above).
-PROBE_GROUP = 4
-
-#: A probe group's members lie within this distance of its first patch (units of the scene's
-#: size): shadows blur by at most this much, and only for weak pairs. Below ~40,000 patches
-#: in a room, neighbouring patches are farther apart and every patch is its own group.
-PROBE_REACH = 0.02
-
 
 # neighbour-pair states
 _VISIBLE, _BLOCKED, _SILENT, _PENDING = 0, 1, 2, 3
@@ -140,17 +119,14 @@ def _in_front(P, plane, a, b):
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def _pair_states(rows, cols, P, plane, front, back, below, above, cull, state, wanted, masked):
+def _pair_states(rows, cols, P, plane, front, back, below, above, cull, state):
     """state[r, c]: silent (the patches do not face each other), visible (no occluder can cut
-    the pair) or pending (a probe decides); a function of the pair alone, symmetric. With
-    ``masked``, only where ``wanted`` (the others are left silent: nobody reads them)."""
+    the pair) or pending (a probe decides); a function of the pair alone, symmetric."""
     for r in prange(rows.shape[0]):
         i = rows[r]
         for c in range(cols.shape[0]):
             j = cols[c]
-            if masked and not wanted[r, c]:
-                state[r, c] = _SILENT
-            elif i == j or not (_in_front(P, plane, i, j) and _in_front(P, plane, j, i)):
+            if i == j or not (_in_front(P, plane, i, j) and _in_front(P, plane, j, i)):
                 state[r, c] = _SILENT
             elif cull and not cuttable(i, j, front, back, below, above):
                 state[r, c] = _VISIBLE
@@ -158,9 +134,8 @@ def _pair_states(rows, cols, P, plane, front, back, below, above, cull, state, w
                 state[r, c] = _PENDING
 
 
-def _probe(vis, R: np.ndarray, Cc: np.ndarray, state: np.ndarray, wanted: np.ndarray | None = None) -> None:
-    """Cast one probe segment for every pending pair of ``state`` (len(R), len(Cc)) in place
-    (only where ``wanted``, when given).
+def _probe(vis, R: np.ndarray, Cc: np.ndarray, state: np.ndarray) -> None:
+    """Cast one probe segment for every pending pair of ``state`` (len(R), len(Cc)) in place.
 
     The probe joins the centroids of the two patches (the 1 x 1 design, moved
     off the surfaces; for a clustered patch the point halfway through its area),
@@ -169,7 +144,6 @@ def _probe(vis, R: np.ndarray, Cc: np.ndarray, state: np.ndarray, wanted: np.nda
     """
     nc = len(Cc)
     step = max(1, RAY_BATCH // max(nc, 1))
-    mask = _NO_MASK if wanted is None else wanted
     where = None
     for r0 in range(0, len(R), step):
         r1 = min(len(R), r0 + step)
@@ -177,8 +151,7 @@ def _probe(vis, R: np.ndarray, Cc: np.ndarray, state: np.ndarray, wanted: np.nda
         buf = vis.buffers.get(cap)  # reused: fresh pages cost page faults
         if where is None or len(where) < cap:
             where = np.empty(cap, np.int64)
-        m = _gather_probes(state, mask, wanted is not None, R, Cc, r0, r1, vis.probe_points, buf[0], buf[1],
-                           buf[2], where)
+        m = _gather_probes(state, R, Cc, r0, r1, vis.probe_points, buf[0], buf[1], buf[2], where)
         if m:
             hit = vis.cast_segments(buf[0][:m], buf[1][:m], buf[2][:m])
             _store_probes(state, nc, where, hit, m)
@@ -188,15 +161,16 @@ def _probe(vis, R: np.ndarray, Cc: np.ndarray, state: np.ndarray, wanted: np.nda
 
 
 @njit(cache=True, nogil=True)
-def _gather_probes(state, wanted, masked, R, Cc, r0, r1, P, o, d, t, where):
-    """The probe segments (centroid points ``P[:, 0]``, lower patch first) of the pending (and
-    wanted) pairs of rows r0..r1, written to o, d, t; ``where`` gets their flat positions.
-    Returns their count. (One pass in numba: no index arrays gathered in NumPy.)"""
+def _gather_probes(state, R, Cc, r0, r1, P, o, d, t, where):
+    """The probe segments (centroid points ``P[:, 0]``, lower patch first) of the pending pairs
+    of rows r0..r1, written to o, d, t; ``where`` gets their flat positions. Returns their
+    count. (One pass in numba: no index arrays gathered in NumPy; the segments are those of
+    :func:`~hfrad.formfactors.segments.fill_rays`, bit for bit.)"""
     nc = Cc.shape[0]
     m = 0
     for r in range(r0, r1):
         for c in range(nc):
-            if state[r, c] != _PENDING or (masked and not wanted[r, c]):
+            if state[r, c] != _PENDING:
                 continue
             a = min(R[r], Cc[c])  # canonical direction: V_ij == V_ji exactly
             b = max(R[r], Cc[c])
@@ -235,109 +209,22 @@ def full_ray_pairs(vis, F: np.ndarray, rows: np.ndarray, cols: np.ndarray, need:
     """
     nb = vis.neighbours
     r, c = len(rows), len(cols)
-    group = _group_probes(vis, F, rows, cols, need)  # the weak pairs and their group pairs' states
-    strong = need if group is None else need & ~group[0]
     R, Cc = _with_neighbours(rows, nb), _with_neighbours(cols, nb)
+    state = np.empty((len(R), len(Cc)), np.int8)
+    _pair_states(R, Cc, vis.points, vis.plane, vis.front_bits, vis.back_bits, vis.below_bits, vis.above_bits,
+                 vis.cull, state)
+    if overlay is not None:
+        overlay(state, R, Cc)
+    _probe(vis, R, Cc, state)
     n = len(nb)
     row_pos = np.full(n, -1, np.int64)
     row_pos[R] = np.arange(len(R))
     col_pos = np.full(n, -1, np.int64)
     col_pos[Cc] = np.arange(len(Cc))
-    state = np.empty((len(R), len(Cc)), np.int8)
-    wanted = None
-    if group is not None:  # only the strong pairs' own and neighbour states are read (_decide)
-        wanted = np.zeros((len(R), len(Cc)), np.bool_)
-        _mark_neighbourhoods(row_pos, col_pos, rows, cols, nb, vis.centroids, vis.diameters, vis.probe_near,
-                             F, vis.areas, vis.probe_below, strong, wanted)
-    _pair_states(R, Cc, vis.points, vis.plane, vis.front_bits, vis.back_bits, vis.below_bits, vis.above_bits,
-                 vis.cull, state, _NO_MASK if wanted is None else wanted, wanted is not None)
-    if overlay is not None:
-        overlay(state, R, Cc)
-    _probe(vis, R, Cc, state, wanted)
     full = np.empty((r, c), np.bool_)
     _decide(state, row_pos, col_pos, rows, cols, nb, vis.centroids, vis.diameters, vis.probe_near,
-            F, vis.areas, vis.probe_below, strong, full)
+            F, vis.areas, vis.probe_below, need, full)
     return full
-
-
-_NO_MASK = np.zeros((1, 1), np.bool_)
-
-
-def _group_probes(vis, F: np.ndarray, rows: np.ndarray, cols: np.ndarray, need: np.ndarray):
-    """The weak pairs of ``need`` (see the module docstring), with ``F`` set to 0 where their
-    group pair's probe is blocked; returns ``(weak,)`` ((r, c) bool) or None (no ray budget)."""
-    below = vis.budget.one_ray_below
-    rep = getattr(vis, "probe_rep", None)
-    if below <= 0.0 or rep is None or not need.any():
-        return None
-    grow, row_of = np.unique(rep[rows], return_inverse=True)
-    gcol, col_of = np.unique(rep[cols], return_inverse=True)
-    row_of, col_of = row_of.astype(np.int64).ravel(), col_of.astype(np.int64).ravel()
-    gstate = np.empty((len(grow), len(gcol)), np.int8)
-    _pair_states(grow, gcol, vis.points, vis.plane, vis.front_bits, vis.back_bits, vis.below_bits,
-                 vis.above_bits, vis.cull, gstate, _NO_MASK, False)
-    weak = np.empty(need.shape, np.bool_)
-    gwanted = np.zeros(gstate.shape, np.bool_)
-    _weak_pairs(F, rows, cols, vis.areas, below, rep, row_of, col_of, gstate, need, weak, gwanted)
-    _probe(vis, grow, gcol, gstate, gwanted)
-    _apply_group_states(F, row_of, col_of, gstate, weak)
-    return (weak,)
-
-
-@njit(parallel=True, cache=True, nogil=True)
-def _weak_pairs(F, rows, cols, areas, below, rep, row_of, col_of, gstate, need, weak, gwanted):
-    """weak[r, c]: the pair needs rays, A_i F_ij < below, and its group pair is of two groups that
-    face each other; gwanted marks the group pairs the weak pairs use (a racy write of True: benign)."""
-    for r in prange(rows.shape[0]):
-        i = rows[r]
-        gi = row_of[r]
-        for c in range(cols.shape[0]):
-            gc = col_of[c]
-            w = (need[r, c] and areas[i] * F[r, c] < below and rep[i] != rep[cols[c]]
-                 and gstate[gi, gc] != _SILENT)
-            weak[r, c] = w
-            if w:
-                gwanted[gi, gc] = True
-
-
-@njit(parallel=True, cache=True, nogil=True)
-def _apply_group_states(F, row_of, col_of, gstate, weak):
-    for r in prange(F.shape[0]):
-        for c in range(F.shape[1]):
-            if weak[r, c] and gstate[row_of[r], col_of[c]] == _BLOCKED:
-                F[r, c] = 0.0
-
-
-@njit(cache=True, inline="always")
-def _always_full(i, j, Fij, C, D, near, areas, below):
-    """Close or large pairs get every ray whatever the probes say (symmetric in i, j)."""
-    dx = C[i, 0] - C[j, 0]
-    dy = C[i, 1] - C[j, 1]
-    dz = C[i, 2] - C[j, 2]
-    return (dx * dx + dy * dy + dz * dz < (near * (D[i] + D[j])) ** 2
-            or Fij * areas[i] >= below * min(areas[i], areas[j]))
-
-
-@njit(parallel=True, cache=True, nogil=True)
-def _mark_neighbourhoods(row_pos, col_pos, rows, cols, nb, C, D, near, F, areas, below, strong, wanted):
-    """wanted: the states :func:`_decide` reads for the ``strong`` pairs (their own and, unless
-    they are close or large, their neighbour pairs'). Rows in parallel: row r's neighbour rows
-    belong to other threads too, but every write is the same True."""
-    k = nb.shape[1]
-    for r in prange(rows.shape[0]):
-        i = rows[r]
-        for c in range(cols.shape[0]):
-            if not strong[r, c]:
-                continue
-            wanted[r, c] = True
-            j = cols[c]
-            if _always_full(i, j, F[r, c], C, D, near, areas, below):
-                continue
-            for a in range(k):
-                if nb[i, a] >= 0:
-                    wanted[row_pos[nb[i, a]], c] = True
-                if nb[j, a] >= 0:
-                    wanted[r, col_pos[nb[j, a]]] = True
 
 
 def _with_neighbours(patches: np.ndarray, nb: np.ndarray) -> np.ndarray:
@@ -362,7 +249,11 @@ def _decide(state, row_pos, col_pos, rows, cols, nb, C, D, near, F, areas, below
                 continue
             j = cols[c]
             own = state[r, c]
-            differs = own == _SILENT or _always_full(i, j, F[r, c], C, D, near, areas, below)
+            dx = C[i, 0] - C[j, 0]
+            dy = C[i, 1] - C[j, 1]
+            dz = C[i, 2] - C[j, 2]
+            differs = (own == _SILENT or dx * dx + dy * dy + dz * dz < (near * (D[i] + D[j])) ** 2
+                       or F[r, c] * areas[i] >= below * min(areas[i], areas[j]))
             for a in range(k):
                 if differs:
                     break

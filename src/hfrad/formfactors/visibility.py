@@ -74,7 +74,7 @@ from numba import njit, prange
 
 from ..errors import InputError
 from .clustervis import (BLOCKED, MIXED, ClusterVisibility, costly_pairs,
-                         full_ray_pairs_clustered, probe_groups)
+                         full_ray_pairs_clustered)
 from .kernel import points_on_triangles, split_centroids
 from .probing import NEIGHBOURS, PROBE_BELOW, PROBE_NEAR, cuttable, full_ray_pairs, nearest_patches
 from .raycast import RayCaster
@@ -261,11 +261,9 @@ class Visibility:
         self.rays_probe = 0
         self.probe_below = PROBE_BELOW
         self.neighbours = None
-        self.probe_rep = None
         self.boundary_samples = self.samples
         if probe and self.samples > 1 and scene.n_patches > 1:
             self.neighbours = nearest_patches(self.centroids)  # centred: see module docstring
-            self.probe_rep = probe_groups(self.centroids, nrm)  # weak pairs share their groups' probe
             self.probe_points = self._points(1, None)
             self.boundary_samples = max(self.samples, BOUNDARY_SAMPLES)
         self.boundary_points = (self.points if self.boundary_samples == self.samples
