@@ -91,7 +91,7 @@ def test_nearest_patches_keeps_ties_and_skips_itself():
 
 def test_probe_segments_and_cull_test_match_the_general_routines(both):
     """The probes' one-pass gather writes fill_rays' segments bit for bit, and the one-word cull
-    test (at most 64 occluders) decides as the word-by-word one."""
+    test and pair states (at most 64 occluders) decide as the word-by-word ones."""
     from hfrad.formfactors.probing import _PENDING, _gather_probes
     from hfrad.formfactors.segments import fill_rays
     from hfrad.formfactors.visibility import _needs_rays, _needs_rays_words
@@ -118,4 +118,12 @@ def test_probe_segments_and_cull_test_match_the_general_routines(both):
     _needs_rays(*args, one)
     _needs_rays_words(*args, words)
     assert one.any() and not one.all()
+    np.testing.assert_array_equal(one, words)
+    from hfrad.formfactors.probing import _pair_states, _pair_states_words
+    rows = np.arange(scene.n_patches)
+    args = (rows, cols, vis.points, vis.plane, vis.front_bits, vis.back_bits, vis.below_bits, vis.above_bits, True)
+    one, words = (np.empty((len(rows), len(cols)), np.int8) for _ in range(2))
+    _pair_states(*args, one)
+    _pair_states_words(*args, words)
+    assert len(np.unique(one)) == 3  # silent, visible and pending pairs all occur
     np.testing.assert_array_equal(one, words)

@@ -118,10 +118,58 @@ def _in_front(P, plane, a, b):
     return False
 
 
-@njit(parallel=True, cache=True, nogil=True)
 def _pair_states(rows, cols, P, plane, front, back, below, above, cull, state):
     """state[r, c]: silent (the patches do not face each other), visible (no occluder can cut
     the pair) or pending (a probe decides); a function of the pair alone, symmetric."""
+    if cull and front.shape[1] == 1:  # at most 64 occluders: one word per mask
+        bits = np.ascontiguousarray(np.column_stack([front[:, 0], back[:, 0], below[:, :, 0], above[:, :, 0]]))
+        _pair_states_one_word(rows, cols, P, plane, np.ascontiguousarray(P[cols]), np.ascontiguousarray(plane[cols]),
+                              bits, np.ascontiguousarray(bits[cols]), state)
+    else:
+        _pair_states_words(rows, cols, P, plane, front, back, below, above, cull, state)
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def _pair_states_one_word(rows, cols, P, plane, col_P, col_plane, bits, col_bits, state):
+    """:func:`_pair_states` with one 64-bit word per mask (``bits`` as in
+    :func:`hfrad.formfactors.visibility._needs_rays_one_word`) and the columns' points, planes
+    and bits gathered once: the same tests, in the same order."""
+    s = P.shape[1]
+    for r in prange(rows.shape[0]):
+        i = rows[r]
+        f, b = bits[i, 0], bits[i, 1]
+        lx, ly, lz, ax, ay, az = bits[i, 2], bits[i, 3], bits[i, 4], bits[i, 5], bits[i, 6], bits[i, 7]
+        for c in range(cols.shape[0]):
+            if i == cols[c]:
+                state[r, c] = _SILENT
+                continue
+            front_ij = False  # some point of i in front of column c's plane
+            for k in range(s):
+                if (col_plane[c, 0] * P[i, k, 0] + col_plane[c, 1] * P[i, k, 1] + col_plane[c, 2] * P[i, k, 2]
+                        > col_plane[c, 3]):
+                    front_ij = True
+                    break
+            if not front_ij:
+                state[r, c] = _SILENT
+                continue
+            front_ji = False  # some point of column c in front of i's plane
+            for k in range(s):
+                if plane[i, 0] * col_P[c, k, 0] + plane[i, 1] * col_P[c, k, 1] + plane[i, 2] * col_P[c, k, 2] > plane[i, 3]:
+                    front_ji = True
+                    break
+            if not front_ji:
+                state[r, c] = _SILENT
+                continue
+            m = ~((f & col_bits[c, 0]) | (b & col_bits[c, 1]))
+            m &= (lx | col_bits[c, 2]) & (ax | col_bits[c, 5])
+            m &= (ly | col_bits[c, 3]) & (ay | col_bits[c, 6])
+            m &= (lz | col_bits[c, 4]) & (az | col_bits[c, 7])
+            state[r, c] = _PENDING if m != 0 else _VISIBLE
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def _pair_states_words(rows, cols, P, plane, front, back, below, above, cull, state):
+    """:func:`_pair_states`, any number of words per mask (or no culling)."""
     for r in prange(rows.shape[0]):
         i = rows[r]
         for c in range(cols.shape[0]):
