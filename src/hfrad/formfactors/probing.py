@@ -109,6 +109,23 @@ def cuttable(i, j, front, back, below, above):
     return False
 
 
+def one_word_bits(front, back, below, above) -> np.ndarray:
+    """(n, 8) uint64: each patch's front, back, below (3 axes) and above (3 axes) masks, for
+    scenes with at most 64 occluders (one word per mask; see :func:`cuttable_one_word`)."""
+    return np.ascontiguousarray(np.column_stack([front[:, 0], back[:, 0], below[:, :, 0], above[:, :, 0]]))
+
+
+@njit(cache=True, inline="always")
+def cuttable_one_word(f, b, lx, ly, lz, ax, ay, az, col_bits, c):
+    """:func:`cuttable` for one-word masks: the row patch's eight words given, the column's in
+    ``col_bits[c]`` (rows of :func:`one_word_bits`). The same bitwise test."""
+    m = ~((f & col_bits[c, 0]) | (b & col_bits[c, 1]))
+    m &= (lx | col_bits[c, 2]) & (ax | col_bits[c, 5])
+    m &= (ly | col_bits[c, 3]) & (ay | col_bits[c, 6])
+    m &= (lz | col_bits[c, 4]) & (az | col_bits[c, 7])
+    return m != 0
+
+
 @njit(cache=True, inline="always")
 def _in_front(P, plane, a, b):
     """Some sample point of patch a lies in front of patch b's plane."""
@@ -122,7 +139,7 @@ def _pair_states(rows, cols, P, plane, front, back, below, above, cull, state):
     """state[r, c]: silent (the patches do not face each other), visible (no occluder can cut
     the pair) or pending (a probe decides); a function of the pair alone, symmetric."""
     if cull and front.shape[1] == 1:  # at most 64 occluders: one word per mask
-        bits = np.ascontiguousarray(np.column_stack([front[:, 0], back[:, 0], below[:, :, 0], above[:, :, 0]]))
+        bits = one_word_bits(front, back, below, above)
         _pair_states_one_word(rows, cols, P, plane, np.ascontiguousarray(P[cols]), np.ascontiguousarray(plane[cols]),
                               bits, np.ascontiguousarray(bits[cols]), state)
     else:
@@ -160,11 +177,7 @@ def _pair_states_one_word(rows, cols, P, plane, col_P, col_plane, bits, col_bits
             if not front_ji:
                 state[r, c] = _SILENT
                 continue
-            m = ~((f & col_bits[c, 0]) | (b & col_bits[c, 1]))
-            m &= (lx | col_bits[c, 2]) & (ax | col_bits[c, 5])
-            m &= (ly | col_bits[c, 3]) & (ay | col_bits[c, 6])
-            m &= (lz | col_bits[c, 4]) & (az | col_bits[c, 7])
-            state[r, c] = _PENDING if m != 0 else _VISIBLE
+            state[r, c] = _PENDING if cuttable_one_word(f, b, lx, ly, lz, ax, ay, az, col_bits, c) else _VISIBLE
 
 
 @njit(parallel=True, cache=True, nogil=True)

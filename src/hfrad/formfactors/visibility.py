@@ -76,7 +76,8 @@ from ..errors import InputError
 from .clustervis import (BLOCKED, MIXED, ClusterVisibility, costly_pairs,
                          full_ray_pairs_clustered)
 from .kernel import points_on_triangles, split_centroids
-from .probing import NEIGHBOURS, PROBE_BELOW, PROBE_NEAR, cuttable, full_ray_pairs, nearest_patches
+from .probing import (NEIGHBOURS, PROBE_BELOW, PROBE_NEAR, cuttable, cuttable_one_word, full_ray_pairs,
+                      nearest_patches, one_word_bits)
 from .raycast import RayCaster
 from .segments import RAY_BATCH, RayBuffers, RayJob, fill_rays, valid_rays
 
@@ -558,7 +559,7 @@ def _pack_bits(flags: np.ndarray, words: int) -> np.ndarray:
 def _needs_rays(F, rows, cols, front, back, below, above, cull, need):
     """need[r, c]: F > 0 and some occluder can cut the pair's segments (bitwise test)."""
     if cull and front.shape[1] == 1:  # at most 64 occluders: one word per mask
-        bits = np.ascontiguousarray(np.column_stack([front[:, 0], back[:, 0], below[:, :, 0], above[:, :, 0]]))
+        bits = one_word_bits(front, back, below, above)
         _needs_rays_one_word(F, rows, cols, bits, np.ascontiguousarray(bits[cols]), need)
     else:
         _needs_rays_words(F, rows, cols, front, back, below, above, cull, need)
@@ -577,11 +578,7 @@ def _needs_rays_one_word(F, rows, cols, bits, col_bits, need):
             if not F[r, c] > 0.0:
                 need[r, c] = False
                 continue
-            m = ~((f & col_bits[c, 0]) | (b & col_bits[c, 1]))
-            m &= (lx | col_bits[c, 2]) & (ax | col_bits[c, 5])
-            m &= (ly | col_bits[c, 3]) & (ay | col_bits[c, 6])
-            m &= (lz | col_bits[c, 4]) & (az | col_bits[c, 7])
-            need[r, c] = m != 0
+            need[r, c] = cuttable_one_word(f, b, lx, ly, lz, ax, ay, az, col_bits, c)
 
 
 @njit(parallel=True, cache=True, nogil=True)
