@@ -135,11 +135,12 @@ def _in_front(P, plane, a, b):
     return False
 
 
-def _pair_states(rows, cols, P, plane, front, back, below, above, cull, state):
+def _pair_states(rows, cols, P, plane, front, back, below, above, cull, state, bits=None):
     """state[r, c]: silent (the patches do not face each other), visible (no occluder can cut
-    the pair) or pending (a probe decides); a function of the pair alone, symmetric."""
+    the pair) or pending (a probe decides); a function of the pair alone, symmetric.
+    ``bits``: :func:`one_word_bits` of the masks when the caller keeps them (else made here)."""
     if cull and front.shape[1] == 1:  # at most 64 occluders: one word per mask
-        bits = one_word_bits(front, back, below, above)
+        bits = one_word_bits(front, back, below, above) if bits is None else bits
         _pair_states_one_word(rows, cols, P, plane, np.ascontiguousarray(P[cols]), np.ascontiguousarray(plane[cols]),
                               bits, np.ascontiguousarray(bits[cols]), state)
     else:
@@ -148,9 +149,8 @@ def _pair_states(rows, cols, P, plane, front, back, below, above, cull, state):
 
 @njit(parallel=True, cache=True, nogil=True)
 def _pair_states_one_word(rows, cols, P, plane, col_P, col_plane, bits, col_bits, state):
-    """:func:`_pair_states` with one 64-bit word per mask (``bits`` as in
-    :func:`hfrad.formfactors.visibility._needs_rays_one_word`) and the columns' points, planes
-    and bits gathered once: the same tests, in the same order."""
+    """:func:`_pair_states` with one 64-bit word per mask (``bits`` from :func:`one_word_bits`)
+    and the columns' points, planes and bits gathered once: the same tests, in the same order."""
     s = P.shape[1]
     for r in prange(rows.shape[0]):
         i = rows[r]
@@ -273,7 +273,7 @@ def full_ray_pairs(vis, F: np.ndarray, rows: np.ndarray, cols: np.ndarray, need:
     R, Cc = _with_neighbours(rows, nb), _with_neighbours(cols, nb)
     state = np.empty((len(R), len(Cc)), np.int8)
     _pair_states(R, Cc, vis.points, vis.plane, vis.front_bits, vis.back_bits, vis.below_bits, vis.above_bits,
-                 vis.cull, state)
+                 vis.cull, state, vis.word_bits)
     if overlay is not None:
         overlay(state, R, Cc)
     _probe(vis, R, Cc, state)

@@ -313,6 +313,7 @@ class Visibility:
             self.back_bits = np.zeros((n, 1), np.uint64)
             self.below_bits = np.zeros((n, 3, 1), np.uint64)
             self.above_bits = np.zeros((n, 3, 1), np.uint64)
+            self.word_bits = None
             return
         cr = np.cross(occ[:, 1] - occ[:, 0], occ[:, 2] - occ[:, 0])
         length = np.linalg.norm(cr, axis=1)
@@ -350,6 +351,8 @@ class Visibility:
                 below[s:s + step, axis] = _pack_bits(olo[None, :, axis] <= hi[s:s + step, None, axis], words)
                 above[s:s + step, axis] = _pack_bits(ohi[None, :, axis] >= lo[s:s + step, None, axis], words)
         self.below_bits, self.above_bits = below, above
+        # the masks in one (n, 8) array when one word holds them: made once, read by every block
+        self.word_bits = one_word_bits(front, back, below, above) if words == 1 else None
 
     # ------------------------------------------------------------------
     def apply(self, F: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> None:
@@ -370,7 +373,7 @@ class Visibility:
         cols = np.ascontiguousarray(cols, np.int64)
         need = np.empty(F.shape, np.bool_)
         _needs_rays(F, rows, cols, self.front_bits, self.back_bits, self.below_bits, self.above_bits,
-                    self.cull, need)
+                    self.cull, need, self.word_bits)
         if self.clusters is not None:
             # pairs of clusters that are wholly visible or wholly blocked need no ray (clustervis.py)
             cs = self.clusters.states(rows, cols)
@@ -556,10 +559,11 @@ def _pack_bits(flags: np.ndarray, words: int) -> np.ndarray:
     return np.ascontiguousarray(by).view(np.uint64).reshape(p, words)
 
 
-def _needs_rays(F, rows, cols, front, back, below, above, cull, need):
-    """need[r, c]: F > 0 and some occluder can cut the pair's segments (bitwise test)."""
+def _needs_rays(F, rows, cols, front, back, below, above, cull, need, bits=None):
+    """need[r, c]: F > 0 and some occluder can cut the pair's segments (bitwise test).
+    ``bits``: :func:`~hfrad.formfactors.probing.one_word_bits` of the masks when the caller keeps them."""
     if cull and front.shape[1] == 1:  # at most 64 occluders: one word per mask
-        bits = one_word_bits(front, back, below, above)
+        bits = one_word_bits(front, back, below, above) if bits is None else bits
         _needs_rays_one_word(F, rows, cols, bits, np.ascontiguousarray(bits[cols]), need)
     else:
         _needs_rays_words(F, rows, cols, front, back, below, above, cull, need)
