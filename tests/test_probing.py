@@ -127,3 +127,52 @@ def test_probe_segments_and_cull_test_match_the_general_routines(both):
     _pair_states_words(*args, words)
     assert len(np.unique(one)) == 3  # silent, visible and pending pairs all occur
     np.testing.assert_array_equal(one, words)
+
+
+def _decide_by_the_rule(state, R, Cc, rows, cols, nb, vis, F, need):
+    """The probe decision as the module docstring states it, pair by pair (a reference)."""
+    from hfrad.formfactors.probing import _BLOCKED, _SILENT
+    rp, cp = {p: a for a, p in enumerate(R)}, {p: a for a, p in enumerate(Cc)}
+    C, D, A = vis.centroids, vis.diameters, vis.areas
+    out, F = np.zeros(F.shape, np.bool_), F.copy()
+    for r, i in enumerate(rows):
+        for c, j in enumerate(cols):
+            if not need[r, c]:
+                continue
+            own = state[rp[i], cp[j]]
+            close = np.sum((C[i] - C[j]) ** 2) < (vis.probe_near * (D[i] + D[j])) ** 2
+            large = F[r, c] * A[i] >= vis.probe_below * min(A[i], A[j])
+            neighbours = [state[rp[a], cp[j]] for a in nb[i] if a >= 0] + [state[rp[i], cp[b]] for b in nb[j] if b >= 0]
+            out[r, c] = own == _SILENT or close or large or any(s != own for s in neighbours)
+            if not out[r, c] and own == _BLOCKED:
+                F[r, c] = 0.0
+    return out, F
+
+
+def test_probe_decision_follows_the_rule_pair_by_pair(both):
+    """The block-wise decision (neighbour rows compared column by column, neighbour columns as
+    bits) gives the pair-by-pair rule's answer, and the neighbour lists are setdiff1d's."""
+    from hfrad.formfactors.probing import _decide, _pair_states, _probe, _with_neighbours
+
+    scene, probed, F, _, _ = both
+    vis, nb = probed.visibility, probed.visibility.neighbours
+    rows, cols = np.arange(0, scene.n_patches, 3), np.arange(200, 330)   # rows: a subset, as with the mirror
+    for patches in (rows, cols):
+        expect = np.setdiff1d(nb[patches].ravel(), np.r_[patches, -1])
+        np.testing.assert_array_equal(_with_neighbours(patches, nb), np.r_[patches, expect])
+    R, Cc = _with_neighbours(rows, nb), _with_neighbours(cols, nb)
+    state = np.empty((len(R), len(Cc)), np.int8)
+    _pair_states(R, Cc, vis.points, vis.plane, vis.front_bits, vis.back_bits, vis.below_bits, vis.above_bits,
+                 vis.cull, state, vis.word_bits)
+    _probe(vis, R, Cc, state)
+    Fu = probed._kernel(rows, cols)            # unoccluded
+    need = Fu > 0
+    row_pos, col_pos = np.full(len(nb), -1), np.full(len(nb), -1)
+    row_pos[R], col_pos[Cc] = np.arange(len(R)), np.arange(len(Cc))
+    out, Fd = np.empty(Fu.shape, np.bool_), Fu.copy()
+    _decide(state, row_pos, col_pos, rows, cols, nb, vis.centroids, vis.diameters, vis.probe_near, Fd,
+            vis.areas, vis.probe_below, need, out, 3)
+    ref_out, ref_F = _decide_by_the_rule(state, R, Cc, rows, cols, nb, vis, Fu, need)
+    assert out.any() and (need & ~out).any() and (Fd != Fu).any()   # both outcomes, and blocked probes
+    np.testing.assert_array_equal(out, ref_out)
+    np.testing.assert_array_equal(Fd, ref_F)

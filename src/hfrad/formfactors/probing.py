@@ -47,6 +47,8 @@ from __future__ import annotations
 
 import math
 
+import numba
+
 import numpy as np
 from numba import njit, prange
 from scipy.spatial import cKDTree
@@ -141,43 +143,49 @@ def _pair_states(rows, cols, P, plane, front, back, below, above, cull, state, b
     ``bits``: :func:`one_word_bits` of the masks when the caller keeps them (else made here)."""
     if cull and front.shape[1] == 1:  # at most 64 occluders: one word per mask
         bits = one_word_bits(front, back, below, above) if bits is None else bits
-        _pair_states_one_word(rows, cols, P, plane, np.ascontiguousarray(P[cols]), np.ascontiguousarray(plane[cols]),
-                              bits, np.ascontiguousarray(bits[cols]), state)
+        # the columns' points, planes and bits gathered once, column index last (vectorized loops)
+        _pair_states_one_word(rows, cols, P, plane, np.ascontiguousarray(P[cols].transpose(1, 2, 0)),
+                              np.ascontiguousarray(plane[cols].T), bits, np.ascontiguousarray(bits[cols].T),
+                              state, max(1, min(len(rows), 8 * numba.get_num_threads())))
     else:
         _pair_states_words(rows, cols, P, plane, front, back, below, above, cull, state)
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def _pair_states_one_word(rows, cols, P, plane, col_P, col_plane, bits, col_bits, state):
-    """:func:`_pair_states` with one 64-bit word per mask (``bits`` from :func:`one_word_bits`)
-    and the columns' points, planes and bits gathered once: the same tests, in the same order."""
+def _pair_states_one_word(rows, cols, P, plane, col_P, col_plane, bits, col_bits, state, chunks):
+    """:func:`_pair_states` with one 64-bit word per mask (``bits`` from :func:`one_word_bits`).
+
+    The columns' points ``col_P`` (s, 3, nc), planes ``col_plane`` (4, nc) and bits ``col_bits``
+    (8, nc) are laid out column index last, so each test runs over a row's columns without a
+    branch (SIMD): the same tests with the same roundings as :func:`_in_front` and
+    :func:`cuttable`, so the same states. Rows go in ``chunks`` parts.
+    """
+    nr, nc = state.shape
     s = P.shape[1]
-    for r in prange(rows.shape[0]):
-        i = rows[r]
-        f, b = bits[i, 0], bits[i, 1]
-        lx, ly, lz, ax, ay, az = bits[i, 2], bits[i, 3], bits[i, 4], bits[i, 5], bits[i, 6], bits[i, 7]
-        for c in range(cols.shape[0]):
-            if i == cols[c]:
-                state[r, c] = _SILENT
-                continue
-            front_ij = False  # some point of i in front of column c's plane
+    for t in prange(chunks):
+        front_ij = np.empty(nc, np.bool_)   # some point of the row patch in front of column c's plane
+        front_ji = np.empty(nc, np.bool_)   # some point of column c in front of the row patch's plane
+        for r in range(t * nr // chunks, (t + 1) * nr // chunks):
+            i = rows[r]
+            front_ij[:] = False
+            front_ji[:] = False
             for k in range(s):
-                if (col_plane[c, 0] * P[i, k, 0] + col_plane[c, 1] * P[i, k, 1] + col_plane[c, 2] * P[i, k, 2]
-                        > col_plane[c, 3]):
-                    front_ij = True
-                    break
-            if not front_ij:
-                state[r, c] = _SILENT
-                continue
-            front_ji = False  # some point of column c in front of i's plane
+                x, y, z = P[i, k, 0], P[i, k, 1], P[i, k, 2]
+                for c in range(nc):
+                    front_ij[c] |= col_plane[0, c] * x + col_plane[1, c] * y + col_plane[2, c] * z > col_plane[3, c]
+            a, b, e, d = plane[i, 0], plane[i, 1], plane[i, 2], plane[i, 3]
             for k in range(s):
-                if plane[i, 0] * col_P[c, k, 0] + plane[i, 1] * col_P[c, k, 1] + plane[i, 2] * col_P[c, k, 2] > plane[i, 3]:
-                    front_ji = True
-                    break
-            if not front_ji:
-                state[r, c] = _SILENT
-                continue
-            state[r, c] = _PENDING if cuttable_one_word(f, b, lx, ly, lz, ax, ay, az, col_bits, c) else _VISIBLE
+                for c in range(nc):
+                    front_ji[c] |= a * col_P[k, 0, c] + b * col_P[k, 1, c] + e * col_P[k, 2, c] > d
+            f, bk = bits[i, 0], bits[i, 1]
+            lx, ly, lz, ax, ay, az = bits[i, 2], bits[i, 3], bits[i, 4], bits[i, 5], bits[i, 6], bits[i, 7]
+            for c in range(nc):
+                m = ~((f & col_bits[0, c]) | (bk & col_bits[1, c]))
+                m &= (lx | col_bits[2, c]) & (ax | col_bits[5, c])
+                m &= (ly | col_bits[3, c]) & (ay | col_bits[6, c])
+                m &= (lz | col_bits[4, c]) & (az | col_bits[7, c])
+                pending = np.int8(_PENDING) if m != 0 else np.int8(_VISIBLE)
+                state[r, c] = pending if front_ij[c] and front_ji[c] and cols[c] != i else np.int8(_SILENT)
 
 
 @njit(parallel=True, cache=True, nogil=True)
@@ -215,7 +223,7 @@ def _probe(vis, R: np.ndarray, Cc: np.ndarray, state: np.ndarray) -> None:
         m = _gather_probes(state, R, Cc, r0, r1, vis.probe_points, buf[0], buf[1], buf[2], where)
         if m:
             hit = vis.cast_segments(buf[0][:m], buf[1][:m], buf[2][:m])
-            _store_probes(state, nc, where, hit, m)
+            _store_probes(state, where, hit, m)
             vis.rays_probe += m
             vis.rays_cast += m
         vis.buffers.put(buf)
@@ -253,9 +261,11 @@ def _gather_probes(state, R, Cc, r0, r1, P, o, d, t, where):
 
 
 @njit(cache=True, nogil=True)
-def _store_probes(state, nc, where, hit, m):
+def _store_probes(state, where, hit, m):
+    """The probes' answers into the pending pairs' states (``where``: flat positions in ``state``)."""
+    flat = state.reshape(-1)   # C-contiguous: no division per probe
     for k in range(m):
-        state[where[k] // nc, where[k] % nc] = _BLOCKED if hit[k] else _VISIBLE
+        flat[where[k]] = _BLOCKED if hit[k] else _VISIBLE
 
 
 def full_ray_pairs(vis, F: np.ndarray, rows: np.ndarray, cols: np.ndarray, need: np.ndarray,
@@ -284,7 +294,7 @@ def full_ray_pairs(vis, F: np.ndarray, rows: np.ndarray, cols: np.ndarray, need:
     col_pos[Cc] = np.arange(len(Cc))
     full = np.empty((r, c), np.bool_)
     _decide(state, row_pos, col_pos, rows, cols, nb, vis.centroids, vis.diameters, vis.probe_near,
-            F, vis.areas, vis.probe_below, need, full)
+            F, vis.areas, vis.probe_below, need, full, max(1, min(r, 8 * numba.get_num_threads())))
     return full
 
 
@@ -293,35 +303,83 @@ def _with_neighbours(patches: np.ndarray, nb: np.ndarray) -> np.ndarray:
     n = len(nb)
     if len(patches) == n and np.bincount(patches, minlength=n).all():
         return patches   # every patch (a column block's rows): no neighbour is missing
-    return np.concatenate([patches, np.setdiff1d(nb[patches].ravel(), np.r_[patches, -1])])
+    # the missing neighbours in increasing order (as np.setdiff1d gives them) by marks, not sorting
+    missing = np.zeros(n + 1, np.bool_)          # slot n takes the unused neighbour slots (-1)
+    missing[nb[patches].ravel()] = True
+    missing[patches] = False
+    return np.concatenate([patches, np.flatnonzero(missing[:n])])
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def _decide(state, row_pos, col_pos, rows, cols, nb, C, D, near, F, areas, below, need, out):
+def _decide(state, row_pos, col_pos, rows, cols, nb, C, D, near, F, areas, below, need, out, chunks):
     """out[r, c]: pair (r, c) needs rays and is close, or large (max(F_ij, F_ji) >= below), or
     unprobed, or a neighbour pair's state differs from its probe; a pair that keeps its
-    probe and was found blocked gets F = 0. (A_i F_ij is symmetric, so the size test is too.)"""
+    probe and was found blocked gets F = 0. (A_i F_ij is symmetric, so the size test is too.)
+
+    The neighbour tests are laid out for the block: a row's neighbour rows are compared with it
+    column by column (contiguous bytes), and a column's neighbour columns are bits over
+    ``state``'s columns, tested against the row's set of columns in each state. Rows go in
+    ``chunks`` parts (each with its own work arrays).
+    """
+    nr, nc = out.shape
     k = nb.shape[1]
-    for r in prange(out.shape[0]):
-        i = rows[r]
-        for c in range(out.shape[1]):
-            if not need[r, c]:
-                out[r, c] = False
-                continue
-            j = cols[c]
-            own = state[r, c]
-            dx = C[i, 0] - C[j, 0]
-            dy = C[i, 1] - C[j, 1]
-            dz = C[i, 2] - C[j, 2]
-            differs = (own == _SILENT or dx * dx + dy * dy + dz * dz < (near * (D[i] + D[j])) ** 2
-                       or F[r, c] * areas[i] >= below * min(areas[i], areas[j]))
+    words = (state.shape[1] + 63) // 64
+    col_words, col_masks, col_count = _column_neighbour_bits(cols, nb, col_pos)
+    for t in prange(chunks):
+        in_state = np.empty((4, words), np.uint64)   # per state, the row's columns in that state
+        agree = np.empty(nc, np.bool_)                # the row's neighbour rows agree, per column
+        for r in range(t * nr // chunks, (t + 1) * nr // chunks):
+            i = rows[r]
+            own_row = state[r]
+            in_state[:] = 0
+            for p in range(state.shape[1]):
+                in_state[own_row[p], p >> 6] |= np.uint64(1) << np.uint64(p & 63)
+            agree[:] = True
             for a in range(k):
-                if differs:
-                    break
                 if nb[i, a] >= 0:
-                    differs = state[row_pos[nb[i, a]], c] != own
-                if not differs and nb[j, a] >= 0:
-                    differs = state[r, col_pos[nb[j, a]]] != own
-            out[r, c] = differs
-            if not differs and own == _BLOCKED:
-                F[r, c] = 0.0
+                    other = state[row_pos[nb[i, a]]]
+                    for c in range(nc):
+                        agree[c] &= other[c] == own_row[c]
+            for c in range(nc):
+                if not need[r, c]:
+                    out[r, c] = False
+                    continue
+                j = cols[c]
+                own = own_row[c]
+                dx = C[i, 0] - C[j, 0]
+                dy = C[i, 1] - C[j, 1]
+                dz = C[i, 2] - C[j, 2]
+                differs = (own == _SILENT or dx * dx + dy * dy + dz * dz < (near * (D[i] + D[j])) ** 2
+                           or F[r, c] * areas[i] >= below * min(areas[i], areas[j]) or not agree[c])
+                for e in range(col_count[c]):
+                    if differs:
+                        break
+                    differs = (col_masks[c, e] & ~in_state[own, col_words[c, e]]) != 0
+                out[r, c] = differs
+                if not differs and own == _BLOCKED:
+                    F[r, c] = 0.0
+
+
+@njit(cache=True, nogil=True)
+def _column_neighbour_bits(cols, nb, col_pos):
+    """Each column's neighbours as bits over the state's columns: its nonzero 64-bit words
+    (``words[c, :count[c]]`` which, ``masks[c, :count[c]]`` the bits)."""
+    nc, k = cols.shape[0], nb.shape[1]
+    words = np.zeros((nc, k), np.int64)
+    masks = np.zeros((nc, k), np.uint64)
+    count = np.zeros(nc, np.int64)
+    for c in range(nc):
+        for a in range(k):
+            q = nb[cols[c], a]
+            if q < 0:
+                continue
+            p = col_pos[q]
+            w, bit = p >> 6, np.uint64(1) << np.uint64(p & 63)
+            e = 0
+            while e < count[c] and words[c, e] != w:
+                e += 1
+            if e == count[c]:
+                words[c, e] = w
+                count[c] += 1
+            masks[c, e] |= bit
+    return words, masks, count
