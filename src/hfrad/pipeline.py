@@ -300,12 +300,13 @@ def _factorize_scene(scene: Scene, options: PrecomputeOptions, *, checkpoint, ch
         ff_kwargs["ray_budget"] = options.ray_budget(scene)
     mirror_stats: dict = {}   # what the reciprocity copy did (pairs copied, scratch I/O), kept in info
     # the reciprocity tiles leave free what the rest of the run is estimated to need; those beyond
-    # the memory band spill to a scratch file beside the output (its checkpoint), else in TMPDIR
+    # the memory band spill to a scratch file beside the output (its checkpoint), else in TMPDIR;
+    # blocks are lent (no copy): _stream_blocks is done with each before it asks for the next
     blocks = iter_column_blocks(scene, block_size, order=perm, first_block=stream.blocks_done,
                                 processes=processes, dtype=dt, reciprocity=options.reciprocity,
                                 reserved_bytes=precompute_bytes(n, block_size, itemsize=dt.itemsize),
                                 scratch=None if checkpoint is None else Path(checkpoint).parent,
-                                mirror_stats=mirror_stats, **ff_kwargs)
+                                mirror_stats=mirror_stats, lend=True, **ff_kwargs)
     rows_rho = options.rows_rho(scene)
     split = None
     if options.near_entries:
@@ -419,15 +420,15 @@ def _stream_blocks(blocks, stream: HFStream, stats: PassStatistics, rows_rho, n_
     last_save, save_seconds = time.perf_counter(), 0.0
     resumed = stream.blocks_done      # blocks the checkpoint held (said with the first status)
     time_ff = time_ckpt = 0.0
+    G = None    # G's buffer, reused block after block (HF keeps nothing of it)
     t_ff = time.perf_counter()
     for start, stop, block in blocks:
         time_ff += time.perf_counter() - t_ff
         # G = diag(rho_max) F (rows in internal order), less the near field; the budget's norm is G's before the split
-        G, norm2, block_norm2 = far_block(stats, start, stop, block, rows_rho, split)
+        G, norm2, block_norm2 = far_block(stats, start, stop, block, rows_rho, split, out=G)
         del block
         with _every_blas_thread_for_a_large_merge(stream.blocks_done, n_blocks):
             stream.push(G, norm2=norm2, block_norm2=block_norm2)
-        del G
         report(progress, stream.blocks_done, n_blocks)
         if status is not None:
             info = {"blocks": stream.blocks_done, "rank": stream.current_rank, "elapsed": time.perf_counter() - t0}

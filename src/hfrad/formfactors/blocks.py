@@ -69,7 +69,8 @@ def iter_column_blocks(scene, block_size: int = DEFAULT_BLOCK_SIZE, *, order=Non
                        ray_budget: RayBudget | None = None,
                        reciprocity: bool = True,
                        reserved_bytes: int = 0, scratch=None,
-                       mirror_stats: dict | None = None) -> Iterator[tuple[int, int, np.ndarray]]:
+                       mirror_stats: dict | None = None,
+                       lend: bool = False) -> Iterator[tuple[int, int, np.ndarray]]:
     """Stream F in column blocks, rows and columns in the internal ``order``.
 
     Yields ``(start, stop, block)`` with
@@ -130,6 +131,11 @@ def iter_column_blocks(scene, block_size: int = DEFAULT_BLOCK_SIZE, *, order=Non
         ``copied_pairs``, ``possible_pairs``, ``spilled_pairs``, ``scratch_bytes``,
         ``scratch_written``, ``scratch_seconds`` (this thread: copies, reads, checks),
         ``scratch_write_seconds`` (the writer thread), ``repaired_tiles``.
+    lend : bool
+        Blocks computed by worker processes come in one array reused for the whole
+        pass, valid only until the next block is asked for (no fresh n x b pages per
+        block); for a caller that is done with each block before the next. Default
+        False: every block is an array of its own.
 
     Raises
     ------
@@ -196,7 +202,7 @@ def iter_column_blocks(scene, block_size: int = DEFAULT_BLOCK_SIZE, *, order=Non
         skips[k] = copies.copied_rows(k)          # decided when the block is handed out
         return cols, skips[k]
 
-    computed = engine.iter_blocks(order, (request(k) for k in todo)) if todo else _empty()
+    computed = engine.iter_blocks(order, (request(k) for k in todo), lend=lend) if todo else _empty()
     try:
         for index, start in enumerate(starts, first_block):
             stop = min(n, start + block_size)

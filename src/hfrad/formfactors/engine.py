@@ -89,12 +89,14 @@ class FormFactorEngine:
             self.visibility.apply(F, rows, cols)
         return F
 
-    def iter_blocks(self, rows: np.ndarray, col_sets) -> Iterator[np.ndarray]:
+    def iter_blocks(self, rows: np.ndarray, col_sets, *, lend: bool = False) -> Iterator[np.ndarray]:
         """F[rows][:, cols] for each ``cols`` of ``col_sets``, in order, pipelined (see Notes).
 
         An item of ``col_sets`` may be ``(cols, skip)`` with ``skip`` a slice of
         positions in ``rows`` that are not computed (left unspecified in the
         block: the caller fills them, see :mod:`hfrad.formfactors.mirror`).
+        ``lend`` is accepted for the process engine's interface: blocks here are
+        always fresh arrays.
         """
         if self.visibility is None:
             for item in col_sets:

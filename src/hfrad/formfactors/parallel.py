@@ -299,9 +299,15 @@ class ProcessEngine:
         self.pairs = self.rays = 0
         self.worker_seconds = 0.0
 
-    def iter_blocks(self, rows: np.ndarray, col_sets) -> Iterator[np.ndarray]:
+    def iter_blocks(self, rows: np.ndarray, col_sets, *, lend: bool = False) -> Iterator[np.ndarray]:
         """F[rows][:, cols] for each ``cols`` (or ``(cols, skip)``, as for
-        :meth:`FormFactorEngine.iter_blocks`) of ``col_sets``, in order (copies, ``dtype``)."""
+        :meth:`FormFactorEngine.iter_blocks`) of ``col_sets``, in order (``dtype``).
+
+        Each block is a new array by default; ``lend=True`` copies every block into one
+        array kept for the whole pass, valid (and the caller's to write) only until the
+        next block is asked for: no fresh pages (page faults) for each n x b block. The
+        shared slots themselves are never handed out: they are unmapped when the pass ends.
+        """
 
         n = len(rows)
         slots = self.workers + 2
@@ -337,6 +343,7 @@ class ProcessEngine:
                     os.environ[k] = v
         view = np.ndarray(shape, dtype=self.dtype, buffer=shm.buf)
         free = list(range(slots))
+        lent = None  # with lend: the one array every block is copied into
         pending: list = []  # (slot, width, future) in block order
         col_iter = iter(col_sets)
         finished = False
@@ -362,7 +369,13 @@ class ProcessEngine:
                 self.pairs += stats["pairs"]
                 self.rays += stats["rays"]
                 self.worker_seconds += stats["seconds"]
-                block = view[slot, :, :width].copy()
+                if lend:
+                    if lent is None:
+                        lent = np.empty((n, self.block_size), self.dtype)
+                    block = lent[:, :width]
+                    np.copyto(block, view[slot, :, :width])
+                else:
+                    block = view[slot, :, :width].copy()
                 free.append(slot)
                 yield block
             finished = True

@@ -201,11 +201,12 @@ def precompute_options(scene: Scene, *, eps: float = 0.02, relative: bool = True
 # -- What a column block adds: additive over blocks, so a Dask leaf returns its share -------------
 
 def far_block(stats: PassStatistics, start: int, stop: int, F_block: np.ndarray, rows_rho: np.ndarray,
-              split: NearFieldSplit | None = None) -> tuple[np.ndarray, float, float]:
+              split: NearFieldSplit | None = None, out: np.ndarray | None = None) -> tuple[np.ndarray, float, float]:
     """What HF gets of columns ``start:stop`` of F, recorded in ``stats`` on the way (both backends' leaves).
 
     One read of F gives the pass statistics, ``G = rows_rho F`` and ``||G||_F^2``
-    (:meth:`PassStatistics.add_scaled`); ``split`` then moves G's near entries out.
+    (:meth:`PassStatistics.add_scaled`, into ``out`` when it fits: a buffer the caller
+    reuses); ``split`` then moves G's near entries out.
 
     Returns
     -------
@@ -216,7 +217,7 @@ def far_block(stats: PassStatistics, start: int, stop: int, F_block: np.ndarray,
     block_norm2 : float
         ``||G||_F^2`` of the returned block (``norm2`` less the squares moved out).
     """
-    G, norm2 = stats.add_scaled(start, stop, F_block, rows_rho)
+    G, norm2 = stats.add_scaled(start, stop, F_block, rows_rho, out)
     if split is None:
         return G, norm2, norm2
     G = split.split(G, start)

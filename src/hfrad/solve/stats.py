@@ -107,8 +107,12 @@ class PassStatistics:
         """Record columns ``start:stop`` of F (all rows, internal order); ``rows_rho`` is (n, 1) rho_max."""
         self._pass(start, stop, F_block, rows_rho, None)
 
-    def add_scaled(self, start: int, stop: int, F_block: np.ndarray, rows_rho: np.ndarray) -> tuple[np.ndarray, float]:
+    def add_scaled(self, start: int, stop: int, F_block: np.ndarray, rows_rho: np.ndarray,
+                   out: np.ndarray | None = None) -> tuple[np.ndarray, float]:
         """:meth:`add`, and the block of G it reads F for: ``(rows_rho * F_block, ||G_block||_F^2)``.
+
+        ``out``: an array of F_block's shape and dtype to write G into (a buffer reused from
+        block to block: fresh pages for every n x b block cost page faults); else a new one.
 
         Returns
         -------
@@ -118,7 +122,9 @@ class PassStatistics:
             ``||G||_F^2`` summed in float64 (what :func:`hfrad.lowrank.hf.frobenius2` gives).
         """
         F_block = np.ascontiguousarray(F_block)
-        G = np.empty_like(F_block)
+        usable = (out is not None and out.shape == F_block.shape and out.dtype == F_block.dtype
+                  and out.flags.c_contiguous and out.flags.writeable)
+        G = out if usable else np.empty_like(F_block)
         return G, self._pass(start, stop, F_block, rows_rho, G)
 
     def _pass(self, start: int, stop: int, F_block, rows_rho, G) -> float:
