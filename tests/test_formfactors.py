@@ -230,3 +230,25 @@ def test_kernel_settings_are_recorded_in_the_hfr(tmp_path):
     assert recorded["tolerance"] == TOLERANCE and recorded["kernel_version"] == KERNEL_VERSION
     from hfrad.formfactors.visibility import BOUNDARY_SAMPLES, REFINE_SAMPLES
     assert recorded["refine_samples"] == REFINE_SAMPLES and recorded["boundary_samples"] == BOUNDARY_SAMPLES
+
+
+def test_single_triangle_kernel_equals_the_general_one():
+    """Scenes of one triangle per patch take their own block loop (the distant pairs' shortcut
+    in SIMD lanes over a row's columns, then the rest pair by pair): the general per-patch
+    loop's numbers, bit for bit, on every kind of pair (distant, near, coplanar, itself)."""
+    from hfrad.formfactors.kernel import PatchGeometry, _unoccluded_block, unoccluded_block
+    from hfrad.scene.builtin import cornell_box
+    from hfrad.scene.patches import subdivide
+
+    scene = subdivide(cornell_box(), patches=1500)
+    geom = PatchGeometry(scene)
+    assert geom.one_triangle_per_patch
+    rows = np.arange(scene.n_patches)[::-1].copy()
+    cols = np.arange(100, 420)
+    fast = unoccluded_block(geom, rows, cols)
+    general = np.empty_like(fast)
+    _unoccluded_block(geom.triangles, geom.normals, geom.areas, geom.centroids, geom.diameters, geom.start,
+                      geom.index, geom.patch_areas, rows, cols, geom.near, geom.adaptive, geom.eps, geom.tolerance,
+                      general)
+    assert (fast > 0).mean() > 0.3 and (fast == 0).any()
+    np.testing.assert_array_equal(fast, general)

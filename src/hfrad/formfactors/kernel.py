@@ -77,6 +77,7 @@ from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
 from numba import njit, prange
 
@@ -513,19 +514,66 @@ def _unoccluded_block(T, N, A, C, D, start, index, PA, rows, cols, near, adaptiv
             out[r, c] = af / PA[i] if af > 0.0 else 0.0
 
 
-@njit(parallel=True, cache=True, fastmath=False, nogil=True)
-def _unoccluded_block_triangles(T, N, A, C, D, rows, cols, near, adaptive, eps, tol, out):
+@njit(parallel=True, cache=True, fastmath=False, nogil=True, error_model="numpy")
+def _unoccluded_block_triangles(T, N, A, C, D, rows, cols, near, adaptive, eps, tol, out, chunks):
     """:func:`_unoccluded_block` for scenes whose patches are single triangles (patch p is
-    triangle p): no CSR loops per pair, the same numbers to the last bit (the sum of one term)."""
-    for r in prange(rows.shape[0]):
-        i = rows[r]
-        for c in range(cols.shape[0]):
-            j = cols[c]
-            if i == j:
-                out[r, c] = 0.0
-                continue
-            af = _triangle_pair_area_ff(min(i, j), max(i, j), T, N, A, C, D, near, adaptive, eps, tol)
-            out[r, c] = af / A[i] if af > 0.0 else 0.0
+    triangle p): no CSR loops per pair, the same numbers to the last bit (the sum of one term).
+
+    Each row takes the distant pairs' shortcut of :func:`_triangle_pair_area_ff` first over all
+    its columns at once (:func:`_distant_row`, branch-free: SIMD), then the pairs it leaves one
+    by one. Rows go in ``chunks`` parts.
+    """
+    nc = cols.shape[0]
+    # the columns' centroids, normals, areas and diameters, column index last
+    col = np.empty((8, nc))
+    for c in range(nc):
+        j = cols[c]
+        col[0, c], col[1, c], col[2, c] = C[j, 0], C[j, 1], C[j, 2]
+        col[3, c], col[4, c], col[5, c] = N[j, 0], N[j, 1], N[j, 2]
+        col[6, c], col[7, c] = A[j], D[j]
+    nr = rows.shape[0]
+    for part in prange(chunks):
+        left = np.empty(nc, np.bool_)    # the pairs the shortcut does not decide
+        for r in range(part * nr // chunks, (part + 1) * nr // chunks):
+            i = rows[r]
+            _distant_row(i, C[i, 0], C[i, 1], C[i, 2], N[i, 0], N[i, 1], N[i, 2], A[i], D[i], cols, col,
+                         near, eps, out[r], left)
+            for c in range(nc):
+                if left[c]:
+                    j = cols[c]
+                    af = _triangle_pair_area_ff(min(i, j), max(i, j), T, N, A, C, D, near, adaptive, eps, tol)
+                    out[r, c] = af / A[i] if af > 0.0 else 0.0
+
+
+@njit(cache=True, fastmath=False, nogil=True, error_model="numpy")
+def _distant_row(i, cx, cy, cz, nx, ny, nz, a, dm, cols, col, near, eps, out, left):
+    """The distant shortcut of :func:`_triangle_pair_area_ff` for row patch i against every
+    column: ``out[c]`` where it applies (the pair in canonical order, lower index first, by
+    selects: the same expressions on the same numbers), ``left[c]`` where it does not.
+    ``col`` (8, nc): the columns' centroids, normals, areas and diameters. Branch-free so that
+    the loop runs in SIMD lanes (``error_model="numpy"``: no check for division by zero, whose
+    lanes are discarded)."""
+    for c in range(cols.shape[0]):
+        lower = i < cols[c]            # i is the pair's first triangle t
+        tx, ty, tz = (cx, cy, cz) if lower else (col[0, c], col[1, c], col[2, c])
+        ux, uy, uz = (col[0, c], col[1, c], col[2, c]) if lower else (cx, cy, cz)
+        tnx, tny, tnz = (nx, ny, nz) if lower else (col[3, c], col[4, c], col[5, c])
+        unx, uny, unz = (col[3, c], col[4, c], col[5, c]) if lower else (nx, ny, nz)
+        at, au = (a, col[6, c]) if lower else (col[6, c], a)
+        dt, du = (dm, col[7, c]) if lower else (col[7, c], dm)
+        dx = tx - ux
+        dy = ty - uy
+        dz = tz - uz
+        d2 = dx * dx + dy * dy + dz * dz
+        s2 = (dt + du) * (dt + du)
+        far = d2 >= FAR * FAR * s2 and d2 >= near * near * s2 and at > 0.0 and au > 0.0
+        cos_u = unx * dx + uny * dy + unz * dz
+        cos_t = -(tnx * dx + tny * dy + tnz * dz)
+        front = cos_u >= dt and cos_t >= du and cos_u > 4.0 * eps and cos_t > 4.0 * eps
+        behind = cos_u <= -dt - 4.0 * eps or cos_t <= -du - 4.0 * eps
+        af = at * au * cos_t * cos_u / (d2 * (math.pi * d2 + 0.5 * (at + au)))
+        out[c] = af / a if far and front and af > 0.0 else 0.0
+        left[c] = not (far and (front or behind)) and i != cols[c]   # a patch and itself: 0
 
 
 def unoccluded_block(geom: PatchGeometry, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
@@ -542,7 +590,8 @@ def unoccluded_block(geom: PatchGeometry, rows: np.ndarray, cols: np.ndarray) ->
     out = np.empty((len(rows), len(cols)))
     if out.size and geom.one_triangle_per_patch:
         _unoccluded_block_triangles(geom.triangles, geom.normals, geom.areas, geom.centroids, geom.diameters,
-                                    rows, cols, geom.near, geom.adaptive, geom.eps, geom.tolerance, out)
+                                    rows, cols, geom.near, geom.adaptive, geom.eps, geom.tolerance, out,
+                                    max(1, min(len(rows), 8 * numba.get_num_threads())))
     elif out.size:
         _unoccluded_block(geom.triangles, geom.normals, geom.areas, geom.centroids, geom.diameters,
                           geom.start, geom.index, geom.patch_areas, rows, cols, geom.near, geom.adaptive,
