@@ -548,8 +548,9 @@ def _unoccluded_block_triangles(T, N, A, C, D, rows, cols, near, adaptive, eps, 
 @njit(cache=True, fastmath=False, nogil=True, error_model="numpy")
 def _distant_row(i, cx, cy, cz, nx, ny, nz, a, dm, cols, col, near, eps, out, left):
     """The distant shortcut of :func:`_triangle_pair_area_ff` for row patch i against every
-    column: ``out[c]`` where it applies (the pair in canonical order, lower index first, by
-    selects: the same expressions on the same numbers), ``left[c]`` where it does not.
+    column, and the pairs its ``_behind`` test surely sets to 0: ``out[c]`` where one applies
+    (the pair in canonical order, lower index first, by selects: the same expressions on the
+    same numbers), ``left[c]`` where neither does.
     ``col`` (8, nc): the columns' centroids, normals, areas and diameters. Branch-free so that
     the loop runs in SIMD lanes (``error_model="numpy"``: no check for division by zero, whose
     lanes are discarded)."""
@@ -572,8 +573,14 @@ def _distant_row(i, cx, cy, cz, nx, ny, nz, a, dm, cols, col, near, eps, out, le
         front = cos_u >= dt and cos_t >= du and cos_u > 4.0 * eps and cos_t > 4.0 * eps
         behind = cos_u <= -dt - 4.0 * eps or cos_t <= -du - 4.0 * eps
         af = at * au * cos_t * cos_u / (d2 * (math.pi * d2 + 0.5 * (at + au)))
+        # _behind for sure (then 0 whatever the distance): a corner's height over the other plane
+        # exceeds the centroid's by at most |n_t - n_u| D (a corner is within D of its centroid,
+        # and level with it along its own normal), so a bound under eps / 2 leaves the rounding
+        # of the heights (~1e-16 of the scene) far from eps: coplanar pairs, the commonest near ones
+        dn = math.sqrt((nx - col[3, c]) ** 2 + (ny - col[4, c]) ** 2 + (nz - col[5, c]) ** 2)
+        zero = cos_u + dn * dt <= 0.5 * eps or cos_t + dn * du <= 0.5 * eps or at <= 0.0 or au <= 0.0
         out[c] = af / a if far and front and af > 0.0 else 0.0
-        left[c] = not (far and (front or behind)) and i != cols[c]   # a patch and itself: 0
+        left[c] = not (far and (front or behind) or zero) and i != cols[c]   # a patch and itself: 0
 
 
 def unoccluded_block(geom: PatchGeometry, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
