@@ -85,24 +85,6 @@ def test_any_panels_give_the_same_object(monkeypatch):
     np.testing.assert_allclose(other.error_estimate().bound, fac.error_estimate().bound, rtol=1e-5)
 
 
-def test_lus_in_threads_give_the_serial_object(monkeypatch):
-    """The local default (InProcessThreads: the channels' LUs factored in threads, all ahead of
-    their panels) gives InProcess's object bit for bit: the same pieces, the same arguments."""
-    from hfrad.solve.nearfield import InProcessThreads
-
-    scene, seen, fac = _inputs(monkeypatch, 500, eps=0.03, block_size=64, dtype="float32", near_field=32)
-    assert len(fac.distinct_channels) == 3     # the red and green walls: three LUs, two in the first's order
-    args = (fac.perm, fac.Q, fac.V, fac.N, fac.rho_max, fac.reflectance, fac.lowrank)
-    serial = NearFieldFactorization(*args, scene=scene, stats=fac.stats, runner=InProcess())
-    runner = InProcessThreads(2)
-    try:
-        threaded = NearFieldFactorization(*args, scene=scene, stats=fac.stats, runner=runner)
-    finally:
-        runner.close()
-    assert np.array_equal(_codes(threaded.Z), _codes(serial.Z))
-    assert np.array_equal(threaded.capacitance_inv, serial.capacitance_inv)
-
-
 @pytest.mark.slow
 def test_on_a_local_cluster_equals_the_serial_assembly_and_the_dense_solve(monkeypatch):
     """assemble_on_cluster on 2 workers: the serial assemble()'s object (Z identical, K_c^{-1} and

@@ -33,7 +33,6 @@ The adjoint solve (``trans="T"``) applies ``A_c^{-T}`` twice instead
 
 from __future__ import annotations
 
-from concurrent.futures import Future, ThreadPoolExecutor
 from functools import cached_property
 
 import numpy as np
@@ -52,8 +51,7 @@ from .sparselu import PanelSolver
 from .woodbury import (N_CHANNELS, HFactorization, capacitance_applied, invert_capacitance,
                        low_rank_correction)
 
-__all__ = ["NearFieldFactorization", "SOLVER", "QUANTIZE_SHARE", "InProcess", "InProcessThreads", "local_runner",
-           "channel_solver", "solver_order",
+__all__ = ["NearFieldFactorization", "SOLVER", "QUANTIZE_SHARE", "InProcess", "channel_solver", "solver_order",
            "near_columns", "row_maxima", "column_products", "factor_near"]
 
 #: How the solve works, as recorded in .hfr files and reports.
@@ -203,49 +201,6 @@ class InProcess:
     def release(self, x) -> None:
         pass
 
-    def close(self) -> None:
-        pass
-
-
-class InProcessThreads(InProcess):
-    """:class:`InProcess` with the channels' sparse LUs factored in ``threads`` background threads.
-
-    SuperLU releases the GIL while it factors, so with more than one distinct channel the
-    channels after the first (factored in the first one's order, ``share_order``) are
-    factored side by side, and beside the first channel's column panels, which run here
-    (numba's own threads; no numba kernel runs in a pool thread). Every piece is the
-    function :class:`InProcess` runs, with the same arguments: the same ``Z`` and ``K_c``.
-    Memory: up to all distinct channels' factors at once (``factor_ahead``) instead of one.
-    """
-
-    factor_ahead = True
-
-    def __init__(self, threads: int = 2) -> None:
-        self._pool = ThreadPoolExecutor(max(1, int(threads)), thread_name_prefix="hfrad-splu")
-
-    def submit(self, fn, *args):
-        if fn is channel_solver:
-            return self._pool.submit(fn, *args)
-        return fn(*(_done(a) for a in args))
-
-    def gather(self, xs):
-        return [_done(x) for x in xs]
-
-    def close(self) -> None:
-        self._pool.shutdown(wait=True, cancel_futures=True)
-
-
-def _done(x):
-    """A piece's result: ``x`` itself, or what the future ``x`` gives."""
-    return x.result() if isinstance(x, Future) else x
-
-
-def local_runner() -> InProcess:
-    """The set-up's runner in this process: LUs in threads where there is more than one core."""
-    from ..formfactors.parallel import default_workers   # the cores this process may use
-    cores = default_workers()
-    return InProcessThreads(min(cores, N_CHANNELS)) if cores > 1 else InProcess()
-
 
 class NearFieldFactorization(HFactorization):
     """A factored radiosity system ``G = N + Q V^T``: solve ``(I - R_c F) B_c = E_c``.
@@ -317,13 +272,7 @@ class NearFieldFactorization(HFactorization):
         self._quantization_error: np.ndarray | None = None
         self._quantize = quantize
         with spare_threads():   # BLAS threads that other processes leave free (hfrad.lowrank.hf)
-            own = runner is None
-            runner = local_runner() if own else runner
-            try:
-                Z, K_inv = self._near_solution(near_solution, capacitance, quantize, runner)
-            finally:
-                if own:
-                    runner.close()
+            Z, K_inv = self._near_solution(near_solution, capacitance, quantize, runner or InProcess())
         self.Z = Z if isinstance(Z, QuantizedRows) else read_only(Z)   # QuantizedRows holds read-only arrays
         self.capacitance_inv = read_only(K_inv)
 
@@ -374,21 +323,14 @@ class NearFieldFactorization(HFactorization):
         V = runner.scatter(np.asarray(self.V))
         Qp = [runner.scatter(np.ascontiguousarray(self.Q[:, cols])) for cols in panels]
         d = {c: np.ascontiguousarray(self._D[:, c]) for c in distinct}
-        cols, order, solvers = {}, None, {}
-
-        def columns(c):
-            for j in range(len(panels)):
-                cols[c, j] = runner.submit(near_columns, solvers[c], d[c], Qp[j])
-            runner.release(solvers.pop(c))   # the LU lives until its panels are solved
-
+        cols, order = {}, None
         for c in distinct:
-            solvers[c] = runner.submit(channel_solver, N, d[c], self.dtype, c, order)
+            solver = runner.submit(channel_solver, N, d[c], self.dtype, c, order)
             if runner.share_order and order is None and len(distinct) > 1:
-                order = runner.submit(solver_order, solvers[c])
-            if not getattr(runner, "factor_ahead", False):
-                columns(c)              # one channel's LU at a time
-        for c in list(solvers):         # factored ahead (InProcessThreads): the panels in channel order
-            columns(c)
+                order = runner.submit(solver_order, solver)
+            for j in range(len(panels)):
+                cols[c, j] = runner.submit(near_columns, solver, d[c], Qp[j])
+            runner.release(solver)      # the LU lives until its panels are solved (one channel at a time here)
         maxima = runner.gather([runner.submit(row_maxima, cols[c, j]) for c in distinct for j in range(len(panels))])
         scales = [QuantizedRows.row_scale(np.max(maxima[z * len(panels):(z + 1) * len(panels)], axis=0))
                   for z in range(len(distinct))]
