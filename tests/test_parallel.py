@@ -45,13 +45,15 @@ def test_process_engine_counts_rays_and_pairs(scene):
     blocks = list(engine.iter_blocks(order, [order[:128], order[128:200]]))
     assert [b.shape for b in blocks] == [(scene.n_patches, 128), (scene.n_patches, 72)]
     assert engine.pairs == scene.n_patches * 200 and engine.rays > 0
-    # lent blocks (one array reused for the pass) hold the same numbers while they are lent
-    sets = [order[:128], order[128:200], order[200:328]]
-    lent = [b.copy() for b in engine.iter_blocks(order, sets, lend=True)]
-    for a, b in zip(lent, engine.iter_blocks(order, sets)):
-        np.testing.assert_array_equal(a, b)
-    kept = next(engine.iter_blocks(order, sets, lend=True))   # still readable after the pass ended
-    np.testing.assert_array_equal(kept, lent[0])
+    # lent blocks: one array reused for the pass, the same numbers while each is lent
+    lent = engine.iter_blocks(order, [order[:128], order[128:200]], lend=True)
+    first = next(lent)
+    np.testing.assert_array_equal(first, blocks[0])
+    second = next(lent)
+    np.testing.assert_array_equal(second, blocks[1])
+    assert np.shares_memory(first, second)       # the first is gone once the next is asked for
+    lent.close()
+    np.testing.assert_array_equal(second, blocks[1])   # still readable after the pass ended
 
 
 def test_one_ray_rule_stays_within_its_share(scene):
