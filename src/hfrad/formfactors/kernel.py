@@ -583,6 +583,12 @@ def _distant_row(i, cx, cy, cz, nx, ny, nz, a, dm, cols, col, near, eps, out, le
         left[c] = not (far and (front or behind) or zero) and i != cols[c]   # a patch and itself: 0
 
 
+def row_chunks(rows: int) -> int:
+    """Parts a block's rows go in for a numba loop with work arrays of its own per part: eight
+    per thread (balance: rows cost unequally), at most one per row, at least one."""
+    return max(1, min(rows, 8 * numba.get_num_threads()))
+
+
 def unoccluded_block(geom: PatchGeometry, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
     """(len(rows), len(cols)) float64: F[rows][:, cols] without visibility.
 
@@ -598,7 +604,7 @@ def unoccluded_block(geom: PatchGeometry, rows: np.ndarray, cols: np.ndarray) ->
     if out.size and geom.one_triangle_per_patch:
         _unoccluded_block_triangles(geom.triangles, geom.normals, geom.areas, geom.centroids, geom.diameters,
                                     rows, cols, geom.near, geom.adaptive, geom.eps, geom.tolerance, out,
-                                    max(1, min(len(rows), 8 * numba.get_num_threads())))
+                                    row_chunks(len(rows)))
     elif out.size:
         _unoccluded_block(geom.triangles, geom.normals, geom.areas, geom.centroids, geom.diameters,
                           geom.start, geom.index, geom.patch_areas, rows, cols, geom.near, geom.adaptive,

@@ -47,12 +47,11 @@ from __future__ import annotations
 
 import math
 
-import numba
-
 import numpy as np
 from numba import njit, prange
 from scipy.spatial import cKDTree
 
+from .kernel import row_chunks
 from .segments import RAY_BATCH
 
 #: Pairs with F_ij or F_ji at least this large always get every ray: a row's sum is made of
@@ -119,12 +118,13 @@ def one_word_bits(front, back, below, above) -> np.ndarray:
 
 @njit(cache=True, inline="always")
 def cuttable_one_word(f, b, lx, ly, lz, ax, ay, az, col_bits, c):
-    """:func:`cuttable` for one-word masks: the row patch's eight words given, the column's in
-    ``col_bits[c]`` (rows of :func:`one_word_bits`). The same bitwise test."""
-    m = ~((f & col_bits[c, 0]) | (b & col_bits[c, 1]))
-    m &= (lx | col_bits[c, 2]) & (ax | col_bits[c, 5])
-    m &= (ly | col_bits[c, 3]) & (ay | col_bits[c, 6])
-    m &= (lz | col_bits[c, 4]) & (az | col_bits[c, 7])
+    """:func:`cuttable` for one-word masks: the row patch's eight words given, column c's in
+    ``col_bits[:, c]`` (:func:`one_word_bits` of the columns, transposed: column index last, so
+    a loop over a row's columns reads each word contiguously). The same bitwise test."""
+    m = ~((f & col_bits[0, c]) | (b & col_bits[1, c]))
+    m &= (lx | col_bits[2, c]) & (ax | col_bits[5, c])
+    m &= (ly | col_bits[3, c]) & (ay | col_bits[6, c])
+    m &= (lz | col_bits[4, c]) & (az | col_bits[7, c])
     return m != 0
 
 
@@ -146,7 +146,7 @@ def _pair_states(rows, cols, P, plane, front, back, below, above, cull, state, b
         # the columns' points, planes and bits gathered once, column index last (vectorized loops)
         _pair_states_one_word(rows, cols, P, plane, np.ascontiguousarray(P[cols].transpose(1, 2, 0)),
                               np.ascontiguousarray(plane[cols].T), bits, np.ascontiguousarray(bits[cols].T),
-                              state, max(1, min(len(rows), 8 * numba.get_num_threads())))
+                              state, row_chunks(len(rows)))
     else:
         _pair_states_words(rows, cols, P, plane, front, back, below, above, cull, state)
 
@@ -180,11 +180,8 @@ def _pair_states_one_word(rows, cols, P, plane, col_P, col_plane, bits, col_bits
             f, bk = bits[i, 0], bits[i, 1]
             lx, ly, lz, ax, ay, az = bits[i, 2], bits[i, 3], bits[i, 4], bits[i, 5], bits[i, 6], bits[i, 7]
             for c in range(nc):
-                m = ~((f & col_bits[0, c]) | (bk & col_bits[1, c]))
-                m &= (lx | col_bits[2, c]) & (ax | col_bits[5, c])
-                m &= (ly | col_bits[3, c]) & (ay | col_bits[6, c])
-                m &= (lz | col_bits[4, c]) & (az | col_bits[7, c])
-                pending = np.int8(_PENDING) if m != 0 else np.int8(_VISIBLE)
+                cut = cuttable_one_word(f, bk, lx, ly, lz, ax, ay, az, col_bits, c)
+                pending = np.int8(_PENDING) if cut else np.int8(_VISIBLE)
                 state[r, c] = pending if front_ij[c] and front_ji[c] and cols[c] != i else np.int8(_SILENT)
 
 
@@ -294,7 +291,7 @@ def full_ray_pairs(vis, F: np.ndarray, rows: np.ndarray, cols: np.ndarray, need:
     col_pos[Cc] = np.arange(len(Cc))
     full = np.empty((r, c), np.bool_)
     _decide(state, row_pos, col_pos, rows, cols, nb, vis.centroids, vis.diameters, vis.probe_near,
-            F, vis.areas, vis.probe_below, need, full, max(1, min(r, 8 * numba.get_num_threads())))
+            F, vis.areas, vis.probe_below, need, full, row_chunks(r))
     return full
 
 

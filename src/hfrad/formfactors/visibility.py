@@ -564,7 +564,7 @@ def _needs_rays(F, rows, cols, front, back, below, above, cull, need, bits=None)
     ``bits``: :func:`~hfrad.formfactors.probing.one_word_bits` of the masks when the caller keeps them."""
     if cull and front.shape[1] == 1:  # at most 64 occluders: one word per mask
         bits = one_word_bits(front, back, below, above) if bits is None else bits
-        _needs_rays_one_word(F, rows, cols, bits, np.ascontiguousarray(bits[cols]), need)
+        _needs_rays_one_word(F, rows, cols, bits, np.ascontiguousarray(bits[cols].T), need)
     else:
         _needs_rays_words(F, rows, cols, front, back, below, above, cull, need)
 
@@ -572,8 +572,8 @@ def _needs_rays(F, rows, cols, front, back, below, above, cull, need, bits=None)
 @njit(parallel=True, cache=True, nogil=True)
 def _needs_rays_one_word(F, rows, cols, bits, col_bits, need):
     """:func:`_needs_rays` with one 64-bit word per mask: ``bits`` (n, 8) = front, back, below (3
-    axes), above (3 axes) of each patch, ``col_bits`` the columns' rows of it (the same test as
-    :func:`~hfrad.formfactors.probing.cuttable`, the row's words loaded once)."""
+    axes), above (3 axes) of each patch, ``col_bits`` the columns' rows of it, transposed (8, nc)
+    (the same test as :func:`~hfrad.formfactors.probing.cuttable`, the row's words loaded once)."""
     for r in prange(rows.shape[0]):
         i = rows[r]
         f, b = bits[i, 0], bits[i, 1]
