@@ -285,11 +285,18 @@ def test_scheduler_or_workers_not_both():
 
 
 @pytest.fixture(scope="module")
-def process_cluster():
-    """Two worker processes on 127.0.0.1 (a LocalCluster with a nanny that restarts killed workers)."""
+def _process_cluster():
     with connect(workers=2) as cluster:
         assert cluster.address.startswith("tcp://127.0.0.1")
         yield cluster
+
+
+@pytest.fixture
+def process_cluster(_process_cluster):
+    """Two worker processes on 127.0.0.1 (a LocalCluster with a nanny that restarts killed workers), both
+    registered: after the kill test the nanny's new worker may still be joining when the next test starts."""
+    _process_cluster.client.wait_for_workers(2, timeout=60)
+    return _process_cluster
 
 
 def test_worker_processes_match_local_despite_a_killed_worker(cornell, process_cluster, monkeypatch):
