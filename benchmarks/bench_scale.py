@@ -104,8 +104,9 @@ def run_one(args) -> dict:
     if args.checkpoint:
         Path(args.checkpoint).mkdir(parents=True, exist_ok=True)
         checkpoint = Path(args.checkpoint) / f"{args.scene}-{args.one}-{args.eps}-{args.near_field}.ckpt"
-    fac = factorize(scene, eps=args.eps, processes=args.processes, near_field=args.near_field or None,
-                    checkpoint=checkpoint, status=_status_printer(n))
+    with common.TreeMemorySampler() as memory:   # this process and its form-factor workers, summed
+        fac = factorize(scene, eps=args.eps, processes=args.processes, near_field=args.near_field or None,
+                        checkpoint=checkpoint, status=_status_printer(n))
     t_total = time.perf_counter() - t1
     info = fac.lowrank.info
     k = fac.rank
@@ -175,6 +176,10 @@ def run_one(args) -> dict:
     row["error_bound_eq5"] = np.asarray(fac.error_bound).tolist()
     row["peak_rss_gb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 / 1e9
     row["peak_rss_children_gb"] = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024 / 1e9
+    # the precompute's peak of the whole process tree at one instant (PSS: shared slots once), and
+    # how much more memory the machine held than before it (sampled every second)
+    row["peak_tree_pss_gb"] = memory.peak_tree_pss / 1e9
+    row["peak_system_used_gb"] = memory.peak_system_used / 1e9
     row["loadavg_end"] = os.getloadavg()[0]
     if args.image:
         from hfrad.render import render_image, save_png
@@ -251,7 +256,8 @@ def report(data: dict) -> None:
     rows = [r for r in data.get("runs", []) if "n_patches" in r]
     cols = [("scene", "scene"), ("n_patches", "n"), ("rank", "k"), ("achieved_error", "achieved"),
             ("time_formfactors", "FF s"), ("time_hf", "HF s"), ("time_woodbury", "Woodbury s"),
-            ("time_precompute", "total s"), ("peak_rss_gb", "RSS GB"), ("solve_rgb_best", "solve s"),
+            ("time_precompute", "total s"), ("peak_rss_gb", "RSS GB"),
+            ("peak_tree_pss_gb", "all processes PSS GB"), ("solve_rgb_best", "solve s"),
             ("solve_over_2nk_limit", "solve / 2nk limit"), ("near_sweeps", "sweeps"),
             ("solve_spread_best", "solve s (1% emit)"), ("near_sweeps_spread", "sweeps (1% emit)"),
             ("solve_over_read_once_limit", "solve / read-once limit"), ("loadavg_start", "load")]
@@ -313,7 +319,8 @@ def main() -> None:
             continue
         row = rows[0] | {"machine": m}
         print(f"  n={row['n_patches']:,} rank {row['rank']:,} FF {row['time_formfactors']:.0f} s, "
-              f"HF {row['time_hf']:.0f} s, total {row['time_precompute']:.0f} s, RSS {row['peak_rss_gb']:.2f} GB, "
+              f"HF {row['time_hf']:.0f} s, total {row['time_precompute']:.0f} s, RSS {row['peak_rss_gb']:.2f} GB "
+              f"(all processes {row['peak_tree_pss_gb']:.2f} GB), "
               f"solve {1e3 * row['solve_rgb_best']:.1f} ms ({row['solve_over_2nk_limit']:.1f}x the 2nk limit, "
               f"{row.get('solve_over_read_once_limit', row['solve_over_2nk_limit']):.1f}x reading every factor once), "
               f"load {row['loadavg_start']:.1f}-{row['loadavg_end']:.1f}", flush=True)

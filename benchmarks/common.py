@@ -127,6 +127,83 @@ def check_load(limit: float = 1.5) -> float:
     return load
 
 
+# -- memory of a process tree ------------------------------------------------------------------
+def _children(pid: int) -> list[int]:
+    """Direct children of ``pid`` (Linux: /proc/PID/task/*/children)."""
+    out = []
+    try:
+        for task in os.listdir(f"/proc/{pid}/task"):
+            with open(f"/proc/{pid}/task/{task}/children") as fh:
+                out += [int(x) for x in fh.read().split()]
+    except OSError:
+        pass
+    return out
+
+
+def _pss_bytes(pid: int) -> int:
+    """Proportional set size of ``pid`` (shared pages split between their users), 0 if gone."""
+    try:
+        with open(f"/proc/{pid}/smaps_rollup") as fh:
+            for line in fh:
+                if line.startswith("Pss:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return 0
+
+
+def tree_pss_bytes(root: int | None = None) -> int:
+    """PSS summed over ``root`` (default: this process) and all its descendants: the memory the
+    whole run holds, shared memory (the workers' block slots) counted once."""
+    todo, total = [root or os.getpid()], 0
+    while todo:
+        pid = todo.pop()
+        total += _pss_bytes(pid)
+        todo += _children(pid)
+    return total
+
+
+class TreeMemorySampler:
+    """Peaks of a run's memory, sampled every ``every`` seconds in a background thread.
+
+    ``peak_tree_pss`` is the largest PSS of this process and its descendants summed at one
+    instant (what ``ru_maxrss`` of the parent and of the largest child cannot say: their peaks
+    need not coincide, and both count shared pages); ``peak_system_used`` the largest rise of
+    ``MemTotal - MemAvailable`` over its value at the start (everything the run made the machine
+    hold, page cache it could not drop included). Use as a context manager.
+    """
+
+    def __init__(self, every: float = 1.0) -> None:
+        import threading
+        self.every = float(every)
+        self.peak_tree_pss = 0
+        self.peak_system_used = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._base = 0
+
+    def _used(self) -> int:
+        return _meminfo("MemTotal") - _meminfo("MemAvailable")
+
+    def _sample(self) -> None:
+        self.peak_tree_pss = max(self.peak_tree_pss, tree_pss_bytes())
+        self.peak_system_used = max(self.peak_system_used, self._used() - self._base)
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.every):
+            self._sample()
+
+    def __enter__(self) -> "TreeMemorySampler":
+        self._base = self._used()
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._thread.join()
+        self._sample()
+
+
 # -- timing -------------------------------------------------------------------------------------
 @dataclass
 class Timing:
