@@ -73,7 +73,7 @@ import numpy as np
 from numba import njit, prange
 
 from ..errors import InputError
-from .clustervis import (BLOCKED, MIXED, ClusterVisibility, costly_pairs,
+from .clustervis import (MIXED, ClusterVisibility, costly_pairs,
                          full_ray_pairs_clustered)
 from .kernel import points_on_triangles, split_centroids
 from .probing import (NEIGHBOURS, PROBE_BELOW, PROBE_NEAR, cuttable, cuttable_one_word, full_ray_pairs,
@@ -381,13 +381,7 @@ class Visibility:
                 # the pair would get every ray (close or large; a probe costs less than the test)
                 mixed = costly_pairs(self, F, rows, cols, need & (cs == MIXED))
                 cs[mixed] = self.clusters.pair_states(rows, cols, mixed)
-            decided = need & (cs != MIXED)
-            blocked = decided & (cs == BLOCKED)
-            F[blocked] = 0.0
-            need &= ~decided
-            nb = int(blocked.sum())
-            self.clusters.pairs_blocked += nb
-            self.clusters.pairs_visible += int(decided.sum()) - nb
+            self.clusters.settle(F, need, cs)
         if self.neighbours is not None:
             if self.clusters is not None:
                 need = full_ray_pairs_clustered(self, self.clusters, F, rows, cols, need, cs)
