@@ -18,6 +18,7 @@ import json
 import os
 import platform
 import sys
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -174,7 +175,6 @@ class TreeMemorySampler:
     """
 
     def __init__(self, every: float = 1.0) -> None:
-        import threading
         self.every = float(every)
         self.peak_tree_pss = 0
         self.peak_system_used = 0
