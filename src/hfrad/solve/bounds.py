@@ -376,7 +376,7 @@ def accuracy_lines(estimate: ErrorEstimate, *, residual: ResidualEstimate | None
     lines = [] if solution is None else [solution_line(solution)]
     if residual is not None:
         if is_useful(residual.bound):
-            lines.append(f"error of this solution: at most {percent(residual.bound)} (R,G,B; relative, "
+            lines.append(f"guaranteed bound of this solution (--residual): at most {percent(residual.bound)} (R,G,B; relative, "
                          f"{residual.norm} norm; guaranteed, a posteriori with the exact form factors)")
         else:
             lines.append(f"no useful bound on the error of this solution: the a-posteriori figure is "

@@ -358,7 +358,7 @@ class HFactorization:
                        f"contraction bound {np.round(est.contraction, 4).tolist()} and operator error "
                        f"{np.round(est.operator_error, 4).tolist()} give no bound")
                 warnings.warn(f"no error bound for channels {np.flatnonzero(bad).tolist()}: {why}; "
-                              "fac.residual(E, B) gives the per-solution figure", AccuracyWarning, stacklevel=2)
+                              "fac.solve(E, return_error=True) gives each solve's figure", AccuracyWarning, stacklevel=2)
             self._estimate = est
         return self._estimate
 
