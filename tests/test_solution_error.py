@@ -153,3 +153,16 @@ def test_an_old_file_without_rows_says_so(cornell_scene_path):
     old.stats.samples = None
     _, err = old.solve(scene.emission, return_error=True)
     assert err.kind == "unavailable" and np.isinf(err.bound).all()
+
+
+def test_near_field_solver_gets_the_figure_too():
+    """The near-field split's solver (Woodbury around a sparse LU) inherits the figure: 1 <= ratio <= 10."""
+    scene = hfrad.load_scene("cornell", patches=600)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", AccuracyWarning)
+        fac = hfrad.factorize(scene, eps=0.02, block_size=64, near_field=32)
+    assert fac.solver != "woodbury"
+    F = hfrad.form_factor_matrix(scene)
+    results = _true_errors(F, np.asarray(fac.reflectance), np.asarray(scene.areas), fac, _emissions(scene, 8))
+    for label, err, true in results:
+        assert (err.bound >= true).all() and (err.bound <= 10 * true).all(), f"{label}: {err.bound} vs {true}"
