@@ -10,8 +10,9 @@ faces take:
   transparency, reflectance :data:`GLAZING_REFLECTANCE` (a transparent style's
   colour is a display tint, not a reflectance);
 - else the default of their element class, :data:`DEFAULTS` (a slab's upward
-  faces are a floor, its downward faces a ceiling; an unstyled ``IfcWindow``
-  is glazing). Each default used is listed in the scene's warnings
+  faces are a floor, its downward faces a ceiling, its edges walls; a ceiling
+  covering is all ceiling; a roof's upward faces are ``roof``; an unstyled
+  ``IfcWindow`` is glazing). Each default used is listed in the scene's warnings
   (``hfrad info``).
 
 ``IfcSpace`` and ``IfcOpeningElement`` are not surfaces: spaces give the
@@ -51,10 +52,10 @@ GLAZING = (GLAZING_REFLECTANCE, 0.78)
 
 #: Default reflectance by role (hfrad material name), for faces with no surface style
 #: (EN 12464-1's usual ranges: ceiling 0.7-0.9, walls 0.5-0.8, floor 0.2-0.4, furniture 0.2-0.7).
-DEFAULTS = {"ceiling": 0.7, "wall": 0.5, "floor": 0.2, "door": 0.4, "furniture": 0.4, "other": 0.5}
+DEFAULTS = {"ceiling": 0.7, "wall": 0.5, "floor": 0.2, "door": 0.4, "furniture": 0.4, "roof": 0.3, "other": 0.5}
 
 #: The role of each element class (subclasses through ifcopenshell's ``is_a``), checked in order.
-ROLES = (("IfcWindow", "window"), ("IfcDoor", "door"), ("IfcSlab", "slab"), ("IfcRoof", "slab"),
+ROLES = (("IfcWindow", "window"), ("IfcDoor", "door"), ("IfcSlab", "slab"), ("IfcRoof", "roof"),
          ("IfcCovering", "covering"), ("IfcWall", "wall"), ("IfcCurtainWall", "wall"), ("IfcColumn", "wall"),
          ("IfcBeam", "wall"), ("IfcFurnishingElement", "furniture"), ("IfcFurniture", "furniture"))
 
@@ -113,8 +114,13 @@ def _iterate(ifc, path: Path, include=None, exclude=None):
 
 
 def _role(element) -> str:
+    kind = str(getattr(element, "PredefinedType", None) or "")
     for cls, role in ROLES:
         if element.is_a(cls):
+            if role == "slab" and kind == "ROOF":
+                return "roof"
+            if role == "covering":  # a ceiling's faces are all ceiling (its top is no floor to light)
+                return {"CEILING": "ceiling", "FLOORING": "floor"}.get(kind, "wall")
             return role
     return "other"
 
@@ -139,10 +145,9 @@ def _style_props(ifc, style, where: str, notes: list[str]) -> tuple[str, dict]:
 
 def _default_roles(role: str, normals_z: np.ndarray) -> np.ndarray:
     """(t,) hfrad default material names of an unstyled element's faces."""
-    if role == "slab":  # up: a floor; down: a ceiling; edges: as walls
-        return np.where(normals_z > 0.5, "floor", np.where(normals_z < -0.5, "ceiling", "wall"))
-    if role == "covering":
-        return np.where(normals_z < -0.5, "ceiling", np.where(normals_z > 0.5, "floor", "wall"))
+    if role in ("slab", "roof"):  # up: a floor (a roof's outside); down: a ceiling; edges: as walls
+        return np.where(normals_z > 0.5, "floor" if role == "slab" else "roof",
+                        np.where(normals_z < -0.5, "ceiling", "wall"))
     return np.full(len(normals_z), role if role in DEFAULTS or role == "window" else "other")
 
 

@@ -153,6 +153,7 @@ class _Reader:
         if head[1][0] is None:
             raise SceneError(f"{where}: incomplete primitive after {clip_token(modifier)}")
         kind, name = head[0][0], head[1][0]
+        _check_kind(kind, head[0][1])
         if kind == "alias":  # 'mod alias new old': no argument lists
             old = next(words, (None, where))[0]
             if old is None:
@@ -193,6 +194,18 @@ class _Reader:
         if not math.isfinite(value):
             raise SceneError(f"{where}: {kind}: non-finite number {clip_token(word)}")
         return value
+
+
+def _check_kind(kind: str, where: str) -> None:
+    """Refuse a primitive type hfrad cannot represent, at its own line, before reading its arguments."""
+    if kind in REFUSED_MATERIALS:
+        raise SceneError(f"{where}: material type {kind} ({REFUSED_MATERIALS[kind]}) is not supported: "
+                         "hfrad's radiosity is Lambertian. Replace it by plastic with the diffuse reflectance wanted")
+    if kind in REFUSED_SURFACES:
+        raise SceneError(f"{where}: surface type {kind} is not supported (hfrad reads polygons): convert it to "
+                         "polygons (e.g. genrev/gensurf, or export the model as polygons)")
+    if not (kind in SURFACES or kind in MATERIALS or kind in PATTERNS or kind in ("alias", "source")):
+        raise SceneError(f"{where}: unknown primitive type {clip_token(kind)}")
 
 
 def _glass(tn: np.ndarray, index: float) -> tuple[np.ndarray, np.ndarray]:
@@ -257,10 +270,6 @@ class _Modifiers:
         self.hfrad_name: dict[int, str] = {}   # id(primitive) -> hfrad material name
 
     def define(self, p: Primitive) -> None:
-        if p.kind in REFUSED_MATERIALS:
-            raise SceneError(f"{p.where}: material type {p.kind} ({REFUSED_MATERIALS[p.kind]}) is not supported: "
-                             "hfrad's radiosity is Lambertian. Replace it by plastic with the diffuse reflectance "
-                             "wanted")
         if p.modifier != "void" and p.modifier not in self.table:
             raise SceneError(f"{p.where}: {p.kind} {clip_token(p.name)} is modified by {clip_token(p.modifier)}, "
                              "which is not defined above it")
@@ -357,15 +366,10 @@ def read_rad(path: Path) -> dict:
             nv += len(corners)
             face_material += [names.index(mat)] * len(tri)
             face_group += [groups.setdefault(p.name.split(".")[0] or "default", len(groups))] * len(tri)
-        elif p.kind in REFUSED_SURFACES:
-            raise SceneError(f"{p.where}: surface type {p.kind} is not supported (hfrad reads polygons): "
-                             "convert it to polygons (e.g. genrev/gensurf, or export the model as polygons)")
         elif p.kind == "source":
             skipped["source"] = skipped.get("source", 0) + 1
-        elif p.kind in MATERIALS or p.kind in PATTERNS or p.kind == "alias" or p.kind in REFUSED_MATERIALS:
+        else:  # materials, patterns, aliases (the reader refused every other type)
             mods.define(p)
-        else:
-            raise SceneError(f"{p.where}: unknown primitive type {clip_token(p.kind)}")
     if not faces:
         raise SceneError(f"{path}: no polygons found (is this a Radiance scene file?)")
     if skipped:
