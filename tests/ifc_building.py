@@ -4,7 +4,8 @@
 storeys of ``nx x ny`` rooms: a floor slab per storey (no style: hfrad's
 floor and ceiling defaults), a ceiling covering per room (no style), walls
 (styled "Wall paint", reflectance 0.6) around and between the rooms, one window
-per room in the south wall (styled "Glazing", transparency 0.8) in an opening,
+per room in the south wall, and in the north wall for a second row of rooms,
+(styled "Glazing", transparency 0.8) in an opening,
 a door (no style) in each wall between rooms along x, one ``IfcSpace`` per room and,
 optionally, desks (styled "Desk", 0.45). Coordinates are Z-up metres; the
 rooms' interiors are ``room`` (w, d) apart by ``WALL`` thick walls.
@@ -144,7 +145,8 @@ def build_building(path, *, storeys: int = 1, rooms: tuple[int, int] = (2, 1), r
         outline = [(0.0, 0.0), (total_x, 0.0), (total_x, total_y), (0.0, total_y)]
         b.plate("IfcSlab", f"Slab {k}", outline, z - SLAB, SLAB, container=st, predefined="FLOOR")
         south = b.box("IfcWall", f"Wall S{k}", (0.0, 0.0, z), (total_x, WALL, height), style=paint, container=st)
-        b.box("IfcWall", f"Wall N{k}", (0.0, total_y - WALL, z), (total_x, WALL, height), style=paint, container=st)
+        north = b.box("IfcWall", f"Wall N{k}", (0.0, total_y - WALL, z), (total_x, WALL, height), style=paint,
+                      container=st)
         for i in range(nx + 1):          # walls along y, between the south and north walls
             x = i * (w + WALL)
             wall = b.box("IfcWall", f"Wall X{k}.{i}", (x + WALL, WALL, z), (total_y - 2 * WALL, WALL, height),
@@ -158,6 +160,9 @@ def build_building(path, *, storeys: int = 1, rooms: tuple[int, int] = (2, 1), r
         for i, x0 in enumerate(xs):
             b.filled_opening(south, "IfcWindow", f"Window {k}.{i}", (x0 + 0.5 * w - 0.75, 0.0, z + 0.9), (1.5, 1.2),
                              0, st, style=glass)
+            if ny > 1:                   # the north row's windows
+                b.filled_opening(north, "IfcWindow", f"Window N{k}.{i}", (x0 + 0.5 * w - 0.75, total_y - WALL, z + 0.9),
+                                 (1.5, 1.2), 0, st, style=glass)
             for j, y0 in enumerate(ys):
                 poly = [(x0, y0), (x0 + w, y0), (x0 + w, y0 + d), (x0, y0 + d)]
                 b.plate("IfcCovering", f"Ceiling {k}.{i}.{j}", poly, z + height, CEILING, container=st,

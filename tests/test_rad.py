@@ -64,8 +64,9 @@ def test_glass_transmissivity_gives_radiance_s_transmittance(tmp_path):
 
 @pytest.mark.parametrize("kind,reals", [("light", "2 3 4"), ("glow", "2 3 4 0")])
 def test_light_and_glow_emit_pi_times_their_radiance_and_do_not_reflect(tmp_path, kind, reals):
+    # exitance pi L, in hfrad's photometric unit: Radiance's watt is 179 lm, hfrad's 683 lm
     _, mats = _props(tmp_path, _material(kind, "l", reals) + _square("l"))
-    assert mats["l"]["emission"] == pytest.approx((2 * math.pi, 3 * math.pi, 4 * math.pi))
+    assert mats["l"]["emission"] == pytest.approx(tuple(math.pi * x * 179 / 683 for x in (2, 3, 4)))
     assert mats["l"]["reflectance"] == (0.0, 0.0, 0.0)
 
 

@@ -14,8 +14,8 @@ what it did with the rest:
 ``glass``                 a window: transmittance and reflectance of a pane at normal incidence
                           (refractive index 1.52 unless given), from the transmissivity as
                           Radiance defines it
-``light``, ``glow``       emitted exitance = pi x radiance (W/m^2), reflectance 0 (Radiance's
-                          light sources do not reflect); ``glow``'s radius is not used
+``light``, ``glow``       emitted exitance = pi x radiance x 179 / 683 (W/m^2), reflectance 0
+                          (Radiance's light sources do not reflect); ``glow``'s radius is not used
 ``alias``                the same material under another name
 patterns, textures        ignored (the material's own colour is used), listed in the warnings
 ``mirror`` and other      refused with the line: a specular or data-driven material has no
@@ -57,6 +57,11 @@ MAX_PRIMITIVES = 5_000_000
 
 #: Deepest nesting of ``!xform`` files.
 MAX_DEPTH = 8
+
+#: Radiance's luminous efficacy of its white "watt" (lm/W) against hfrad's 683 lm/W (lux = 683 x Rec. 709
+#: luminance of the irradiance): a Radiance radiance L is hfrad's L x 179 / 683, so both give the same lux.
+RADIANCE_EFFICACY = 179.0
+HFRAD_EFFICACY = 683.0
 
 #: Refractive index of Radiance's ``glass`` when not given.
 GLASS_INDEX = 1.52
@@ -236,7 +241,7 @@ def _material_values(p: Primitive, notes: list[str]) -> dict:
         raise SceneError(f"{p.where}: {p.kind} {clip_token(p.name)}: negative colour {tuple(rgb.tolist())}")
     props = {"where": p.where, "reflectance": (0.0, 0.0, 0.0)}
     if p.kind in ("light", "glow"):
-        props["emission"] = tuple(math.pi * rgb)
+        props["emission"] = tuple(math.pi * rgb * (RADIANCE_EFFICACY / HFRAD_EFFICACY))
         return props
     if p.kind == "glass":
         rho, tau = _glass(np.minimum(rgb, 1.0), p.reals[3] if len(p.reals) == 4 else GLASS_INDEX)
