@@ -184,3 +184,30 @@ def test_lux_cli_lays_the_space_grids_without_a_layout_of_grids(tmp_path, storey
     grids = json.loads(out.read_text())["grids"]
     assert [g["name"] for g in grids] == ["Room 0.0.0", "Room 0.1.0"]
     assert grids[0]["sensors"] == 48 and grids[0]["average"] > 5 * grids[1]["average"]   # the lit room, the door shut
+
+
+def test_enormous_models_are_refused_before_the_geometry(storey, monkeypatch):
+    import hfrad.scene.ifc as ifc
+
+    monkeypatch.setattr(ifc, "MAX_ELEMENTS", 10)
+    with pytest.raises(SceneError, match=r"storey.ifc: \d+ building elements; hfrad reads at most 10"):
+        hfrad.load_scene(storey)
+    monkeypatch.setattr(ifc, "MAX_ELEMENTS", 10**6)
+    monkeypatch.setattr(ifc, "MAX_TRIANGLES", 20)
+    with pytest.raises(SceneError, match=r"more than 20 triangles \(at #\d+ Ifc"):
+        hfrad.load_scene(storey)
+
+
+def test_an_element_without_geometry_is_named_by_its_entity_id(tmp_path, storey):
+    import ifcopenshell
+    import ifcopenshell.api.root
+
+    f = ifcopenshell.open(str(storey))
+    wall = f.by_type("IfcWall")[0]
+    ghost = ifcopenshell.api.root.create_entity(f, ifc_class="IfcWall", name="Ghost")
+    rep = f.createIfcProductDefinitionShape(None, None, [f.createIfcShapeRepresentation(
+        wall.Representation.Representations[0].ContextOfItems, "Body", "SweptSolid", [])])
+    ghost.Representation = rep
+    f.write(str(tmp_path / "ghost.ifc"))
+    scene = hfrad.load_scene(tmp_path / "ghost.ifc")
+    assert any(f"#{ghost.id()} IfcWall 'Ghost'" in w and "no geometry" in w for w in scene.warnings)

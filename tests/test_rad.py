@@ -157,3 +157,39 @@ def test_info_cli_reports_windows_and_refuses_with_exit_2(tmp_path):
     bad = _write(tmp_path, _material("mirror", "m", "1 1 1"), "bad.rad")
     out = CliRunner().invoke(app, ["info", str(bad)])
     assert out.exit_code == 2 and "bad.rad:1" in out.output and "Traceback" not in out.output
+
+
+@pytest.mark.parametrize("module,path,text", [
+    ("pyradiance", "m.rad", _material("plastic", "p", ".5 .5 .5 0 0") + "!genbox p b 1 1 1\n"),
+    ("ifcopenshell", "m.ifc", "ISO-10303-21;\n"),
+])
+def test_a_missing_package_is_named_with_its_pip_command_at_use(tmp_path, monkeypatch, module, path, text):
+    import sys
+
+    from typer.testing import CliRunner
+
+    from hfrad.cli import app
+
+    monkeypatch.setitem(sys.modules, module, None)       # `import module` raises ImportError
+    scene = _write(tmp_path, text, path)
+    with pytest.raises(ImportError, match=f"pip install {module}"):
+        hfrad.load_scene(scene)
+    out = CliRunner().invoke(app, ["info", str(scene)])
+    assert out.exit_code == 2 and f"pip install {module}" in out.output and "Traceback" not in out.output
+    # a file that needs neither reads without them
+    plain = _write(tmp_path, _material("plastic", "p", ".5 .5 .5 0 0") + _square("p"), "plain.rad")
+    assert hfrad.load_scene(plain).n_patches == 2
+
+
+def test_glazing_survives_the_hfr_file(tmp_path):
+    # a closed unit box: five plastic sides and a glass one
+    quads = ["12 0 0 0  0 1 0  1 1 0  1 0 0", "12 0 0 1  1 0 1  1 1 1  0 1 1", "12 0 0 0  1 0 0  1 0 1  0 0 1",
+             "12 0 1 0  0 1 1  1 1 1  1 1 0", "12 0 0 0  0 0 1  0 1 1  0 1 0", "12 1 0 0  1 1 0  1 1 1  1 0 1"]
+    text = (_material("plastic", "p", ".5 .5 .5 0 0") + _material("glass", "g", ".96 .96 .96")
+            + "".join(_square("g" if k == 5 else "p", f"s{k}", q) for k, q in enumerate(quads)))
+    scene = hfrad.load_scene(_write(tmp_path, text), emit={"p": (1.0, 1.0, 1.0)})
+    fac = hfrad.factorize(scene, eps=0.05)
+    back = hfrad.load(hfrad.save(fac, tmp_path / "box.hfr")).scene
+    glass = back.materials[back.material_index("g")]
+    assert glass.transmittance == pytest.approx((0.8815,) * 3, abs=1e-4) and glass.is_glazing
+    assert not back.materials[back.material_index("p")].is_glazing
