@@ -136,6 +136,8 @@ def _style_props(ifc, style, where: str, notes: list[str]) -> tuple[str, dict]:
         raise SceneError(f"{where}: surface style {clip_token(name)} has the colour {tuple(colour.tolist())}")
     if math.isfinite(transparency) and transparency > 0:
         tau = min(transparency, 1.0 - GLAZING_REFLECTANCE)
+        notes.append(f"surface style {name} ({where}) is transparent ({transparency:g}): read as glazing, "
+                     f"transmittance {tau:g}, reflectance {GLAZING_REFLECTANCE:g}")
         return name, {"reflectance": (GLAZING_REFLECTANCE,) * 3, "transmittance": (tau,) * 3, "where": where}
     if colour.max() > 0.99:
         notes.append(f"surface style {name} ({where}): colour {tuple(colour.round(3).tolist())} clamped to "
@@ -210,8 +212,11 @@ def read_ifc(path: Path) -> dict:
             on = mid == k
             if style.instance_id() == 0 or not on.any():
                 continue  # ifcopenshell's own default colour: no style in the model
-            name, props = _style_props(ifc, style, where, notes)
-            materials.setdefault(name, props)
+            said: list[str] = []
+            name, props = _style_props(ifc, style, where, said)
+            if name not in materials:  # said once per style, at its first element
+                materials[name] = props
+                notes += said
             names[on], styled[on] = name, True
         for name in set(names[~styled].tolist()):
             materials.setdefault(name, _default_props(name))

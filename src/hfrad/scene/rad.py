@@ -45,7 +45,7 @@ from ..errors import SceneError
 from ..validation import clip_token
 from .obj import _lines
 from .polygons import Z_UP_NOTE, triangulate_polygon, z_up_to_y_up
-from .radcmd import confined, run_command
+from .radcmd import run_command
 
 __all__ = ["read_rad", "MAX_ARGUMENTS", "MAX_PRIMITIVES"]
 
@@ -96,6 +96,8 @@ class Primitive:
 
     def text(self) -> str:
         """The primitive as Radiance text (full float precision)."""
+        if self.kind == "alias":
+            return f"{self.modifier} alias {self.name} {self.strings[0]}\n"
         return (f"{self.modifier} {self.kind} {self.name}\n{len(self.strings)} {' '.join(self.strings)}\n0\n"
                 f"{len(self.reals)} {' '.join(repr(x) for x in self.reals)}\n")
 
@@ -347,7 +349,6 @@ def read_rad(path: Path) -> dict:
         inline commands (file and line in each message).
     """
     path = Path(path)
-    confined(path.parent, path.name, str(path), "scene file")
     notes: list[str] = []
     prims = _Reader(path).file(path)
     mods = _Modifiers(notes)
