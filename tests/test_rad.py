@@ -115,6 +115,7 @@ def test_redefined_material_keeps_both(tmp_path):
     (_material("plastic", "p", ".5 .5 .5 0 0") + f"!xform -a {MAX_COPIES} -a 2 -t 1 0 0 m.rad\n", "m.rad:5",
      "copies"),
     (_material("plastic", "p", ".5 .5 .5 0 0") + "!xform -t 1 0 0\n", "m.rad:5", "without a file"),
+    (_material("plastic", "p", ".5 .5 .5 0 0") + "!xform -t 1 0 0 m.rad\n", "m.rad:5", "include itself"),
 ])
 def test_refused_inputs_name_the_file_and_line(tmp_path, text, where, words):
     (tmp_path.parent / "outside.rad").write_text(_square("p"))

@@ -131,12 +131,13 @@ class _Reader:
         self.count = 0
 
     def file(self, path: Path, depth: int = 0, suffix: str = "") -> list[Primitive]:
-        if depth > MAX_DEPTH:
-            raise SceneError(f"{path}: xform files nested more than {MAX_DEPTH} deep")
         return self._parse(_words(_lines(path), lambda n: f"{path}:{n}{suffix}"), path, depth)
 
     def _nested(self, depth: int):
         def read(path: Path, where: str) -> str:
+            if depth + 1 > MAX_DEPTH:
+                raise SceneError(f"{where.split(' (read by')[0]}: xform files nested more than {MAX_DEPTH} deep "
+                                 f"(does {path.name} include itself?)")
             return "".join(p.text() for p in self.file(path, depth + 1, f" (read by {where})"))
         return read
 
