@@ -126,8 +126,8 @@ def test_refused_inputs_name_the_file_and_line(tmp_path, text, where, words):
 
 def test_genbox_and_xform_run_radiance_without_a_shell(tmp_path):
     pytest.importorskip("pyradiance")
-    _write(tmp_path, _material("plastic", "wood", ".4 .3 .2 0 0") + "void alias oak wood\n" + "!genbox oak desk 1 2 3\n",
-           "desk.rad")
+    _write(tmp_path, _material("plastic", "wood", ".4 .3 .2 0 0") + "void alias oak wood\n"
+           + "!genbox oak desk 1 2 3\n", "desk.rad")
     text = (_material("plastic", "p", ".5 .5 .5 0 0") + _square("p")
             + "!genbox p box 1 2 3\n" + "!xform -t 10 0 0 -a 3 -t 0 5 0 desk.rad\n")
     scene = hfrad.load_scene(_write(tmp_path, text))

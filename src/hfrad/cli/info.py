@@ -74,7 +74,8 @@ def load_scene_from_options(scene: str, *, unit_scale: float = 1.0, emit=None, a
 def register(app: typer.Typer) -> None:
     @app.command()
     def info(
-        scene: str = typer.Argument(..., help="Scene file (.obj, .ply, .gltf, .glb, .rad, .ifc) or built-in name (cornell, furnace, ...)."),
+        scene: str = typer.Argument(..., help="Scene file (.obj, .ply, .gltf, .glb, .rad, .ifc) or built-in name "
+                                    "(cornell, furnace, ...)."),
         max_edge: Optional[float] = common.MaxEdgeOption,
         patches: Optional[int] = common.PatchesOption,
         unit_scale: float = common.UnitScaleOption,

@@ -60,7 +60,8 @@ __all__ = ["LightingSpec", "GridGoal", "LightingDesign", "parse_lighting_spec", 
 DEFAULT_EFFICACY = 100.0
 
 _TOP = {"luminaires", "grids", "objective", "background", "description"}
-_GRID = {"name", "floor", "rectangle", "sensors", "space", "height", "spacing", "margin", "min", "max", "mean", "uniformity"}
+_GRID = {"name", "floor", "rectangle", "sensors", "space", "height", "spacing", "margin", "min", "max", "mean",
+         "uniformity"}
 
 
 @dataclass(frozen=True)

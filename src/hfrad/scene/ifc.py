@@ -200,7 +200,8 @@ def read_ifc(path: Path) -> dict:
         seen.add(element.id())
         nt += len(f)
         if nt > MAX_TRIANGLES:
-            raise SceneError(f"{path}: more than {MAX_TRIANGLES:,} triangles (at {where}); hfrad reads at most that many")
+            raise SceneError(f"{path}: more than {MAX_TRIANGLES:,} triangles (at {where}); hfrad reads at most "
+                             "that many")
         if not len(f):
             continue
         tri = v[f]
