@@ -24,8 +24,9 @@ HEIGHT = 2.8
 
 @pytest.fixture(scope="module")
 def storey(tmp_path_factory):
-    """The two-room storey: walls, slab, ceilings, two windows, a door, two spaces."""
-    return build_building(tmp_path_factory.mktemp("ifc") / "storey.ifc", rooms=(2, 1), room=ROOM, height=HEIGHT)
+    """The two-room storey: walls, slab, ceilings, two windows, a door, a desk per room, two spaces."""
+    return build_building(tmp_path_factory.mktemp("ifc") / "storey.ifc", rooms=(2, 1), room=ROOM, height=HEIGHT,
+                          desks=1)
 
 
 @pytest.fixture(scope="module")
@@ -40,14 +41,26 @@ def test_materials_come_from_styles_or_listed_class_defaults(scene):
     assert mats["Glazing"].reflectance == pytest.approx((0.08,) * 3)
     assert mats["floor"].reflectance == (0.2,) * 3 and mats["ceiling"].reflectance == (0.7,) * 3
     assert mats["door"].reflectance == (0.4,) * 3
+    assert mats["Desk"].reflectance == pytest.approx((0.45, 0.4, 0.35))
     listed = " ".join(scene.warnings)
     for name, classes in [("floor", "IfcSlab"), ("ceiling", "IfcCovering"), ("door", "IfcDoor")]:
         assert f"'{name}'" in listed and classes in listed
 
 
+def test_every_class_default_when_the_model_has_no_style(tmp_path):
+    plain = hfrad.load_scene(build_building(tmp_path / "plain.ifc", rooms=(1, 1), desks=1, styles=False))
+    mats = {m.name: m for m in plain.materials}
+    assert set(mats) == {"wall", "floor", "ceiling", "window", "furniture"}
+    assert [mats[k].reflectance[0] for k in ("wall", "floor", "ceiling", "furniture")] == [0.5, 0.2, 0.7, 0.4]
+    assert mats["window"].transmittance == (0.78,) * 3 and mats["window"].reflectance == (0.08,) * 3
+    listed = [w for w in plain.warnings if w.startswith("no surface style")]
+    assert len(listed) == 5 and any("IfcFurniture faces use the hfrad default 'furniture'" in w for w in listed)
+
+
 def test_element_kinds_and_geometry(scene):
     groups = [scene.groups[g] for g in np.unique(scene.group)]
-    for cls, count in [("IfcWall", 5), ("IfcWindow", 2), ("IfcDoor", 1), ("IfcSlab", 1), ("IfcCovering", 2)]:
+    for cls, count in [("IfcWall", 5), ("IfcWindow", 2), ("IfcDoor", 1), ("IfcSlab", 1), ("IfcCovering", 2),
+                       ("IfcFurniture", 2)]:
         assert sum(cls in g for g in groups) == count, cls
     assert not any("IfcSpace" in g or "IfcOpeningElement" in g for g in groups)
     # y-up: the storey stands on y = 0 (the slab below it) and is HEIGHT + CEILING tall
