@@ -79,11 +79,13 @@ def test_alias_and_pattern_chain(tmp_path):
     assert any("brightfunc dirt ignored" in w for w in raw["warnings"])
 
 
-def test_concave_polygon_keeps_its_area_and_faces_up(tmp_path):
-    # an L of area 3 m^2: a fan from corner 0 would cover the notch
-    ell = "18 0 0 0  2 0 0  2 1 0  1 1 0  1 2 0  0 2 0"
-    scene = hfrad.load_scene(_write(tmp_path, _material("plastic", "p", ".5 .5 .5 0 0") + _square("p", "L", ell)))
-    assert scene.total_area == pytest.approx(3.0, rel=1e-12)
+@pytest.mark.parametrize("corners,area", [
+    ("18 0 0 0  2 0 0  2 1 0  1 1 0  1 2 0  0 2 0", 3.0),      # an L: a fan from corner 0 would cover the notch
+    ("30 0 0 0  4 0 0  4 4 0  0 4 0  0 0 0  1 1 0  1 3 0  3 3 0  3 1 0  1 1 0", 12.0),   # a hole joined by a seam
+])
+def test_concave_polygon_keeps_its_area_and_faces_up(tmp_path, corners, area):
+    scene = hfrad.load_scene(_write(tmp_path, _material("plastic", "p", ".5 .5 .5 0 0") + _square("p", "L", corners)))
+    assert scene.total_area == pytest.approx(area, rel=1e-12)
     assert np.allclose(scene.normals, [0, 1, 0])              # +z turned to hfrad's y-up
 
 
