@@ -224,3 +224,13 @@ def test_an_element_without_geometry_is_named_by_its_entity_id(tmp_path, storey)
     f.write(str(tmp_path / "ghost.ifc"))
     scene = hfrad.load_scene(tmp_path / "ghost.ifc")
     assert any(f"#{ghost.id()} IfcWall 'Ghost'" in w and "no geometry" in w for w in scene.warnings)
+
+
+def test_a_moved_ifc_file_is_named_when_its_spaces_are_wanted(tmp_path, scene):
+    from hfrad.lighting.spaces import scene_ifc
+
+    moved = scene.replace(name=str(tmp_path / "gone.ifc"))
+    assert scene_ifc(moved) is None
+    with pytest.raises(InputError, match="gone.ifc, which is not found from here: give --spaces"):
+        scene_ifc(moved, strict=True)
+    assert scene_ifc(scene.replace(name="room.obj"), strict=True) is None

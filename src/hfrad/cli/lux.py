@@ -60,7 +60,7 @@ def register(app: typer.Typer) -> None:
             scene = fac.scene
             sets = [read_sensors(p) for p in sensors]
             if spaces is None and floor is None and not sets:
-                spaces = scene_ifc(scene)
+                spaces = scene_ifc(scene, strict=True)
             if spaces is not None:
                 sets[0:0] = space_grids(spaces, height=height, spacing=spacing, margin=margin, scene=scene)
             elif floor is None and not sets:

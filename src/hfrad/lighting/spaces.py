@@ -22,10 +22,21 @@ from .sensors import SensorSet, plan_grid
 __all__ = ["space_grids", "scene_ifc"]
 
 
-def scene_ifc(scene) -> Path | None:
-    """The IFC file a scene was read from (its ``name``), when that file still exists; else None."""
+def scene_ifc(scene, *, strict: bool = False) -> Path | None:
+    """The IFC file a scene was read from (its ``name``), when that file still exists; else None.
+
+    With ``strict``, a scene read from an IFC file that is not found (moved, or a relative path read
+    from another folder) raises InputError instead of returning None.
+    """
     path = Path(str(scene.name))
-    return path if path.suffix.lower() == ".ifc" and path.is_file() else None
+    if path.suffix.lower() != ".ifc":
+        return None
+    if path.is_file():
+        return path
+    if strict:
+        raise InputError(f"the scene was read from {path}, which is not found from here: give --spaces MODEL.ifc "
+                         "(its IfcSpace work planes), --floor MATERIAL or --sensors FILE")
+    return None
 
 
 def space_grids(source, *, height: float = 0.8, spacing: float = 0.25, margin: float = 0.0,
