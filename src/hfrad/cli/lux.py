@@ -22,6 +22,9 @@ def register(app: typer.Typer) -> None:
         floor: Optional[str] = typer.Option(None, "--floor", help="Lay a work-plane grid over the outline of "
                                             "this material (default: 'floor' when the scene has it and no "
                                             "--sensors are given)."),
+        spaces: Optional[Path] = typer.Option(None, "--spaces", help="Lay one work-plane grid per IfcSpace of "
+                                              "this IFC file (default: the scene's own IFC file, when it was "
+                                              "read from one and no --floor or --sensors are given)."),
         height: float = typer.Option(0.8, "--height", help="Work-plane height above the floor, m."),
         spacing: float = typer.Option(0.25, "--spacing", help="Grid spacing, m."),
         margin: float = typer.Option(0.0, "--margin", help="Border left out of the grid, m (EN 12464-1: 0.5)."),
@@ -43,6 +46,7 @@ def register(app: typer.Typer) -> None:
 
         from ..lighting import (LightingModel, floor_grid, grid_stats, read_layout, read_sensors, save_plan,
                                 write_csv, write_json)
+        from ..lighting.spaces import scene_ifc, space_grids
         from ..solve.bounds import solution_line
 
         with common.user_errors():
@@ -56,7 +60,11 @@ def register(app: typer.Typer) -> None:
             fac = common.load_factorization(factorization)
             scene = fac.scene
             sets = [read_sensors(p) for p in sensors]
-            if floor is None and not sets:
+            if spaces is None and floor is None and not sets:
+                spaces = scene_ifc(scene, strict=True)
+            if spaces is not None:
+                sets[0:0] = space_grids(spaces, height=height, spacing=spacing, margin=margin, scene=scene)
+            elif floor is None and not sets:
                 if "floor" not in scene.material_names:
                     raise InputError("give --floor MATERIAL or --sensors FILE: the scene has no 'floor' material")
                 floor = "floor"
@@ -87,7 +95,7 @@ def register(app: typer.Typer) -> None:
             if plan is not None:
                 grids = [(s, v) for s, v in zip(sets, values) if s.is_grid]
                 if not grids:
-                    raise InputError("--plan needs a work-plane grid (--floor)")
+                    raise InputError("--plan needs a work-plane grid (--floor or --spaces)")
                 save_plan(plan, *grids[0])
         if errors:
             common.console.print(f"  {solution_line(errors[0][1])}", highlight=False)

@@ -101,9 +101,11 @@ def _write_scene(g: h5py.Group, scene) -> None:
         _dataset(g, "triangle_patch", scene.triangle_patch)
     g.attrs["material_names"] = json.dumps(list(scene.material_names))
     g.attrs["group_names"] = json.dumps(list(scene.groups))
+    # transmittance (glazing) only where non-zero: files of opaque scenes stay as they were
     g.attrs["materials"] = json.dumps([{"name": m.name, "reflectance": list(m.reflectance),
-                                        "emission": list(m.emission)} for m in scene.materials],
-                                      default=_json_default)
+                                        "emission": list(m.emission),
+                                        **({"transmittance": list(m.transmittance)} if m.is_glazing else {})}
+                                       for m in scene.materials], default=_json_default)
     g.attrs["name"] = str(scene.name)
 
 
@@ -301,7 +303,8 @@ def read_hfr_metadata(path) -> dict:
 def _read_scene(g: h5py.Group, path: Path | None = None):
     from ..scene.scene import Material, Scene
     path = Path(g.file.filename) if path is None else path
-    mats = tuple(Material(m["name"], tuple(m["reflectance"]), tuple(m["emission"]))
+    mats = tuple(Material(m["name"], tuple(m["reflectance"]), tuple(m["emission"]),
+                          tuple(m.get("transmittance", (0.0, 0.0, 0.0))))
                  for m in json.loads(g.attrs["materials"]))
     optional = {k: _read(g, k, path) for k in ("parent", "occluder_vertices", "occluder_faces", "triangle_patch")
                 if k in g}
