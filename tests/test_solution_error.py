@@ -166,3 +166,27 @@ def test_near_field_solver_gets_the_figure_too():
     results = _true_errors(F, np.asarray(fac.reflectance), np.asarray(scene.areas), fac, _emissions(scene, 8))
     for label, err, true in results:
         assert (err.bound >= true).all() and (err.bound <= 10 * true).all(), f"{label}: {err.bound} vs {true}"
+
+
+def test_parts_without_rows_give_no_figure_rather_than_a_partial_one():
+    """A Dask part saved before the rows were kept, merged with a new one: the figure is dropped, not
+    computed from half the columns."""
+    from hfrad.solve.assemble import add_statistics, statistics_state
+    from hfrad.solve.stats import PassStatistics
+
+    n, rng = 300, np.random.default_rng(1)
+    F = rng.random((n, n)) / n
+    areas, rho = rng.random(n) + 0.5, rng.random((n, 3)) * 0.8
+    parts = []
+    for lo, hi in ((0, 128), (128, n)):
+        stats = PassStatistics(n, areas, reflectance=rho)
+        stats.add(lo, hi, F[:, lo:hi], rho.max(axis=1)[:, None])
+        parts.append(statistics_state(stats))
+    merged = PassStatistics.from_state({**add_statistics(*parts), "weights": areas})
+    whole = PassStatistics(n, areas, reflectance=rho)
+    whole.add(0, n, F, rho.max(axis=1)[:, None])
+    np.testing.assert_array_equal(merged.samples.rows, whole.samples.rows)
+    np.testing.assert_allclose(merged.samples.products, whole.samples.products, rtol=1e-6)
+    old = {k: v for k, v in parts[0].items() if not k.startswith(("sample_", "smooth_"))}
+    dropped = PassStatistics.from_state({**add_statistics(old, parts[1]), "weights": areas})
+    assert dropped.samples is None

@@ -244,6 +244,8 @@ def add_statistics(a: dict | None, b: dict | None) -> dict | None:
            "sketch": a["sketch"] + b["sketch"]}
     if "sample_rows" in a and "sample_rows" in b:
         out.update(SampledRows.add_states(a, b))
+    else:   # a part saved before the rows were kept: no figure rather than one from missing columns
+        out = {k: v for k, v in out.items() if not k.startswith(("sample_", "smooth_"))}
     return out
 
 

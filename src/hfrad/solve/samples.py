@@ -134,6 +134,8 @@ class SampledRows:
     exact : bool
         Every patch is a residual row (small scenes): the figure is a bound.
     seed : int
+    span : (int, int) or None
+        The columns recorded so far (None: none yet): a Dask leaf's state carries only those.
     """
 
     index: np.ndarray
@@ -144,6 +146,7 @@ class SampledRows:
     reflectance: np.ndarray
     exact: bool
     seed: int = SAMPLE_SEED
+    span: tuple[int, int] | None = None
     _smooth_rows: dict = field(default_factory=dict, repr=False, compare=False)
 
     # -- the design, and recording the pass ------------------------------------
@@ -167,6 +170,7 @@ class SampledRows:
         """Record columns ``start:stop`` of F (all n rows, internal order)."""
         every = np.concatenate([self.index, self.smooth_index])
         self.rows[:, start:stop] = F_block[every]
+        self.span = (start, stop) if self.span is None else (min(self.span[0], start), max(self.span[1], stop))
         if self.products is not None:
             Fs = np.asarray(F_block[self.smooth_index], np.float64)            # (m2, b)
             scale = self.reflectance[start:stop] / self.weights[start:stop, None]   # (b, 3) rho_jc / A_j
@@ -178,27 +182,49 @@ class SampledRows:
 
     # -- state (checkpoints, .hfr files, Dask parts) ----------------------------
     def state(self) -> dict:
-        out = {"sample_index": self.index, "smooth_index": self.smooth_index, "sample_rows": self.rows,
-               "sample_reflectance": self.reflectance, "sample_exact": int(self.exact),
-               "sample_seed": self.seed}
+        """Arrays for checkpoints, ``.hfr`` files and Dask parts: the rows of the recorded columns only
+        (``sample_span``), so a leaf's part carries (m1 + m2) b numbers of them, not (m1 + m2) n."""
+        n = self.rows.shape[1]
+        lo, hi = (0, n) if self.span is None else self.span
+        out = {"sample_index": self.index, "smooth_index": self.smooth_index,
+               "sample_rows": self.rows if (lo, hi) == (0, n) else self.rows[:, lo:hi],
+               "sample_span": np.array([lo, hi], np.int64), "sample_reflectance": self.reflectance,
+               "sample_exact": int(self.exact), "sample_seed": self.seed}
         if self.products is not None:
             out["smooth_products"] = self.products
         return out
 
     @classmethod
     def from_state(cls, state: dict, weights) -> "SampledRows":
+        rho = np.asarray(state["sample_reflectance"], np.float64)
+        rows = np.asarray(state["sample_rows"], np.float32)
+        lo, hi = (int(x) for x in state.get("sample_span", (0, rho.shape[0])))
+        if rows.shape[1] != rho.shape[0]:            # a part's columns: placed among all n
+            full = np.zeros((rows.shape[0], rho.shape[0]), np.float32)
+            full[:, lo:hi] = rows
+            rows = full
         products = state.get("smooth_products")
         return cls(np.asarray(state["sample_index"], np.int64), np.asarray(state["smooth_index"], np.int64),
-                   np.asarray(state["sample_rows"], np.float32),
-                   None if products is None else np.asarray(products, np.float64),
-                   None if weights is None else np.asarray(weights, np.float64),
-                   np.asarray(state["sample_reflectance"], np.float64), bool(int(state["sample_exact"])),
-                   int(state["sample_seed"]))
+                   rows, None if products is None else np.asarray(products, np.float64),
+                   None if weights is None else np.asarray(weights, np.float64), rho,
+                   bool(int(state["sample_exact"])), int(state["sample_seed"]), (lo, hi))
 
     @staticmethod
     def add_states(a: dict, b: dict) -> dict:
-        """Samples of two disjoint column ranges together (the rows and products add up)."""
-        out = {"sample_rows": a["sample_rows"] + b["sample_rows"]}
+        """Samples of two disjoint column ranges together: rows side by side when the ranges touch
+        (HF's tree merges neighbours), else placed among all n; products add up."""
+        (a_lo, a_hi), (b_lo, b_hi) = a["sample_span"], b["sample_span"]
+        if b_lo == a_hi or a_lo == b_hi:
+            first, second = (a, b) if b_lo == a_hi else (b, a)
+            rows = np.concatenate([first["sample_rows"], second["sample_rows"]], axis=1)
+        else:
+            n = a["sample_reflectance"].shape[0]
+            rows = np.zeros((a["sample_rows"].shape[0], n), np.float32)
+            for part in (a, b):
+                lo, hi = part["sample_span"]
+                rows[:, lo:hi] = part["sample_rows"][:, :hi - lo] if part["sample_rows"].shape[1] != n \
+                    else part["sample_rows"][:, lo:hi]
+        out = {"sample_rows": rows, "sample_span": np.array([min(a_lo, b_lo), max(a_hi, b_hi)], np.int64)}
         if "smooth_products" in a:
             out["smooth_products"] = a["smooth_products"] + b["smooth_products"]
         return out
