@@ -152,8 +152,12 @@ def _lighting_summary(r: dict, output: Path, plan: Optional[Path]) -> None:
         for g in r["grids"]:
             a = g["achieved"]
             u = "-" if a["U0"] is None else f"{a['U0']:.3f}"
+            err = "" if "error_lux" not in g else \
+                f"; interreflected light's error at most {g['error_lux']['maximum']:.2g} lx"
             say(f"  {g['name']} ({g['sensors']} sensors): average {a['average']:.1f} lx, min {a['minimum']:.1f}, "
-                f"max {a['maximum']:.1f}, U0 {u}", highlight=False)
+                f"max {a['maximum']:.1f}, U0 {u}{err}", highlight=False)
+        if "radiosity_error" in r:
+            say(f"  {_error_words(r['radiosity_error'])}", highlight=False)
     head = "designed" if r["feasible"] else f"[bold red]not feasible[/] ({r['status']})"
     say(f"{head}: {r['message']}", highlight=False)
     t = r["timings"]

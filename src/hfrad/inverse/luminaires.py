@@ -312,6 +312,8 @@ def design_lighting(fac, spec: "LightingSpec | Mapping | str | Path", *, model: 
         if w is not None:
             st = grid_stats(r.illuminance(w))
             entry["achieved"] = st
+            lux_error, radiosity_error = model.illuminance_error(r, w)   # the interreflected light's figure
+            entry["error_lux"] = {"maximum": float(lux_error.max()), "average": float(lux_error.mean())}
             entry["met"] = _met(dspec.targets[spec.grids.index(g)],
                                 {"min": st["minimum"], "mean": st["average"], "max": st["maximum"],
                                  "uniformity": st["U0"]}, spec.objective)
@@ -340,6 +342,7 @@ def design_lighting(fac, spec: "LightingSpec | Mapping | str | Path", *, model: 
         "total_power_W": None if w is None else float(cost @ w),
         "full_power_W": float(cost.sum()),
         "luminaires": lums_out, "grids": grids_out, "conflicts": sol.conflicts, "background": spec.background,
+        **({} if w is None else {"radiosity_error": radiosity_error.as_dict()}),
         "lp_solves": int(sol.lp_solves),
         "timings": {**{k: v for k, v in model.timings.items()},
                     "gather_s": float(sum(r.seconds["gather_s"] for r in responses)),
