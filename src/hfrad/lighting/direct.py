@@ -60,13 +60,10 @@ def caster_for(scene, threads: int | None = None) -> RayCaster:
     return RayCaster(scene.occluder_vertices, scene.occluder_faces, threads=threads)
 
 
-def _offset(scene_size: float) -> float:
-    return 1e-5 * max(scene_size, 1e-3)
-
-
-def _reach(scene_size: float) -> float:
-    """Length of a shadow ray's source end tested exactly in float64 (metres)."""
-    return 1e-3 * max(scene_size, 1e-3)
+def _offsets(scene_size: float) -> tuple[float, float]:
+    """(eps, reach), metres: a shadow ray's offset off its receiver, and its source end tested exactly."""
+    size = max(scene_size, 1e-3)
+    return 1e-5 * size, 1e-3 * size
 
 
 # -- shadow rays ----------------------------------------------------------------------------------------
@@ -168,27 +165,26 @@ def direct_illuminance(luminaires, points: np.ndarray, normals: np.ndarray, *, c
     if not len(P):
         return out
     span = float(np.ptp(np.vstack([P] + [lum.position[None] for lum in luminaires]), axis=0).max())
-    eps = _offset(span)
+    eps, reach = _offsets(span)
     for j, lum in enumerate(luminaires):
         d_centre = np.linalg.norm(P - lum.position, axis=1)
         size = lum.size
         near = (d_centre < near_ratio * size) if size > 0 else np.zeros(len(P), bool)
         if (~near).any():
             far = np.flatnonzero(~near)
-            out[far, j] = _from_sources(lum, lum.position[None], np.ones(1), P[far], N[far], caster, eps)
+            out[far, j] = _from_sources(lum, lum.position[None], np.ones(1), P[far], N[far], caster, eps, reach)
         if near.any():
             idx = np.flatnonzero(near)
-            out[idx, j] = _from_sources(lum, *lum.emission_points(spacing), P[idx], N[idx], caster, eps)
+            out[idx, j] = _from_sources(lum, *lum.emission_points(spacing), P[idx], N[idx], caster, eps, reach)
         report(progress, j + 1, len(luminaires))
     return out
 
 
 def _from_sources(lum, sources: np.ndarray, weights: np.ndarray, P: np.ndarray, N: np.ndarray, caster,
-                  eps: float) -> np.ndarray:
+                  eps: float, reach: float) -> np.ndarray:
     """(p,) lux at P from ``sources`` (k, 3), each with ``weights`` (k,) of the luminaire's intensity."""
     total = np.zeros(len(P))
     frame = lum.frame
-    reach = _reach(eps / 1e-5)
     for src, w in zip(sources, weights):
         near = _faces_near(caster, src, reach)
         for start in range(0, len(P), _BATCH):
@@ -246,7 +242,7 @@ def _pieces(T: np.ndarray, s: np.ndarray, limit: float) -> tuple[np.ndarray, np.
 
 
 def _triangle_flux(lum, src: np.ndarray, weight: float, T: np.ndarray, normals: np.ndarray, caster,
-                   eps: float, samples: int) -> np.ndarray:
+                   eps: float, reach: float, samples: int) -> np.ndarray:
     """(t,) lumens that triangles ``T`` (t, 3, 3) with unit ``normals`` receive from one source point."""
     out = np.zeros(len(T))
     facing = np.flatnonzero(np.einsum("td,td->t", src - T[:, 0], normals) > 0)
@@ -254,7 +250,6 @@ def _triangle_flux(lum, src: np.ndarray, weight: float, T: np.ndarray, normals: 
         return out
     bary = split_centroids(samples)
     pieces, owner, omega = _pieces(T[facing], src, samples * samples * SOLID_ANGLE_PER_SAMPLE)
-    reach = _reach(eps / 1e-5)
     near = _faces_near(caster, src, reach)
     frame = lum.frame
     rows = max(1, _BATCH // len(bary))
@@ -311,18 +306,18 @@ def patch_direct_illuminance(scene, luminaires, *, samples: int = 3, caster: Ray
     radius = np.linalg.norm(T - centroids[:, None], axis=2).max(axis=1)
     span = float(np.ptp(np.vstack([T.reshape(-1, 3)] + [lum.position[None] for lum in luminaires]),
                         axis=0).max())
-    eps = _offset(span)
+    eps, reach = _offsets(span)
     areas = np.asarray(scene.areas, np.float64)
     for j, lum in enumerate(luminaires):
         flux = np.zeros(len(T))
         gap = np.linalg.norm(centroids - lum.position, axis=1) - radius
         near = (gap < near_ratio * lum.size) if lum.size > 0 else np.zeros(len(T), bool)
         far = np.flatnonzero(~near)
-        flux[far] = _triangle_flux(lum, lum.position, 1.0, T[far], normals[far], caster, eps, samples)
+        flux[far] = _triangle_flux(lum, lum.position, 1.0, T[far], normals[far], caster, eps, reach, samples)
         idx = np.flatnonzero(near)
         if len(idx):
             for src, w in zip(*lum.emission_points(spacing)):
-                flux[idx] += _triangle_flux(lum, src, float(w), T[idx], normals[idx], caster, eps, samples)
+                flux[idx] += _triangle_flux(lum, src, float(w), T[idx], normals[idx], caster, eps, reach, samples)
         per_patch = np.bincount(owner, weights=flux, minlength=n)
         out[:, j] = np.divide(per_patch, areas, out=np.zeros(n), where=areas > 0)
         report(progress, j + 1, len(luminaires))
