@@ -108,6 +108,9 @@ def test_sizes_are_refused_with_the_number_before_any_work(tmp_path):
     from hfrad.lighting.limits import check_lighting_size
     with pytest.raises(MemoryLimitError, match="10,000,000 sensors"):
         check_lighting_size(100_000, 12, [10_000_000])
+    with pytest.raises(InputError, match=r"1,000,000 sensors on 722 patches: .* 2.9e\+09 rays"):
+        check_lighting_size(722, 12, [1_000_000])                       # fits in memory, but a quarter hour
+    check_lighting_size(722, 12, [480, 20])                             # the office example's grid
 
 
 def test_a_design_grid_without_a_goal_is_refused(tmp_path):

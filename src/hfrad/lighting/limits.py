@@ -7,7 +7,10 @@ luminaires on ``n`` patches and ``m`` sensors is, in bytes::
     sensors:  m n 4 (the float32 gather operator G) + m L 24 (direct, response, indirect) + m 200 (points, rays)
 
 and an area-source luminaire spreads over ``(size / spacing)^2`` points. The
-checks raise :class:`~hfrad.errors.MemoryLimitError` or
+gather operator casts up to ``m n s^2`` rays (``s = 2``), so its work is
+bounded too: at most :data:`MAX_GATHER_RAYS` (minutes on a few cores; a
+million sensors on a 722-patch office would cast 2.9e9 and run for a quarter
+of an hour). The checks raise :class:`~hfrad.errors.MemoryLimitError` or
 :class:`~hfrad.errors.InputError` with the numbers, as the precompute's do.
 """
 
@@ -18,8 +21,10 @@ import math
 from ..errors import InputError
 from ..memory import require
 
-__all__ = ["check_lighting_size", "check_grid_size", "check_area_points", "MAX_AREA_POINTS"]
+__all__ = ["check_lighting_size", "check_grid_size", "check_area_points", "MAX_AREA_POINTS", "MAX_GATHER_RAYS"]
 
+#: most rays one gather operator may cast (m sensors x n patches x 4)
+MAX_GATHER_RAYS = 1e9
 #: most points one luminous opening may be spread over (a 3 m x 3 m opening at 0.1 m: 900)
 MAX_AREA_POINTS = 100_000
 _PATCH_BYTES = 2 * (8 + 24 + 24)
@@ -31,8 +36,12 @@ def check_lighting_size(n_patches: int, n_luminaires: int, sensors: "list[int]")
     m = int(sum(sensors))
     nbytes = (n_patches * n_luminaires * _PATCH_BYTES + m * n_patches * 4 + m * n_luminaires * 24
               + m * _SENSOR_BYTES)
-    require(nbytes, f"lighting {n_patches:,} patches with {n_luminaires:,} luminaires and {m:,} sensors",
-            "use fewer sensors (a larger grid spacing), fewer luminaires or a coarser factorization")
+    fix = "use fewer sensors (a larger grid spacing), fewer luminaires or a coarser factorization"
+    require(nbytes, f"lighting {n_patches:,} patches with {n_luminaires:,} luminaires and {m:,} sensors", fix)
+    rays = 4.0 * m * n_patches
+    if rays > MAX_GATHER_RAYS:
+        raise InputError(f"{m:,} sensors on {n_patches:,} patches: their gather operator would cast up to "
+                         f"{rays:.2g} rays, more than the {MAX_GATHER_RAYS:.0e} allowed; {fix}")
 
 
 def check_grid_size(count: float, spacing: float) -> None:
