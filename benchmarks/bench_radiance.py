@@ -32,6 +32,13 @@ Cases:
 - ``room``: a closed empty 4 x 2.8 x 3 m room (floor 0.2, walls 0.5,
   ceiling 0.7) with the office's IES downlight in the middle of the ceiling,
   the 0.8 m work plane at 0.5 m spacing (0.25 m border), factorized here;
+- ``rad``: examples/buildings/office.rad, a Radiance file read by both: hfrad's
+  reader (``hfrad.load_scene``, ``--rad-patches`` patches, its four ``light``
+  panels as the scene's emitters, background scene) and Radiance's ``oconv``
+  on the same file (its ``!genbox``/``!xform`` lines run by Radiance); the
+  0.8 m work plane over the carpet (0.5 m border) at ``--office-spacing``. hfrad
+  reads a ``light`` of radiance L as the exitance pi L 179/683, so both give
+  the same lux;
 - ``cornell``: ../shared/scenes/cornell-box/CornellBox-Original.obj (its own area
   light, background scene), a plane at 1.4 m over the box's floor (above both
   blocks) at ``--cornell-spacing``; the light's patches get reflectance 0 (a
@@ -71,6 +78,7 @@ from common import check_load, machine, machine_line, print_table, table, write_
 
 ROOT = Path(__file__).resolve().parents[1]
 OFFICE = ROOT / "examples" / "office"
+RAD_OFFICE = ROOT / "examples" / "buildings" / "office.rad"
 CORNELL = ROOT.parent / "shared" / "scenes" / "cornell-box" / "CornellBox-Original.obj"
 RADIANCE_EFFICACY = 179.0
 Y709 = np.array([0.2126, 0.7152, 0.0722])
@@ -140,14 +148,23 @@ def luminaires_to_rad(layout_path: Path, luminaires, work: Path, tools: dict) ->
 
 
 def run_radiance(scene, sensors, *, luminaires=(), layout=None, emit: bool, ad: int, ab: int, threads: int,
-                 work: Path, tools: dict, reflectance=None) -> dict:
-    """Illuminance (lux) at the sensors by rtrace -I; each sensor traced twice (noise)."""
+                 work: Path, tools: dict, reflectance=None, rad_file: Path | None = None) -> dict:
+    """Illuminance (lux) at the sensors by rtrace -I; each sensor traced twice (noise).
+
+    ``rad_file``: Radiance reads this scene file itself (oconv in its folder) instead of the
+    scene's triangles."""
     t0 = time.perf_counter()
-    info = scene_to_rad(scene, work / "scene.rad", emit=emit, reflectance=reflectance)
-    files = ["scene.rad"] + [p.name for p in (luminaires_to_rad(layout, luminaires, work, tools)
-                                               if luminaires else [])]
-    with open(work / "scene.oct", "wb") as fh:
-        subprocess.run([tools["oconv"], *files], cwd=work, check=True, stdout=fh)
+    if rad_file is not None:
+        info = {"polygons": None, "materials": None, "rad_file": str(rad_file)}
+        with open(work / "scene.oct", "wb") as fh:
+            # -f: a frozen octree (the scene inside it), as rtrace runs in another folder
+            subprocess.run([tools["oconv"], "-f", rad_file.name], cwd=rad_file.parent, check=True, stdout=fh)
+    else:
+        info = scene_to_rad(scene, work / "scene.rad", emit=emit, reflectance=reflectance)
+        files = ["scene.rad"] + [p.name for p in (luminaires_to_rad(layout, luminaires, work, tools)
+                                                   if luminaires else [])]
+        with open(work / "scene.oct", "wb") as fh:
+            subprocess.run([tools["oconv"], *files], cwd=work, check=True, stdout=fh)
     t_conv = time.perf_counter() - t0
     P, N = _zup(sensors.points), _zup(sensors.normals)
     text = "".join(" ".join(f"{v:.9g}" for v in row) + "\n" for row in np.hstack([P, N]))
@@ -292,6 +309,11 @@ def run_case(name: str, args, tools: dict) -> dict:
         lums = read_layout(layout)
         background, emit = "none", False
         sensors = floor_grid(fac.scene, 0.8, 0.5, margin=0.25)
+    elif name == "rad":
+        fac = hfrad.factorize(hfrad.load_scene(RAD_OFFICE, patches=args.rad_patches), eps=args.eps)
+        layout, lums = None, []
+        background, emit = "scene", True
+        sensors = floor_grid(fac.scene, 0.8, args.office_spacing, material="carpet", margin=0.5)
     else:
         if not CORNELL.is_file():
             raise SystemExit(f"{CORNELL} is missing (the shared scenes folder)")
@@ -318,7 +340,8 @@ def run_case(name: str, args, tools: dict) -> dict:
     dense = _dense_check(fac, model, resp, args.ab) if args.dense else None
     with tempfile.TemporaryDirectory(prefix=f"rad-{name}-") as tmp:
         rad = run_radiance(fac.scene, sensors, luminaires=lums, layout=layout, emit=emit, ad=args.ad, ab=args.ab,
-                           threads=args.threads, work=Path(tmp), tools=tools, reflectance=fac.reflectance)
+                           threads=args.threads, work=Path(tmp), tools=tools, reflectance=fac.reflectance,
+                           rad_file=RAD_OFFICE if name == "rad" else None)
     out = {"case": name, "patches": fac.n_patches, "rank": fac.rank, "eps": fac.eps, "sensors": len(sensors),
            "spacing_m": sensors.spacing, "luminaires": len(lums),
            "hfrad": {**grid_stats(lux_h), "factorization_s": t_fac if not (args.hfr_office or args.hfr_cornell) else
@@ -369,6 +392,7 @@ def main() -> None:
     p.add_argument("--hfr-cornell", default=None)
     p.add_argument("--patches", type=int, default=3000)
     p.add_argument("--room-patches", type=int, default=1500)
+    p.add_argument("--rad-patches", type=int, default=2000, help="patches of examples/buildings/office.rad (--cases rad)")
     p.add_argument("--eps", type=float, default=0.01)
     p.add_argument("--office-spacing", type=float, default=0.25)
     p.add_argument("--cornell-spacing", type=float, default=0.2)

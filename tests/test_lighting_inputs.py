@@ -52,7 +52,8 @@ def test_non_finite_ies_numbers_name_the_file_and_line(tmp_path, field, value):
         read_photometry(p)
 
 
-@pytest.mark.parametrize("kw, what", [({"conversion": "nan"}, "conversion factor"), ({"lamps": "nan"}, "number of lamps"),
+@pytest.mark.parametrize("kw, what", [({"conversion": "nan"}, "conversion factor"),
+                                      ({"lamps": "nan"}, "number of lamps"),
                                       ({"gammas": ("0", "90", "180", "270", "360")}, "gamma angles in 0..180")])
 def test_bad_eulumdat_numbers_are_refused_naming_the_file(tmp_path, kw, what):
     assert read_photometry(_write(tmp_path / "ok.ldt", _ldt())).kind == "C"
@@ -77,7 +78,8 @@ def test_the_distributions_own_checks_name_the_file(tmp_path):
 
 
 @pytest.mark.parametrize("key, value", [("position", "abc"), ("position", {"x": 1}), ("position", ["1", "2", "3"]),
-                                        ("aim", "down"), ("aim", {"a": 1}), ("color", "white"), ("color", [True, 1, 1])])
+                                        ("aim", "down"), ("aim", {"a": 1}), ("color", "white"),
+                                        ("color", [True, 1, 1])])
 def test_layout_vectors_must_be_three_numbers(tmp_path, key, value):
     """Main: a string or an object raised ValueError/TypeError from numpy (a traceback at the CLI)."""
     _ies(tmp_path)

@@ -32,6 +32,7 @@ _EXPORTS = {
     "factorize_matrix": "hfrad.pipeline",
     "HFactorization": "hfrad.solve.woodbury",
     "ErrorEstimate": "hfrad.solve.bounds",
+    "SolutionError": "hfrad.solve.samples",
     "form_factor_matrix": "hfrad.formfactors.blocks",
     "iter_column_blocks": "hfrad.formfactors.blocks",
     "render_image": "hfrad.render.image",

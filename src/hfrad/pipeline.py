@@ -293,7 +293,7 @@ def _factorize_scene(scene: Scene, options: PrecomputeOptions, *, checkpoint, ch
     perm, n_blocks = options.perm, options.n_blocks
     key = options.key(scene)
     stream = _open_stream(checkpoint, key, n, n_blocks, options.eps, options.relative, dt, options.leaf_share)
-    stats = _open_stats(stream, n, options.stats_weights(scene))
+    stats = _open_stats(stream, n, options.stats_weights(scene), scene.reflectance[perm])
     t0 = time.perf_counter()
     ff_kwargs = {} if options.samples is None else {"samples": options.samples}
     if options.samples != 0:
@@ -330,10 +330,10 @@ def _factorize_scene(scene: Scene, options: PrecomputeOptions, *, checkpoint, ch
     return fac
 
 
-def _open_stats(stream: HFStream, n: int, weights) -> PassStatistics:
+def _open_stats(stream: HFStream, n: int, weights, reflectance) -> PassStatistics:
     """The pass statistics, resumed from the stream's checkpointed extras when it was resumed."""
     if stream.blocks_done == 0:
-        return PassStatistics(n, weights)
+        return PassStatistics(n, weights, reflectance=reflectance)
     state = {k[len(_STATS):]: v for k, v in stream.extra.items() if k.startswith(_STATS)}
     if not state:
         raise InputError("the checkpoint comes from an older hfrad (no pass statistics); delete it to start over")
@@ -476,7 +476,7 @@ def _factorize_matrix(F, reflectance, *, eps: float, relative: bool, block_size:
         raise InputError(f"form factors have a NaN or infinite value at F[{i}, {j}]")
     lr = lowrank_from_matrix(F, rho_max, perm, eps=eps, relative=relative, block_size=block_size, dtype=dt,
                              method=method, rng=rng, leaf_share=leaf_share, progress=progress)
-    stats = PassStatistics(n, None if areas is None else check_areas(areas, n)[perm])
+    stats = PassStatistics(n, None if areas is None else check_areas(areas, n)[perm], reflectance=rho[perm])
     stats.add(0, n, F[np.ix_(perm, perm)], rho_max[perm][:, None])
     params = {"method": method, "block_size": block_size, "dtype": dt.name,
               "time_factor": lr.info["time_factor"]}

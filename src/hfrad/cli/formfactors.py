@@ -32,7 +32,7 @@ def write_npz(path: Path, scene, F) -> None:
 def register(app: typer.Typer) -> None:
     @app.command()
     def formfactors(
-        scene: str = typer.Argument(..., help="Scene file (.obj, .ply, .gltf, .glb) or built-in name (cornell, ...)."),
+        scene: str = typer.Argument(..., help="Scene file (.obj, .ply, .gltf, .glb, .rad, .ifc) or built-in name (cornell, ...)."),
         output: Path = typer.Option(..., "--output", "-o", help="Output .npz: F, area, centroid, normal, material, material_names."),
         max_edge: Optional[float] = common.MaxEdgeOption,
         patches: Optional[int] = common.PatchesOption,

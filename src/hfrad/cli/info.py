@@ -74,7 +74,8 @@ def load_scene_from_options(scene: str, *, unit_scale: float = 1.0, emit=None, a
 def register(app: typer.Typer) -> None:
     @app.command()
     def info(
-        scene: str = typer.Argument(..., help="Scene file (.obj, .ply, .gltf, .glb) or built-in name (cornell, furnace, ...)."),
+        scene: str = typer.Argument(..., help="Scene file (.obj, .ply, .gltf, .glb, .rad, .ifc) or built-in name "
+                                    "(cornell, furnace, ...)."),
         max_edge: Optional[float] = common.MaxEdgeOption,
         patches: Optional[int] = common.PatchesOption,
         unit_scale: float = common.UnitScaleOption,
@@ -124,11 +125,17 @@ def _print_summary(summary: dict) -> None:
                   f"{c['compactness']['max']:.0f} (disk 1.3, square 2-4, strip ~ length/width)", highlight=False)
     lo, hi = summary["bounds_min"], summary["bounds_max"]
     out.print("bounds: min (" + ", ".join(f"{x:.4g}" for x in lo) + ")  max (" + ", ".join(f"{x:.4g}" for x in hi) + ")")
-    table = Table("material", "reflectance (R,G,B)", "emission W/m^2", "patches", "area m^2")
+    glazing = summary["glazing"]
+    table = Table("material", "reflectance (R,G,B)", "emission W/m^2", *(["transmittance"] if glazing["patches"]
+                                                                         else []), "patches", "area m^2")
     for m in summary["materials"]:
+        tau = [", ".join(f"{x:.3g}" for x in m["transmittance"])] if glazing["patches"] else []
         table.add_row(m["name"], ", ".join(f"{x:.3g}" for x in m["reflectance"]),
-                      ", ".join(f"{x:.3g}" for x in m["emission"]), f"{m['patches']:,}", f"{m['area']:.4g}")
+                      ", ".join(f"{x:.3g}" for x in m["emission"]), *tau, f"{m['patches']:,}", f"{m['area']:.4g}")
     out.print(table)
+    if glazing["materials"]:
+        out.print(f"windows: {glazing['patches']:,} patches ({', '.join(glazing['materials'])}), area "
+                  f"{glazing['area']:.4g} m^2; {glazing['treatment']}", highlight=False)
     out.print(f"emitters: {summary['emitter_patches']:,} patches ({', '.join(summary['emitter_materials']) or 'none'}), "
               f"power (W) " + ", ".join(f"{x:.4g}" for x in summary["emitted_power_w"]))
     faces = summary.get("face_problems")

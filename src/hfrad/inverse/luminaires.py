@@ -18,7 +18,9 @@ relative to the spec) or a layout object. Each luminaire's unknown is its
 dimming ``w_l`` in ``[0, max]`` (the layout's ``max``, default 1). A grid is a
 work plane over a floor's outline (``floor``: its material; ``height`` above
 the floor, ``spacing``, optional ``margin``), over a ``rectangle``
-(``[[x0, x1], [z0, z1]]``, ``height`` absolute), or a ``sensors`` file; its
+(``[[x0, x1], [z0, z1]]``, ``height`` absolute), over an IFC model's ``space``
+(an ``IfcSpace`` name; ``height`` above its floor; the scene read from that
+IFC file), or a ``sensors`` file; its
 goals, in lux, are ``mean`` (EN 12464-1's maintained average, a lower bound),
 ``min``, ``max`` (every sensor) and ``uniformity`` (U0 = Emin / Eavg).
 ``background`` as for the patch spec: ``none`` (default here) or ``scene``
@@ -58,7 +60,8 @@ __all__ = ["LightingSpec", "GridGoal", "LightingDesign", "parse_lighting_spec", 
 DEFAULT_EFFICACY = 100.0
 
 _TOP = {"luminaires", "grids", "objective", "background", "description"}
-_GRID = {"name", "floor", "rectangle", "sensors", "height", "spacing", "margin", "min", "max", "mean", "uniformity"}
+_GRID = {"name", "floor", "rectangle", "sensors", "space", "height", "spacing", "margin", "min", "max", "mean",
+         "uniformity"}
 
 
 @dataclass(frozen=True)
@@ -112,9 +115,9 @@ def _grid(obj: Any, scene, base: Path, where: str) -> GridGoal:
     name = obj.get("name", where.rsplit(": ", 1)[-1])
     if not isinstance(name, str) or not name:
         raise SpecError(f"{where}.name: expected a non-empty string, got {name!r}")
-    kinds = [k for k in ("floor", "rectangle", "sensors") if k in obj]
+    kinds = [k for k in ("floor", "rectangle", "sensors", "space") if k in obj]
     if len(kinds) != 1:
-        raise SpecError(f"{where}: give exactly one of floor, rectangle or sensors (got {kinds or 'none'})")
+        raise SpecError(f"{where}: give exactly one of floor, rectangle, sensors or space (got {kinds or 'none'})")
     kind = kinds[0]
     lo, hi = _num(obj, "min", where, low=0.0), _num(obj, "max", where, low=0.0)
     mean, u = _num(obj, "mean", where, low=0.0), _num(obj, "uniformity", where, low=0.0, high=1.0)
@@ -133,6 +136,8 @@ def _grid(obj: Any, scene, base: Path, where: str) -> GridGoal:
                 raise SpecError(f"{where}: a {kind} grid needs height and spacing (metres)")
             if kind == "floor":
                 sensors = floor_grid(scene, height, spacing, material=str(obj["floor"]), name=name, margin=margin)
+            elif kind == "space":
+                sensors = _space_grid(scene, str(obj["space"]), height, spacing, margin, where)
             else:
                 r = obj["rectangle"]
                 ok = (isinstance(r, list) and len(r) == 2 and all(isinstance(p, list) and len(p) == 2 for p in r))
@@ -157,6 +162,22 @@ def spec_input_files(raw: Any, base: "str | Path") -> dict:
         if isinstance(g, Mapping) and isinstance(g.get("sensors"), str):
             out[f"the spec's grids[{i}].sensors"] = Path(base) / g["sensors"]
     return out
+
+
+def _space_grid(scene, space: str, height: float, spacing: float, margin: float, where: str) -> SensorSet:
+    """The work plane of the IfcSpace named ``space`` of the IFC file the scene was read from."""
+    from ..lighting.spaces import scene_ifc, space_grids
+
+    path = scene_ifc(scene)
+    if path is None:
+        raise SpecError(f"{where}.space: the scene was not read from an IFC file that still exists "
+                        f"({scene.name!r}); use floor, rectangle or sensors")
+    grids = space_grids(path, height=height, spacing=spacing, margin=margin, scene=scene)
+    for g in grids:
+        if g.name == space:
+            return g
+    raise SpecError(f"{where}.space: no IfcSpace named {space!r} in {path}; its spaces: "
+                    + ", ".join(g.name for g in grids))
 
 
 def parse_lighting_spec(spec: "Mapping[str, Any] | str | Path", scene, *, base: "str | Path | None" = None,

@@ -20,7 +20,7 @@ from ..atomic import atomic_path
 from ..errors import FileFormatError, InputError
 from .limits import check_grid_size
 
-__all__ = ["SensorSet", "read_sensors", "write_sensors", "rectangle_grid", "floor_grid"]
+__all__ = ["SensorSet", "read_sensors", "write_sensors", "rectangle_grid", "floor_grid", "plan_grid"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -203,15 +203,30 @@ def floor_grid(scene, height: float, spacing: float, *, material: str = "floor",
     if not len(tri):
         raise InputError(f"the scene has no {material!r} patch to lay a grid on")
     y0 = float(tri[..., 1].min())
-    plan = tri[..., [0, 2]]
+    return plan_grid(tri[..., [0, 2]], y0 + height, spacing, name=name, margin=margin, what=f"the {material!r} outline")
+
+
+def plan_grid(plan: np.ndarray, y: float, spacing: float, *, name: str = "workplane", margin: float = 0.0,
+              what: str = "the outline") -> SensorSet:
+    """Sensors facing up at ``y`` over an outline given as plan triangles (t, 3, 2) of (x, z).
+
+    The grid of :func:`rectangle_grid` over the outline's bounding box, a
+    sensor kept when it lies on a triangle and, with a ``margin``, so do the
+    16 points at that distance around it (:func:`floor_grid`, IfcSpace grids).
+
+    Raises
+    ------
+    InputError
+        No sensor falls on the outline.
+    """
     lo, hi = plan.reshape(-1, 2).min(axis=0), plan.reshape(-1, 2).max(axis=0)
-    full = rectangle_grid((lo[0], hi[0]), (lo[1], hi[1]), y0 + height, spacing, name=name, margin=margin)
+    full = rectangle_grid((lo[0], hi[0]), (lo[1], hi[1]), y, spacing, name=name, margin=margin)
     xz = full.points[:, [0, 2]]
     keep = _inside_triangles(xz, plan)
     if margin > 0:                         # the border zone follows the outline: the points margin away inside too
         for a in np.radians(np.arange(0, 360, 22.5)):
             keep &= _inside_triangles(xz + margin * np.array([np.cos(a), np.sin(a)]), plan)
     if not keep.any():
-        raise InputError(f"no grid point of spacing {spacing:g} m falls on the {material!r} outline")
+        raise InputError(f"no grid point of spacing {spacing:g} m falls on {what}")
     return SensorSet(name, full.points[keep], full.normals[keep], full.cells[keep], full.shape, full.origin,
                      full.spacing)

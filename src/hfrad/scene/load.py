@@ -29,13 +29,16 @@ MAX_COLOUR_REFLECTANCE = 0.99  # a white colour (1.0) would create energy: clamp
 
 
 def _readers() -> dict[str, Callable[[Path], dict]]:
+    from .ifc import read_ifc
     from .mesh import read_gltf, read_ply
     from .obj import read_obj
+    from .rad import read_rad
 
-    return {".obj": read_obj, ".ply": read_ply, ".gltf": read_gltf, ".glb": read_gltf}
+    return {".obj": read_obj, ".ply": read_ply, ".gltf": read_gltf, ".glb": read_gltf, ".rad": read_rad,
+            ".ifc": read_ifc}
 
 
-SUPPORTED_SUFFIXES = (".obj", ".ply", ".gltf", ".glb")
+SUPPORTED_SUFFIXES = (".obj", ".ply", ".gltf", ".glb", ".rad", ".ifc")
 
 RGB = Sequence[float]
 
@@ -52,7 +55,10 @@ def load_scene(
     patches: int | None = None,
     keep_duplicates: bool = False,
 ) -> Scene:
-    """Load a scene file (OBJ/MTL, PLY, glTF/GLB) or a built-in scene by name.
+    """Load a scene file (OBJ/MTL, PLY, glTF/GLB, Radiance .rad, IFC) or a built-in scene by name.
+
+    Radiance and IFC models are Z-up; they are turned to hfrad's y-up frame,
+    (x, y, z) -> (x, z, -y), a rotation (docs/buildings.md).
 
     Parameters
     ----------
@@ -210,7 +216,7 @@ def _read(source: str | Path, default_reflectance: float, allow_missing: bool) -
 
 
 def _scene_from_raw(raw: dict, name: str, default_reflectance: float, allow_missing: bool) -> Scene:
-    warnings: list[str] = []
+    warnings: list[str] = list(raw.get("warnings", ()))
     if raw["missing_mtl"] and not allow_missing:
         raise SceneError(f"{name}: material library not found: {', '.join(raw['missing_mtl'])} "
                          "(use --allow-missing-materials to give those faces the default reflectance)")
@@ -231,9 +237,11 @@ def _scene_from_raw(raw: dict, name: str, default_reflectance: float, allow_miss
             warnings.append(f"material '{mat_name}' has no reflectance; using default {default_reflectance}")
         line = props.get("line")
         label = f"'{mat_name}'" + (f" (defined at line {line} of its .mtl)" if line else "")
+        label += f" (defined at {props['where']})" if props.get("where") else ""
         _check_material(name, label, rho, props.get("emission", (0, 0, 0)))
         emission = tuple(float(x) for x in props.get("emission", (0.0, 0.0, 0.0)))
-        materials.append(Material(mat_name, tuple(float(x) for x in rho), emission))
+        tau = tuple(float(x) for x in props.get("transmittance", (0.0, 0.0, 0.0)))
+        materials.append(Material(mat_name, tuple(float(x) for x in rho), emission, tau))
     face_material = raw["face_material"].copy()
     if (face_material < 0).any():
         count = int((face_material < 0).sum())

@@ -40,15 +40,27 @@ class Material:
         Diffuse reflectance (albedo) per RGB channel.
     emission : (3,) float >= 0, W/m^2
         Emitted exitance per RGB channel.
+    transmittance : (3,) float in [0, 1], reflectance + transmittance <= 1
+        Visible transmittance per RGB channel: 0 for an opaque surface, above
+        0 for glazing (Radiance ``glass``/``trans``, IFC windows). Today's
+        radiosity has no sky: the transmitted light leaves the scene (a
+        window is as dark as an opening, plus its reflectance). Kept for the
+        daylight work (docs/buildings.md).
     """
 
     name: str
     reflectance: tuple[float, float, float]
     emission: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    transmittance: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     @property
     def is_emitter(self) -> bool:
         return max(self.emission) > 0.0
+
+    @property
+    def is_glazing(self) -> bool:
+        """True when the material lets light through (a window)."""
+        return max(self.transmittance) > 0.0
 
 
 def _readonly(a: np.ndarray) -> np.ndarray:
@@ -170,6 +182,10 @@ class Scene:
                                  "must be in [0, 1) (a reflectance of 1 or more creates energy)")
             if not (np.isfinite(em).all() and (em >= 0).all()):
                 raise SceneError(f"{self.name}: material '{m.name}' emission {tuple(em.tolist())} must be finite and >= 0")
+            tau = np.asarray(m.transmittance, dtype=np.float64)
+            if not (tau.shape == (3,) and np.isfinite(tau).all() and (tau >= 0).all() and (rho + tau <= 1).all()):
+                raise SceneError(f"{self.name}: material '{m.name}' transmittance {tuple(tau.tolist())} must be "
+                                 "three values >= 0 with reflectance + transmittance <= 1")
         self._check_extent()
         self._check_exitance()
         # per-patch overrides are checked too: a NaN would reach LAPACK (which runs unchecked)

@@ -7,6 +7,10 @@ import numpy as np
 from .cluster import cluster_summary
 from .scene import Scene
 
+#: How today's radiosity treats glazing (``hfrad info`` prints it; docs/buildings.md).
+GLAZING_NOTE = ("windows are patches that reflect their reflectance; the light they transmit leaves the scene "
+                "(no sky yet: nothing comes in through them)")
+
 
 def scene_summary(scene: Scene) -> dict:
     """Patch count, area, bounds, materials, emitters and loader warnings of a scene."""
@@ -17,6 +21,7 @@ def scene_summary(scene: Scene) -> dict:
             "name": m.name,
             "reflectance": [round(float(x), 6) for x in m.reflectance],
             "emission": [round(float(x), 6) for x in m.emission],
+            "transmittance": [round(float(x), 6) for x in m.transmittance],
             "patches": int(mask.sum()),
             "area": float(scene.areas[mask].sum()),
         })
@@ -40,5 +45,14 @@ def scene_summary(scene: Scene) -> dict:
         "emitter_patches": int(emitting.sum()),
         "emitter_materials": emitter_names,
         "emitted_power_w": power.tolist(),
+        "glazing": _glazing(scene),
         "warnings": warnings,
     }
+
+
+def _glazing(scene: Scene) -> dict:
+    """Patches, area and materials of the windows (materials with a transmittance)."""
+    glazing = [k for k, m in enumerate(scene.materials) if m.is_glazing]
+    mask = np.isin(scene.material, glazing)
+    return {"patches": int(mask.sum()), "area": float(scene.areas[mask].sum()),
+            "materials": [scene.materials[k].name for k in glazing], "treatment": GLAZING_NOTE if glazing else None}

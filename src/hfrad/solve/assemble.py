@@ -33,6 +33,7 @@ from ..scene.scene import Scene
 from ..scene.zorder import patch_order
 from ..validation import check_factorize_options, check_permutation
 from .nearfield import NearFieldFactorization
+from .samples import SampledRows
 from .stats import PassStatistics
 from .woodbury import HFactorization
 
@@ -239,8 +240,11 @@ def add_statistics(a: dict | None, b: dict | None) -> dict | None:
     """The statistics of two disjoint column ranges together (either may be None)."""
     if a is None or b is None:
         return a if b is None else b
-    return {**a, "row_sums": a["row_sums"] + b["row_sums"], "col_sums": a["col_sums"] + b["col_sums"],
-            "sketch": a["sketch"] + b["sketch"]}
+    out = {**a, "row_sums": a["row_sums"] + b["row_sums"], "col_sums": a["col_sums"] + b["col_sums"],
+           "sketch": a["sketch"] + b["sketch"]}
+    if "sample_rows" in a and "sample_rows" in b:
+        out.update(SampledRows.add_states(a, b))
+    return out
 
 
 def near_state(rows=(), cols=(), values=()) -> dict:
