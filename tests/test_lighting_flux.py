@@ -79,3 +79,12 @@ def test_a_flush_luminaire_lights_the_room(room):
     """On the ceiling's plane, aimed down: the flux goes in (the mounting surface does not block it)."""
     phi = DOWNLIGHT.flux(0.1)
     assert _received(room, DOWNLIGHT, [0.37, 1.0, 0.61], [0, -1, 0]) == pytest.approx(phi, rel=1e-3)
+
+
+def test_flux_balance_of_a_large_opening_near_the_ceiling(room):
+    """A 0.6 m panel 5 cm under the ceiling is an area source (36 points) for most patches: flux kept."""
+    v = np.arange(0, 180.25, 0.5)
+    panel = Photometry("C", [0.0], v, np.where(v <= 90, 1000 * np.cos(np.radians(v)), 0.0)[None],
+                       size=(0.6, 0.6, 0.0), name="panel")
+    assert _received(room, panel, [0.5, 0.95, 0.5], [0, -1, 0]) == pytest.approx(panel.flux(0.1), rel=1e-3)
+    # observed 2.4e-4

@@ -51,6 +51,8 @@ NEAR_RATIO = 5.0
 SOLID_ANGLE_PER_SAMPLE = 2e-3
 #: rays per Embree batch
 _BATCH = 1 << 20
+#: (source point, triangle) pairs handled at once (their corner vectors: 150 MB)
+_PAIRS = 1 << 21
 #: splits of one triangle at most (a piece 2^-40 of the triangle's size: float64's limit)
 _MAX_DEPTH = 40
 
@@ -272,6 +274,10 @@ def _triangle_flux(lum, sources: np.ndarray, weights: np.ndarray, T: np.ndarray,
     Source i carries ``weights[i]`` of the luminaire's intensity; all
     (source, triangle) pairs are sampled together, in batches.
     """
+    per = max(1, _PAIRS // max(1, len(T)))
+    if len(sources) > per:                                                # (k, t, 3, 3) below: bounded memory
+        return sum(_triangle_flux(lum, sources[i:i + per], weights[i:i + per], T, normals, caster, eps, reach,
+                                  samples) for i in range(0, len(sources), per))
     out = np.zeros(len(T))
     rel = T[None, :, :, :] - sources[:, None, None, :]                   # (k, t, 3, 3) source -> corners
     lit = np.einsum("ktd,td->kt", rel[:, :, 0], normals) < 0              # the triangle faces the source
