@@ -287,3 +287,38 @@ def atomic_path(path: "str | os.PathLike", *, suffix: str = "", size: float | No
         if err is None:
             raise
         raise err from exc
+
+
+def check_outputs(outputs: dict, inputs: dict) -> None:
+    """InputError if an output names one of the command's inputs or another output.
+
+    ``outputs`` and ``inputs`` map an option's name (``-o/--output``,
+    ``--layout``) to a path or None. Paths are compared resolved, and as the
+    same file where both exist (links, other spellings).
+    """
+    from .errors import InputError
+
+    seen: list[tuple[str, Path, str]] = [(name, Path(p), "input") for name, p in inputs.items() if p is not None]
+    for name, p in outputs.items():
+        if p is None:
+            continue
+        p = Path(p)
+        for other, q, kind in seen:
+            same = p.resolve() == q.resolve()
+            with contextlib.suppress(OSError):
+                same = same or (p.exists() and q.exists() and os.path.samefile(p, q))
+            if same:
+                raise InputError(f"{name} '{p}' is also the {kind} {other}; choose another name "
+                                 "(it would be overwritten)")
+        seen.append((name, p, "output"))
+
+
+@contextlib.contextmanager
+def atomic_paths(*paths: "str | os.PathLike") -> Iterator[list[Path]]:
+    """Temporaries for several outputs (:func:`atomic_path` each), published only if the block completes.
+
+    A command's outputs are all written or none: an error while writing any
+    of them removes every temporary and leaves the targets as they were.
+    """
+    with contextlib.ExitStack() as stack:
+        yield [stack.enter_context(atomic_path(p, suffix=Path(p).suffix)) for p in paths]

@@ -17,6 +17,23 @@ def available_bytes() -> int:
     return 1 << 62
 
 
+def _address_space_left() -> int:
+    """Bytes the process may still map under its address-space limit (``ulimit -v``); large if none."""
+    try:
+        import resource
+
+        soft = resource.getrlimit(resource.RLIMIT_AS)[0]
+        if soft == resource.RLIM_INFINITY:
+            return 1 << 62
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmSize:"):
+                    return max(0, soft - int(line.split()[1]) * 1024)
+    except (ImportError, OSError, ValueError):  # pragma: no cover - non-Linux
+        pass
+    return 1 << 62
+
+
 def human(nbytes: float) -> str:
     for unit in ("B", "KB", "MB", "GB", "TB"):
         if nbytes < 1024 or unit == "TB":
@@ -27,7 +44,7 @@ def human(nbytes: float) -> str:
 
 def require(nbytes: float, what: str, hint: str = "", fraction: float = 0.8) -> None:
     """Raise MemoryLimitError if ``nbytes`` exceeds ``fraction`` of the available memory."""
-    limit = fraction * available_bytes()
+    limit = fraction * min(available_bytes(), _address_space_left())
     if nbytes > limit:
         raise MemoryLimitError(f"{what} needs about {human(nbytes)} but only {human(limit)} is available"
                                + (f"; {hint}" if hint else ""))

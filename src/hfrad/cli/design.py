@@ -54,14 +54,19 @@ def register(app: typer.Typer) -> None:
 
         from ..inverse import design as run_design
         from ..inverse import parse_spec
-        from ..atomic import atomic_path
+        from ..atomic import atomic_paths, check_outputs
 
         with common.user_errors():
             common.check_choice(method, "--method", ("auto", "forward", "adjoint"))
             if output.suffix.lower() != ".json":
                 raise InputError(f"output must be a .json file, got '{output}'")
-            for path in (output, emission_out, render):
+            for path in (output, emission_out, render, plan):
                 common.check_output(path)   # a missing or read-only folder: refused before the solves
+            from ..inverse.luminaires import spec_input_files
+            from ..inverse.spec import read_spec
+            raw = read_spec(spec)
+            check_outputs({"-o/--output": output, "--emission-out": emission_out, "--render": render, "--plan": plan},
+                          {"SPEC": spec, "FACTORIZATION": factorization, **spec_input_files(raw, spec.parent)})
             if emission_out is not None and emission_out.suffix.lower() != ".json":
                 raise InputError(f"--emission-out must be a .json file, got '{emission_out}'")
             if render is not None:
@@ -80,8 +85,7 @@ def register(app: typer.Typer) -> None:
                 raise InputError(f"--plan must be a .png file, got '{plan}'")
             fac = common.load_factorization(factorization)
             from ..inverse.luminaires import is_lighting_spec
-            from ..inverse.spec import read_spec
-            if is_lighting_spec(read_spec(spec)):
+            if is_lighting_spec(raw):
                 if emission_out is not None or (render is not None and show != "radiosity"):
                     raise InputError("a luminaire spec takes --plan and --render (radiosity); --emission-out "
                                      "and --show irradiance are for patch emitters")
@@ -97,12 +101,7 @@ def register(app: typer.Typer) -> None:
                 check_nameable(parsed)
             with common.progress_bar("design", quiet) as bar:
                 result = run_design(fac, parsed, method=method, progress=bar)
-            with atomic_path(output) as tmp:
-                tmp.write_text(result.to_json() + "\n", encoding="utf-8")
-            if emission_out is not None and result.feasible:
-                from ..inverse.emission import emission_settings
-                from ..io.emission import write_emission
-                write_emission(emission_out, emission_settings(result, fac.scene))
+            image = None
             if render is not None and result.radiosity is not None:
                 from ..inverse.transfer import irradiance_field
                 from ..render import render_image, save_png
@@ -110,7 +109,17 @@ def register(app: typer.Typer) -> None:
                     irradiance_field(fac, result.radiosity, result.exitance)
                 image = render_image(fac.scene.replace(emission=result.exitance), drawn,
                                      camera=camera, width=width, height=height, falsecolor=falsecolor, unit=unit)
-                save_png(image, render)
+            emission = emission_out if emission_out is not None and result.feasible else None
+            outs = [p for p in (output, emission, render if image is not None else None) if p is not None]
+            with atomic_paths(*outs) as tmps:         # all written, or none
+                tmp = dict(zip(outs, tmps))
+                tmp[output].write_text(result.to_json() + "\n", encoding="utf-8")
+                if emission is not None:
+                    from ..inverse.emission import emission_settings
+                    from ..io.emission import write_emission
+                    write_emission(tmp[emission], emission_settings(result, fac.scene))
+                if image is not None:
+                    save_png(image, tmp[render])
         _summary(result.report, output, render)
         if not result.feasible:
             raise typer.Exit(EXIT_INFEASIBLE)
@@ -119,25 +128,30 @@ def register(app: typer.Typer) -> None:
 def _design_luminaires(spec: Path, fac, output: Path, plan, render, camera, falsecolor, unit, width, height,
                        quiet: bool):
     """The luminaire design of a spec with "luminaires" (inside user_errors)."""
-    from ..atomic import atomic_path
+    from ..atomic import atomic_paths
     from ..inverse.luminaires import design_lighting, parse_lighting_spec
 
     parsed = parse_lighting_spec(spec, fac.scene)
+    if plan is not None and not any(g.sensors.is_grid for g in parsed.grids):
+        raise InputError("--plan needs a grid (floor or rectangle) in the spec")
     with common.progress_bar("luminaires", quiet) as bar:
         result = design_lighting(fac, parsed, progress=bar)
-    with atomic_path(output) as tmp:
-        tmp.write_text(result.to_json() + "\n", encoding="utf-8")
-    if result.feasible and plan is not None:
-        from ..lighting import save_plan
-        grids = [(g.sensors, lux) for g, lux in zip(parsed.grids, result.illuminance()) if g.sensors.is_grid]
-        if not grids:
-            raise InputError("--plan needs a grid (floor or rectangle) in the spec")
-        save_plan(plan, *grids[0])
+    image = None
     if result.feasible and render is not None:
         from ..render import render_image, save_png
         image = render_image(fac.scene, result.model.radiosity(result.dimming), camera=camera, width=width,
                              height=height, falsecolor=falsecolor, unit=unit)
-        save_png(image, render)
+    drawn = result.feasible and plan is not None
+    outs = [p for p in (output, plan if drawn else None, render if image is not None else None) if p is not None]
+    with atomic_paths(*outs) as tmps:                 # all written, or none
+        tmp = dict(zip(outs, tmps))
+        tmp[output].write_text(result.to_json() + "\n", encoding="utf-8")
+        if drawn:
+            from ..lighting import save_plan
+            save_plan(tmp[plan], *[(g.sensors, lux) for g, lux in zip(parsed.grids, result.illuminance())
+                                   if g.sensors.is_grid][0])
+        if image is not None:
+            save_png(image, tmp[render])
     return result
 
 

@@ -44,8 +44,10 @@ def register(app: typer.Typer) -> None:
         """
         import time
 
+        from ..atomic import atomic_paths, check_outputs
         from ..lighting import (LightingModel, floor_grid, grid_stats, read_layout, read_sensors, save_plan,
                                 write_csv, write_json)
+        from ..lighting.limits import check_lighting_size
         from ..lighting.spaces import scene_ifc, space_grids
         from ..solve.bounds import solution_line
 
@@ -56,6 +58,11 @@ def register(app: typer.Typer) -> None:
                 raise InputError(f"--plan must be a .png file, got '{plan}'")
             if csv_out is not None and csv_out.suffix.lower() != ".csv":
                 raise InputError(f"--csv must be a .csv file, got '{csv_out}'")
+            check_outputs({"-o/--output": output, "--csv": csv_out, "--plan": plan},
+                          {"factorization": factorization, "--layout": layout, "--spaces": spaces,
+                           **{f"--sensors {p}": p for p in sensors}})
+            for path in (output, csv_out, plan):
+                common.check_output(path)   # a missing or read-only folder: refused before the work
             luminaires = read_layout(layout) if layout is not None else []
             fac = common.load_factorization(factorization)
             scene = fac.scene
@@ -70,6 +77,9 @@ def register(app: typer.Typer) -> None:
                 floor = "floor"
             if floor is not None:
                 sets.insert(0, floor_grid(scene, height, spacing, material=floor, name="workplane", margin=margin))
+            if plan is not None and not any(s.is_grid for s in sets):
+                raise InputError("--plan needs a work-plane grid (--floor or --spaces)")
+            check_lighting_size(scene.n_patches, len(luminaires), [len(s) for s in sets])
             t0 = time.perf_counter()
             with common.progress_bar("luminaires", quiet) as bar:
                 model = LightingModel(fac, luminaires, background=background, progress=bar)
@@ -89,14 +99,14 @@ def register(app: typer.Typer) -> None:
                                 for s, v, (e, _) in zip(sets, values, errors)],
                       **({"radiosity_error": errors[0][1].as_dict()} if errors else {}),
                       "timings": {**model.timings, "precompute_s": pre, "relight_s": relight}}
-            write_json(output, report)
-            if csv_out is not None:
-                write_csv(csv_out, sets, values, direct=[r.direct @ w for r in responses])
-            if plan is not None:
-                grids = [(s, v) for s, v in zip(sets, values) if s.is_grid]
-                if not grids:
-                    raise InputError("--plan needs a work-plane grid (--floor or --spaces)")
-                save_plan(plan, *grids[0])
+            outs = [p for p in (output, csv_out, plan) if p is not None]
+            with atomic_paths(*outs) as tmps:        # all written, or none
+                tmp = dict(zip(outs, tmps))
+                write_json(tmp[output], report)
+                if csv_out is not None:
+                    write_csv(tmp[csv_out], sets, values, direct=[r.direct @ w for r in responses])
+                if plan is not None:
+                    save_plan(tmp[plan], *[(s, v) for s, v in zip(sets, values) if s.is_grid][0])
         if errors:
             common.console.print(f"  {solution_line(errors[0][1])}", highlight=False)
         for s, v, (e, _) in zip(sets, values, errors):

@@ -217,6 +217,8 @@ class RayCaster:
             size = float((hi - lo).max())
             self.centre, self.unit = 0.5 * (lo + hi), (size if size > 0 else 1.0)
         self._mapped = bool(self.centre.any() or self.unit != 1.0)
+        #: (m, 3, 3) float64 triangles in the caller's coordinates, for exact tests Embree's float32 cannot make
+        self.world_triangles = tri
         self.triangles = np.ascontiguousarray((tri - self.centre) / self.unit if self._mapped else tri,
                                               dtype=np.float32)
         self._embreex = None  # embreex's scene, built when first needed (see _scene)

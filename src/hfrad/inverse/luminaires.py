@@ -119,6 +119,12 @@ def _grid(obj: Any, scene, base: Path, where: str) -> GridGoal:
     if len(kinds) != 1:
         raise SpecError(f"{where}: give exactly one of floor, rectangle, sensors or space (got {kinds or 'none'})")
     kind = kinds[0]
+    lo, hi = _num(obj, "min", where, low=0.0), _num(obj, "max", where, low=0.0)
+    mean, u = _num(obj, "mean", where, low=0.0), _num(obj, "uniformity", where, low=0.0, high=1.0)
+    if lo is not None and hi is not None and lo > hi:
+        raise SpecError(f"{where}.min: {lo:g} is above max {hi:g}")
+    if lo is None and hi is None and mean is None and u is None:
+        raise SpecError(f"{where}: no goal; give at least one of min, max, mean or uniformity (lux)")
     try:
         if kind == "sensors":
             sensors = read_sensors(base / str(obj["sensors"]), name=name)
@@ -142,11 +148,20 @@ def _grid(obj: Any, scene, base: Path, where: str) -> GridGoal:
         raise
     except (ValueError, FileNotFoundError) as exc:          # InputError, FileFormatError, missing file
         raise SpecError(f"{where}: {exc}") from None
-    lo, hi = _num(obj, "min", where, low=0.0), _num(obj, "max", where, low=0.0)
-    mean, u = _num(obj, "mean", where, low=0.0), _num(obj, "uniformity", where, low=0.0, high=1.0)
-    if lo is not None and hi is not None and lo > hi:
-        raise SpecError(f"{where}.min: {lo:g} is above max {hi:g}")
     return GridGoal(sensors, lo, hi, mean, u)
+
+
+def spec_input_files(raw: Any, base: "str | Path") -> dict:
+    """The files a luminaire spec reads besides itself: its layout and sensor files, by field."""
+    out: dict = {}
+    if not isinstance(raw, Mapping):
+        return out
+    if isinstance(raw.get("luminaires"), str):
+        out["the spec's luminaires"] = Path(base) / raw["luminaires"]
+    for i, g in enumerate(raw.get("grids") or []):
+        if isinstance(g, Mapping) and isinstance(g.get("sensors"), str):
+            out[f"the spec's grids[{i}].sensors"] = Path(base) / g["sensors"]
+    return out
 
 
 def _space_grid(scene, space: str, height: float, spacing: float, margin: float, where: str) -> SensorSet:

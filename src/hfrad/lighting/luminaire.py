@@ -36,6 +36,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..jsonfile import read_document
+from .limits import check_area_points
 from .photometry import Photometry, read_photometry
 
 __all__ = ["Luminaire", "read_layout", "parse_layout", "LayoutError"]
@@ -49,9 +50,27 @@ class LayoutError(InputError):
     """A layout file or entry is malformed; the message names the field (``luminaires[2].aim``)."""
 
 
+def _show(v) -> str:
+    r = repr(v)
+    return r if len(r) <= 80 else r[:77] + "..."
+
+
+def _three(v, what: str) -> np.ndarray:
+    """(3,) float from three real numbers (not strings, booleans or objects); LayoutError naming ``what``."""
+    items = list(v) if isinstance(v, (list, tuple, np.ndarray)) else None
+    if items is None or len(items) != 3 or not all(
+            isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, (bool, np.bool_))
+            for x in items):
+        raise LayoutError(f"{what}: expected three finite numbers, got {_show(v)}")
+    a = np.array([float(x) for x in items])
+    if not np.isfinite(a).all():
+        raise LayoutError(f"{what}: expected three finite numbers, got {_show(v)}")
+    return a
+
+
 def _unit(v, what: str) -> np.ndarray:
-    a = np.asarray(v, np.float64).reshape(-1)
-    if a.shape != (3,) or not np.isfinite(a).all() or np.linalg.norm(a) == 0:
+    a = _three(v, what)
+    if np.linalg.norm(a) == 0:
         raise LayoutError(f"{what}: expected three finite numbers, not all zero, got {v!r}")
     return a / np.linalg.norm(a)
 
@@ -89,9 +108,7 @@ class Luminaire:
     max: float = 1.0
 
     def __post_init__(self) -> None:
-        pos = np.asarray(self.position, np.float64).reshape(-1)
-        if pos.shape != (3,) or not np.isfinite(pos).all():
-            raise LayoutError(f"luminaire {self.name!r}: position must be three finite numbers, got {self.position!r}")
+        pos = _three(self.position, f"luminaire {self.name!r}: position")
         object.__setattr__(self, "position", pos)
         object.__setattr__(self, "aim", _unit(self.aim, f"luminaire {self.name!r}: aim"))
         for key in ("rotation", "dimming", "max"):
@@ -101,8 +118,8 @@ class Luminaire:
                 raise LayoutError(f"luminaire {self.name!r}: {key} must be a finite number"
                                   + (" >= 0" if key != "rotation" else "") + f", got {v!r}")
             object.__setattr__(self, key, float(v))
-        c = np.asarray(self.color, np.float64).reshape(-1)
-        if c.shape != (3,) or not np.isfinite(c).all() or (c < 0).any() or not float(c @ _Y) > 0:
+        c = _three(self.color, f"luminaire {self.name!r}: color")
+        if (c < 0).any() or not float(c @ _Y) > 0:
             raise LayoutError(f"luminaire {self.name!r}: color must be three numbers >= 0 with a non-zero "
                               f"luminance, got {self.color!r}")
         object.__setattr__(self, "color", c / float(c @ _Y))
@@ -145,6 +162,7 @@ class Luminaire:
         weights : (k,) float, summing to 1
         """
         length, width, _ = self.photometry.size
+        check_area_points(self.name, length, width, spacing)
         frame = self.frame
         if length < 0 or width < 0 or (width == 0 and length > 0):
             r = 0.5 * max(abs(length), abs(width))

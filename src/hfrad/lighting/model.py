@@ -31,6 +31,7 @@ from ..progress import ProgressCallback, report
 from ..render.falsecolor import LUMINOUS_EFFICACY, photometric
 from .direct import NEAR_RATIO, SPACING, caster_for, direct_illuminance, patch_direct_illuminance
 from .gather import GatherOperator, gather_operator
+from .limits import check_area_points, check_lighting_size
 from .sensors import SensorSet
 
 __all__ = ["LightingModel", "SensorResponse"]
@@ -101,6 +102,9 @@ class LightingModel:
         self.luminaires = list(luminaires)
         if not self.luminaires and background == "none":
             raise InputError("no luminaires and background 'none': nothing lights the scene")
+        check_lighting_size(fac.scene.n_patches, len(self.luminaires), [])
+        for lum in self.luminaires:                      # before any ray: an opening too large for its points
+            check_area_points(lum.name, *lum.photometry.size[:2], spacing)
         self.fac = fac
         self.scene = fac.scene
         self.background = background
@@ -193,6 +197,7 @@ class LightingModel:
         point) and the gather operator (:func:`gather_operator`; skipped when
         ``gather`` is given), once; then ``R = D + 683 Y(G B_l)``.
         """
+        check_lighting_size(self.scene.n_patches, len(self.luminaires), [len(sensors)])
         t0 = time.perf_counter()
         D = direct_illuminance(self.luminaires, sensors.points, sensors.normals, caster=self.caster,
                                spacing=self.spacing, near_ratio=self.near_ratio) \

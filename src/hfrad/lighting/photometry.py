@@ -49,6 +49,10 @@ from ..errors import FileFormatError, InputError
 __all__ = ["Photometry", "read_photometry", "parse_ies", "parse_ldt"]
 
 _FEET = 0.3048
+#: most angles along one axis of a table (0.1 degree steps over 360 degrees)
+_MAX_ANGLES = 3601
+#: largest photometric file read, bytes (catalogue files are kilobytes)
+_MAX_FILE_BYTES = 64 << 20
 
 
 @dataclass(frozen=True, eq=False)
@@ -290,6 +294,8 @@ def parse_ies(text: str, *, where: str = "IES file") -> Photometry:
                 out.append(float(t))
             except ValueError:
                 raise FileFormatError(f"{where}:{ln}: {what}: {t!r} is not a number") from None
+            if not math.isfinite(out[-1]):
+                raise FileFormatError(f"{where}:{ln}: {what}: {t!r} is not a finite number")
         pos += count
         return np.array(out)
 
@@ -297,7 +303,7 @@ def parse_ies(text: str, *, where: str = "IES file") -> Photometry:
     n_lamps, lumens, multiplier, nv, nh, ptype, units, width, length, height = head
     line_of_head = tokens[pos - 1][1]
     ballast, factor2, watts = take(3, "the ballast line (ballast factor, photometric factor, watts)")
-    if nv < 1 or nh < 1 or nv != int(nv) or nh != int(nh):
+    if nv < 1 or nh < 1 or nv != int(nv) or nh != int(nh) or nv * nh > _MAX_ANGLES ** 2:
         raise FileFormatError(f"{where}:{line_of_head}: numbers of angles must be positive integers, "
                               f"got {nv:g} vertical and {nh:g} horizontal")
     nv, nh = int(nv), int(nh)
@@ -363,16 +369,25 @@ def parse_ldt(text: str, *, where: str = "LDT file") -> Photometry:
     def num(what: str) -> float:
         s = line(what)
         try:
-            return float(s.replace(",", ".")) if s else 0.0
+            x = float(s.replace(",", ".")) if s else 0.0
         except ValueError:
             raise FileFormatError(f"{where}:{idx}: {what}: {s!r} is not a number") from None
+        if not math.isfinite(x):
+            raise FileFormatError(f"{where}:{idx}: {what}: {s!r} is not a finite number")
+        return x
+
+    def count(what: str, high: int) -> int:
+        x = num(what)
+        if x != int(x) or not 0 <= x <= high:
+            raise FileFormatError(f"{where}:{idx}: {what}: expected a whole number 0..{high}, got {x:g}")
+        return int(x)
 
     company = line("the company")
     num("Ityp")
-    isym = int(num("Isym (symmetry indicator)"))
-    mc = int(num("Mc (number of C-planes)"))
+    isym = count("Isym (symmetry indicator)", 99)   # 5..99: refused below, by name
+    mc = count("Mc (number of C-planes)", _MAX_ANGLES)
     num("Dc")
-    ng = int(num("Ng (intensities per C-plane)"))
+    ng = count("Ng (intensities per C-plane)", _MAX_ANGLES)
     num("Dg")
     line("the report number")
     name = line("the luminaire name")
@@ -389,7 +404,7 @@ def parse_ldt(text: str, *, where: str = "LDT file") -> Photometry:
     num("LORL")
     conversion = num("the conversion factor")
     num("the tilt")
-    n_sets = int(num("the number of lamp sets"))
+    n_sets = count("the number of lamp sets", 20)
     if n_sets < 1:
         raise FileFormatError(f"{where}:{idx}: number of lamp sets must be at least 1, got {n_sets}")
     lamps, flux, watts = [], [], []
@@ -409,6 +424,9 @@ def parse_ldt(text: str, *, where: str = "LDT file") -> Photometry:
         raise FileFormatError(f"{where}: Mc = {mc} C-planes and Ng = {ng} angles do not fit symmetry Isym {isym}")
     c_all = np.array([num(f"C angle {k + 1}") for k in range(mc)])
     g = np.array([num(f"gamma angle {k + 1}") for k in range(ng)])
+    if (c_all < 0).any() or (c_all >= 360).any() or (g < 0).any() or (g > 180).any():
+        raise FileFormatError(f"{where}: C angles must lie in 0..360 (got {c_all.min():g}..{c_all.max():g}) and "
+                              f"gamma angles in 0..180 (got {g.min():g}..{g.max():g})")
     stored = {0: mc, 1: 1, 2: mc // 2 + 1, 3: mc // 2 + 1, 4: mc // 4 + 1}[isym]
     values = np.array([num(f"intensity {k + 1}") for k in range(stored * ng)]).reshape(stored, ng)
     total_flux = abs(lamps[0]) * flux[0] if lamps[0] > 0 else flux[0]
@@ -449,9 +467,19 @@ def read_photometry(path: "str | Path") -> Photometry:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such photometric file")
+    if path.stat().st_size > _MAX_FILE_BYTES:
+        raise FileFormatError(f"{path}: {path.stat().st_size:,} bytes; a photometric file is at most "
+                              f"{_MAX_FILE_BYTES:,}")
     text = path.read_bytes().decode("latin-1")
-    if path.suffix.lower() == ".ldt":
-        return parse_ldt(text, where=str(path))
-    if path.suffix.lower() == ".ies" or "TILT" in text.upper():
-        return parse_ies(text, where=str(path))
+    if "\0" in text:
+        raise FileFormatError(f"{path}: a binary file, not an IES (.ies) or EULUMDAT (.ldt) text file")
+    try:
+        if path.suffix.lower() == ".ldt":
+            return parse_ldt(text, where=str(path))
+        if path.suffix.lower() == ".ies" or "TILT" in text.upper():
+            return parse_ies(text, where=str(path))
+    except FileFormatError:
+        raise
+    except InputError as exc:                   # the distribution's own checks do not know the file
+        raise FileFormatError(f"{path}: {exc}") from None
     raise FileFormatError(f"{path}: not an IES (.ies) or EULUMDAT (.ldt) file")

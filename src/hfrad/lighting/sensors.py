@@ -18,6 +18,7 @@ import numpy as np
 
 from ..atomic import atomic_path
 from ..errors import FileFormatError, InputError
+from .limits import check_grid_size
 
 __all__ = ["SensorSet", "read_sensors", "write_sensors", "rectangle_grid", "floor_grid", "plan_grid"]
 
@@ -83,8 +84,15 @@ def read_sensors(path: "str | Path", name: str | None = None) -> SensorSet:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such sensor file")
+    try:
+        text = path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise FileFormatError(f"{path}: not a text sensor file (byte {exc.start} is not UTF-8); expected "
+                              "lines 'x y z nx ny nz'") from None
+    if "\0" in text:
+        raise FileFormatError(f"{path}: a binary file, not a text sensor file of lines 'x y z nx ny nz'")
     rows = []
-    for i, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+    for i, line in enumerate(text.splitlines(), 1):
         s = line.split("#", 1)[0].strip()
         if not s:
             continue
@@ -114,11 +122,13 @@ def write_sensors(path: "str | Path", sensors: SensorSet) -> Path:
     return path
 
 
-def _check_grid(spacing: float, height: float) -> None:
+def _check_grid(spacing: float, height: float, margin: float = 0.0) -> None:
     if not (isinstance(spacing, (int, float)) and math.isfinite(spacing) and spacing > 0):
         raise InputError(f"grid spacing must be a finite number > 0 m, got {spacing!r}")
     if not (isinstance(height, (int, float)) and math.isfinite(height)):
         raise InputError(f"grid height must be a finite number (m), got {height!r}")
+    if not (isinstance(margin, (int, float)) and math.isfinite(margin) and margin >= 0):
+        raise InputError(f"grid margin must be a finite number >= 0 m, got {margin!r}")
 
 
 def rectangle_grid(x: tuple[float, float], z: tuple[float, float], height: float, spacing: float, *,
@@ -129,11 +139,12 @@ def rectangle_grid(x: tuple[float, float], z: tuple[float, float], height: float
     zone, when wanted). The cells cover the rectangle exactly: their number
     is ``ceil(width / spacing)``, their size width / count (<= spacing).
     """
-    _check_grid(spacing, height)
+    _check_grid(spacing, height, margin)
     x0, x1 = float(x[0]) + margin, float(x[1]) - margin
     z0, z1 = float(z[0]) + margin, float(z[1]) - margin
     if not (x1 > x0 and z1 > z0):
         raise InputError(f"grid rectangle is empty: x {x0:g}..{x1:g}, z {z0:g}..{z1:g} (after a margin of {margin:g})")
+    check_grid_size(math.ceil((x1 - x0) / spacing) * math.ceil((z1 - z0) / spacing), spacing)
     nx = max(1, int(math.ceil((x1 - x0) / spacing - 1e-9)))
     nz = max(1, int(math.ceil((z1 - z0) / spacing - 1e-9)))
     dx, dz = (x1 - x0) / nx, (z1 - z0) / nz
@@ -148,6 +159,11 @@ def rectangle_grid(x: tuple[float, float], z: tuple[float, float], height: float
 def _inside_triangles(pts: np.ndarray, tri: np.ndarray) -> np.ndarray:
     """(p,) bool: 2-D points inside any of the 2-D triangles (t, 3, 2), edges included."""
     inside = np.zeros(len(pts), bool)
+    rows = max(1, (1 << 22) // max(1, min(len(tri), 4096)))   # points per pass: (rows, 4096) arrays of ~32 MB
+    if len(pts) > rows:
+        for start in range(0, len(pts), rows):
+            inside[start:start + rows] = _inside_triangles(pts[start:start + rows], tri)
+        return inside
     for start in range(0, len(tri), 4096):
         t = tri[start:start + 4096]
         a, b, c = t[:, 0], t[:, 1], t[:, 2]

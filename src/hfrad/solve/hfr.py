@@ -1,9 +1,9 @@
 """The ``.hfr`` factorization file (HDF5): everything needed to solve again without F.
 
-Layout (format version 4; versions 1 and 2, which stored three n x k
-Woodbury matrices ``Y`` instead of the k x k inverses, are still read: their
-``Y`` is not read and the inverses are recomputed from Q and V, O(n k^2 + k^3);
-version 1 files have no checksums and pass statistics)::
+Layout (format version 4; version 2, which stored three n x k Woodbury
+matrices ``Y`` instead of the k x k inverses, is still read: its ``Y`` is not
+read and the inverses are recomputed from Q and V, O(n k^2 + k^3); version 1
+files carry no checksums, so they are refused)::
 
     /                  attrs: format ("hfrad-factorization"), format_version,
                        hfrad_version, n_patches, rank, eps, relative,
@@ -258,10 +258,9 @@ def _open(path: Path) -> h5py.File:
 
 def _check_integrity(f: h5py.File, path: Path) -> None:
     """FileFormatError unless the digest, checksums and dataset list are intact (format 2 and later)."""
-    if int(f.attrs["format_version"]) < CHECKSUMS_SINCE:  # format 1: nothing to check against
-        if DIGEST in f.attrs and str(f.attrs[DIGEST]) != attrs_digest(f):
-            raise FileFormatError(f"{path}: the header attributes are damaged (their SHA-256 digest does not match)")
-        return
+    if int(f.attrs["format_version"]) < CHECKSUMS_SINCE:  # format 1: nothing to check its data against
+        raise FileFormatError(f"{path}: format version {int(f.attrs['format_version'])} carries no checksums, "
+                              "so its data cannot be verified; run `hfrad precompute` again to write it anew")
     problem = integrity_problem(f, manifest_required=False,   # files of hfrad <= 0.1 list no datasets
                                 may_be_missing=_RECOMPUTED)
     if problem is not None:
