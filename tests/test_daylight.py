@@ -276,3 +276,20 @@ def test_cli_daylight(tmp_path, black_room):
         res = run_cli("daylight", hfr, *args, "-o", tmp_path / "o2", "--quiet")
         assert res.exit_code == 2 and msg in res.output and "Traceback" not in res.output, res.output
         assert len(res.output.strip().splitlines()) == 1
+
+
+def test_obj_glazing_from_dissolve_and_filter(tmp_path):
+    """MTL: d < 1 makes glazing, transmittance (1 - d) x Tf; Tf alone (exporters' 1 1 1) means nothing."""
+    (tmp_path / "m.mtl").write_text("newmtl glass\nKd 0.08 0.08 0.08\nd 0.2\nTf 0.9 1 1\n"
+                                    "newmtl wall\nKd 0.5 0.5 0.5\nd 1\nTf 1 1 1\n"
+                                    "newmtl frosted\nKd 0.5 0.5 0.5\nd -halo 0.1\n")
+    (tmp_path / "w.obj").write_text("mtllib m.mtl\nv 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\n"
+                                    "usemtl glass\nf 1 2 3\nusemtl wall\nf 1 3 4\nusemtl frosted\nf 2 3 4\n")
+    scene = hfrad.load_scene(tmp_path / "w.obj")
+    mats = {m.name: m for m in scene.materials}
+    assert np.allclose(mats["glass"].transmittance, (0.72, 0.8, 0.8)) and not mats["wall"].is_glazing
+    assert np.allclose(mats["frosted"].transmittance, 0.5)            # 0.9 lowered: reflectance 0.5 + 0.5 <= 1
+    assert any("frosted" in w and "lowered" in w for w in scene.warnings)
+    (tmp_path / "m.mtl").write_text("newmtl glass\nKd 0.08 0.08 0.08\nd 1.5\n")
+    with pytest.raises(hfrad.errors.SceneError, match=r"m.mtl:3: d must lie in \[0, 1\]"):
+        hfrad.load_scene(tmp_path / "w.obj")
