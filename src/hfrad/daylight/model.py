@@ -49,14 +49,23 @@ class DaylightCoefficients:
     indirect: np.ndarray
     gather: object = field(repr=False)
 
+    def relit(self, model: "DaylightModel") -> "DaylightCoefficients":
+        """The same sensors in ``model`` (e.g. ``model.with_reflectance(...)``): first hits and gather kept,
+        the interreflected part taken again, ``G B`` (O(m n P), no ray)."""
+        return DaylightCoefficients(self.sensors, self.direct, self.gather.apply(model.radiosity_basis), self.gather)
+
     def illuminance(self, sky: np.ndarray, sun: np.ndarray | None = None) -> np.ndarray:
-        """(m, h) lux of sky matrix ``sky`` (P, 3, h) (and the sun's interreflected light from ``sun``)."""
-        out = 0.0
-        for c in range(3):
-            out = out + RADIANCE_LUMINANCE[c] * ((self.direct[:, c] + self.indirect[:, c]) @ sky[:, c])
-            if sun is not None:
-                out = out + RADIANCE_LUMINANCE[c] * (self.indirect[:, c] @ sun[:, c])
-        return out
+        """(m, h) lux of sky matrix ``sky`` (P, 3, h) (and the sun's interreflected light from ``sun``).
+
+        One (m, 6P) x (6P, h) product in float32 (the three colours and both matrices side by side).
+        """
+        Y = RADIANCE_LUMINANCE[None, :, None]
+        left = [((self.direct + self.indirect) * Y).reshape(len(self.direct), -1)]
+        right = [np.asarray(sky, np.float32).transpose(1, 0, 2).reshape(-1, sky.shape[2])]
+        if sun is not None:
+            left.append((self.indirect * Y).reshape(len(self.direct), -1))
+            right.append(np.asarray(sun, np.float32).transpose(1, 0, 2).reshape(-1, sun.shape[2]))
+        return np.hstack(left).astype(np.float32) @ np.vstack(right)
 
 
 @dataclass
@@ -181,14 +190,19 @@ class DaylightModel:
         return out
 
     def year(self, sensors: SensorSet, weather: Weather, *, ground: float = 0.2, coefficients=None,
-             matrices=None, progress: ProgressCallback = None) -> AnnualResult:
-        """The year at ``sensors``: :func:`sky_matrices`, the coefficients, the products, the direct sun."""
+             matrices=None, direct_sun=None, progress: ProgressCallback = None) -> AnnualResult:
+        """The year at ``sensors``: :func:`sky_matrices`, the coefficients, the products, the direct sun.
+
+        ``coefficients``, ``matrices`` (sky, sun) and ``direct_sun`` (m, h) are computed when not given;
+        none depends on the reflectances except the coefficients' interreflected part, so a design loop
+        passes the last result's ``direct_sun`` and ``coefficients.relit(new_model)``.
+        """
         t0 = time.perf_counter()
         sky, sun = matrices if matrices is not None else sky_matrices(weather, self.patches.mf, ground=ground)
         t1 = time.perf_counter()
         dc = coefficients if coefficients is not None else self.sensors(sensors)
         t2 = time.perf_counter()
-        S = self.direct_sun(sensors, weather, sun, progress=progress)
+        S = direct_sun if direct_sun is not None else self.direct_sun(sensors, weather, sun, progress=progress)
         t3 = time.perf_counter()
         E = dc.illuminance(sky, sun).astype(np.float32) + S
         t4 = time.perf_counter()
