@@ -81,6 +81,28 @@ def weather():
     return read_weather(TMY3)
 
 
+def _epw_from(weather, path):
+    """An EPW file with ``weather``'s location and irradiances (pvlib ships no EPW): 8 header lines, 35 fields."""
+    head = [f"LOCATION,Greensboro,NC,USA,TMY3,723170,{weather.latitude},{weather.longitude},{weather.timezone},"
+            f"{weather.elevation}", "DESIGN CONDITIONS,0", "TYPICAL/EXTREME PERIODS,0", "GROUND TEMPERATURES,0",
+            "HOLIDAYS/DAYLIGHT SAVINGS,No,0,0,0", "COMMENTS 1,", "COMMENTS 2,", "DATA PERIODS,1,1,Data,Sunday, 1/ 1,12/31"]
+    rows = []
+    for j in range(len(weather)):
+        hour = int(weather.hour[j] + 0.5)                  # EPW: the hour the record ends, 1..24
+        rows.append(",".join(str(v) for v in [1999, weather.month[j], weather.day[j], hour, 0, "?", 20.0, 10.0, 50,
+                                              101325, 0, 0, 300, weather.dni[j] + weather.dhi[j],
+                                              weather.dni[j], weather.dhi[j]] + ["0"] * 19))
+    path.write_text("\n".join(head + rows) + "\n")
+    return path
+
+
+def test_epw_and_tmy3_give_the_same_year(weather, tmp_path):
+    epw = read_weather(_epw_from(weather, tmp_path / "greensboro.epw"))
+    assert (epw.latitude, epw.longitude, epw.timezone) == (weather.latitude, weather.longitude, weather.timezone)
+    for name in ("month", "day", "hour", "dni", "dhi"):
+        assert np.array_equal(getattr(epw, name), getattr(weather, name)), name
+
+
 # ---- weather and sky -------------------------------------------------------------------------
 
 def test_weather_hours_are_mid_hour_local_standard_time(weather):
@@ -196,6 +218,7 @@ def test_reflectance_change_without_new_form_factors():
     L = _uniform(model.patches, 10.0, 10.0)
     assert (dc1.direct == dc0.direct).all() and (_lux(dc1, L) < _lux(dc0, L) * 0.95).all()
     assert np.allclose(_lux(dc1, L), _lux(fresh, L), rtol=0.01)
+    assert np.allclose(_lux(dc0.relit(changed), L), _lux(dc1, L), rtol=1e-6)     # no ray: the gather again
 
 
 # ---- metrics ---------------------------------------------------------------------------------

@@ -2,7 +2,8 @@
 
 Both formats label each record with the hour it *ends* (``1:00`` is the
 hour from 0:00 to 1:00, in the file's local standard time, no daylight
-saving). The middle of that hour (``0:30``) stands for it: the sky and the
+saving); pvlib's index keeps that label for TMY3 and moves EPW's to the
+hour's start. The middle of that hour (``0:30``) stands for it: the sky and the
 sun of the record are taken there, as Radiance's ``epw2wea`` does. Sun
 positions come from :func:`pvlib.solarposition.get_solarposition` (SPA) at
 those instants; irradiances are the file's direct-normal (DNI) and
@@ -136,7 +137,9 @@ def read_weather(path: "str | Path") -> Weather:
                                   "(expected 0..1500 W/m^2)")
     if len(data) != HOURS_PER_YEAR:
         raise FileFormatError(f"{path}: {len(data)} hourly records, expected {HOURS_PER_YEAR} (one year)")
-    mid = data.index - np.timedelta64(30, "m")       # the record ends at its label: its middle is 30 min earlier
+    # pvlib labels a TMY3 record with the hour it ends (1:00) and an EPW record with the hour it
+    # starts (its Hour field minus one: 0:00); the middle of the hour is 30 min off either way
+    mid = data.index + np.timedelta64(-30 if kind == ".csv" else 30, "m")
     return Weather(path, place, lat, lon, float(tz), float(elev), np.asarray(mid.month, int),
                    np.asarray(mid.day, int), np.asarray(mid.hour + mid.minute / 60.0, float),
                    np.asarray(data["dni"], float), np.asarray(data["dhi"], float))
