@@ -146,9 +146,10 @@ def test_gendaymtx_sun_lies_in_the_patches_around_pvlibs_sun(weather):
 
 # ---- known answers ---------------------------------------------------------------------------
 
-def test_unobstructed_sensor_under_uniform_sky(plate):
+@pytest.mark.parametrize("mf", [1, 2])
+def test_unobstructed_sensor_under_uniform_sky(plate, mf):
     """Horizontal: pi L (the sky's horizontal illuminance); vertical: pi (L + L_ground) / 2."""
-    model = DaylightModel(plate)
+    model = DaylightModel(plate, mf=mf)
     dc = model.sensors(_sensors([[0.5, 0.3, 0.5], [0.5, 0.3, 0.5]], [[0, 1, 0], [1, 0, 0]]))
     L, Lg = 100.0, 50.0         # the plate (rho 0.5 under pi L) has radiance rho L: it looks like the ground
     E = _lux(dc, _uniform(model.patches, L, Lg))

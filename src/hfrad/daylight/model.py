@@ -107,6 +107,7 @@ class DaylightModel:
     sensor_rays : int
         ``sensor_rays x sensor_rays`` directions per sky patch from each sensor (a sensor sees a
         window's edge sharply: more rays than a patch, whose light is averaged again by the gather).
+        Both counts are per MF:1 patch: at MF:2 and 4 they are divided by MF (rounded up).
     progress : callable (done, total), optional
         Sky patches done (first hits of the scene's patches).
     """
@@ -123,11 +124,13 @@ class DaylightModel:
             raise InputError(f"north must be a finite angle in degrees, got {north!r}")
         self.fac, self.scene = fac, fac.scene
         self.patches = SkyPatches(mf)
-        self.north, self.rays, self.sensor_rays = float(north), int(rays), int(sensor_rays)
+        # a finer sky (MF:2, 4) splits each patch m x m: fewer rays per patch keep the rays per steradian
+        self.north = float(north)
+        self.rays, self.sensor_rays = (max(1, -(-int(r) // mf)) for r in (rays, sensor_rays))
         self.timings: dict = {}
         t0 = time.perf_counter()
         self.tracer = GlazingTracer(self.scene, angular=angular)
-        self.patch_first_hit = patch_first_hit(self.scene, self.tracer, self.patches, samples=samples, k=rays,
+        self.patch_first_hit = patch_first_hit(self.scene, self.tracer, self.patches, samples=samples, k=self.rays,
                                                north=north, progress=progress)
         self.timings["first_hit_patches_s"] = time.perf_counter() - t0
         self._solve()
