@@ -32,7 +32,7 @@ def register(app: typer.Typer) -> None:
         ground: float = typer.Option(0.2, "--ground", help="Ground reflectance outside."),
         udi_upper: float = typer.Option(2000.0, "--udi-upper", help="Top of useful daylight, lux (2000 or 3000)."),
         hourly: str = typer.Option("h5", "--hourly", help="Hourly illuminance file: h5 or csv."),
-        plain_glass: bool = typer.Option(True, "--angular/--no-angular", help="Angle dependence of clear glass."),
+        angular: bool = typer.Option(True, "--angular/--no-angular", help="Angle dependence of clear glass."),
         quiet: bool = common.QuietOption,
     ) -> None:
         """Climate-based daylight: sDA300/50%, ASE1000,250h, UDI, DA over LM-83's occupied hours (8-18 h).
@@ -72,7 +72,7 @@ def register(app: typer.Typer) -> None:
             with common.progress_bar("daylight", quiet) as bar:
                 stage = (lambda s: bar.note(s)) if bar is not None else None
                 run = daylight_year(fac, weather, grid, output, mf=mf, north=north, ground=ground,
-                                    angular=plain_glass, hourly=hourly, udi=(100.0, udi_upper),
+                                    angular=angular, hourly=hourly, udi=(100.0, udi_upper),
                                     progress=bar, stages=stage)
         m = run["metrics"]
         common.console.print(f"  {len(grid)} sensors, {m['occupied_hours']} occupied hours: sDA300/50% "

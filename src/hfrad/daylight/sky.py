@@ -107,7 +107,8 @@ def _run(weather: Weather, mf: int, *, sun: bool, ground: float) -> np.ndarray:
         out = pr.gendaymtx(weather.wea().encode(), header=True, outform="f", mfactor=mf,
                            sun_only=sun, sky_only=not sun, ground_color=[ground] * 3)
     except Exception as exc:    # pyradiance reports gendaymtx's own message
-        raise InputError(f"{weather.path}: gendaymtx failed ({str(exc).strip().splitlines()[-1:]})") from None
+        last = (str(exc).strip().splitlines() or [type(exc).__name__])[-1]
+        raise InputError(f"{weather.path}: gendaymtx failed ({last})") from None
     end = out.find(b"\n\n")
     head = out[:end].decode(errors="replace")
     fields = dict(line.split("=", 1) for line in head.splitlines() if "=" in line)
