@@ -168,7 +168,8 @@ def test_direct_sun_by_rays_agrees_with_the_sun_spread_over_patches(plate, weath
     S = model.direct_sun(grid, weather, sun)[0]
     via_patches = model.sensors(grid).illuminance(sun)[0]        # the sun as a sky: D sun
     # observed: rays 2.1% above the patches over the year, 1.5-3% by altitude band above 10 degrees
-    # (the spread over 4 patches and Radiance's own sun position against pvlib's SPA)
+    # (Radiance's sun sits up to ~0.6 degrees lower than pvlib's SPA: gendaylit says 20.1 for SPA's
+    # 20.66 on 28 October 15:30, sin 2.7% lower; and the spread over 4 patches)
     assert S.sum() == pytest.approx(via_patches.sum(), rel=0.04)
     noon = (weather.hour > 10) & (weather.hour < 14) & (S > 1000)
     assert np.median(S[noon] / via_patches[noon]) == pytest.approx(1.0, abs=0.05)
