@@ -238,6 +238,23 @@ def test_reflectance_change_without_new_form_factors():
     assert np.allclose(_lux(dc0.relit(changed), L), _lux(dc1, L), rtol=1e-6)     # no ray: the gather again
 
 
+def test_transmittance_change_scales_the_light_without_new_form_factors():
+    """One pane, angle-free glass: halving tau halves every coefficient (first hits and interreflections)."""
+    scene = sidelit_room(4, 5, 3, wall=0.5, floor=0.3, ceiling=0.7, glazing=(0.08, 0.7), max_edge=1.25)
+    model = DaylightModel(hfrad.factorize(scene), angular=False, rays=2, sensor_rays=3)
+    grid = floor_grid(scene, 0.8, 1.0)
+    dc = model.sensors(grid)
+    half = model.with_transmittance("glass", 0.35)
+    dh = half.sensors(grid, gather=dc.gather)
+    assert half.fac is model.fac
+    assert np.allclose(dh.direct, dc.direct / 2, rtol=1e-9, atol=1e-12)
+    assert np.allclose(dh.indirect, dc.indirect / 2, rtol=1e-5, atol=1e-9)
+    with pytest.raises(hfrad.errors.SceneError, match="reflectance \\+ transmittance <= 1"):
+        model.with_transmittance("glass", 0.95)
+    with pytest.raises(InputError, match="material 'glazz' is not in the scene"):
+        model.with_transmittance("glazz", 0.5)
+
+
 # ---- metrics ---------------------------------------------------------------------------------
 
 def test_metrics_on_a_known_year():

@@ -125,7 +125,7 @@ class DaylightModel:
         self.fac, self.scene = fac, fac.scene
         self.patches = SkyPatches(mf)
         # a finer sky (MF:2, 4) splits each patch m x m: fewer rays per patch keep the rays per steradian
-        self.north = float(north)
+        self.north, self.samples = float(north), int(samples)
         self.rays, self.sensor_rays = (max(1, -(-int(r) // mf)) for r in (rays, sensor_rays))
         self.timings: dict = {}
         t0 = time.perf_counter()
@@ -152,6 +152,39 @@ class DaylightModel:
         new.__dict__.update(self.__dict__)
         new.fac = self.fac.with_reflectance(reflectance)
         new.timings = dict(self.timings)
+        new._solve()
+        return new
+
+    def with_transmittance(self, material: str, transmittance, *, progress: ProgressCallback = None) -> "DaylightModel":
+        """The same scene with glazing ``material``'s transmittance changed: new rays, no new form factors.
+
+        The patches' first hits are traced again through the new glazing and the P columns solved
+        with the same factorization; take the sensors' coefficients again with :meth:`sensors`
+        (passing their gather operator back in) and the direct sun with :meth:`direct_sun`.
+
+        Raises
+        ------
+        InputError
+            No such material, or a transmittance outside [0, 1 - reflectance].
+        """
+        from dataclasses import replace as _replace
+
+        if material not in self.scene.material_names:
+            raise InputError(f"material {material!r} is not in the scene; its materials are: "
+                             + ", ".join(self.scene.material_names))
+        tau = np.broadcast_to(np.asarray(transmittance, np.float64), (3,))
+        i = self.scene.material_names.index(material)
+        mats = list(self.scene.materials)
+        mats[i] = _replace(mats[i], transmittance=tuple(float(t) for t in tau))
+        scene = self.scene.replace(materials=tuple(mats))       # checks 0 <= tau, rho + tau <= 1
+        new = object.__new__(DaylightModel)
+        new.__dict__.update(self.__dict__)
+        new.scene, new.timings = scene, dict(self.timings)
+        t0 = time.perf_counter()
+        new.tracer = GlazingTracer(scene, angular=self.tracer.angular)
+        new.patch_first_hit = patch_first_hit(scene, new.tracer, self.patches, samples=self.samples, k=self.rays,
+                                              north=self.north, progress=progress)
+        new.timings["first_hit_patches_s"] = time.perf_counter() - t0
         new._solve()
         return new
 
