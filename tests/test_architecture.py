@@ -33,6 +33,7 @@ LAYERS: list[tuple[int, str, tuple[str, ...]]] = [
     (7, "lighting", ("hfrad.lighting",)),
     (8, "viewer", ("hfrad.viewer",)),
     (8, "inverse", ("hfrad.inverse",)),
+    (8, "daylight", ("hfrad.daylight",)),
     (9, "cli", ("hfrad.cli", "hfrad.__main__")),
     (10, "api", ("hfrad",)),          # hfrad/__init__.py: the public facade, lazily importing everything
 ]

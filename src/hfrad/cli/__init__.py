@@ -32,9 +32,9 @@ def _root(
 
 
 def _register_commands() -> None:
-    from . import bench, demo, design, formfactors, info, lux, precompute, render, solve, view
+    from . import bench, daylight, demo, design, formfactors, info, lux, precompute, render, solve, view
 
-    for module in (demo, info, formfactors, precompute, solve, render, design, lux, view, bench):
+    for module in (demo, info, formfactors, precompute, solve, render, design, lux, daylight, view, bench):
         module.register(app)
 
 

@@ -78,12 +78,13 @@ def write_json(path: "str | Path", report: dict) -> Path:
 
 
 def plan_image(sensors: SensorSet, lux: np.ndarray, *, pixels_per_cell: int | None = None, vmax: float | None = None,
-               title: str | None = None) -> np.ndarray:
+               title: str | None = None, label: str | None = None) -> np.ndarray:
     """(h, w, 3) uint8: the grid seen from above in false colour (viridis), with a lux colour bar.
 
     x runs to the right, z downwards (a plan of a y-up scene seen from
     above); cells without a sensor are black. The statistics of
-    :func:`grid_stats` are printed on top.
+    :func:`grid_stats` are printed on top (or ``title``); ``label`` replaces
+    "lux" on the colour bar for other quantities (daylight metrics in %).
 
     Raises
     ------
@@ -109,7 +110,7 @@ def plan_image(sensors: SensorSet, lux: np.ndarray, *, pixels_per_cell: int | No
     values = np.vstack([np.zeros((head, w)), values])
     valid = np.vstack([np.zeros((head, w), bool), valid])
     width = w + colorbar_width(max(w, 360))
-    img = falsecolor_image(values, valid, width=width, unit="lux", vmax=vmax)
+    img = falsecolor_image(values, valid, width=width, unit="lux", vmax=vmax, label=label)
     st = grid_stats(lux)
     text = title or (f"{sensors.name}: avg {st['average']:.0f} lx, min {st['minimum']:.0f}, "
                      f"max {st['maximum']:.0f}, U0 {st['U0']:.2f}" if st["U0"] is not None else sensors.name)

@@ -91,7 +91,7 @@ def _label(v: float) -> str:
 
 def falsecolor_image(values: np.ndarray, valid: np.ndarray, *, width: int, unit: str = "W/m2",
                      vmax: float | None = None, scale_mask: np.ndarray | None = None,
-                     percentile: float = 100.0) -> np.ndarray:
+                     percentile: float = 100.0, label: str | None = None) -> np.ndarray:
     """A false-colour picture with a colour bar on its right.
 
     Parameters
@@ -108,6 +108,8 @@ def falsecolor_image(values: np.ndarray, valid: np.ndarray, *, width: int, unit:
     vmax : float, optional
         Top of the scale; default: ``percentile`` of the pixels in
         ``scale_mask`` (else all valid pixels), rounded up to a tick.
+    label : str, optional
+        Printed on the bar instead of the unit's name (a quantity that is not a light level, e.g. "%").
 
     Returns
     -------
@@ -115,7 +117,7 @@ def falsecolor_image(values: np.ndarray, valid: np.ndarray, *, width: int, unit:
     """
     from PIL import Image, ImageDraw
 
-    label, _ = UNITS[check_unit(unit)]
+    label = label or UNITS[check_unit(unit)][0]
     values = np.asarray(values, dtype=np.float64)
     h, w = values.shape
     bar_w = width - w

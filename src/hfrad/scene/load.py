@@ -241,6 +241,10 @@ def _scene_from_raw(raw: dict, name: str, default_reflectance: float, allow_miss
         _check_material(name, label, rho, props.get("emission", (0, 0, 0)))
         emission = tuple(float(x) for x in props.get("emission", (0.0, 0.0, 0.0)))
         tau = tuple(float(x) for x in props.get("transmittance", (0.0, 0.0, 0.0)))
+        if max(tau) > 0 and (rho + np.asarray(tau) > 1.0).any():     # an MTL's d/Tf: keep what light is left
+            tau = tuple(float(min(t, 1.0 - r)) for t, r in zip(tau, rho))
+            warnings.append(f"material '{mat_name}': transmittance (1 - d) x Tf lowered to {tuple(round(t, 3) for t in tau)}"
+                            " so that reflectance + transmittance <= 1")
         materials.append(Material(mat_name, tuple(float(x) for x in rho), emission, tau))
     face_material = raw["face_material"].copy()
     if (face_material < 0).any():

@@ -4,7 +4,9 @@ Own parser rather than trimesh's because trimesh 5.2 resolves relative
 (negative) face indices wrongly (the McGuire Cornell boxes come out with
 zero-area faces and a wrong bounding box) and drops ``Ke`` emission. The
 parser keeps what radiosity needs: positions, polygons (fan-triangulated),
-``usemtl`` materials (Kd = reflectance, Ke = emitted exitance) and ``g``/``o``
+``usemtl`` materials (Kd = reflectance, Ke = emitted exitance, and for
+glazing ``d`` < 1 = dissolve with ``Tf`` its filter colour: transmittance
+``(1 - d) x Tf``, ``Tf`` white when absent; see docs/daylight.md) and ``g``/``o``
 groups. Every error names the file and line, and quotes at most
 ``QUOTE_CHARS`` characters of the offending text.
 
@@ -94,7 +96,9 @@ def _strip_comment(line: str) -> str:
 
 
 def read_mtl(path: Path) -> dict[str, dict]:
-    """Materials of an MTL file: name -> {'reflectance': Kd, 'emission': Ke, 'line': n}."""
+    """Materials of an MTL file: name -> {'reflectance': Kd, 'emission': Ke, 'line': n}, and for a
+    material with ``d`` < 1 (dissolve) 'transmittance': (1 - d) x Tf (Tf: the transmission filter, white
+    when absent; ``Tf`` alone, which many exporters write as 1 1 1 for opaque materials, means nothing)."""
     materials: dict[str, dict] = {}
     current = None
     for number, raw in _lines(path):
@@ -115,6 +119,20 @@ def read_mtl(path: Path) -> dict[str, dict]:
                                  f"{clip_token(' '.join(rest))}")
             rgb = rest if len(rest) >= 3 else rest * 3  # 'Kd 0.5' means grey
             materials[current]["reflectance" if key == "Kd" else "emission"] = _floats(rgb, 3, where)
+        elif key in ("d", "Tf"):
+            if current is None:
+                raise SceneError(f"{where}: {key} before any newmtl")
+            rest = [r for r in rest if r != "-halo"]           # 'd -halo 0.5': the halo form, same number
+            rgb = rest if (key == "d" or len(rest) >= 3) else rest * 3
+            value = _floats(rgb[:1] if key == "d" else rgb[:3], 1 if key == "d" else 3, where)
+            if not all(0.0 <= v <= 1.0 for v in value):
+                raise SceneError(f"{where}: {key} must lie in [0, 1], got {' '.join(rest)}")
+            materials[current]["dissolve" if key == "d" else "filter"] = value
+    for props in materials.values():
+        dissolve = props.pop("dissolve", (1.0,))[0]
+        tf = props.pop("filter", (1.0, 1.0, 1.0))
+        if dissolve < 1.0:
+            props["transmittance"] = tuple((1.0 - dissolve) * t for t in tf)
     return materials
 
 
