@@ -21,20 +21,21 @@ PACKAGE = SRC / "hfrad"
 #: (layer, unit, module prefixes), lowest first. Keep in step with docs/architecture.md.
 LAYERS: list[tuple[int, str, tuple[str, ...]]] = [
     (0, "base", ("hfrad._version", "hfrad.errors", "hfrad.progress", "hfrad.memory", "hfrad.atomic",
-                 "hfrad.validation", "hfrad.defaults", "hfrad.jsonfile")),
+                 "hfrad.validation", "hfrad.defaults", "hfrad.jsonfile", "hfrad.resources", "hfrad.integrity")),
     (1, "scene", ("hfrad.scene",)),
     (2, "formfactors", ("hfrad.formfactors",)),
     (3, "lowrank", ("hfrad.lowrank",)),
     (4, "solve", ("hfrad.solve",)),
-    (5, "distributed", ("hfrad.distributed",)),
-    (6, "pipeline", ("hfrad.pipeline",)),
-    (6, "render", ("hfrad.render",)),
-    (7, "io", ("hfrad.io",)),
-    (7, "lighting", ("hfrad.lighting",)),
-    (8, "viewer", ("hfrad.viewer",)),
-    (8, "inverse", ("hfrad.inverse",)),
-    (9, "cli", ("hfrad.cli", "hfrad.__main__")),
-    (10, "api", ("hfrad",)),          # hfrad/__init__.py: the public facade, lazily importing everything
+    (5, "precompute", ("hfrad.precompute",)),
+    (6, "distributed", ("hfrad.distributed",)),
+    (7, "pipeline", ("hfrad.pipeline",)),
+    (7, "render", ("hfrad.render",)),
+    (8, "io", ("hfrad.io",)),
+    (8, "lighting", ("hfrad.lighting",)),
+    (9, "viewer", ("hfrad.viewer",)),
+    (9, "inverse", ("hfrad.inverse",)),
+    (10, "cli", ("hfrad.cli", "hfrad.__main__")),
+    (11, "api", ("hfrad",)),          # hfrad/__init__.py: the public facade, lazily importing everything
 ]
 
 

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from hfrad.lowrank.nearfield import NearFieldSplit
-from hfrad.solve.assemble import far_block
+from hfrad.precompute.assemble import far_block
 from hfrad.solve.stats import PassStatistics
 
 

@@ -9,7 +9,7 @@ from hfrad.formfactors import form_factor_matrix, iter_column_blocks
 from hfrad.formfactors.blocks import make_engine
 from hfrad.formfactors.budget import FEW_RAYS_FACTOR, one_ray_threshold, ray_budget
 from hfrad.formfactors.parallel import ProcessEngine, column_block
-from hfrad.formfactors.visibility import RayBudget
+from hfrad.formfactors.budget import RayBudget
 from hfrad.scene.builtin import cornell_box
 from hfrad.scene.patches import subdivide
 from hfrad.scene.zorder import zorder_permutation

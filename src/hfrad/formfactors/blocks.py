@@ -24,14 +24,16 @@ from ..defaults import DEFAULT_BLOCK_SIZE
 from ..errors import InputError, MemoryLimitError
 from ..memory import available_bytes as available_memory
 from ..progress import ProgressCallback, report
+from ..resources import cores
 from ..validation import check_permutation
+from .budget import RayBudget
 from .cache import BlockCache, array_hash, scene_hash
 from .engine import FormFactorEngine
 from .kernel import ADAPTIVE, KERNEL_VERSION, NEAR, TOLERANCE
 from .mirror import (MIRROR_LAG, SCRATCH_SHARE, ReciprocityMirror, TileScratch, band_for, mirror_bytes,
                      band_pairs, scratch_bytes, slot_bytes, spill_band_for)
-from .parallel import MIN_PARALLEL_PATCHES, ProcessEngine, default_workers
-from .visibility import CLUSTER_VISIBILITY, DEFAULT_SAMPLES, PAIR_TEST, RayBudget, check_samples
+from .parallel import MIN_PARALLEL_PATCHES, ProcessEngine
+from .visibility import CLUSTER_VISIBILITY, DEFAULT_SAMPLES, PAIR_TEST, check_samples
 
 __all__ = ["FormFactorEngine", "iter_column_blocks", "form_factor_matrix", "row_sums",
            "available_memory", "DEFAULT_BLOCK_SIZE"]
@@ -307,7 +309,7 @@ def make_engine(scene, *, samples: int = DEFAULT_SAMPLES, processes: int | None 
     ``MIN_PARALLEL_PATCHES`` patches and this process otherwise.
     """
     if processes is None:
-        processes = default_workers() if scene.n_patches >= MIN_PARALLEL_PATCHES else 1
+        processes = cores() if scene.n_patches >= MIN_PARALLEL_PATCHES else 1
     if int(processes) != processes or int(processes) < 1:
         raise InputError(f"processes must be a positive integer (or None for one per core), got {processes}")
     if int(processes) > 1:

@@ -40,7 +40,8 @@ import scipy.sparse as sp
 from scipy.sparse.linalg import splu
 
 from ..errors import FactorizationError, InputError
-from ..lowrank.hf import SLAB_ROWS, spare_threads
+from ..lowrank.hf import SLAB_ROWS
+from ..resources import spare_threads
 from ..lowrank.factors import LowRank
 from . import thin
 from .bounds import power_sigma_max
@@ -271,7 +272,7 @@ class NearFieldFactorization(HFactorization):
         self.last_sweeps = 0
         self._quantization_error: np.ndarray | None = None
         self._quantize = quantize
-        with spare_threads():   # BLAS threads that other processes leave free (hfrad.lowrank.hf)
+        with spare_threads():   # BLAS threads that other processes leave free (hfrad.resources)
             Z, K_inv = self._near_solution(near_solution, capacitance, quantize, runner or InProcess())
         self.Z = Z if isinstance(Z, QuantizedRows) else read_only(Z)   # QuantizedRows holds read-only arrays
         self.capacitance_inv = read_only(K_inv)

@@ -1,0 +1,273 @@
+"""The precompute's options: the expert knobs a user may set, and the plan they resolve to for one scene.
+
+:class:`PrecomputeOptions` holds the knobs besides the front door's arguments
+(block width, visibility rays, the leaves' share of the error budget, the one-ray
+rule), in the style of SciPy's ``splu(options=)``. :func:`plan_precompute`
+validates everything once, ``eps`` first, then resolves the near-field policy
+(``near_field="auto"``: :func:`near_entries`, which reads ``eps``) and the rest
+for one scene into a :class:`PrecomputePlan`, which both backends (this process,
+:mod:`hfrad.precompute.local`; Dask, :mod:`hfrad.distributed`) run and record.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..defaults import DEFAULT_BLOCK_SIZE
+from ..errors import InputError, SceneError
+from ..formfactors.budget import default_one_ray_tol
+from ..lowrank.hf import ErrorBudget
+from ..lowrank.nearfield import DEFAULT_NEAR_ENTRIES, near_radius
+from ..scene.scene import Scene
+from ..scene.zorder import patch_order
+from ..validation import check_eps, check_factorize_options, check_permutation
+
+__all__ = ["PrecomputeOptions", "PrecomputePlan", "plan_precompute", "near_entries", "near_field_pays_from",
+           "NEAR_FIELD_MIN_PATCHES", "NEAR_FIELD_PAYS_FROM", "NEAR_FIELD_REFERENCE_EPS", "NEAR_FIELD_EPS_POWER"]
+
+# -- the near-field policy ---------------------------------------------------------------------------
+#: ``near_field="auto"`` never splits the near field below this many patches.
+NEAR_FIELD_MIN_PATCHES = 2000
+#: ... and from this many patches on at a relative eps of ``NEAR_FIELD_REFERENCE_EPS``:
+#: there the split's set-up (a sparse LU and k right-hand sides per colour channel) costs
+#: what its lower rank saves HF (Cornell box, eps 0.02: about even at 20K patches,
+#: 1.26x slower with the split at 10K; benchmarks/README.md, "Where the near field pays").
+NEAR_FIELD_PAYS_FROM = 20000
+NEAR_FIELD_REFERENCE_EPS = 0.02
+#: ... scaled by ``(NEAR_FIELD_REFERENCE_EPS / eps) ** NEAR_FIELD_EPS_POWER``: a looser eps
+#: leaves the far field a lower rank, so the near pairs' high rank is the larger share of
+#: it sooner (eps 0.05: about even at 5K patches, 1.42x faster with the split at 10K).
+NEAR_FIELD_EPS_POWER = 1.5
+
+
+def near_field_pays_from(eps: float, relative: bool = True) -> int:
+    """Patches from which ``near_field="auto"`` splits the near field, at this ``eps``.
+
+    An absolute eps says nothing of the rank before ``||G||_F`` is known: the split
+    then starts at ``NEAR_FIELD_MIN_PATCHES``.
+    """
+    if not relative or not eps > 0:
+        return NEAR_FIELD_MIN_PATCHES
+    scaled = NEAR_FIELD_PAYS_FROM * (NEAR_FIELD_REFERENCE_EPS / eps) ** NEAR_FIELD_EPS_POWER
+    return max(NEAR_FIELD_MIN_PATCHES, int(math.ceil(scaled)))
+
+
+def near_entries(near_field, n: int, eps: float = NEAR_FIELD_REFERENCE_EPS, relative: bool = True) -> int:
+    """Neighbours per row of the near field for ``factorize(near_field=...)`` (0 = no split).
+
+    "auto": ``DEFAULT_NEAR_ENTRIES`` where the split pays (from
+    :func:`near_field_pays_from` patches on at this ``eps``), else 0.
+    """
+    if near_field == "auto":
+        return DEFAULT_NEAR_ENTRIES if n >= near_field_pays_from(eps, relative) else 0
+    if near_field is None or near_field is False:
+        return 0
+    if isinstance(near_field, str) or int(near_field) != near_field or near_field < 0:
+        raise InputError(f"near_field must be 'auto', None or a number of neighbours per row (e.g. 64); "
+                         f"got {near_field!r}")
+    return int(near_field)
+
+
+# -- the knobs -------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class PrecomputeOptions:
+    """Expert options of the precompute (``hfrad.factorize(scene, options=PrecomputeOptions(...))``).
+
+    Validated with the rest of the front door's arguments, for the scene they are used on
+    (:func:`plan_precompute`). None of them is needed for a first run.
+
+    Attributes
+    ----------
+    block_size : int, optional
+        Column block width; default ``min(DEFAULT_BLOCK_SIZE, n)`` (256).
+    samples : int, optional
+        Visibility rays per patch pair (default: the engine's; 0: no visibility).
+    leaf_share : float in (0, 1]
+        Share of the squared error budget given to the leaf SVDs.
+    one_ray_tol : float or None
+        Pairs that together hold at most this share of ``||F||_F`` get one visibility
+        ray instead of several, and flagged pairs (probes disagree) holding
+        ``FEW_RAYS_FACTOR`` (4) times this share get 4 rays instead of 16
+        (:func:`hfrad.formfactors.budget.ray_budget`); None: ``eps / 4`` for a
+        relative eps, 0 (both rules off) for an absolute one.
+    """
+
+    block_size: int | None = None
+    samples: int | None = None
+    leaf_share: float = 0.5
+    one_ray_tol: float | None = None
+
+    def replace(self, **changes) -> "PrecomputeOptions":
+        return dataclasses.replace(self, **changes)
+
+
+# -- the plan of one run -------------------------------------------------------------------------------
+
+@dataclass(frozen=True, eq=False)
+class PrecomputePlan:
+    """The precompute's options for one scene, validated and resolved (:func:`plan_precompute`).
+
+    Attributes
+    ----------
+    n : int
+        Patches.
+    eps, relative, dtype, reciprocity
+        As in :func:`hfrad.factorize` (``reciprocity`` from its backend).
+    block_size, samples, leaf_share, one_ray_tol
+        As in :class:`PrecomputeOptions` (``block_size`` and ``one_ray_tol`` resolved: never None).
+    order : str
+        The order's name ("zorder", "hilbert", "random", "input") or "custom".
+    perm : (n,) int64
+        Internal order: internal index t holds user patch ``perm[t]``.
+    near_entries : int
+        Facing neighbours per row of the near field (0: no split).
+    near_radius : float, metres
+        Pairs with centroid distance <= this are near (0.0 without the split).
+    form_factors : dict
+        The form-factor kernel's and visibility's version and settings.
+    """
+
+    n: int
+    eps: float
+    relative: bool
+    block_size: int
+    dtype: str
+    samples: int | None
+    order: str
+    perm: np.ndarray
+    leaf_share: float
+    one_ray_tol: float
+    near_entries: int
+    near_radius: float
+    reciprocity: bool
+    form_factors: dict
+
+    @property
+    def n_blocks(self) -> int:
+        """Column blocks, m = ceil(n / block_size)."""
+        return -(-self.n // self.block_size)
+
+    @property
+    def budget(self) -> ErrorBudget:
+        """The HF error budget every leaf and merge of either backend draws from."""
+        return ErrorBudget(self.eps, self.relative, max(self.n_blocks, 1), self.leaf_share)
+
+    def replace(self, **changes) -> "PrecomputePlan":
+        return dataclasses.replace(self, **changes)
+
+    def params(self) -> dict:
+        """The parameters recorded in the ``.hfr`` (the backend adds ``backend``, ``workers``)."""
+        return {"eps": self.eps, "relative": self.relative, "block_size": self.block_size, "dtype": self.dtype,
+                "samples": self.samples, "order": self.order, "leaf_share": self.leaf_share,
+                "one_ray_tol": self.one_ray_tol, "near_field": self.near_entries, "near_radius": self.near_radius,
+                "form_factors": self.form_factors, "reciprocity": self.reciprocity}
+
+    def key(self, scene: Scene) -> str:
+        """A hash of everything the factorization depends on: geometry, reflectance, parameters.
+
+        Checkpoints of either backend carry it and refuse to resume another input. The
+        reciprocity copy is not part of it (F is equal to rounding either way).
+        """
+        h = hashlib.sha256()
+        for a in (scene.vertices, scene.faces, scene.occluder_vertices, scene.occluder_faces,
+                  scene.patch_of_triangle, scene.reflectance.max(axis=1)):
+            h.update(np.ascontiguousarray(a).tobytes())
+        params = self.params()
+        del params["reciprocity"]
+        if self.order == "custom":
+            h.update(np.ascontiguousarray(self.perm, np.int64).tobytes())
+        h.update(json.dumps(params, sort_keys=True).encode())
+        return h.hexdigest()
+
+    def rows_rho(self, scene: Scene) -> np.ndarray:
+        """(n, 1) ``rho_max`` in internal order, in the factors' dtype: a block of G is ``rows_rho * F``."""
+        return scene.reflectance.max(axis=1)[self.perm][:, None].astype(self.dtype)
+
+    def stats_weights(self, scene: Scene) -> np.ndarray:
+        """Patch areas in internal order: the pass statistics' (area-weighted) norm."""
+        return np.asarray(scene.areas, np.float64)[self.perm]
+
+    def ray_budget(self, scene: Scene):
+        """The form-factor engine's :class:`RayBudget` (None with ``samples=0``: analytic, no rays)."""
+        if self.samples == 0:
+            return None
+        from ..formfactors.budget import ray_budget
+
+        return ray_budget(scene, self.one_ray_tol)
+
+
+def plan_precompute(scene: Scene, eps: float = 0.02, *, relative: bool = True, dtype="float32", order="zorder",
+                    near_field=None, options: PrecomputeOptions | None = None,
+                    reciprocity: bool = True) -> PrecomputePlan:
+    """Validate the precompute's options for ``scene`` at the API boundary (both backends), once.
+
+    Parameters
+    ----------
+    scene : Scene
+    eps, relative, dtype, order
+        As in :func:`hfrad.factorize`.
+    near_field : "auto", int or None
+        As in :func:`hfrad.factorize` (default None: no split); "auto" is resolved
+        (:func:`near_entries`) after ``eps`` is validated.
+    options : PrecomputeOptions, optional
+        The expert knobs (default: ``PrecomputeOptions()``).
+    reciprocity : bool
+        The backend's reciprocity copy (recorded; not part of the checkpoint key).
+
+    Returns
+    -------
+    PrecomputePlan
+
+    Raises
+    ------
+    InputError
+        A bad option (names it).
+    SceneError
+        A scene without patches.
+    """
+    if not isinstance(scene, Scene):
+        raise TypeError(f"scene must be a hfrad Scene (see hfrad.load_scene); got {type(scene).__name__}")
+    if options is None:
+        options = PrecomputeOptions()
+    elif not isinstance(options, PrecomputeOptions):
+        raise InputError(f"options must be an hfrad.PrecomputeOptions; got {type(options).__name__}")
+    n = scene.n_patches
+    if n == 0:
+        raise SceneError(f"{scene.name}: the scene has no patches")
+    eps = check_eps(eps, relative)
+    block_size = min(DEFAULT_BLOCK_SIZE, n) if options.block_size is None else options.block_size
+    dt = check_factorize_options(n, eps, block_size, dtype, relative)
+    leaf_share, samples, one_ray_tol = options.leaf_share, options.samples, options.one_ray_tol
+    if not (0.0 < leaf_share <= 1.0):
+        raise InputError(f"leaf_share must be in (0, 1]; got {leaf_share!r}")
+    if samples is not None and (int(samples) != samples or samples < 0):
+        raise InputError(f"samples must be a number of rays >= 0; got {samples!r}")
+    if one_ray_tol is None:
+        one_ray_tol = default_one_ray_tol(eps, relative)
+    elif not (one_ray_tol >= 0 and np.isfinite(one_ray_tol)):
+        raise InputError(f"one_ray_tol must be a share >= 0 of ||F||_F; got {one_ray_tol!r}")
+    if isinstance(order, str):
+        perm = patch_order(scene.centroids, order)
+    else:
+        perm = check_permutation(order, n)
+        order = "custom"
+    entries = near_entries(near_field, n, eps, relative)
+    from ..formfactors.kernel import settings as kernel_settings
+    from ..formfactors.visibility import settings as visibility_settings
+
+    return PrecomputePlan(
+        n=n, eps=float(eps), relative=bool(relative), block_size=int(block_size), dtype=dt.name,
+        samples=None if samples is None else int(samples), order=order, perm=np.asarray(perm, np.int64),
+        leaf_share=float(leaf_share), one_ray_tol=float(one_ray_tol), near_entries=entries,
+        # the radius, not only the count, is part of the checkpoint key
+        near_radius=near_radius(scene.centroids, entries, scene.normals) if entries else 0.0,
+        reciprocity=bool(reciprocity),
+        # kernel version and tolerance: recorded in the .hfr, part of the checkpoint key
+        form_factors={**kernel_settings(), **visibility_settings()})
