@@ -53,7 +53,7 @@ def _assert_same_factorization(dist, local, scene):
 
 
 def _job(A, m, b, n):
-    from hfrad.precompute.options import PrecomputePlan
+    from hfrad.precompute.assemble import PrecomputePlan
 
     options = PrecomputePlan(n=m * b, eps=0.05, relative=True, block_size=b, dtype="float64", samples=0,
                                 order="input", perm=np.arange(m * b), leaf_share=0.5, one_ray_tol=0.0,

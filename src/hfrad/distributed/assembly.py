@@ -37,8 +37,7 @@ import time
 
 import numpy as np
 
-from ..precompute.assemble import assemble
-from ..precompute.options import PrecomputePlan
+from ..precompute.assemble import PrecomputePlan, assemble
 from ..solve.nearfield import channel_solver
 from ..solve.neumann import neumann_solve, spectral_bound
 from ..solve.sparselu import PANEL

@@ -30,9 +30,8 @@ from ..lowrank.factors import LowRank
 from ..lowrank.hf import counter_tree
 from ..memory import human
 from ..progress import ProgressCallback, report
-from ..precompute.assemble import add_statistics, assemble, concat_near
+from ..precompute.assemble import PrecomputePlan, add_statistics, assemble, concat_near
 from ..precompute.backends import DaskBackend
-from ..precompute.options import PrecomputePlan
 from ..solve.stats import PassStatistics
 from ..solve.woodbury import HFactorization
 from . import panels, sizing, store

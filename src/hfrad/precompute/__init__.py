@@ -18,6 +18,7 @@ the backend) and :func:`hfrad.factorize_matrix`.
 """
 
 from .backends import Checkpoint, DaskBackend, LocalBackend
-from .options import PrecomputeOptions, PrecomputePlan, plan_precompute
+from .assemble import PrecomputePlan
+from .options import PrecomputeOptions, plan_precompute
 
 __all__ = ["Checkpoint", "DaskBackend", "LocalBackend", "PrecomputeOptions", "PrecomputePlan", "plan_precompute"]

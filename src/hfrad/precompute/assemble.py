@@ -2,8 +2,8 @@
 
 ``hfrad.factorize(scene)`` runs the precompute in this process (:mod:`hfrad.precompute.local`)
 or as Dask tasks (:mod:`hfrad.distributed`); the backend only decides where column
-blocks, leaves and merges run. Both take a :class:`~hfrad.precompute.options.PrecomputePlan`
-(validated once, :func:`~hfrad.precompute.options.plan_precompute`) and end in :func:`assemble`:
+blocks, leaves and merges run. Both take a :class:`PrecomputePlan` (validated once,
+:func:`~hfrad.precompute.options.plan_precompute`) and end in :func:`assemble`:
 low-rank factors + near-field entries + pass statistics + parameters -> the solver object;
 the matrix and blocks entry points (:mod:`hfrad.precompute.matrix`) end in its last step,
 :func:`solver_object`. Per column block both do the
@@ -15,12 +15,17 @@ error figures.
 
 from __future__ import annotations
 
+import dataclasses
+import hashlib
+import json
 import time
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
 
 from ..errors import InputError
+from ..lowrank.hf import ErrorBudget
 from ..lowrank.factors import LowRank
 from ..lowrank.nearfield import NearFieldSplit
 from ..formfactors.energy import warn_energy
@@ -28,13 +33,106 @@ from ..scene.scene import Scene
 from ..solve.nearfield import NearFieldFactorization
 from ..solve.stats import PassStatistics
 from ..solve.woodbury import HFactorization
-from .options import PrecomputePlan
 
-__all__ = ["assemble", "solver_object", "far_block", "statistics_state", "add_statistics", "near_state",
+__all__ = ["PrecomputePlan", "assemble", "solver_object", "far_block", "statistics_state", "add_statistics", "near_state",
            "concat_near"]
 
 #: The arrays of the near field's coordinate lists (:meth:`NearFieldSplit.state`).
 NEAR_KEYS = ("near_rows", "near_cols", "near_values")
+
+
+@dataclass(frozen=True, eq=False)
+class PrecomputePlan:
+    """The precompute's options for one scene, validated and resolved (:func:`plan_precompute`).
+
+    Attributes
+    ----------
+    n : int
+        Patches.
+    eps, relative, dtype, reciprocity
+        As in :func:`hfrad.factorize` (``reciprocity`` from its backend).
+    block_size, samples, leaf_share, one_ray_tol
+        As in :class:`~hfrad.precompute.options.PrecomputeOptions` (``block_size`` and ``one_ray_tol`` resolved: never None).
+    order : str
+        The order's name ("zorder", "hilbert", "random", "input") or "custom".
+    perm : (n,) int64
+        Internal order: internal index t holds user patch ``perm[t]``.
+    near_entries : int
+        Facing neighbours per row of the near field (0: no split).
+    near_radius : float, metres
+        Pairs with centroid distance <= this are near (0.0 without the split).
+    form_factors : dict
+        The form-factor kernel's and visibility's version and settings.
+    """
+
+    n: int
+    eps: float
+    relative: bool
+    block_size: int
+    dtype: str
+    samples: int | None
+    order: str
+    perm: np.ndarray
+    leaf_share: float
+    one_ray_tol: float
+    near_entries: int
+    near_radius: float
+    reciprocity: bool
+    form_factors: dict
+
+    @property
+    def n_blocks(self) -> int:
+        """Column blocks, m = ceil(n / block_size)."""
+        return -(-self.n // self.block_size)
+
+    @property
+    def budget(self) -> ErrorBudget:
+        """The HF error budget every leaf and merge of either backend draws from."""
+        return ErrorBudget(self.eps, self.relative, max(self.n_blocks, 1), self.leaf_share)
+
+    def replace(self, **changes) -> "PrecomputePlan":
+        return dataclasses.replace(self, **changes)
+
+    def params(self) -> dict:
+        """The parameters recorded in the ``.hfr`` (the backend adds ``backend``, ``workers``)."""
+        return {"eps": self.eps, "relative": self.relative, "block_size": self.block_size, "dtype": self.dtype,
+                "samples": self.samples, "order": self.order, "leaf_share": self.leaf_share,
+                "one_ray_tol": self.one_ray_tol, "near_field": self.near_entries, "near_radius": self.near_radius,
+                "form_factors": self.form_factors, "reciprocity": self.reciprocity}
+
+    def key(self, scene: Scene) -> str:
+        """A hash of everything the factorization depends on: geometry, reflectance, parameters.
+
+        Checkpoints of either backend carry it and refuse to resume another input. The
+        reciprocity copy is not part of it (F is equal to rounding either way).
+        """
+        h = hashlib.sha256()
+        for a in (scene.vertices, scene.faces, scene.occluder_vertices, scene.occluder_faces,
+                  scene.patch_of_triangle, scene.reflectance.max(axis=1)):
+            h.update(np.ascontiguousarray(a).tobytes())
+        params = self.params()
+        del params["reciprocity"]
+        if self.order == "custom":
+            h.update(np.ascontiguousarray(self.perm, np.int64).tobytes())
+        h.update(json.dumps(params, sort_keys=True).encode())
+        return h.hexdigest()
+
+    def rows_rho(self, scene: Scene) -> np.ndarray:
+        """(n, 1) ``rho_max`` in internal order, in the factors' dtype: a block of G is ``rows_rho * F``."""
+        return scene.reflectance.max(axis=1)[self.perm][:, None].astype(self.dtype)
+
+    def stats_weights(self, scene: Scene) -> np.ndarray:
+        """Patch areas in internal order: the pass statistics' (area-weighted) norm."""
+        return np.asarray(scene.areas, np.float64)[self.perm]
+
+    def ray_budget(self, scene: Scene):
+        """The form-factor engine's :class:`RayBudget` (None with ``samples=0``: analytic, no rays)."""
+        if self.samples == 0:
+            return None
+        from ..formfactors.budget import ray_budget
+
+        return ray_budget(scene, self.one_ray_tol)
+
 
 
 # -- What a column block adds: additive over blocks, so a Dask leaf returns its share -------------

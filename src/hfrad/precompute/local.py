@@ -29,9 +29,8 @@ from ..resources import blas_threads, cores
 from ..scene.scene import Scene
 from ..solve.stats import PassStatistics
 from ..solve.woodbury import HFactorization
-from .assemble import assemble, far_block
+from .assemble import PrecomputePlan, assemble, far_block
 from .backends import Checkpoint, LocalBackend
-from .options import PrecomputePlan
 
 __all__ = ["factorize_local", "CHECKPOINT_COST_RATIO"]
 

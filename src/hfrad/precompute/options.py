@@ -5,15 +5,14 @@
 rule), in the style of SciPy's ``splu(options=)``. :func:`plan_precompute`
 validates everything once, ``eps`` first, then resolves the near-field policy
 (``near_field="auto"``: :func:`near_entries`, which reads ``eps``) and the rest
-for one scene into a :class:`PrecomputePlan`, which both backends (this process,
-:mod:`hfrad.precompute.local`; Dask, :mod:`hfrad.distributed`) run and record.
+for one scene into a :class:`~hfrad.precompute.assemble.PrecomputePlan`, which both
+backends (this process, :mod:`hfrad.precompute.local`; Dask, :mod:`hfrad.distributed`)
+run and record.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import hashlib
-import json
 import math
 from dataclasses import dataclass
 
@@ -22,13 +21,13 @@ import numpy as np
 from ..defaults import DEFAULT_BLOCK_SIZE
 from ..errors import InputError, SceneError
 from ..formfactors.budget import default_one_ray_tol
-from ..lowrank.hf import ErrorBudget
 from ..lowrank.nearfield import DEFAULT_NEAR_ENTRIES, near_radius
 from ..scene.scene import Scene
 from ..scene.zorder import patch_order
 from ..validation import check_eps, check_factorize_options, check_permutation
+from .assemble import PrecomputePlan
 
-__all__ = ["PrecomputeOptions", "PrecomputePlan", "plan_precompute", "near_entries", "near_field_pays_from",
+__all__ = ["PrecomputeOptions", "plan_precompute", "near_entries", "near_field_pays_from",
            "NEAR_FIELD_MIN_PATCHES", "NEAR_FIELD_PAYS_FROM", "NEAR_FIELD_REFERENCE_EPS", "NEAR_FIELD_EPS_POWER"]
 
 # -- the near-field policy ---------------------------------------------------------------------------
@@ -106,101 +105,6 @@ class PrecomputeOptions:
 
     def replace(self, **changes) -> "PrecomputeOptions":
         return dataclasses.replace(self, **changes)
-
-
-# -- the plan of one run -------------------------------------------------------------------------------
-
-@dataclass(frozen=True, eq=False)
-class PrecomputePlan:
-    """The precompute's options for one scene, validated and resolved (:func:`plan_precompute`).
-
-    Attributes
-    ----------
-    n : int
-        Patches.
-    eps, relative, dtype, reciprocity
-        As in :func:`hfrad.factorize` (``reciprocity`` from its backend).
-    block_size, samples, leaf_share, one_ray_tol
-        As in :class:`PrecomputeOptions` (``block_size`` and ``one_ray_tol`` resolved: never None).
-    order : str
-        The order's name ("zorder", "hilbert", "random", "input") or "custom".
-    perm : (n,) int64
-        Internal order: internal index t holds user patch ``perm[t]``.
-    near_entries : int
-        Facing neighbours per row of the near field (0: no split).
-    near_radius : float, metres
-        Pairs with centroid distance <= this are near (0.0 without the split).
-    form_factors : dict
-        The form-factor kernel's and visibility's version and settings.
-    """
-
-    n: int
-    eps: float
-    relative: bool
-    block_size: int
-    dtype: str
-    samples: int | None
-    order: str
-    perm: np.ndarray
-    leaf_share: float
-    one_ray_tol: float
-    near_entries: int
-    near_radius: float
-    reciprocity: bool
-    form_factors: dict
-
-    @property
-    def n_blocks(self) -> int:
-        """Column blocks, m = ceil(n / block_size)."""
-        return -(-self.n // self.block_size)
-
-    @property
-    def budget(self) -> ErrorBudget:
-        """The HF error budget every leaf and merge of either backend draws from."""
-        return ErrorBudget(self.eps, self.relative, max(self.n_blocks, 1), self.leaf_share)
-
-    def replace(self, **changes) -> "PrecomputePlan":
-        return dataclasses.replace(self, **changes)
-
-    def params(self) -> dict:
-        """The parameters recorded in the ``.hfr`` (the backend adds ``backend``, ``workers``)."""
-        return {"eps": self.eps, "relative": self.relative, "block_size": self.block_size, "dtype": self.dtype,
-                "samples": self.samples, "order": self.order, "leaf_share": self.leaf_share,
-                "one_ray_tol": self.one_ray_tol, "near_field": self.near_entries, "near_radius": self.near_radius,
-                "form_factors": self.form_factors, "reciprocity": self.reciprocity}
-
-    def key(self, scene: Scene) -> str:
-        """A hash of everything the factorization depends on: geometry, reflectance, parameters.
-
-        Checkpoints of either backend carry it and refuse to resume another input. The
-        reciprocity copy is not part of it (F is equal to rounding either way).
-        """
-        h = hashlib.sha256()
-        for a in (scene.vertices, scene.faces, scene.occluder_vertices, scene.occluder_faces,
-                  scene.patch_of_triangle, scene.reflectance.max(axis=1)):
-            h.update(np.ascontiguousarray(a).tobytes())
-        params = self.params()
-        del params["reciprocity"]
-        if self.order == "custom":
-            h.update(np.ascontiguousarray(self.perm, np.int64).tobytes())
-        h.update(json.dumps(params, sort_keys=True).encode())
-        return h.hexdigest()
-
-    def rows_rho(self, scene: Scene) -> np.ndarray:
-        """(n, 1) ``rho_max`` in internal order, in the factors' dtype: a block of G is ``rows_rho * F``."""
-        return scene.reflectance.max(axis=1)[self.perm][:, None].astype(self.dtype)
-
-    def stats_weights(self, scene: Scene) -> np.ndarray:
-        """Patch areas in internal order: the pass statistics' (area-weighted) norm."""
-        return np.asarray(scene.areas, np.float64)[self.perm]
-
-    def ray_budget(self, scene: Scene):
-        """The form-factor engine's :class:`RayBudget` (None with ``samples=0``: analytic, no rays)."""
-        if self.samples == 0:
-            return None
-        from ..formfactors.budget import ray_budget
-
-        return ray_budget(scene, self.one_ray_tol)
 
 
 def plan_precompute(scene: Scene, eps: float = 0.02, *, relative: bool = True, dtype="float32", order="zorder",
