@@ -227,3 +227,26 @@ def test_allowed_cycles_still_exist():
 ])
 def test_the_cycle_finder_finds_cycles(graph, expected):
     assert sorted(c for c in strongly_connected(graph) if len(c) > 1) == expected
+
+
+# -- the table of docs/architecture.md says what LAYERS says ------------------------------------
+
+DOC = SRC.parent / "docs" / "architecture.md"
+
+
+def doc_layers() -> set[tuple[int, str]]:
+    """(layer, unit) of every row of the table in docs/architecture.md (units as in LAYERS)."""
+    import re
+
+    named = {"base modules": "base", "`hfrad/__init__.py`": "api", "`__main__.py`": "cli"}
+    rows = set()
+    for line in DOC.read_text().splitlines():
+        m = re.match(r"\|\s*(\d+)\s*\|\s*([^|]+?)\s*\|", line)
+        if m:
+            for cell in m.group(2).split(", "):
+                rows.add((int(m.group(1)), named.get(cell, cell.strip("`").rstrip("/").removesuffix(".py"))))
+    return rows
+
+
+def test_the_documented_table_is_the_enforced_one():
+    assert doc_layers() == {(layer, unit) for layer, unit, _ in LAYERS}

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..formfactors.blocks import iter_column_blocks
+from ..formfactors.blocks import Consumer, iter_column_blocks
 from ..lowrank.hf import HFStream
 from ..lowrank.nearfield import NearFieldSplit
 from ..lowrank.streaming import load_checkpoint, save_checkpoint
@@ -82,11 +82,11 @@ def factorize_local(scene: Scene, plan: PrecomputePlan, backend: LocalBackend | 
     # the reciprocity tiles leave free what the rest of the run is estimated to need; those beyond
     # the memory band spill to a scratch file beside the output (its checkpoint), else in TMPDIR;
     # blocks are lent (no copy): _stream_blocks is done with each before it asks for the next
+    consumer = Consumer(reserved_bytes=precompute_bytes(n, block_size, itemsize=dt.itemsize), lend=True)
     blocks = iter_column_blocks(scene, block_size, order=perm, first_block=stream.blocks_done,
                                 processes=backend.processes, dtype=dt, reciprocity=plan.reciprocity,
-                                reserved_bytes=precompute_bytes(n, block_size, itemsize=dt.itemsize),
                                 scratch=None if path is None else Path(path).parent,
-                                mirror_stats=mirror_stats, lend=True, **ff_kwargs)
+                                mirror_stats=mirror_stats, consumer=consumer, **ff_kwargs)
     rows_rho = plan.rows_rho(scene)
     split = None
     if plan.near_entries:
