@@ -362,7 +362,7 @@ def test_panelled_merges_on_worker_processes_equal_serial_merges(cornell, proces
 
 
 def test_refuses_workers_too_small_for_one_leaf(cornell, monkeypatch):
-    from hfrad.distributed.cluster import Cluster
+    from hfrad.distributed.connection import Cluster
     from hfrad.distributed.sizing import leaf_bytes
     from hfrad.errors import MemoryLimitError
 

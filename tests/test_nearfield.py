@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from hfrad import Checkpoint, LocalBackend, PrecomputeOptions
-from hfrad.lowrank.nearfield import NearFieldSplit, near_radius
+from hfrad.lowrank.nearsplit import NearFieldSplit, near_radius
 from hfrad.formfactors import form_factor_matrix
 from hfrad.solve.hfr import load_hfr, read_hfr_metadata, save_hfr
 from hfrad.pipeline import factorize

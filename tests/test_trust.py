@@ -78,7 +78,7 @@ def test_figures_bound_the_exact_operator_norms(cornell):
 
 
 def test_bounds_hold_against_the_dense_solve(cornell):
-    from hfrad.solve.direct import solve_direct
+    from hfrad.solve.denselu import solve_direct
 
     scene, F, fac = cornell
     rng = np.random.default_rng(0)

@@ -54,7 +54,7 @@ def factorize(scene: Scene, eps: float = 0.02, *, relative: bool = True, dtype="
         default Z-order (the paper's). Only speed and rank depend on it:
         every input and output stays in the user's order.
     near_field : "auto", int or None
-        The near-field split (docs/method.md; :mod:`hfrad.lowrank.nearfield`):
+        The near-field split (docs/method.md; :mod:`hfrad.lowrank.nearsplit`):
         pairs within a radius holding about this many neighbours per row go into
         a sparse N, HF factors only ``G - N``, and the solver is Woodbury around a
         sparse LU of ``I - D_c N`` (:class:`~hfrad.solve.nearfield.NearFieldFactorization`).

@@ -16,7 +16,7 @@ backends; :func:`factorize_distributed` is this backend's entry behind it.
 See docs/cluster.md for running it on a real cluster and the memory each worker needs.
 """
 
-from .cluster import Cluster, SchedulerUnreachableError, WorkerLostError, connect
+from .connection import Cluster, SchedulerUnreachableError, WorkerLostError, connect
 from .run import DaskTuning, factorize_distributed
 from .sizing import rank_guess, worker_bytes
 from .store import remove_folder as remove_checkpoint

@@ -35,7 +35,7 @@ from ..precompute.backends import DaskBackend
 from ..solve.stats import PassStatistics
 from ..solve.woodbury import HFactorization
 from . import panels, sizing, store
-from .cluster import Cluster, WorkerLostError, connect
+from .connection import Cluster, WorkerLostError, connect
 from .prefetch import NearPrefetch
 from . import tiles as tiles_mod
 from .tasks import (Job, chunk_task, form_task, gram_task, group_leaf_task, group_tree_task, leaf_task,
@@ -97,7 +97,7 @@ def factorize_distributed(scene, options: PrecomputePlan, backend: DaskBackend |
         once and copied by reciprocity (:mod:`hfrad.distributed.tiles`).
     backend : DaskBackend
         The cluster (``scheduler``, or ``workers`` for a LocalCluster; ``scheduler`` may
-        also be a :class:`~hfrad.distributed.cluster.Cluster` from
+        also be a :class:`~hfrad.distributed.connection.Cluster` from
         :func:`~hfrad.distributed.connect`), numba threads per task, the connect timeout,
         and ``records``: a list filled with one dict per task of the tree (kind, node,
         rank, columns, rows, seconds, form-factor and SVD seconds, ranks merged, worker,

@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..lowrank.hf import ErrorBudget, compress_leaf, merge_nodes, root_lowrank
-from ..lowrank.nearfield import NearFieldSplit
+from ..lowrank.nearsplit import NearFieldSplit
 from ..formfactors.parallel import column_block
 from ..formfactors.budget import RayBudget
 from ..precompute.assemble import add_statistics, concat_near, far_block, statistics_state

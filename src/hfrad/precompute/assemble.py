@@ -27,7 +27,7 @@ import scipy.sparse as sp
 from ..errors import InputError
 from ..lowrank.hf import ErrorBudget
 from ..lowrank.factors import LowRank
-from ..lowrank.nearfield import NearFieldSplit
+from ..lowrank.nearsplit import NearFieldSplit
 from ..formfactors.energy import warn_energy
 from ..scene.scene import Scene
 from ..solve.nearfield import NearFieldFactorization

@@ -65,7 +65,7 @@ class DaskBackend:
     ----------
     scheduler : str, distributed.Client or hfrad.distributed.Cluster, optional
         ``tcp://HOST:PORT`` of a running scheduler, a connected Client, or a
-        :class:`~hfrad.distributed.cluster.Cluster` from :func:`hfrad.distributed.connect`.
+        :class:`~hfrad.distributed.connection.Cluster` from :func:`hfrad.distributed.connect`.
     workers : int, optional
         Instead of ``scheduler``: a LocalCluster of this many worker processes.
     task_threads : int, optional

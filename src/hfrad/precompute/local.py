@@ -21,7 +21,7 @@ import numpy as np
 from ..errors import InputError
 from ..formfactors.blocks import Consumer, iter_column_blocks
 from ..lowrank.hf import HFStream
-from ..lowrank.nearfield import NearFieldSplit
+from ..lowrank.nearsplit import NearFieldSplit
 from ..lowrank.streaming import load_checkpoint, save_checkpoint
 from ..memory import precompute_bytes
 from ..progress import ProgressCallback, report

@@ -21,7 +21,7 @@ import numpy as np
 from ..defaults import DEFAULT_BLOCK_SIZE
 from ..errors import InputError, SceneError
 from ..formfactors.budget import default_one_ray_tol
-from ..lowrank.nearfield import DEFAULT_NEAR_ENTRIES, near_radius
+from ..lowrank.nearsplit import DEFAULT_NEAR_ENTRIES, near_radius
 from ..scene.scene import Scene
 from ..scene.zorder import patch_order
 from ..validation import check_eps, check_factorize_options, check_permutation

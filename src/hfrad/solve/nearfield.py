@@ -1,6 +1,6 @@
 """Solves with the near-field split: Woodbury around the sparse ``I - D_c N``.
 
-With ``G = N + Q V^T`` (N sparse near field, :mod:`hfrad.lowrank.nearfield`)
+With ``G = N + Q V^T`` (N sparse near field, :mod:`hfrad.lowrank.nearsplit`)
 and ``D_c = diag(rho_c / rho_max)``, channel c solves
 
     (A_c - U_c V^T) B_c = E_c,    A_c = I - D_c N  (sparse),  U_c = D_c Q.
