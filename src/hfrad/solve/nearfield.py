@@ -259,7 +259,16 @@ class NearFieldFactorization(HFactorization):
     def __init__(self, perm, Q, V, N, rho_max, reflectance, lowrank: LowRank, *, capacitance=None,
                  near_solution=None, quantize: bool | None = None, sigma_max=None, params: dict | None = None,
                  scene=None, stats=None, runner=None):
-        self._set_state(perm, Q, V, rho_max, reflectance, lowrank, sigma_max, params, scene, stats)
+        # what the set-up needs beside the parent's arguments: read by _capacitance_inv, which the
+        # parent's constructor calls once the shared state (perm, Q, V, D_c, ...) is in place
+        self._setup = (N, near_solution, quantize, runner)
+        super().__init__(perm, Q, V, rho_max, reflectance, lowrank, capacitance=capacitance, sigma_max=sigma_max,
+                         params=params, scene=scene, stats=stats)
+
+    def _capacitance_inv(self, stored) -> np.ndarray:
+        """The near-field set-up (N, Z per distinct channel), then ``K_c^{-1}`` (3, k, k): stored or computed."""
+        N, near_solution, quantize, runner = self._setup
+        del self._setup
         self._sources = self._channel_sources()
         #: for each channel, its Z in the stack of distinct channels
         self._stored = [self.distinct_channels.index(s) for s in self._sources]
@@ -273,9 +282,9 @@ class NearFieldFactorization(HFactorization):
         self._quantization_error: np.ndarray | None = None
         self._quantize = quantize
         with spare_threads():   # BLAS threads that other processes leave free (hfrad.resources)
-            Z, K_inv = self._near_solution(near_solution, capacitance, quantize, runner or InProcess())
+            Z, K_inv = self._near_solution(near_solution, stored, quantize, runner or InProcess())
         self.Z = Z if isinstance(Z, QuantizedRows) else read_only(Z)   # QuantizedRows holds read-only arrays
-        self.capacitance_inv = read_only(K_inv)
+        return K_inv
 
     @property
     def distinct_channels(self) -> list[int]:
