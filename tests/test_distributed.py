@@ -50,6 +50,11 @@ def _assert_same_factorization(dist, local, scene):
     diff = np.linalg.norm(B - B_local, axis=0) / np.linalg.norm(B_local, axis=0)
     # the same blocks and the same tree with the same truncations: equal up to rounding
     assert (diff <= 1e-4).all(), diff
+    # the per-solve figure: the same sampled rows of F, kept by either backend's pass
+    (_, err), (_, err_local) = dist.solve(scene.emission, return_error=True), local.solve(scene.emission,
+                                                                                         return_error=True)
+    assert err.kind == err_local.kind == "sampled" and err.rows == err_local.rows
+    assert np.allclose(err.bound, err_local.bound, rtol=1e-3), (err.bound, err_local.bound)
 
 
 def _job(A, m, b, n):

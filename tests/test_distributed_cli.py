@@ -137,8 +137,11 @@ def test_solve_render_view_design_work_on_a_dask_hfr(dask_hfr, tmp_path):
     solved = runner.invoke(app, ["solve", str(dask_hfr), "-o", str(tmp_path / "B.npz"), "--json"])
     assert solved.exit_code == 0, solved.output
     report = json.loads(solved.output.strip().splitlines()[-1])
-    assert report["error_bound_kind"] == "probes" and report["error_norm"] == "area"
-    assert report["failure_probability"] == pytest.approx(1e-6)
+    assert report["a_priori_kind"] == "probes" and report["a_priori_norm"] == "area"
+    assert report["a_priori_failure_probability"] == pytest.approx(1e-6)
+    # the per-solve figure from the rows of F the Dask pass kept
+    assert report["error_bound_kind"] in ("sampled", "exact-rows") and report["error_norm"] == "reflected"
+    assert all(b is not None and 0 < b < 1 for b in report["error_bound"])
     words = runner.invoke(app, ["solve", str(dask_hfr), "-o", str(tmp_path / "B2.npz")])
     assert words.exit_code == 0 and "Traceback" not in words.output and "wrote" in words.output, words.output
     fac = load_hfr(dask_hfr)

@@ -443,23 +443,31 @@ def test_full_disk_api_save_and_checkpoint_refused_cleanly(tmp_path):
 
 # -- 8. the headline figure ------------------------------------------------------------------------
 
-def test_solve_prints_no_useful_bound_first(coarse_hfr, tmp_path):
-    """Was 'bound on the relative radiosity error ...: 2.84, 1.81, 1.34 (guaranteed ...)' after the 'wrote' line."""
+def test_solve_prints_its_own_figure_first_then_no_useful_bound(coarse_hfr, tmp_path):
+    """Was 'bound on the relative radiosity error ...: 2.84, 1.81, 1.34 (guaranteed ...)' after the 'wrote' line;
+    then 'no useful a-priori bound' first (issue 10); now this solve's own figure first (issue 42)."""
     result = run("solve", coarse_hfr, "-o", tmp_path / "b.npz")
     assert result.exit_code == 0, result.output
-    first = result.output.splitlines()[0]
-    assert first.startswith("no useful a-priori bound on the relative radiosity error"), result.output
-    assert "--residual" in first and "--eps" in first
+    lines = result.output.splitlines()
+    assert lines[0].startswith("error of this solution: at most "), result.output
+    assert "of the reflected light" in lines[0] and "row" in lines[0] and "of F" in lines[0]
+    priori = next(line for line in lines if "a-priori" in line)
+    assert priori.startswith("no useful a-priori bound on the relative radiosity error"), result.output
+    assert "--residual" in priori and "--eps" in priori
     assert "2.84" not in result.output
 
 
-def test_solve_with_residual_prints_that_bound_first(coarse_hfr, tmp_path):
+def test_solve_with_residual_prints_both_figures_of_the_solution_first(coarse_hfr, tmp_path):
     result = run("solve", coarse_hfr, "-o", tmp_path / "b.npz", "--residual", "-q")
     assert result.exit_code == 0, result.output
-    first = result.output.splitlines()[0]
+    lines = result.output.splitlines()
+    first = lines[0]
     assert first.startswith("error of this solution: at most "), result.output
-    figures = [float(x.strip().rstrip("%")) / 100 for x in first.split("at most ")[1].split("(")[0].split(",")]
-    assert len(figures) == 3 and all(0 < f < 1 for f in figures)
+    second = next(line for line in lines if line.startswith("guaranteed bound of this solution (--residual): "))
+    for line in (first, second):
+        text = line.split("at most ")[1].split("(")[0].replace("of the reflected light", "")
+        figures = [float(x.strip().rstrip("%")) / 100 for x in text.split(",")]
+        assert len(figures) == 3 and all(0 < f < 1 for f in figures)
 
 
 def test_accuracy_lines_never_call_a_bound_above_100_percent_guaranteed():
@@ -481,9 +489,10 @@ def test_accuracy_lines_never_call_a_bound_above_100_percent_guaranteed():
     assert "no eps gives an a-priori bound" in accuracy_lines(hopeless, achieved_error=0.02)[0]
 
 
-def test_demo_prints_the_cheap_figures_and_how_to_get_the_guaranteed_one(tmp_path, monkeypatch):
-    """The demo computed the solution's residual (the form factors again, doubling its time); now it
-    prints the figures the factorization carries and the command that gives the guaranteed one."""
+def test_demo_prints_each_solutions_figure_without_a_second_pass(tmp_path, monkeypatch):
+    """The demo computed the solution's residual (the form factors again, doubling its time); then it
+    printed the command that gives the guaranteed figure; now each solution's figure comes first, from the
+    rows of F kept during the pass (issue 42), and the form factors are still never recomputed."""
     from hfrad.solve.woodbury import HFactorization
 
     def forbidden(*args, **kwargs):
@@ -494,8 +503,7 @@ def test_demo_prints_the_cheap_figures_and_how_to_get_the_guaranteed_one(tmp_pat
     assert result.exit_code == 0, result.output
     lines = result.output.splitlines()
     assert lines[0].startswith("Cornell box:")
-    assert "a-priori bound on the relative radiosity error" in lines[1], result.output
-    how = [line for line in lines if line.startswith("guaranteed bound of this solution: hfrad solve ")]
-    assert len(how) == 1 and how[0].endswith("--residual (recomputes the form factors)"), result.output
-    assert str(tmp_path / "cornell.hfr") in how[0]
-    assert not any(line.startswith("error of this solution") for line in lines)
+    # 60 patches: every row of F is kept, so the figure is a bound
+    assert lines[1].startswith("error of this solution: at most ") and "every row of F is stored" in lines[1], lines
+    assert "a-priori bound on the relative radiosity error" in lines[2], result.output
+    assert any(line.startswith("relit blue: error of this solution: at most ") for line in lines), result.output

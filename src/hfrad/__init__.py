@@ -39,6 +39,7 @@ _EXPORTS = {
     "PrecomputeOptions": "hfrad.precompute.options",
     "HFactorization": "hfrad.solve.woodbury",
     "ErrorEstimate": "hfrad.solve.bounds",
+    "SolutionError": "hfrad.solve.samples",
     "form_factor_matrix": "hfrad.formfactors.blocks",
     "iter_column_blocks": "hfrad.formfactors.blocks",
     "render_image": "hfrad.render.image",

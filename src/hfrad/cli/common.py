@@ -287,9 +287,9 @@ def check_memory_for_precompute(n: int, block: int, dtype: str, *, count: str = 
             f"{rank_guess(n):,}: {RANK_ASSUMPTION})")
 
 
-def error_figures_line(fac, residual=None) -> str:
+def error_figures_line(fac, residual=None, solution=None) -> str:
     """The factorization's error figures in words, the one to rely on first (docs/method.md, section 7):
-    :func:`hfrad.solve.bounds.accuracy_lines`."""
+    :func:`hfrad.solve.bounds.accuracy_lines`; ``solution``: a solve's SolutionError, said first."""
     import warnings
 
     from ..errors import AccuracyWarning
@@ -298,7 +298,7 @@ def error_figures_line(fac, residual=None) -> str:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", AccuracyWarning)   # said in words below
         est = fac.error_estimate()
-    return "\n".join(accuracy_lines(est, residual=residual, achieved_error=fac.relative_error))
+    return "\n".join(accuracy_lines(est, residual=residual, achieved_error=fac.relative_error, solution=solution))
 
 
 def show_warnings_plainly() -> None:

@@ -165,6 +165,14 @@ def _lighting_summary(r: dict, output: Path, plan: Optional[Path]) -> None:
         + (f", relighting {t['relight_s'] * 1e3:.3f} ms" if t.get("relight_s") else "") + check, highlight=False)
 
 
+def _error_words(error: dict) -> str:
+    """The design's radiosity error figure (``SolutionError.as_dict()``) in words."""
+    figures = ", ".join("none" if b is None else f"{100 * b:.3g}%" for b in error["error_bound"])
+    how = ("a bound" if error["failure_probability"] is None else
+           f"from {error['error_rows']} exact rows of F; may fail with probability {error['failure_probability']:.2g}")
+    return f"error of this design's radiosity: at most {figures} of the reflected light (R,G,B; {how})"
+
+
 def _summary(r: dict, output: Path, render: Optional[Path]) -> None:
     say = common.console.print
     if r["emitters"][0]["intensity"] is not None:
@@ -178,8 +186,13 @@ def _summary(r: dict, output: Path, render: Optional[Path]) -> None:
         for t in r["targets"]:
             a = t["achieved"]
             u = "-" if a["uniformity"] is None else f"{a['uniformity']:.3f}"
+            margin = ", ".join(f"{g} {m:+.3g}" for g, m in t.get("margin", {}).items())
+            err = "" if t.get("mean_error") is None else f"; error of the mean at most {t['mean_error']:.2g}"
             say(f"  {t['name']} ({t['quantity']}, {t['unit']}): min {a['min']:.4g}, mean {a['mean']:.4g}, "
-                f"max {a['max']:.4g}, uniformity {u}", highlight=False)
+                f"max {a['max']:.4g}, uniformity {u}" + (f"; margin {margin}" if margin else "") + err,
+                highlight=False)
+        if "radiosity_error" in r:
+            say(f"  {_error_words(r['radiosity_error'])}", highlight=False)
     verified = r.get("verified") or {}
     check = (f"; verified by a full solve (max deviation {verified['max_relative_deviation']:.1e})"
              if verified else "")

@@ -43,6 +43,7 @@ def register(app: typer.Typer) -> None:
 
         from ..lighting import (LightingModel, floor_grid, grid_stats, read_layout, read_sensors, save_plan,
                                 write_csv, write_json)
+        from ..solve.bounds import solution_line
 
         with common.user_errors():
             if output.suffix.lower() != ".json":
@@ -70,12 +71,15 @@ def register(app: typer.Typer) -> None:
             t1 = time.perf_counter()
             values = [r.illuminance(w) for r in responses]
             relight = time.perf_counter() - t1
+            errors = [model.illuminance_error(r, w) for r in responses]   # (lux bound per sensor, radiosity's)
             report = {"factorization": str(factorization), "layout": None if layout is None else str(layout),
                       "background": background,
                       "luminaires": [{"name": l.name, "catalogue": l.photometry.name, "dimming": l.dimming,
                                       "position": l.position.tolist(), "aim": l.aim.tolist()} for l in luminaires],
-                      "grids": [{"name": s.name, "spacing_m": s.spacing, **grid_stats(v)}
-                                for s, v in zip(sets, values)],
+                      "grids": [{"name": s.name, "spacing_m": s.spacing, **grid_stats(v),
+                                 "error_lux": {"maximum": float(e.max()), "average": float(e.mean())}}
+                                for s, v, (e, _) in zip(sets, values, errors)],
+                      **({"radiosity_error": errors[0][1].as_dict()} if errors else {}),
                       "timings": {**model.timings, "precompute_s": pre, "relight_s": relight}}
             write_json(output, report)
             if csv_out is not None:
@@ -85,11 +89,15 @@ def register(app: typer.Typer) -> None:
                 if not grids:
                     raise InputError("--plan needs a work-plane grid (--floor)")
                 save_plan(plan, *grids[0])
-        for s, v in zip(sets, values):
+        if errors:
+            common.console.print(f"  {solution_line(errors[0][1])}", highlight=False)
+        for s, v, (e, _) in zip(sets, values, errors):
             st = grid_stats(v)
             u0 = "-" if st["U0"] is None else f"{st['U0']:.3f}"
             common.console.print(f"  {s.name} ({st['sensors']} sensors): average {st['average']:.1f} lx, "
-                                 f"min {st['minimum']:.1f}, max {st['maximum']:.1f}, U0 {u0}", highlight=False)
+                                 f"min {st['minimum']:.1f}, max {st['maximum']:.1f}, U0 {u0}; "
+                                 f"interreflected light's error at most {e.max():.2g} lx (average {e.mean():.2g})",
+                                 highlight=False)
         extra = "".join(f" and {p}" for p in (csv_out, plan) if p is not None)
         common.console.print(f"wrote {output}{extra}: precompute {pre:.2f} s, relighting {relight * 1e3:.2f} ms",
                              highlight=False)

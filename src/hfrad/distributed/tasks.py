@@ -198,7 +198,8 @@ def leaf_from_block(job: Job, j: int, F: np.ndarray, t0: float, cpu0: float, t1:
     b = job.options.block_size
     start = j * b
     n = job.perm.size
-    block_stats = PassStatistics(n, job.weights)
+    rho = None if job.scene is None else job.scene.reflectance[job.options.perm]   # the smoothed rows' R_c
+    block_stats = PassStatistics(n, job.weights, reflectance=rho)
     split = _splitter(job) if job.options.near_entries else None
     G, norm2, block_norm2 = far_block(block_stats, start, start + F.shape[1], F, job.rows_rho, split)
     del F

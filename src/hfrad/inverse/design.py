@@ -88,6 +88,45 @@ def _solver_accuracy(fac) -> dict:
     return out
 
 
+def _mean_error(fac, target: Target, absolute: np.ndarray) -> float | None:
+    """A figure for the error of the target's area-weighted mean quantity, from the radiosity's ``||e_c||_A``.
+
+    The quantity is ``q_i = sum_c W_c s_ic B_ic + ...`` (``s = 1`` for radiosity, ``1 / rho_ic`` for
+    irradiance), so the mean's error ``sum_c W_c sum_i w_i s_ic e_ic`` is at most
+    ``sum_c W_c sqrt(sum_i w_i^2 s_ic^2 / A_i) ||e_c||_A`` (Cauchy-Schwarz). None where a target
+    patch is black in a channel (its irradiance is read from F, not from B).
+    """
+    from ..render.falsecolor import photometric
+
+    areas = np.asarray(fac.scene.areas, np.float64)[target.patches]
+    w = areas / areas.sum()
+    if target.quantity == "radiosity":
+        s = np.ones((len(w), 3))
+    else:
+        rho = np.asarray(fac.reflectance, np.float64)[target.patches]
+        if (rho <= 0).any():
+            return None
+        s = 1.0 / rho
+    spread = np.sqrt(((w[:, None] * s) ** 2 / areas[:, None]).sum(axis=0))      # (3,)
+    unit = "lux" if target.quantity == "irradiance_lux" else "W/m2"
+    return float(photometric(spread * np.asarray(absolute, np.float64), unit))
+
+
+def _margins(entry: dict) -> dict:
+    """How far each goal is met (positive) or missed (negative), in the target's unit."""
+    st, out = entry["achieved"], {}
+    for goal, g in entry["goals"].items():
+        if goal == "min":
+            out[goal] = st["min"] - g
+        elif goal == "max":
+            out[goal] = g - st["max"]
+        elif goal == "mean":
+            out[goal] = st["mean"] - g
+        elif goal == "uniformity" and st["uniformity"] is not None:
+            out[goal] = st["uniformity"] - g
+    return out
+
+
 def design(fac, spec: "Mapping[str, Any] | DesignSpec | str", *, method: str = "auto", verify: bool = True,
            progress: ProgressCallback = None) -> DesignResult:
     """Find emitter intensities that meet the spec's goals (inverse lighting design).
@@ -235,6 +274,13 @@ def design(fac, spec: "Mapping[str, Any] | DesignSpec | str", *, method: str = "
     out["time_s"] = time.perf_counter() - t_start - (t_measure if resp.complete else 0.0)
     if feasible_lp and verify:
         out["verified"] = _verify(fac, spec, resp, resp.values(s), measured, t_measure)
+    if B is not None:
+        # this design's error figure (from the rows of F kept from the pass) and each goal's margin beside it
+        error = fac.solution_error(E, B)
+        out["radiosity_error"] = error.as_dict()
+        for t, entry in zip(spec.targets, targets_out):
+            entry["margin"] = _margins(entry)
+            entry["mean_error"] = _mean_error(fac, t, error.absolute)
     report(progress, total, total)
     return DesignResult(out, spec, E, B)
 

@@ -86,7 +86,8 @@ class LightingModel:
     ----------
     patch_direct : (n, L) float, lux per unit dimming on every patch
     radiosity_basis : (n, 3, L) float, W/m^2 per unit dimming
-    background_radiosity : (n, 3) float, W/m^2
+    exitance_basis : (n, 3, L) float, W/m^2 per unit dimming: the luminaires' light reflected once
+    background_radiosity, background_exitance : (n, 3) float, W/m^2
     timings : dict
     """
 
@@ -124,6 +125,8 @@ class LightingModel:
         if E0 is not None and E0.any():
             E = np.concatenate([E, E0[:, :, None]], axis=2)
         B = np.asarray(fac.solve(E), np.float64) if E.shape[2] else np.zeros_like(E)
+        self.exitance_basis = E[:, :, :L]
+        self.background_exitance = E[:, :, L] if E.shape[2] > L else np.zeros((self.scene.n_patches, 3))
         self.radiosity_basis = B[:, :, :L]
         self.background_radiosity = B[:, :, L] if B.shape[2] > L else np.zeros((self.scene.n_patches, 3))
         self.timings["solve_s"] = time.perf_counter() - t0
@@ -152,6 +155,29 @@ class LightingModel:
         """(n, 3) W/m^2 of every patch for ``dimming`` (L,) (default: the layout's): O(n L)."""
         w = self.dimming if dimming is None else self._check(dimming)
         return self.radiosity_basis @ w + self.background_radiosity
+
+    def radiosity_error(self, dimming=None):
+        """The error figure of :meth:`radiosity` (a :class:`~hfrad.solve.samples.SolutionError`, per channel,
+        relative to the reflected light): :meth:`HFactorization.solution_error` of the lighting's
+        exitance (the luminaires' first bounce off the patches) and radiosity, O(n m) for m stored rows."""
+        w = self.dimming if dimming is None else self._check(dimming)
+        E = self.exitance_basis @ w + self.background_exitance
+        return self.fac.solution_error(E, self.radiosity(w))
+
+    def illuminance_error(self, response: "SensorResponse", dimming=None) -> tuple[np.ndarray, object]:
+        """(m,) lux: the figure of the interreflected light's error at each sensor, and the radiosity's figure.
+
+        The gathered irradiance is ``G B``; its error ``G e`` at sensor s is at most
+        ``||g_s||_{1/A} ||e||_A`` per channel (Cauchy-Schwarz in the area norm the radiosity
+        figure bounds), weighted to lux as the illuminance is. The direct light is computed
+        by rays, not by the factorization, and has no part in it.
+        """
+        error = self.radiosity_error(dimming)
+        areas = np.asarray(self.scene.areas, np.float64)
+        g = response.gather.matrix.astype(np.float64)
+        spread = np.sqrt((g ** 2 / areas[None, :]).sum(axis=1))            # ||g_s||_{1/A}, (m,)
+        per_channel = spread[:, None] * np.asarray(error.absolute, np.float64)[None, :]   # (m, 3) W/m^2
+        return photometric(per_channel, "lux"), error
 
     def _check(self, dimming) -> np.ndarray:
         w = np.asarray(dimming, np.float64).reshape(-1)

@@ -31,6 +31,7 @@ from ..lowrank.nearsplit import NearFieldSplit
 from ..formfactors.energy import warn_energy
 from ..scene.scene import Scene
 from ..solve.nearfield import NearFieldFactorization
+from ..solve.samples import SampledRows
 from ..solve.stats import PassStatistics
 from ..solve.woodbury import HFactorization
 
@@ -176,8 +177,11 @@ def add_statistics(a: dict | None, b: dict | None) -> dict | None:
     """The statistics of two disjoint column ranges together (either may be None)."""
     if a is None or b is None:
         return a if b is None else b
-    return {**a, "row_sums": a["row_sums"] + b["row_sums"], "col_sums": a["col_sums"] + b["col_sums"],
-            "sketch": a["sketch"] + b["sketch"]}
+    out = {**a, "row_sums": a["row_sums"] + b["row_sums"], "col_sums": a["col_sums"] + b["col_sums"],
+           "sketch": a["sketch"] + b["sketch"]}
+    if "sample_rows" in a and "sample_rows" in b:
+        out.update(SampledRows.add_states(a, b))
+    return out
 
 
 def near_state(rows=(), cols=(), values=()) -> dict:

@@ -73,7 +73,7 @@ def factorize_local(scene: Scene, plan: PrecomputePlan, backend: LocalBackend | 
     key = plan.key(scene)
     path = None if checkpoint is None else checkpoint.path
     stream = _open_stream(path, key, plan)
-    stats = _open_stats(stream, n, plan.stats_weights(scene))
+    stats = _open_stats(stream, n, plan.stats_weights(scene), scene.reflectance[perm])
     t0 = time.perf_counter()
     ff_kwargs = {} if plan.samples is None else {"samples": plan.samples}
     if plan.samples != 0:
@@ -110,10 +110,10 @@ def factorize_local(scene: Scene, plan: PrecomputePlan, backend: LocalBackend | 
     return fac
 
 
-def _open_stats(stream: HFStream, n: int, weights) -> PassStatistics:
+def _open_stats(stream: HFStream, n: int, weights, reflectance) -> PassStatistics:
     """The pass statistics, resumed from the stream's checkpointed extras when it was resumed."""
     if stream.blocks_done == 0:
-        return PassStatistics(n, weights)
+        return PassStatistics(n, weights, reflectance=reflectance)
     state = {k[len(_STATS):]: v for k, v in stream.extra.items() if k.startswith(_STATS)}
     if not state:
         raise InputError("the checkpoint comes from an older hfrad (no pass statistics); delete it to start over")

@@ -113,7 +113,7 @@ def factorize_matrix(F, reflectance, *, areas=None, eps: float = 0.02, relative:
         raise InputError(f"form factors have a NaN or infinite value at F[{i}, {j}]")
     lr = lowrank_from_matrix(F, rho_max, perm, eps=eps, relative=relative, block_size=block_size, dtype=dt,
                              method=method, rng=rng, leaf_share=leaf_share, progress=progress)
-    stats = PassStatistics(n, None if areas is None else check_areas(areas, n)[perm])
+    stats = PassStatistics(n, None if areas is None else check_areas(areas, n)[perm], reflectance=rho[perm])
     stats.add(0, n, F[np.ix_(perm, perm)], rho_max[perm][:, None])
     params = {"method": method, "block_size": block_size, "dtype": dt.name,
               "time_factor": lr.info["time_factor"]}

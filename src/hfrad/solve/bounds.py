@@ -13,7 +13,7 @@ import numpy as np
 
 __all__ = ["ErrorEstimate", "ResidualEstimate", "estimate_errors", "solution_bound", "relative_bound",
            "contraction_bound", "power_sigma_max", "power_sigma_max_scaled", "eq5_bound", "residual_norm", "residual_estimate",
-           "USEFUL_BOUND", "is_useful", "percent", "accuracy_lines"]
+           "USEFUL_BOUND", "is_useful", "percent", "accuracy_lines", "solution_line"]
 
 
 def _figures(a) -> list:
@@ -331,10 +331,26 @@ def _eps_for(estimate: ErrorEstimate, achieved_error: float, target: float = ADV
     return achieved_error * delta * (1.0 - kappa) / op
 
 
+def solution_line(error) -> str:
+    """The per-solve figure in words (:class:`~hfrad.solve.samples.SolutionError`, one solve)."""
+    norm = "area norm" if error.norm == "reflected" else "2-norm"
+    if error.kind == "unavailable":
+        return ("no per-solve error figure: this file has no sampled rows of F (written by an older hfrad); "
+                "`hfrad solve --residual` gives one, or precompute again")
+    how = ("a bound: every row of F is stored" if error.kind == "exact-rows" else
+           f"from {error.rows} exact rows of F; may fail with probability {error.failure_probability:.2g}")
+    if not is_useful(error.bound):
+        return (f"error of this solution: no useful figure ({percent(error.bound)} of the reflected light, R,G,B; "
+                f"{how}); precompute with a lower --eps")
+    return f"error of this solution: at most {percent(error.bound)} of the reflected light (R,G,B; {norm}; {how})"
+
+
 def accuracy_lines(estimate: ErrorEstimate, *, residual: ResidualEstimate | None = None,
-                   achieved_error: float | None = None) -> list[str]:
+                   achieved_error: float | None = None, solution=None) -> list[str]:
     """The accuracy figures in words, the figure a user can rely on first (docs/method.md, section 7).
 
+    0. With ``solution`` (:class:`~hfrad.solve.samples.SolutionError`): the per-solve
+       figure from the stored rows of F, relative to the reflected light.
     1. With ``residual``: the guaranteed bound of that one solution.
     2. The a-priori bound for any light, when it says something (every
        channel below 100%); otherwise "no useful a-priori bound" with what to
@@ -348,6 +364,8 @@ def accuracy_lines(estimate: ErrorEstimate, *, residual: ResidualEstimate | None
         ``fac.error_estimate()``.
     residual : ResidualEstimate, optional
         ``fac.residual(E, B)`` of a solution.
+    solution : SolutionError, optional
+        ``fac.solve(E, return_error=True)[1]`` of one solve.
     achieved_error : float, optional
         ``fac.relative_error``: the achieved relative Frobenius error of the factorization.
 
@@ -355,10 +373,10 @@ def accuracy_lines(estimate: ErrorEstimate, *, residual: ResidualEstimate | None
     -------
     list of str
     """
-    lines = []
+    lines = [] if solution is None else [solution_line(solution)]
     if residual is not None:
         if is_useful(residual.bound):
-            lines.append(f"error of this solution: at most {percent(residual.bound)} (R,G,B; relative, "
+            lines.append(f"guaranteed bound of this solution (--residual): at most {percent(residual.bound)} (R,G,B; relative, "
                          f"{residual.norm} norm; guaranteed, a posteriori with the exact form factors)")
         else:
             lines.append(f"no useful bound on the error of this solution: the a-posteriori figure is "

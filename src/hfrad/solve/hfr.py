@@ -29,7 +29,12 @@ version 1 files have no checksums and pass statistics)::
     /factors/rho_max   (n,) float64, user order
     /factors/reflectance (n, 3) float64, user order
     /stats/...         row_sums, col_sums, sketch (n, p), weights: what the
-                       pass over F recorded, internal order; attrs probes, seed
+                       pass over F recorded, internal order; attrs probes, seed;
+                       and (files of 2026-12 on) the exact sampled rows of the
+                       per-solve error figure: sample_index (m1,), smooth_index
+                       (m2,), sample_rows (m1 + m2, n) float32, smooth_products
+                       (n, m2, 3) float32, sample_reflectance (n, 3); attrs
+                       sample_exact, sample_seed (:mod:`hfrad.solve.samples`)
     /patches/...       vertices, faces, material, reflectance, emission,
                        areas, normals, centroids, group, triangle_patch
                        (only for clustered patches: the patch of each
@@ -196,12 +201,22 @@ def _dataset(g: h5py.Group, name: str, data) -> None:
     checked_dataset(g, name, data)
 
 
+#: The exact sampled rows of F (:class:`~hfrad.solve.samples.SampledRows`): arrays, and the dtype they are stored in.
+_SAMPLE_ARRAYS = {"sample_index": np.int64, "smooth_index": np.int64, "sample_rows": np.float32,
+                  "sample_reflectance": np.float64, "smooth_products": np.float32}
+
+
 def _write_stats(g: h5py.Group, stats) -> None:
     state = stats.state()
     for name in ("row_sums", "col_sums", "sketch", "weights"):
         if name in state:
             _dataset(g, name, state[name])
     g.attrs["probes"], g.attrs["seed"] = state["probes"], state["seed"]
+    if "sample_rows" in state:
+        for name, dtype in _SAMPLE_ARRAYS.items():
+            if name in state:
+                _dataset(g, name, np.asarray(state[name], dtype))
+        g.attrs["sample_exact"], g.attrs["sample_seed"] = state["sample_exact"], state["sample_seed"]
 
 
 def _read(g: h5py.Group, name: str, path: Path):
@@ -297,8 +312,11 @@ def _read_scene(g: h5py.Group, path: Path | None = None):
 
 
 def _read_stats(g: h5py.Group, path: Path) -> PassStatistics:
-    state = {k: _read(g, k, path) for k in ("row_sums", "col_sums", "sketch", "weights") if k in g}
+    names = ("row_sums", "col_sums", "sketch", "weights", *_SAMPLE_ARRAYS)
+    state = {k: _read(g, k, path) for k in names if k in g}
     state.update(probes=int(g.attrs["probes"]), seed=int(g.attrs["seed"]))
+    if "sample_rows" in state:
+        state.update(sample_exact=int(g.attrs["sample_exact"]), sample_seed=int(g.attrs["sample_seed"]))
     return PassStatistics.from_state(state)
 
 

@@ -17,6 +17,7 @@ from numba import njit, prange
 
 from .bounds import contraction_bound
 from .readonly import read_only
+from .samples import SAMPLE_SHARE, SampledRows
 
 __all__ = ["PassStatistics", "PROBES", "FAILURE_PROBABILITY", "probe_alpha", "probe_vectors"]
 
@@ -93,15 +94,21 @@ class PassStatistics:
         (``||x||_A = ||A^{1/2} x||``). None: the plain 2-norm.
     probes : int
     seed : int
+    reflectance : (n, 3) float, optional
+        Reflectance in internal order: with the areas, the exact sampled rows also record
+        ``(F R_c F)`` rows (:class:`~hfrad.solve.samples.SampledRows`), the per-solve error
+        figure's smooth term.
     """
 
-    def __init__(self, n: int, weights=None, *, probes: int = PROBES, seed: int = PROBE_SEED) -> None:
+    def __init__(self, n: int, weights=None, *, probes: int = PROBES, seed: int = PROBE_SEED,
+                 reflectance=None) -> None:
         self.n, self.probes, self.seed = int(n), int(probes), int(seed)
         self.weights = None if weights is None else np.asarray(weights, dtype=np.float64).reshape(n)
         self.row_sums = np.zeros(n)
         self.col_sums = np.zeros(n)
         self.sketch = np.zeros((n, probes))
         self._omega = probe_vectors(self.weights, n, probes, seed)
+        self.samples: SampledRows | None = SampledRows.design(self.n, self.weights, reflectance) if n else None
 
     def add(self, start: int, stop: int, F_block: np.ndarray, rows_rho: np.ndarray) -> None:
         """Record columns ``start:stop`` of F (all rows, internal order); ``rows_rho`` is (n, 1) rho_max."""
@@ -149,6 +156,8 @@ class PassStatistics:
         _block_pass(F_block, rho64.astype(F_block.dtype), rho64, omega_t, self.row_sums, self.sketch, G if want_g else F_block[:0],
                     want_g, col_parts, g2_parts)
         self.col_sums[start:stop] = col_parts.sum(axis=0)
+        if self.samples is not None:
+            self.samples.record(start, stop, F_block)
         return float(g2_parts.sum())
 
     def state(self) -> dict:
@@ -157,25 +166,32 @@ class PassStatistics:
                "probes": self.probes, "seed": self.seed}
         if self.weights is not None:
             out["weights"] = self.weights
+        if self.samples is not None:
+            out.update(self.samples.state())
         return out
 
-    def frozen(self) -> "PassStatistics":
+    def frozen(self, factor_bytes: float | None = None) -> "PassStatistics":
         """A shallow copy whose arrays are read-only views (what a factorization holds, no copy of data).
 
         The error figures are computed from these sums and sketch; the copy
         refuses :meth:`add` (``ValueError``), while ``self`` stays writable.
+        ``factor_bytes``: the factors' size; the sampled rows are then trimmed to at most
+        ``SAMPLE_SHARE`` (10%) of it (:meth:`SampledRows.trimmed`).
         """
         out = copy.copy(self)
         for name in ("row_sums", "col_sums", "sketch", "weights", "_omega"):
             value = getattr(self, name)
             if value is not None:
                 setattr(out, name, read_only(value))
+        if self.samples is not None and factor_bytes is not None:
+            out.samples = self.samples.trimmed(SAMPLE_SHARE * factor_bytes)
         return out
 
     @classmethod
     def from_state(cls, state: dict) -> "PassStatistics":
         sketch = np.asarray(state["sketch"], dtype=np.float64)
         stats = cls(sketch.shape[0], state.get("weights"), probes=int(state["probes"]), seed=int(state["seed"]))
+        stats.samples = SampledRows.from_state(state, stats.weights) if "sample_rows" in state else None
         stats.row_sums = np.asarray(state["row_sums"], dtype=np.float64)
         stats.col_sums = np.asarray(state["col_sums"], dtype=np.float64)
         stats.sketch = sketch

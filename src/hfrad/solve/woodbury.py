@@ -20,6 +20,7 @@ from ..validation import as_real_array, check_exitance, check_finite, check_refl
 from .bounds import ErrorEstimate, ResidualEstimate, estimate_errors, power_sigma_max_scaled, residual_estimate
 from . import thin
 from .readonly import read_only
+from .samples import SolutionError
 from .stats import FAILURE_PROBABILITY, PassStatistics
 
 N_CHANNELS = 3
@@ -285,7 +286,9 @@ class HFactorization:
         self._D = read_only(_channel_scale(self.reflectance, self.rho_max)[self.perm])
         self._sigma = None if sigma_max is None else read_only(np.asarray(sigma_max, np.float64))
         self._estimate: ErrorEstimate | None = None
-        self.stats = None if stats is None else stats.frozen()
+        # the exact sampled rows are kept within a tenth of the factors' bytes (SAMPLE_SHARE)
+        factor_bytes = (2 * Q.shape[0] * Q.shape[1] + 3 * Q.shape[1] ** 2) * Q.itemsize
+        self.stats = None if stats is None else stats.frozen(factor_bytes)
 
     # -- sizes and accuracy ------------------------------------------------
     @property
@@ -355,7 +358,7 @@ class HFactorization:
                        f"contraction bound {np.round(est.contraction, 4).tolist()} and operator error "
                        f"{np.round(est.operator_error, 4).tolist()} give no bound")
                 warnings.warn(f"no error bound for channels {np.flatnonzero(bad).tolist()}: {why}; "
-                              "fac.residual(E, B) gives the per-solution figure", AccuracyWarning, stacklevel=2)
+                              "fac.solve(E, return_error=True) gives each solve's figure", AccuracyWarning, stacklevel=2)
             self._estimate = est
         return self._estimate
 
@@ -412,7 +415,7 @@ class HFactorization:
         # the first index named is the patch
         return check_exitance(E, "exitance", signed=adjoint)
 
-    def solve(self, exitance, trans: str = "N", *, transpose: bool | None = None) -> np.ndarray:
+    def solve(self, exitance, trans: str = "N", *, transpose: bool | None = None, return_error: bool = False):
         """Radiosity ``B_c = (I - R_c F)^{-1} E_c`` for every channel (eq. 4).
 
         Parameters
@@ -427,10 +430,15 @@ class HFactorization:
             Negative entries are allowed then.
         transpose : bool, optional
             Deprecated spelling of ``trans="T"``.
+        return_error : bool
+            Also return the error figure of this solution (:meth:`solution_error`).
 
         Returns
         -------
         radiosity : (n, 3) or (n, 3, m) float, W/m^2, user patch order
+        error : SolutionError
+            Only with ``return_error``: ``error.bound`` (3,) or (3, m) is the figure for
+            ``||B~ - B||_A / ||B - E||_A``, the error relative to the reflected light.
 
         Raises
         ------
@@ -441,7 +449,8 @@ class HFactorization:
         Notes
         -----
         O(n k) per right-hand side; Q and V are read once for all channels
-        and emissions together (:func:`low_rank_correction`).
+        and emissions together (:func:`low_rank_correction`). The error figure
+        adds O(n m) for m stored rows (m <= k / 5 by the storage rule).
         """
         if transpose is not None:
             warnings.warn("solve(E, transpose=True) is deprecated; use solve(E, trans='T')",
@@ -452,8 +461,62 @@ class HFactorization:
         if E.ndim == 1:
             E = np.repeat(E[:, None], N_CHANNELS, axis=1)
         batched = E.ndim == 3
-        out = self._solve(E if batched else E[:, :, None], adjoint)
-        return out if batched else out[:, :, 0]
+        E3 = E if batched else E[:, :, None]
+        out = self._solve(E3, adjoint)
+        if not return_error:
+            return out if batched else out[:, :, 0]
+        error = self._solution_error(E3, out, adjoint, batched)
+        return (out if batched else out[:, :, 0]), error
+
+    def solution_error(self, exitance, radiosity, trans: str = "N") -> SolutionError:
+        """The error figure of a solution of this factorization, from exact rows of F kept from the pass.
+
+        ``||B~ - B|| <= ||r|| + ||R F r|| / (1 - ||R F||)`` with ``r = E - (I - R F) B~``,
+        both norms estimated from exact sampled rows of F and ``F R F`` (all rows on
+        small scenes: then a bound); relative to the reflected light ``||B - E||``, in
+        the area norm (docs/method.md, section 7b). No pass over F: O(n m) for m rows.
+
+        Parameters
+        ----------
+        exitance : (n,), (n, 3) or (n, 3, m) float, W/m^2, user patch order
+        radiosity : the same shape, W/m^2: ``fac.solve(exitance, trans)``
+        trans : {"N", "T"}
+            "T": ``radiosity`` solves the adjoint system; the figure is then in the dual
+            (``1 / A``-weighted) norm.
+
+        Returns
+        -------
+        SolutionError
+            ``bound`` (3,) or (3, m): relative to the reflected light; ``kind``
+            "exact-rows" (a bound) or "sampled" (with ``failure_probability``), or
+            "unavailable" (a file written without sampled rows: inf).
+        """
+        adjoint = check_trans(trans)
+        E = self._validate(exitance, adjoint)
+        if E.ndim == 1:
+            E = np.repeat(E[:, None], N_CHANNELS, axis=1)
+        B = check_finite(radiosity, "radiosity")
+        if B.shape != E.shape:
+            raise InputError(f"radiosity must have the exitance's shape {E.shape}; got {B.shape}")
+        batched = E.ndim == 3
+        return self._solution_error(E if batched else E[:, :, None], B if batched else B[:, :, None],
+                                    adjoint, batched)
+
+    def _solution_error(self, E: np.ndarray, B: np.ndarray, adjoint: bool, batched: bool) -> SolutionError:
+        """The figure of (n, 3, m) solutions in the user's order (the body of :meth:`solution_error`)."""
+        samples = None if self.stats is None else self.stats.samples
+        if samples is None:
+            shape = (N_CHANNELS, E.shape[2]) if batched else (N_CHANNELS,)
+            inf = np.full(shape, np.inf)
+            return SolutionError(bound=inf, absolute=inf, reflected=inf, kind="unavailable",
+                                 failure_probability=None, rows=0)
+        rho = np.asarray(self.reflectance, np.float64)[self.perm]
+        err = samples.figure(self._to_internal(E), self._to_internal(B), rho,
+                             self.stats.contraction(rho), adjoint=adjoint)
+        if batched:
+            return err
+        return dataclasses.replace(err, bound=err.bound[:, 0], absolute=err.absolute[:, 0],
+                                   reflected=err.reflected[:, 0])
 
     def _solve(self, E: np.ndarray, adjoint: bool) -> np.ndarray:
         """The solve of validated (n, 3, m) exitance in the user's order (the body of :meth:`solve`)."""

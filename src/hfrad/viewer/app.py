@@ -87,6 +87,15 @@ def _checked_unit(value) -> str:
     return str(value)
 
 
+def _solution_error(fac, E: np.ndarray, B: np.ndarray):
+    """The error figure of the lighting on screen (:meth:`HFactorization.solution_error`), or None."""
+    try:
+        return fac.solution_error(E, B)
+    except Exception as exc:  # a figure that fails must not take the page down
+        log.warning("error figure failed: %s", exc)
+        return None
+
+
 def _error_estimate(fac) -> np.ndarray:
     """(3,) float: the factorization's a-priori relative radiosity error per channel (inf: none)."""
     with warnings.catch_warnings():
@@ -180,6 +189,7 @@ class ViewerApp:
         self._colorbar_key: tuple | None = None
         self._listeners: list[Callable[[UpdateStats], None]] = []
         self._error = None
+        self._solution = None     # the error figure of the lighting on screen (SolutionError or None)
         self._mesh = None
 
         self._names_lock = threading.Lock()
@@ -297,6 +307,7 @@ class ViewerApp:
         B = self.lighting.radiosity(emitters, direct=self.direct)
         E = self.lighting.exitance(emitters)
         t1 = time.perf_counter()
+        solution = _solution_error(self.fac, E, B)     # O(n m) from the stored rows of F
         if state.falsecolor:
             display, top = self.colors.falsecolor(B, E, state.unit)
             exposure = None
@@ -314,6 +325,7 @@ class ViewerApp:
         with self._lock:
             self.last = stats
             self._shown = (B, E, exposure, state.falsecolor, state.unit)
+            self._solution = solution
         if state.falsecolor:
             self._show_colorbar(state.unit, top)
         elif self._colorbar_key is not None:
@@ -343,6 +355,13 @@ class ViewerApp:
         else:
             err = " / ".join(f"{100 * e:.3g}%" if np.isfinite(e) else "none (eq. 5 needs sigma < 1)"
                              for e in self._error)
+        solution = self._solution
+        if solution is None or solution.kind == "unavailable":
+            this = "unavailable (no stored rows of F in this file)"
+        else:
+            this = (" / ".join(f"{100 * e:.3g}%" if np.isfinite(e) else "none" for e in solution.bound)
+                    + " of the reflected light" + ("" if solution.failure_probability is None else
+                                                   f" (sampled rows; may fail with p = {solution.failure_probability:.2g})"))
         mode = "direct solve" if self.direct else \
             f"sum of {len(self.lighting.names)} batched unit solves ({1e3 * self.lighting.basis_seconds:.0f} ms)"
         shown = "false colour" if exposure is None else f"exposure {exposure:+.2f} EV"
@@ -350,7 +369,8 @@ class ViewerApp:
             f"**solve** {1e3 * stats.solve:.1f} ms ({mode})  \n"
             f"**colours sent** {1e3 * stats.sent:.1f} ms after the change ({stats.bytes / 1e6:.2f} MB)  \n"
             f"**rank** {self.fac.rank:,} · **patches** {self.scene.n_patches:,}  \n"
-            f"**error estimate** (R / G / B) {err}  \n"
+            f"**error of this lighting** (R / G / B) {this}  \n"
+            f"**a-priori bound, any lighting** (R / G / B) {err}  \n"
             f"{shown} · updates {self._worker.handled + 1}, coalesced {self._worker.replaced}")
 
     def _show_colorbar(self, unit: str, top: float) -> None:

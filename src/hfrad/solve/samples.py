@@ -1,0 +1,297 @@
+"""Exact rows of F kept from the single pass: the error figure of every solve (docs/method.md, section 7b).
+
+A solve returns ``B~`` with an unknown error ``e = B~ - B = (I - R F)^{-1} r``,
+``r = E - (I - R F) B~`` its residual. Two exact identities bound it::
+
+    e = r + R F e,  so  ||e|| <= ||r|| + ||R F r|| / (1 - ||R F||)
+
+(``R F e = (I - R F)^{-1} R F r``). The residual of a factorization is rough (its
+error sits on near pairs), and ``R F`` smooths, so ``||R F r||`` is small and the
+amplification ``1 / (1 - ||R F||)`` (4-5 on a closed white box) falls on it alone.
+Both norms are sums over patches, estimated from a sample of patches whose rows
+are exact:
+
+- **residual rows**: rows ``F[s, :]`` of a systematic sample of patches drawn with
+  probability proportional to area along the Z-order (``r_s`` exactly);
+- **smoothed rows**: for a second, smaller sample, rows ``F[s, :]`` and
+  ``(F R_c F)[s, :]`` per channel (``(R F r)_s`` exactly). The latter comes from the
+  same pass by reciprocity, ``A_j F_jk = A_k F_kj``: ``(F R_c F)[s, k] = A_k (F y)_k``
+  with ``y_j = F_sj rho_jc / A_j``, one small product per column block.
+
+Each sum gets an upper confidence figure (the estimate plus ``Z_SAMPLING`` standard
+errors from successive differences, the standard variance estimate of a systematic
+sample), and the rough term a further ``ROUGH_SAFETY`` factor: a sample of rows can
+miss the few patches next to a small light where the residual concentrates. With at
+most ``len(index)`` patches the rows are all of F's and the figure is a bound.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+__all__ = ["SampledRows", "SolutionError", "SAMPLE_SEED", "ROUGH_SAFETY", "Z_SAMPLING",
+           "FIGURE_FAILURE_PROBABILITY", "SAMPLE_SHARE", "max_residual_rows"]
+
+SAMPLE_SEED = 20162
+#: Most residual rows recorded during the pass; the smoothed sample has a quarter as many.
+RESIDUAL_ROWS = 128
+SMOOTH_SHARE = 4
+#: The fewest residual rows kept when the storage budget would leave fewer.
+MIN_RESIDUAL_ROWS = 16
+#: Standard errors added to each sampled sum of squares.
+Z_SAMPLING = 2.0
+#: Factor on the rough term's estimate (see the module's docstring).
+ROUGH_SAFETY = 2.0
+#: One-sided normal tail of Z_SAMPLING standard errors: the stated chance that a sampled sum is
+#: above its upper figure (a normal approximation; the amplification factor itself is exact).
+FIGURE_FAILURE_PROBABILITY = 0.5 * math.erfc(Z_SAMPLING / math.sqrt(2.0))
+#: The stored rows may add at most this share to the factors' bytes (2 n k + 3 k^2 words).
+SAMPLE_SHARE = 0.1
+
+
+def max_residual_rows(n: int) -> int:
+    """Residual rows recorded during the pass: all of them for small n, else at most
+    ``RESIDUAL_ROWS`` and at most ~2e7 / n (a few hundred MB at a million patches)."""
+    if n <= RESIDUAL_ROWS:
+        return n
+    cap = 2 ** int(math.floor(math.log2(max(2e7 / n, MIN_RESIDUAL_ROWS))))
+    return int(min(RESIDUAL_ROWS, cap))
+
+
+def _systematic(weights: np.ndarray, m: int, rng: np.random.Generator) -> np.ndarray:
+    """(m,) indices of a systematic sample with probability proportional to ``weights``, in order."""
+    cum = np.cumsum(weights)
+    positions = (np.arange(m) + rng.random()) * (cum[-1] / m)
+    return np.minimum(np.searchsorted(cum, positions, side="right"), weights.size - 1).astype(np.int64)
+
+
+@dataclass(frozen=True)
+class SolutionError:
+    """The error figure of one solve (or a batch), per colour channel; docs/method.md, section 7b.
+
+    Attributes
+    ----------
+    bound : (3,) or (3, m) float
+        ``||B~ - B||_A / ||B - E||_A``: the error relative to the reflected light (what the
+        surfaces show); inf where the figure reaches the reflected light itself.
+    absolute : (3,) or (3, m) float
+        The figure for ``||B~ - B||_A`` (W/m^2 times sqrt(m^2), area norm; the 2-norm without areas).
+    reflected : (3,) or (3, m) float
+        ``||B~ - E||_A`` of the solution.
+    kind : {"exact-rows", "sampled"}
+        "exact-rows": every row of F was kept (a bound); "sampled": from a sample of rows.
+    failure_probability : float or None
+        Stated chance that a sampled sum exceeds its figure (None for "exact-rows").
+    rows : int
+        Residual rows the figure used.
+    norm : str
+        ``"reflected"`` (relative to ``||B - E||`` in the area norm; ``"reflected-2"`` without areas).
+    """
+
+    bound: np.ndarray
+    absolute: np.ndarray
+    reflected: np.ndarray
+    kind: str
+    failure_probability: float | None
+    rows: int
+    norm: str = "reflected"
+
+    def as_dict(self) -> dict:
+        """JSON-ready fields (inf becomes None)."""
+        fig = (lambda a: np.where(np.isfinite(a), a, np.nan).tolist())
+        clean = (lambda v: [None if isinstance(x, float) and math.isnan(x) else
+                            (clean(x) if isinstance(x, list) else x) for x in v])
+        return {"error_bound": clean(fig(self.bound)), "error_norm": self.norm, "error_bound_kind": self.kind,
+                "failure_probability": self.failure_probability, "error_absolute": clean(fig(self.absolute)),
+                "error_rows": self.rows}
+
+
+@dataclass
+class SampledRows:
+    """Exact rows of F for two samples of patches, recorded during the pass (internal order).
+
+    Attributes
+    ----------
+    index : (m1,) int64
+        Residual rows' patches (internal order), a systematic sample proportional to area.
+    smooth_index : (m2,) int64
+        Smoothed rows' patches.
+    rows : (m1 + m2, n) float32
+        ``F[index]`` then ``F[smooth_index]``, filled block by block.
+    products : (n, m2, 3) float64 or None
+        ``U[k, s, c] = sum_j F_kj F_{smooth_s, j} rho_jc / A_j``: ``(F R_c F)[s, k] = A_k U[k, s, c]``
+        (None without areas: no reciprocity to form it).
+    weights : (n,) float64 or None
+        Patch areas (the norm's and the sample's weights); None: plain 2-norm, uniform sample.
+    reflectance : (n, 3) float64
+        The reflectance ``products`` were formed with.
+    exact : bool
+        Every patch is a residual row (small scenes): the figure is a bound.
+    seed : int
+    """
+
+    index: np.ndarray
+    smooth_index: np.ndarray
+    rows: np.ndarray
+    products: np.ndarray | None
+    weights: np.ndarray | None
+    reflectance: np.ndarray
+    exact: bool
+    seed: int = SAMPLE_SEED
+    _smooth_rows: dict = field(default_factory=dict, repr=False, compare=False)
+
+    # -- the design, and recording the pass ------------------------------------
+    @classmethod
+    def design(cls, n: int, weights, reflectance, *, seed: int = SAMPLE_SEED) -> "SampledRows":
+        """The samples of an n-patch pass (deterministic in ``weights`` and ``seed``: both backends agree)."""
+        w = None if weights is None else np.asarray(weights, np.float64)
+        rho = np.zeros((n, 3)) if reflectance is None else np.asarray(reflectance, np.float64).reshape(n, 3)
+        m1 = max_residual_rows(n)
+        exact = m1 == n
+        rng = np.random.default_rng(seed)
+        sw = np.ones(n) if w is None else w
+        index = np.arange(n, dtype=np.int64) if exact else _systematic(sw, m1, rng)
+        m2 = max(1, m1 // SMOOTH_SHARE) if n else 0
+        smooth = np.arange(n, dtype=np.int64) if exact else _systematic(sw, m2, rng)
+        rows = np.zeros((index.size + smooth.size, n), np.float32)
+        products = None if (w is None or reflectance is None) else np.zeros((n, smooth.size, 3))
+        return cls(index, smooth, rows, products, w, rho, exact, seed)
+
+    def record(self, start: int, stop: int, F_block: np.ndarray) -> None:
+        """Record columns ``start:stop`` of F (all n rows, internal order)."""
+        every = np.concatenate([self.index, self.smooth_index])
+        self.rows[:, start:stop] = F_block[every]
+        if self.products is not None:
+            Fs = np.asarray(F_block[self.smooth_index], np.float64)            # (m2, b)
+            scale = self.reflectance[start:stop] / self.weights[start:stop, None]   # (b, 3) rho_jc / A_j
+            Y = Fs.T[:, :, None] * scale[:, None, :]                           # (b, m2, 3)
+            b = stop - start
+            # in F's dtype (a float64 copy of an n x b block would cost 8 n b bytes), summed in float64
+            product = np.asarray(F_block) @ Y.reshape(b, -1).astype(F_block.dtype)
+            self.products += product.reshape(self.products.shape)
+
+    # -- state (checkpoints, .hfr files, Dask parts) ----------------------------
+    def state(self) -> dict:
+        out = {"sample_index": self.index, "smooth_index": self.smooth_index, "sample_rows": self.rows,
+               "sample_reflectance": self.reflectance, "sample_exact": int(self.exact),
+               "sample_seed": self.seed}
+        if self.products is not None:
+            out["smooth_products"] = self.products
+        return out
+
+    @classmethod
+    def from_state(cls, state: dict, weights) -> "SampledRows":
+        products = state.get("smooth_products")
+        return cls(np.asarray(state["sample_index"], np.int64), np.asarray(state["smooth_index"], np.int64),
+                   np.asarray(state["sample_rows"], np.float32),
+                   None if products is None else np.asarray(products, np.float64),
+                   None if weights is None else np.asarray(weights, np.float64),
+                   np.asarray(state["sample_reflectance"], np.float64), bool(int(state["sample_exact"])),
+                   int(state["sample_seed"]))
+
+    @staticmethod
+    def add_states(a: dict, b: dict) -> dict:
+        """Samples of two disjoint column ranges together (the rows and products add up)."""
+        out = {"sample_rows": a["sample_rows"] + b["sample_rows"]}
+        if "smooth_products" in a:
+            out["smooth_products"] = a["smooth_products"] + b["smooth_products"]
+        return out
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.rows.nbytes + (0 if self.products is None else self.products.size * 4)
+                   + self.index.nbytes + self.smooth_index.nbytes)
+
+    def trimmed(self, max_bytes: float) -> "SampledRows":
+        """A nested sub-sample within ``max_bytes`` (every 2^j-th row from a seeded offset: still a
+        systematic sample), at least ``MIN_RESIDUAL_ROWS`` residual rows; ``self`` if it fits."""
+        out, j = self, 0
+        while out.nbytes > max_bytes and out.index.size // 2 >= MIN_RESIDUAL_ROWS and not self.exact:
+            j += 1
+            step = 2 ** j
+            rng = np.random.default_rng([self.seed, j])
+            keep1 = np.arange(int(rng.integers(step)), self.index.size, step)
+            keep2 = np.arange(int(rng.integers(step)), self.smooth_index.size, step)
+            if keep2.size == 0:
+                keep2 = np.arange(1)
+            rows = np.concatenate([self.rows[keep1], self.rows[self.index.size + keep2]])
+            out = replace(self, index=self.index[keep1], smooth_index=self.smooth_index[keep2], rows=rows,
+                          products=None if self.products is None else self.products[:, keep2],
+                          _smooth_rows={})
+        return out
+
+    # -- the figure of a solve -----------------------------------------------------
+    def _smooth_products_rows(self, c: int) -> np.ndarray:
+        """(m2, n) float32 ``(F R_c F)[smooth_index]`` (cached)."""
+        if c not in self._smooth_rows:
+            self._smooth_rows[c] = np.ascontiguousarray((self.products[:, :, c] * self.weights[:, None]).T,
+                                                        np.float32)
+        return self._smooth_rows[c]
+
+    def _sum_of_squares(self, z: np.ndarray, weights_total: float, *, upper: bool) -> np.ndarray:
+        """Estimate of ``sum_i a_i x_i^2`` from ``z_t = x_t^2 a_t / w_t`` (m, ...) of the systematic
+        sample, plus ``Z_SAMPLING`` standard errors when ``upper`` (exact with every row)."""
+        if self.exact:
+            return z.sum(axis=0)
+        m = z.shape[0]
+        total = weights_total * z.mean(axis=0)
+        if not upper or m < 2:
+            return total
+        var = weights_total ** 2 * (np.diff(z, axis=0) ** 2).sum(axis=0) / (2.0 * m * (m - 1))
+        return total + Z_SAMPLING * np.sqrt(var)
+
+    def figure(self, E: np.ndarray, B: np.ndarray, reflectance: np.ndarray, contraction: np.ndarray,
+               *, adjoint: bool = False) -> SolutionError:
+        """The error figure of solutions ``B`` (n, 3, q) of exitances ``E`` (n, 3, q), internal order.
+
+        ``reflectance`` (n, 3), internal order: the solver's (the smoothed rows count only if it is
+        the one they were formed with); ``contraction`` (3,): bound on ``||R_c F||`` in the norm.
+        ``adjoint``: B solves ``(I - R F)^T B = E``; by reciprocity ``F^T = A F A^{-1}``, rows of ``F^T R x`` are ``A_s F_s (rho x / A)``, and the norm is the
+        dual one (weights ``1 / A``), in which ``||(R F)^T|| = ||R F||_A``.
+        """
+        E = np.asarray(E, np.float64)
+        B = np.asarray(B, np.float64)
+        n, C, q = B.shape
+        w = np.ones(n) if self.weights is None else self.weights
+        a = (1.0 / w) if adjoint else w                        # the norm's weights
+        W = float(w.sum())
+        S, T = self.index, self.smooth_index
+
+        def rows_times(rows, X, at):
+            """``R F X`` (forward) or ``F^T R X`` (adjoint) at the patches ``at``, from rows F[at]."""
+            Y = reflectance[:, :, None] * X / w[:, None, None] if adjoint else X
+            FY = (rows @ Y.reshape(n, -1).astype(np.float32)).reshape(at.size, C, q).astype(np.float64)
+            return FY * (w[at, None, None] if adjoint else reflectance[at][:, :, None])
+
+        r = E[S] - B[S] + rows_times(self.rows[:S.size], B, S)     # the residual's exact rows
+        z = r ** 2 * (a[S] / w[S])[:, None, None]
+        rough = np.sqrt(np.maximum(self._sum_of_squares(z, W, upper=True), 0.0))
+        kappa = np.asarray(contraction, np.float64)[:, None]
+        amplify = np.divide(1.0, 1.0 - kappa, out=np.full(kappa.shape, np.inf), where=kappa < 1.0)
+        if self.products is not None and np.array_equal(reflectance, self.reflectance):
+            # (R F r)_s = (R F (E - B))_s + (R F R F B)_s; adjoint: F^T R F^T R = A (F R F) A^{-1} R
+            Y = reflectance[:, :, None] * B / w[:, None, None] if adjoint else B
+            FRF = np.stack([self._smooth_products_rows(c) @ Y[:, c, :].astype(np.float32) for c in range(C)],
+                           axis=1).astype(np.float64)
+            FRF = FRF * (w[T, None, None] if adjoint else reflectance[T][:, :, None])
+            rf_r = rows_times(self.rows[S.size:], E - B, T) + FRF
+            zs = rf_r ** 2 * (a[T] / w[T])[:, None, None]
+            smooth = np.sqrt(np.maximum(self._sum_of_squares(zs, W, upper=True), 0.0))
+            safety = 1.0 if self.exact else ROUGH_SAFETY
+            with np.errstate(invalid="ignore"):
+                absolute = safety * rough + smooth * amplify
+        else:
+            with np.errstate(invalid="ignore"):
+                absolute = rough * amplify
+        absolute = np.where(np.isnan(absolute), np.inf, absolute)
+        reflected = np.sqrt(np.einsum("i,icq->cq", a, (B - E) ** 2))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            bound = np.where(reflected > absolute, absolute / (reflected - absolute), np.inf)
+        bound = np.where(absolute == 0.0, 0.0, bound)
+        return SolutionError(bound=bound, absolute=absolute, reflected=reflected,
+                             kind="exact-rows" if self.exact else "sampled",
+                             failure_probability=None if self.exact else FIGURE_FAILURE_PROBABILITY,
+                             rows=int(S.size), norm=("reflected" if self.weights is not None else "reflected-2"))
