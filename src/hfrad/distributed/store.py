@@ -25,6 +25,9 @@ from ..errors import FileFormatError, InputError
 
 KEY_FILE = "key"
 _STATE = ("row_sums", "col_sums", "sketch", "probes", "seed")
+#: ... and those of the sampled rows of F behind the per-solve error figure (hfrad.solve.samples), when kept
+_SAMPLES = ("sample_index", "smooth_index", "sample_rows", "sample_reflectance", "sample_exact", "sample_seed",
+            "smooth_products")
 _NEAR = ("near_rows", "near_cols", "near_values")
 
 
@@ -68,7 +71,7 @@ def save_part(folder: str | os.PathLike, node_id: int, part) -> None:
               "scalars": np.array([node.level, node.norm2, node.discarded2, node.slack2], np.float64),
               "records": np.array(json.dumps(part.records))}
     if part.stats is not None:
-        arrays.update({f"stats_{k}": np.asarray(part.stats[k]) for k in _STATE})
+        arrays.update({f"stats_{k}": np.asarray(part.stats[k]) for k in _STATE + _SAMPLES if k in part.stats})
     if part.near is not None:
         arrays.update({k: part.near[k] for k in _NEAR})
     npz = folder / f"node-{node_id}.npz"
@@ -93,6 +96,7 @@ def load_part(folder: str | os.PathLike, node_id: int):
         stats = {k: f[f"stats_{k}"] for k in _STATE} if "stats_sketch" in f else None
         if stats is not None:
             stats["probes"], stats["seed"] = int(stats["probes"]), int(stats["seed"])
+            stats.update({k: f[f"stats_{k}"] for k in _SAMPLES if f"stats_{k}" in f})
         near = {k: f[k] for k in _NEAR} if "near_rows" in f else None
         records = json.loads(str(f["records"]))
     return node, stats, near, records
