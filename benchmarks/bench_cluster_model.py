@@ -54,17 +54,17 @@ def _collect(client, topic: str, sink: list):
 
 def measure_full(cluster, patches: int) -> dict:
     from hfrad.distributed import factorize_distributed
-    from hfrad.pipeline import near_entries
+    from hfrad.precompute import DaskBackend, PrecomputeOptions, plan_precompute
+    from hfrad.precompute.options import near_entries
     from hfrad.scene.load import load_scene
-    from hfrad.solve.assemble import precompute_options
 
     scene = load_scene("cornell", patches=patches)
-    options = precompute_options(scene, eps=EPS, block_size=BLOCK, near_entries=near_entries("auto", scene.n_patches),
-                                 reciprocity=False)
+    options = plan_precompute(scene, EPS, near_field=near_entries("auto", scene.n_patches),
+                              options=PrecomputeOptions(block_size=BLOCK), reciprocity=False)
     records = []
     load0 = os.getloadavg()[0]
     t = time.perf_counter()
-    fac = factorize_distributed(scene, options, scheduler=cluster, records=records)
+    fac = factorize_distributed(scene, options, DaskBackend(scheduler=cluster, records=records))
     wall = time.perf_counter() - t
     info = fac.lowrank.info
     return {"n": scene.n_patches, "wall_s": wall, "rank": fac.rank, "relative_error": fac.relative_error,
@@ -81,16 +81,16 @@ def measure_sample(cluster, patches: int, leaves: int, panel_count: int) -> dict
     from hfrad.distributed import run
     from hfrad.distributed.tasks import leaf_task, merge_task
     from hfrad.distributed.panels import panel_bounds
-    from hfrad.pipeline import near_entries
+    from hfrad.precompute import PrecomputeOptions, plan_precompute
+    from hfrad.precompute.options import near_entries
     from hfrad.scene.load import load_scene
-    from hfrad.solve.assemble import precompute_options
 
     client = cluster.client
     t = time.perf_counter()
     scene = load_scene("cornell", patches=patches)
     time_load = time.perf_counter() - t
-    options = precompute_options(scene, eps=EPS, block_size=BLOCK, near_entries=near_entries("auto", scene.n_patches),
-                                 reciprocity=False)
+    options = plan_precompute(scene, EPS, near_field=near_entries("auto", scene.n_patches),
+                              options=PrecomputeOptions(block_size=BLOCK), reciprocity=False)
     token = uuid.uuid4().hex[:12]
     job = run.make_job(scene, options, 1, token)
     task_records: list = []

@@ -1,7 +1,8 @@
+from hfrad import DaskBackend, PrecomputeOptions
 """The Dask backend: local path vs LocalCluster with 1 and 2 workers, and a model for 163K / 1M patches.
 
 Measures ``hfrad.factorize(scene)`` (in-process streaming, with its reciprocity
-copy) against ``hfrad.factorize(scene, scheduler=cluster)`` on a LocalCluster of 1
+copy) against ``hfrad.factorize(scene, backend=DaskBackend(scheduler=cluster))`` on a LocalCluster of 1
 and 2 worker processes (one thread each), on the same scene, each
 configuration in a fresh process: wall time, cluster start-up, per-stage task
 seconds, peak memory per worker, rank, achieved error, and the largest
@@ -54,7 +55,7 @@ def one_run(config: str, patches: int, eps: float, block: int, out_npy: str, nea
     result: dict = {"config": config, "patches": scene.n_patches}
     if config == "local":
         t = time.perf_counter()
-        fac = factorize(scene, eps=eps, block_size=block, near_field=near_field)
+        fac = factorize(scene, eps=eps, near_field=near_field, options=PrecomputeOptions(block_size=block))
         result["wall_s"] = time.perf_counter() - t
         result["startup_s"] = 0.0
         result["peak_rss_worker_gb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
@@ -67,8 +68,9 @@ def one_run(config: str, patches: int, eps: float, block: int, out_npy: str, nea
             result["startup_s"] = time.perf_counter() - t
             records: list = []
             t = time.perf_counter()
-            fac = factorize(scene, eps=eps, block_size=block, scheduler=cluster, records=records,
-                            near_field=near_field)
+            fac = factorize(scene, eps=eps, near_field=near_field,
+                            backend=DaskBackend(scheduler=cluster, records=records),
+                            options=PrecomputeOptions(block_size=block))
             result["wall_s"] = time.perf_counter() - t
             rss = cluster.client.run(lambda: resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20)
             result["peak_rss_worker_gb"] = max(rss.values())

@@ -69,7 +69,7 @@ def area_error(B_approx, B, areas) -> np.ndarray:
 def run_case(name: str, eps_list: list[float]) -> list[dict]:
     import hfrad
     from hfrad.scene.zorder import patch_order
-    from hfrad.solve.direct import LUFactorization
+    from hfrad.solve.denselu import LUFactorization
 
     t0 = time.perf_counter()
     scene = CASES[name]()

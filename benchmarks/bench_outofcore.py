@@ -36,6 +36,7 @@ import numpy as np
 import scipy.linalg as sla
 
 import common
+from hfrad import PrecomputeOptions
 from hfrad.lowrank.baselines import randomized_factorization, sketch_factorization
 from hfrad.lowrank.factors import truncation_rank
 from hfrad.pipeline import factorize
@@ -120,7 +121,7 @@ def bench_case(scene_name: str, patches: int, args) -> list[dict]:
         base = {"scene": scene_name, "n": n, "eps": eps}
         # -- HF, one real pass: form factors + HF, end to end
         t0 = time.perf_counter()
-        fac = factorize(scene, eps=eps, dtype="float32", block_size=args.block_size)
+        fac = factorize(scene, eps=eps, dtype="float32", options=PrecomputeOptions(block_size=args.block_size))
         total = time.perf_counter() - t0
         info = fac.lowrank.info
         rows.append(dict(base, method="hf-1pass", kind="measured", passes=1, rank=fac.rank,

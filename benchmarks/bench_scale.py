@@ -1,3 +1,4 @@
+from hfrad import LocalBackend
 """Benchmark: large scenes end to end (form factors + HF + Woodbury), and how each stage scales.
 
 Every size runs in a fresh subprocess (so its peak RSS is its own) through
@@ -105,8 +106,8 @@ def run_one(args) -> dict:
         Path(args.checkpoint).mkdir(parents=True, exist_ok=True)
         checkpoint = Path(args.checkpoint) / f"{args.scene}-{args.one}-{args.eps}-{args.near_field}.ckpt"
     with common.TreeMemorySampler() as memory:   # this process and its form-factor workers, summed
-        fac = factorize(scene, eps=args.eps, processes=args.processes, near_field=args.near_field or None,
-                        checkpoint=checkpoint, status=_status_printer(n))
+        fac = factorize(scene, eps=args.eps, near_field=args.near_field or None, status=_status_printer(n),
+                        backend=LocalBackend(processes=args.processes), checkpoint=checkpoint)
     t_total = time.perf_counter() - t1
     info = fac.lowrank.info
     k = fac.rank

@@ -55,7 +55,7 @@ import numpy as np
 
 import common
 from hfrad import factorize_matrix
-from hfrad.solve.direct import LUFactorization
+from hfrad.solve.denselu import LUFactorization
 from hfrad.solve.iterative import gauss_seidel, gmres, jacobi, southwell
 
 ITERATIVE = ("jacobi", "gauss_seidel", "southwell", "gmres")

@@ -21,21 +21,22 @@ PACKAGE = SRC / "hfrad"
 #: (layer, unit, module prefixes), lowest first. Keep in step with docs/architecture.md.
 LAYERS: list[tuple[int, str, tuple[str, ...]]] = [
     (0, "base", ("hfrad._version", "hfrad.errors", "hfrad.progress", "hfrad.memory", "hfrad.atomic",
-                 "hfrad.validation", "hfrad.defaults", "hfrad.jsonfile")),
+                 "hfrad.validation", "hfrad.defaults", "hfrad.jsonfile", "hfrad.resources", "hfrad.integrity")),
     (1, "scene", ("hfrad.scene",)),
     (2, "formfactors", ("hfrad.formfactors",)),
     (3, "lowrank", ("hfrad.lowrank",)),
     (4, "solve", ("hfrad.solve",)),
-    (5, "distributed", ("hfrad.distributed",)),
-    (6, "pipeline", ("hfrad.pipeline",)),
-    (6, "render", ("hfrad.render",)),
-    (7, "io", ("hfrad.io",)),
-    (7, "lighting", ("hfrad.lighting",)),
-    (8, "viewer", ("hfrad.viewer",)),
-    (8, "inverse", ("hfrad.inverse",)),
-    (8, "daylight", ("hfrad.daylight",)),
-    (9, "cli", ("hfrad.cli", "hfrad.__main__")),
-    (10, "api", ("hfrad",)),          # hfrad/__init__.py: the public facade, lazily importing everything
+    (5, "precompute", ("hfrad.precompute",)),
+    (6, "distributed", ("hfrad.distributed",)),
+    (7, "pipeline", ("hfrad.pipeline",)),
+    (7, "render", ("hfrad.render",)),
+    (8, "io", ("hfrad.io",)),
+    (8, "lighting", ("hfrad.lighting",)),
+    (9, "viewer", ("hfrad.viewer",)),
+    (9, "inverse", ("hfrad.inverse",)),
+    (9, "daylight", ("hfrad.daylight",)),
+    (10, "cli", ("hfrad.cli", "hfrad.__main__")),
+    (11, "api", ("hfrad",)),          # hfrad/__init__.py: the public facade, lazily importing everything
 ]
 
 
@@ -227,3 +228,26 @@ def test_allowed_cycles_still_exist():
 ])
 def test_the_cycle_finder_finds_cycles(graph, expected):
     assert sorted(c for c in strongly_connected(graph) if len(c) > 1) == expected
+
+
+# -- the table of docs/architecture.md says what LAYERS says ------------------------------------
+
+DOC = SRC.parent / "docs" / "architecture.md"
+
+
+def doc_layers() -> set[tuple[int, str]]:
+    """(layer, unit) of every row of the table in docs/architecture.md (units as in LAYERS)."""
+    import re
+
+    named = {"base modules": "base", "`hfrad/__init__.py`": "api", "`__main__.py`": "cli"}
+    rows = set()
+    for line in DOC.read_text().splitlines():
+        m = re.match(r"\|\s*(\d+)\s*\|\s*([^|]+?)\s*\|", line)
+        if m:
+            for cell in m.group(2).split(", "):
+                rows.add((int(m.group(1)), named.get(cell, cell.strip("`").rstrip("/").removesuffix(".py"))))
+    return rows
+
+
+def test_the_documented_table_is_the_enforced_one():
+    assert doc_layers() == {(layer, unit) for layer, unit, _ in LAYERS}

@@ -1,5 +1,5 @@
 """The assembly step in pieces: the near-field set-up's pure functions in any panels, in this
-process or on a LocalCluster, give the object the serial :func:`hfrad.solve.assemble.assemble` gives."""
+process or on a LocalCluster, give the object the serial :func:`hfrad.precompute.assemble.assemble` gives."""
 
 from __future__ import annotations
 
@@ -8,27 +8,30 @@ import pytest
 import scipy.sparse as sp
 from scipy.sparse.linalg import splu
 
-import hfrad.pipeline as pipeline
+import hfrad
+import hfrad.precompute.local as local
+from hfrad import LocalBackend, PrecomputeOptions
 from hfrad.formfactors import form_factor_matrix
 from hfrad.scene.load import load_scene
-from hfrad.solve.assemble import assemble
+from hfrad.precompute.assemble import assemble
 from hfrad.solve.nearfield import InProcess, NearFieldFactorization, channel_solver, near_columns, solver_order
 from hfrad.solve.quantized import QuantizedRows
 from hfrad.solve.stats import PassStatistics
 
 
-def _inputs(monkeypatch, n: int, **kw):
+def _inputs(monkeypatch, n: int, *, block_size: int, **kw):
     """The scene and the arguments the local precompute passes to assemble() (captured), and its result."""
     seen = {}
-    real = pipeline.assemble
+    real = local.assemble
 
     def capture(scene, options, lowrank, stats, near=None, *, backend=None):
         seen.update(options=options, lowrank=lowrank, state=stats.state(), near=near)
         return real(scene, options, lowrank, stats, near, backend=backend)
 
-    monkeypatch.setattr(pipeline, "assemble", capture)
+    monkeypatch.setattr(local, "assemble", capture)
     scene = load_scene("cornell", patches=n)
-    fac = pipeline.factorize(scene, processes=1, one_ray_tol=0, **kw)
+    fac = hfrad.factorize(scene, backend=LocalBackend(processes=1),
+                          options=PrecomputeOptions(block_size=block_size, one_ray_tol=0), **kw)
     return scene, seen, fac
 
 

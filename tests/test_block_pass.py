@@ -10,8 +10,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hfrad.lowrank.nearfield import NearFieldSplit
-from hfrad.solve.assemble import far_block
+from hfrad.lowrank.nearsplit import NearFieldSplit
+from hfrad.precompute.assemble import far_block
 from hfrad.solve.stats import PassStatistics
 
 

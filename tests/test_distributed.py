@@ -10,6 +10,7 @@ import time
 import numpy as np
 import pytest
 
+from hfrad import Checkpoint, DaskBackend, LocalBackend, PrecomputeOptions
 from hfrad.distributed import SchedulerUnreachableError, connect
 from hfrad.distributed import tasks
 from hfrad.distributed.run import task_order
@@ -17,7 +18,7 @@ from hfrad.distributed.tasks import Job
 from hfrad.lowrank.hf import HFStream, counter_tree
 from hfrad.pipeline import factorize
 from hfrad.scene.load import load_scene
-from hfrad.solve.assemble import far_block
+from hfrad.precompute.assemble import far_block
 from hfrad.solve.stats import PassStatistics
 
 EPS = 0.02
@@ -30,7 +31,8 @@ def cornell():
     scene = load_scene("cornell", patches=600)
     # reciprocity=False: every pair computed; the Dask runs below copy by group-pair tiles
     # (hfrad.distributed.tiles) unless told not to: the same F to rounding
-    return scene, factorize(scene, eps=EPS, block_size=64, near_field=NEAR, reciprocity=False)
+    return scene, factorize(scene, eps=EPS, near_field=NEAR, backend=LocalBackend(reciprocity=False),
+                            options=PrecomputeOptions(block_size=64))
 
 
 def _assert_same_factorization(dist, local, scene):
@@ -56,9 +58,9 @@ def _assert_same_factorization(dist, local, scene):
 
 
 def _job(A, m, b, n):
-    from hfrad.solve.assemble import PrecomputeOptions
+    from hfrad.precompute.assemble import PrecomputePlan
 
-    options = PrecomputeOptions(n=m * b, eps=0.05, relative=True, block_size=b, dtype="float64", samples=0,
+    options = PrecomputePlan(n=m * b, eps=0.05, relative=True, block_size=b, dtype="float64", samples=0,
                                 order="input", perm=np.arange(m * b), leaf_share=0.5, one_ray_tol=0.0,
                                 near_entries=0, near_radius=0.0, reciprocity=False, form_factors={})
     return Job(scene=None, options=options, rows_rho=np.ones((n, 1)), weights=None, samples=0, ray_budget=None,
@@ -137,8 +139,9 @@ def test_in_process_cluster_matches_local(cornell):
     seen = []
     with connect(workers=2, processes=False) as cluster:
         records = []
-        dist = factorize(scene, scheduler=cluster, eps=EPS, block_size=64, near_field=NEAR, records=records,
-                         progress=lambda done, total: seen.append((done, total)))
+        dist = factorize(scene, eps=EPS, near_field=NEAR, progress=lambda done, total: seen.append((done, total)),
+                         backend=DaskBackend(scheduler=cluster, records=records),
+                         options=PrecomputeOptions(block_size=64))
     _assert_same_factorization(dist, local, scene)
     m = -(-scene.n_patches // 64)
     assert seen[-1] == (m, m)
@@ -176,7 +179,9 @@ def test_both_backends_write_the_same_hfr(cornell, tmp_path):
 
     scene, local = cornell
     with connect(workers=1, processes=False) as cluster:
-        dist = factorize(scene, scheduler=cluster, eps=EPS, block_size=64, near_field=NEAR, reciprocity=False)
+        dist = factorize(scene, eps=EPS, near_field=NEAR,
+                         backend=DaskBackend(scheduler=cluster, reciprocity=False),
+                         options=PrecomputeOptions(block_size=64))
     save_hfr(local, tmp_path / "local.hfr")
     save_hfr(dist, tmp_path / "dask.hfr")
     (d_local, a_local), (d_dask, a_dask) = _datasets(tmp_path / "local.hfr"), _datasets(tmp_path / "dask.hfr")
@@ -223,16 +228,18 @@ def test_rerun_skips_the_saved_subtrees(cornell, tmp_path):
 
     with connect(workers=1, processes=False) as cluster:
         with pytest.raises(KeyboardInterrupt):
-            factorize(scene, scheduler=cluster, eps=EPS, block_size=64, near_field=NEAR, checkpoint=folder,
-                      progress=stop_after_four)
+            factorize(scene, eps=EPS, near_field=NEAR, progress=stop_after_four,
+                      backend=DaskBackend(scheduler=cluster), checkpoint=folder,
+                      options=PrecomputeOptions(block_size=64))
         assert any(folder.glob("node-*.sha256"))
-        resumed = factorize(scene, scheduler=cluster, eps=EPS, block_size=64, near_field=NEAR,
-                            checkpoint=folder, keep_checkpoint=True)
+        resumed = factorize(scene, eps=EPS, near_field=NEAR, backend=DaskBackend(scheduler=cluster),
+                            checkpoint=Checkpoint(folder, keep=True), options=PrecomputeOptions(block_size=64))
         info = resumed.lowrank.info
         assert info["tasks_resumed"] >= 1 and info["tasks_run"] < 2 * m - 1
         _assert_same_factorization(resumed, local, scene)
         # run once more, deleting nothing: everything is read back, no leaf or merge runs
-        again = factorize(scene, scheduler=cluster, eps=EPS, block_size=64, near_field=NEAR, checkpoint=folder)
+        again = factorize(scene, eps=EPS, near_field=NEAR, backend=DaskBackend(scheduler=cluster),
+                          checkpoint=folder, options=PrecomputeOptions(block_size=64))
     assert again.lowrank.info["tasks_run"] == 0 and again.lowrank.info["tasks_resumed"] == 1
     _assert_same_factorization(again, local, scene)
     assert not folder.exists()   # deleted once complete (keep_checkpoint=False)
@@ -247,7 +254,8 @@ def test_checkpoint_of_other_options_is_refused(cornell, tmp_path):
     (folder / "key").write_text("another run\n")
     with connect(workers=1, processes=False) as cluster:
         with pytest.raises(InputError, match="another scene or other parameters"):
-            factorize(scene, scheduler=cluster, eps=EPS, block_size=64, checkpoint=folder)
+            factorize(scene, eps=EPS, backend=DaskBackend(scheduler=cluster), checkpoint=folder,
+                      options=PrecomputeOptions(block_size=64))
 
 
 def test_interrupt_cancels_the_run(cornell):
@@ -260,7 +268,8 @@ def test_interrupt_cancels_the_run(cornell):
 
     with connect(workers=1, processes=False) as cluster:
         with pytest.raises(KeyboardInterrupt):
-            factorize(scene, scheduler=cluster, eps=EPS, block_size=64, near_field=NEAR, progress=interrupt)
+            factorize(scene, eps=EPS, near_field=NEAR, progress=interrupt, backend=DaskBackend(scheduler=cluster),
+                      options=PrecomputeOptions(block_size=64))
         deadline = time.monotonic() + 10
         while cluster.client.run_on_scheduler(lambda dask_scheduler: len(dask_scheduler.tasks)) \
                 and time.monotonic() < deadline:
@@ -322,7 +331,8 @@ def test_worker_processes_match_local_despite_a_killed_worker(cornell, process_c
             os.kill(victim[1], signal.SIGKILL)
             killed.append(done)
 
-    dist = factorize(scene, scheduler=process_cluster, eps=EPS, block_size=64, near_field=NEAR, progress=kill_once)
+    dist = factorize(scene, eps=EPS, near_field=NEAR, progress=kill_once,
+                     backend=DaskBackend(scheduler=process_cluster), options=PrecomputeOptions(block_size=64))
     assert killed and killed[0] < -(-scene.n_patches // 64), "the worker must die while blocks remain"
     _assert_same_factorization(dist, local, scene)
     assert victim[0] not in client.run(os.getpid)  # that worker really is gone (its nanny started a new one)
@@ -331,16 +341,17 @@ def test_worker_processes_match_local_despite_a_killed_worker(cornell, process_c
 def test_panelled_merges_on_worker_processes_equal_serial_merges(cornell, process_cluster):
     """Two single-thread worker processes: every merge by row panels (none holds a whole U) against every
     merge whole: the same rank, error figures and Q V^T; each panel task saw only its panel's rows."""
-    from hfrad.distributed import factorize_distributed
-    from hfrad.solve.assemble import precompute_options
+    from hfrad.distributed import DaskTuning, factorize_distributed
+    from hfrad.precompute.options import plan_precompute
 
     scene, _ = cornell
-    options = precompute_options(scene, eps=EPS, block_size=64, near_entries=NEAR, reciprocity=False)
+    options = plan_precompute(scene, EPS, near_field=NEAR, options=PrecomputeOptions(block_size=64),
+                              reciprocity=False)
     runs = {}
     for panel_leaves in (1, 10**9):
         records = []
-        runs[panel_leaves] = factorize_distributed(scene, options, scheduler=process_cluster, records=records,
-                                                   panel_leaves=panel_leaves, row_panels=3), records
+        runs[panel_leaves] = factorize_distributed(scene, options, DaskBackend(scheduler=process_cluster, records=records),
+                                                   tuning=DaskTuning(panel_leaves=panel_leaves, row_panels=3)), records
     (whole, whole_records), (split, split_records) = runs[10**9], runs[1]
     m = options.n_blocks
     assert whole.lowrank.info["panelled_merges"] == 0 and split.lowrank.info["panelled_merges"] == m - 1
@@ -356,7 +367,7 @@ def test_panelled_merges_on_worker_processes_equal_serial_merges(cornell, proces
 
 
 def test_refuses_workers_too_small_for_one_leaf(cornell, monkeypatch):
-    from hfrad.distributed.cluster import Cluster
+    from hfrad.distributed.connection import Cluster
     from hfrad.distributed.sizing import leaf_bytes
     from hfrad.errors import MemoryLimitError
 
@@ -364,7 +375,8 @@ def test_refuses_workers_too_small_for_one_leaf(cornell, monkeypatch):
     monkeypatch.setattr(Cluster, "worker_memory_limits", lambda self: [leaf_bytes(scene.n_patches, 64)])
     with connect(workers=1, processes=False) as cluster:
         with pytest.raises(MemoryLimitError, match="one leaf task needs about"):
-            factorize(scene, scheduler=cluster, eps=EPS, block_size=64)
+            factorize(scene, eps=EPS, backend=DaskBackend(scheduler=cluster),
+                      options=PrecomputeOptions(block_size=64))
 
 
 def test_a_damaged_checkpoint_part_is_refused(tmp_path):

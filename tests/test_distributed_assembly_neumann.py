@@ -6,11 +6,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import hfrad.pipeline as pipeline
+import hfrad.precompute.local as local
+from hfrad import LocalBackend, PrecomputeOptions, factorize
 from hfrad.distributed.assembly import NeumannColumns, SETUP_TOL
 from hfrad.distributed.prefetch import channel_scales, near_matrix
 from hfrad.scene.load import load_scene
-from hfrad.solve.assemble import assemble
+from hfrad.precompute.assemble import assemble
 from hfrad.solve.nearfield import channel_solver
 from hfrad.solve.neumann import spectral_bound
 from hfrad.solve.quantized import QuantizedRows
@@ -21,16 +22,17 @@ from hfrad.solve.stats import PassStatistics
 def inputs():
     """A 600-patch Cornell box: what the local precompute passes to assemble(), and its result."""
     seen = {}
-    real = pipeline.assemble
+    real = local.assemble
     mp = pytest.MonkeyPatch()
 
     def capture(scene, options, lowrank, stats, near=None, *, backend=None):
         seen.update(options=options, lowrank=lowrank, state=stats.state(), near=near)
         return real(scene, options, lowrank, stats, near, backend=backend)
 
-    mp.setattr(pipeline, "assemble", capture)
+    mp.setattr(local, "assemble", capture)
     scene = load_scene("cornell", patches=600)
-    fac = pipeline.factorize(scene, processes=1, eps=0.03, block_size=64, dtype="float32", near_field=32)
+    fac = factorize(scene, eps=0.03, dtype="float32", near_field=32, backend=LocalBackend(processes=1),
+                    options=PrecomputeOptions(block_size=64))
     mp.undo()
     return scene, seen, fac
 

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from hfrad import DaskBackend, PrecomputeOptions
 import hfrad
 from hfrad.cli import app
 from hfrad.solve.hfr import load_hfr, read_hfr_metadata
@@ -77,7 +78,7 @@ def test_precompute_on_a_scheduler_started_by_hand(hand_made_cluster, tmp_path):
     assert meta["timings"]["time_formfactors"] > 0 and meta["achieved_error"] <= 0.02 * meta["norm"]
     fac = load_hfr(out)
     scene = load_scene("cornell", patches=600)
-    local = factorize(scene, eps=0.02, block_size=64)
+    local = factorize(scene, eps=0.02, options=PrecomputeOptions(block_size=64))
     B, B_local = fac.solve(scene.emission), local.solve(scene.emission)
     assert fac.rank == local.rank
     assert np.allclose(B, B_local, rtol=1e-4, atol=1e-6 * np.abs(B_local).max())
@@ -119,7 +120,8 @@ def dask_hfr(tmp_path_factory):
     out = tmp_path_factory.mktemp("dask") / "d.hfr"
     scene = load_scene("cornell", patches=400)
     with connect(workers=1, processes=False) as cluster:
-        fac = factorize(scene, eps=0.02, block_size=64, near_field=32, scheduler=cluster)
+        fac = factorize(scene, eps=0.02, near_field=32, backend=DaskBackend(scheduler=cluster),
+                        options=PrecomputeOptions(block_size=64))
     save_hfr(fac, out)
     return out
 

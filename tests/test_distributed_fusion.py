@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from hfrad import DaskBackend, LocalBackend, PrecomputeOptions
 from hfrad.distributed import connect
 from hfrad.distributed.run import _fused_groups, task_order
 from hfrad.distributed.tiles import TilePlan
@@ -49,12 +50,14 @@ def test_fused_run_equals_local(monkeypatch):
 
     monkeypatch.setattr(tiles, "MIN_GROUP_COLUMNS", 128)
     scene = load_scene("cornell", patches=600)
-    local = factorize(scene, eps=0.02, block_size=64, near_field=32, reciprocity=False)
+    local = factorize(scene, eps=0.02, near_field=32, backend=LocalBackend(reciprocity=False),
+                      options=PrecomputeOptions(block_size=64))
     records = []
     from distributed import get_task_stream
 
     with connect(workers=2, processes=False) as cluster, get_task_stream(cluster.client) as stream:
-        dist = factorize(scene, scheduler=cluster, eps=0.02, block_size=64, near_field=32, records=records)
+        dist = factorize(scene, eps=0.02, near_field=32, backend=DaskBackend(scheduler=cluster, records=records),
+                         options=PrecomputeOptions(block_size=64))
     keys = [str(t["key"]) for t in stream.data]
     assert sum(k.startswith("hfrad-group-") for k in keys) == 5
     assert not any(k.startswith(("hfrad-leafpart-", "hfrad-leaf-")) for k in keys)

@@ -6,11 +6,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from hfrad import DaskBackend, LocalBackend, PrecomputeOptions
 from hfrad.distributed import connect
 from hfrad.distributed.prefetch import NearPrefetch, channel_scales
 from hfrad.pipeline import factorize
 from hfrad.scene.load import load_scene
-from hfrad.solve.assemble import assemble, precompute_options
+from hfrad.precompute.assemble import assemble
+from hfrad.precompute.options import plan_precompute
 from hfrad.solve.nearfield import InProcess
 
 EPS = 0.02
@@ -22,8 +24,10 @@ def parts():
     """A 600-patch Cornell box factored locally, and what its assembly step takes (options, factors,
     statistics, near entries)."""
     scene = load_scene("cornell", patches=600)
-    fac = factorize(scene, eps=EPS, block_size=64, near_field=NEAR, reciprocity=False)
-    options = precompute_options(scene, eps=EPS, block_size=64, near_entries=NEAR, reciprocity=False)
+    fac = factorize(scene, eps=EPS, near_field=NEAR, backend=LocalBackend(reciprocity=False),
+                    options=PrecomputeOptions(block_size=64))
+    options = plan_precompute(scene, EPS, near_field=NEAR, options=PrecomputeOptions(block_size=64),
+                              reciprocity=False)
     n = scene.n_patches
     N = fac.N.tocoo()
     near = {"near_rows": N.row.astype(np.int64), "near_cols": N.col.astype(np.int64), "near_values": N.data}
@@ -83,11 +87,12 @@ def test_two_workers_prefetch_beside_the_panelled_top(parts):
     distinct channel's LU, and gives what the run without the prefetch gives."""
     scene, options, fac, near, n = parts
     with connect(workers=2, processes=False) as cluster:
-        runs = [factorize(scene, scheduler=cluster, eps=EPS, block_size=64, near_field=NEAR) for _ in range(1)]
-        from hfrad.distributed import factorize_distributed
+        runs = [factorize(scene, eps=EPS, near_field=NEAR, backend=DaskBackend(scheduler=cluster),
+                          options=PrecomputeOptions(block_size=64)) for _ in range(1)]
+        from hfrad.distributed import DaskTuning, factorize_distributed
 
-        opts = precompute_options(scene, eps=EPS, block_size=64, near_entries=NEAR)
-        off = factorize_distributed(scene, opts, scheduler=cluster, near_prefetch=False)
+        opts = plan_precompute(scene, EPS, near_field=NEAR, options=PrecomputeOptions(block_size=64))
+        off = factorize_distributed(scene, opts, DaskBackend(scheduler=cluster), tuning=DaskTuning(near_prefetch=False))
     on = runs[0]
     assert on.lowrank.info["panelled_merges"] > 0
     assert on.lowrank.info["near_prefetched"] == len(on.distinct_channels)

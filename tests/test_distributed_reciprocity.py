@@ -9,13 +9,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from hfrad import DaskBackend, PrecomputeOptions
 from hfrad.distributed import connect, tiles
 from hfrad.distributed.run import make_job
 from hfrad.distributed.tasks import _block, group_block, tile_task
 from hfrad.formfactors.parallel import column_block
 from hfrad.pipeline import factorize
 from hfrad.scene.load import load_scene
-from hfrad.solve.assemble import precompute_options
+from hfrad.precompute.options import plan_precompute
 
 EPS = 0.02
 NEAR = 32
@@ -88,7 +89,7 @@ def test_copied_blocks_equal_computed_blocks(dtype, tol):
     rounding (observed: float64 2.7e-16 of the block's largest entry, 1.0e-15 entry by entry, from the
     reciprocity of the kernel and visibility; float32 9.6e-8, one float32 rounding more)."""
     scene = load_scene("cornell", patches=300)     # 5 groups of 2 blocks of 32
-    options = precompute_options(scene, eps=EPS, block_size=32, dtype=dtype)
+    options = plan_precompute(scene, EPS, dtype=dtype, options=PrecomputeOptions(block_size=32))
     job = make_job(scene, options, None, "test")
     plan = tiles.TilePlan(n=options.n, block_size=32, group=2, band=2)
     made = {(I, J): tile_task(job, plan, I, J) for I, J in plan.tiles()}
@@ -119,19 +120,19 @@ def test_dask_copy_equals_dask_without_and_local(cornell):
     factorization of the run without it (same rank, error figures to 1e-5, radiosity to 1e-5) and of the
     local path (which copies other rows: its own mirror). Merges whole, as the local path's (the panelled
     merges round differently: test_distributed.py compares those)."""
-    from hfrad.distributed import factorize_distributed
+    from hfrad.distributed import DaskTuning, factorize_distributed
 
     scene = cornell
     n = scene.n_patches
     with connect(workers=2, processes=False) as cluster:
         records = []
-        runs = [factorize_distributed(scene, precompute_options(scene, eps=EPS, block_size=64, near_entries=NEAR,
-                                                                reciprocity=r),
-                                      scheduler=cluster, panel_leaves=10**9, records=records if r else None,
-                                      tile_group=2)    # 5 groups of 2 blocks
+        runs = [factorize_distributed(scene, plan_precompute(scene, EPS, near_field=NEAR, reciprocity=r,
+                                                             options=PrecomputeOptions(block_size=64)),
+                                      DaskBackend(scheduler=cluster, records=records if r else None),
+                                      tuning=DaskTuning(panel_leaves=10**9, tile_group=2))    # 5 groups of 2 blocks
                 for r in (True, False)]
     copy, plain = runs
-    local = factorize(scene, eps=EPS, block_size=64, near_field=NEAR)
+    local = factorize(scene, eps=EPS, near_field=NEAR, options=PrecomputeOptions(block_size=64))
     info = copy.lowrank.info
     assert plain.lowrank.info["pairs_computed"] == n * n and plain.lowrank.info["tile_tasks"] == 0
     plan = tiles.TilePlan(n=n, block_size=64, group=info["tile_group"], band=info["tile_band"])
@@ -164,12 +165,15 @@ def test_resume_with_the_copy(cornell, tmp_path):
             raise KeyboardInterrupt
 
     with connect(workers=1, processes=False) as cluster:
-        whole = factorize(scene, scheduler=cluster, eps=EPS, block_size=64, near_field=NEAR)
+        whole = factorize(scene, eps=EPS, near_field=NEAR, backend=DaskBackend(scheduler=cluster),
+                          options=PrecomputeOptions(block_size=64))
         with pytest.raises(KeyboardInterrupt):
-            factorize(scene, scheduler=cluster, eps=EPS, block_size=64, near_field=NEAR, checkpoint=folder,
-                      progress=stop_after_four)
+            factorize(scene, eps=EPS, near_field=NEAR, progress=stop_after_four,
+                      backend=DaskBackend(scheduler=cluster), checkpoint=folder,
+                      options=PrecomputeOptions(block_size=64))
         assert any(folder.glob("node-*.sha256"))
-        resumed = factorize(scene, scheduler=cluster, eps=EPS, block_size=64, near_field=NEAR, checkpoint=folder)
+        resumed = factorize(scene, eps=EPS, near_field=NEAR, backend=DaskBackend(scheduler=cluster),
+                            checkpoint=folder, options=PrecomputeOptions(block_size=64))
     info = resumed.lowrank.info
     assert info["tasks_resumed"] >= 1 and info["tasks_run"] < 2 * m - 1
     assert info["pairs_computed"] < whole.lowrank.info["pairs_computed"]

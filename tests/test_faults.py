@@ -21,10 +21,11 @@ import pytest
 
 from conftest import Interrupt, interrupt_at, run_cli
 
+from hfrad import Checkpoint, PrecomputeOptions
 from hfrad import factorize, load_scene
 from hfrad.errors import FileFormatError, InputError
 from hfrad.lowrank.streaming import load_checkpoint
-from hfrad.formfactors.cache import DIGEST, integrity_problem
+from hfrad.integrity import DIGEST, integrity_problem
 from hfrad.formfactors.parallel import SEGMENT_PREFIX, remove_stale_segments
 from hfrad.solve.hfr import load_hfr, read_hfr_metadata, save_hfr
 
@@ -36,9 +37,9 @@ linux_only = pytest.mark.skipif(not sys.platform.startswith("linux") or not os.p
 # block) is swallowed by Python ("Exception ignored in ..."), so the run would go on
 _CLI = ("import sys\n"
         "if __name__ == '__main__':\n"
-        "    import hfrad.pipeline\n"
-        "    hfrad.pipeline.factorize.__kwdefaults__['checkpoint_interval'] = 1e-6\n"
-        "    hfrad.pipeline.CHECKPOINT_COST_RATIO = 1e9\n"
+        "    import hfrad.precompute.backends, hfrad.precompute.local\n"
+        "    hfrad.precompute.backends.Checkpoint.__init__.__defaults__ = (1e-6, False)\n"
+        "    hfrad.precompute.local.CHECKPOINT_COST_RATIO = 1e9\n"
         "    from hfrad.cli import main\n"
         "    sys.argv = ['hfrad', *sys.argv[1:]]\n"
         "    sys.exit(main())\n")
@@ -230,7 +231,7 @@ def test_stale_segments_of_dead_creators_are_removed(tmp_path):
 
 # -- checkpoints ---------------------------------------------------------------------------
 
-_OPTS = dict(eps=0.02, block_size=32, dtype="float64")
+_OPTS = dict(eps=0.02, dtype="float64", options=PrecomputeOptions(block_size=32))
 
 
 @pytest.fixture(scope="module")
@@ -243,7 +244,7 @@ def checkpoint_file(cornell, tmp_path_factory):
     """A checkpoint after three blocks of a 300-patch Cornell box."""
     path = tmp_path_factory.mktemp("ckpt") / "run.partial"
     with pytest.raises(Interrupt):
-        factorize(cornell, checkpoint=path, checkpoint_interval=0.0, status=interrupt_at(4), **_OPTS)
+        factorize(cornell, status=interrupt_at(4), checkpoint=Checkpoint(path, interval=0.0), **_OPTS)
     return path
 
 
@@ -344,11 +345,11 @@ def test_cli_refuses_a_truncated_checkpoint_in_one_line(tmp_path):
 
 def test_checkpoint_survives_until_the_hfr_is_saved(tmp_path, monkeypatch):
     """A crash while writing the .hfr (disk full, kill) keeps the checkpoint; the rerun resumes."""
-    import hfrad.pipeline
+    import hfrad.precompute.backends
     import hfrad.solve.hfr
 
     out, ckpt = tmp_path / "box.hfr", tmp_path / "box.hfr.partial"
-    monkeypatch.setitem(hfrad.pipeline.factorize.__kwdefaults__, "checkpoint_interval", 0.0)
+    monkeypatch.setattr(hfrad.precompute.backends.Checkpoint.__init__, "__defaults__", (0.0, False))
 
     def crash(*args, **kwargs):
         raise OSError(28, "No space left on device")

@@ -174,23 +174,23 @@ def test_leaf_takes_the_gram_path_when_the_budget_norm_exceeds_the_block(monkeyp
 # -- BLAS threads on a shared machine -------------------------------------------------
 
 def _busy(monkeypatch, cores_used):
-    from hfrad.lowrank import hf
-    monkeypatch.setattr(hf, "other_processes_cores", lambda window=0.1: cores_used)
-    monkeypatch.setattr(hf, "_busy_cache", [float("-inf"), 0.0])
-    monkeypatch.setattr(hf.os, "sched_getaffinity", lambda pid: {0, 1, 2, 3})   # a 4-core machine
-    return hf
+    from hfrad import resources
+    monkeypatch.setattr(resources, "other_processes_cores", lambda window=0.1: cores_used)
+    monkeypatch.setattr(resources, "_busy_cache", [float("-inf"), 0.0])
+    monkeypatch.setattr(resources.os, "sched_getaffinity", lambda pid: {0, 1, 2, 3})   # a 4-core machine
+    return resources
 
 
 @pytest.mark.parametrize("others, limit, expected", [(0.0, 4, 4), (0.4, 4, 4), (0.6, 4, 3), (1.5, 4, 3),
                                                      (2.7, 4, 1), (9.0, 4, 1), (0.0, 2, 2), (3.0, 1, 1)])
 def test_spare_blas_threads_leave_the_cores_other_processes_use(monkeypatch, others, limit, expected):
-    hf = _busy(monkeypatch, others)
-    assert hf.spare_blas_threads(limit) == expected
+    resources = _busy(monkeypatch, others)
+    assert resources.spare_blas_threads(limit) == expected
 
 
 def test_other_processes_cores_is_a_share_of_the_machine():
-    from hfrad.lowrank import hf
-    used = hf.other_processes_cores(0.05)
+    from hfrad import resources
+    used = resources.other_processes_cores(0.05)
     import os
     if used is None:
         pytest.skip("no /proc on this system")
@@ -202,14 +202,15 @@ def test_merges_on_a_busy_machine_run_on_one_blas_thread_and_give_the_same_facto
     threadpoolctl = pytest.importorskip("threadpoolctl")
     A, _ = matrix
     with threadpoolctl.threadpool_limits(limits=2, user_api="blas"):
-        hf = _busy(monkeypatch, 0.0)
+        from hfrad.lowrank import hf
+        resources = _busy(monkeypatch, 0.0)
         free = hierarchical_factorization(col_blocks(A, 50), 400, eps=0.02, dtype=np.float64)
-        hf = _busy(monkeypatch, 8.0)
+        resources = _busy(monkeypatch, 8.0)
         seen = []
         merge = hf.merge_nodes
-        monkeypatch.setattr(hf, "merge_nodes", lambda *a: (seen.append(hf._blas_threads_now()), merge(*a))[1])
+        monkeypatch.setattr(hf, "merge_nodes", lambda *a: (seen.append(resources.blas_threads_now()), merge(*a))[1])
         busy = hierarchical_factorization(col_blocks(A, 50), 400, eps=0.02, dtype=np.float64)
-        assert hf._blas_threads_now() == 2   # restored after each push
+        assert resources.blas_threads_now() == 2   # restored after each push
     assert seen and set(seen) == {1}
     assert busy.rank == free.rank
     np.testing.assert_allclose(busy.Q @ busy.V.T, free.Q @ free.V.T, atol=1e-12 * np.linalg.norm(A))

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from conftest import closed_system
 
-from hfrad.solve.direct import LUFactorization, solve_direct
+from hfrad.solve.denselu import LUFactorization, solve_direct
 from hfrad.solve.iterative import gauss_seidel, gmres, jacobi, southwell
 
 

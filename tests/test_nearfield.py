@@ -5,10 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hfrad.lowrank.nearfield import NearFieldSplit, near_radius
+from hfrad import Checkpoint, LocalBackend, PrecomputeOptions
+from hfrad.lowrank.nearsplit import NearFieldSplit, near_radius
 from hfrad.formfactors import form_factor_matrix
 from hfrad.solve.hfr import load_hfr, read_hfr_metadata, save_hfr
-from hfrad.pipeline import factorize, near_entries, near_field_pays_from
+from hfrad.pipeline import factorize
+from hfrad.precompute.options import near_entries, near_field_pays_from
 from hfrad.scene.load import load_scene
 from hfrad.solve.nearfield import NearFieldFactorization
 
@@ -33,7 +35,8 @@ def cornell(dense):
 @pytest.fixture(scope="module")
 def pair(cornell):
     scene = cornell[0]
-    kw = dict(eps=0.03, block_size=128, dtype="float64", one_ray_tol=0, processes=1)
+    kw = dict(eps=0.03, dtype="float64", backend=LocalBackend(processes=1),
+              options=PrecomputeOptions(block_size=128, one_ray_tol=0))
     return factorize(scene, near_field=None, **kw), factorize(scene, near_field=96, **kw)
 
 
@@ -113,7 +116,8 @@ def test_split_moves_exactly_the_near_pairs():
 def test_checkpoint_resume_keeps_the_near_field(tmp_path):
     """An interrupted run resumes with its near field, here in worker processes (same blocks)."""
     scene = load_scene("cornell", patches=600)
-    kw = dict(eps=0.03, block_size=64, dtype="float64", near_field=48, processes=1)
+    kw = dict(eps=0.03, dtype="float64", near_field=48, backend=LocalBackend(processes=1),
+              options=PrecomputeOptions(block_size=64))
     full = factorize(scene, **kw)
     ckpt = tmp_path / "run.partial"
 
@@ -125,8 +129,8 @@ def test_checkpoint_resume_keeps_the_near_field(tmp_path):
             raise Interrupt
 
     with pytest.raises(Interrupt):
-        factorize(scene, checkpoint=ckpt, checkpoint_interval=0.0, status=stop, **kw)
-    resumed = factorize(scene, checkpoint=ckpt, **(kw | {"processes": 2}))  # resume in worker processes
+        factorize(scene, status=stop, checkpoint=Checkpoint(ckpt, interval=0.0), **kw)
+    resumed = factorize(scene, checkpoint=ckpt, **kw | {"backend": LocalBackend(processes=2)})  # resume in worker processes
     assert resumed.N.nnz == full.N.nnz and resumed.rank == full.rank
     np.testing.assert_allclose(resumed.solve(scene.emission), full.solve(scene.emission), rtol=1e-10)
 
@@ -215,7 +219,8 @@ def test_quantized_near_solution(dense, cornell, tmp_path):
 
     scene, _, exact = cornell
     F = dense[1]
-    fac = factorize(scene, near_field=96, eps=0.03, block_size=128, one_ray_tol=0, processes=1)
+    fac = factorize(scene, near_field=96, eps=0.03, backend=LocalBackend(processes=1),
+                    options=PrecomputeOptions(block_size=128, one_ray_tol=0))
     assert fac.dtype == np.float32 and isinstance(fac.Z, QuantizedRows)
     assert fac.near_solution_storage == "int16 rows" and "int16 rows" in repr(fac)
     share = fac.quantization_error / fac.achieved_error
@@ -251,7 +256,8 @@ def test_float32_set_up_capacitance_and_radiosity_against_the_dense_solve():
 
     scene = load_scene("cornell", patches=500)
     F = form_factor_matrix(scene)
-    fac = factorize(scene, eps=0.03, block_size=64, dtype="float32", near_field=32, one_ray_tol=0, processes=1)
+    fac = factorize(scene, eps=0.03, dtype="float32", near_field=32, backend=LocalBackend(processes=1),
+                    options=PrecomputeOptions(block_size=64, one_ray_tol=0))
     assert isinstance(fac, NearFieldFactorization) and fac.rank > 0
     for z in range(len(fac.distinct_channels)):
         Zz = fac.Z[z]

@@ -9,7 +9,7 @@ from hfrad.formfactors import form_factor_matrix, iter_column_blocks
 from hfrad.formfactors.blocks import make_engine
 from hfrad.formfactors.budget import FEW_RAYS_FACTOR, one_ray_threshold, ray_budget
 from hfrad.formfactors.parallel import ProcessEngine, column_block
-from hfrad.formfactors.visibility import RayBudget
+from hfrad.formfactors.budget import RayBudget
 from hfrad.scene.builtin import cornell_box
 from hfrad.scene.patches import subdivide
 from hfrad.scene.zorder import zorder_permutation
@@ -110,8 +110,8 @@ def test_a_script_without_main_guard_fails_clearly(tmp_path):
 
     script = tmp_path / "unguarded.py"
     script.write_text("from hfrad.scene.load import load_scene\n"
-                      "from hfrad.pipeline import factorize\n"
-                      "factorize(load_scene('cornell', patches=200), eps=0.1, processes=2)\n")
+                      "from hfrad.pipeline import LocalBackend, factorize\n"
+                      "factorize(load_scene('cornell', patches=200), eps=0.1, backend=LocalBackend(processes=2))\n")
     src = str(Path(hfrad.__file__).resolve().parents[1])
     run = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=240,
                          env={**__import__("os").environ, "PYTHONPATH": src})

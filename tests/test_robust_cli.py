@@ -280,8 +280,8 @@ def test_accepted_checkpoint_is_announced(tmp_path):
     partial = tmp_path / "x.hfr.partial"
     scene = hfrad.load_scene("cornell", patches=60)
     # the state after every block but the last (none is written after the last), kept on completion
-    hfrad.factorize(scene, eps=0.02, block_size=16, checkpoint=partial, checkpoint_interval=0,
-                    keep_checkpoint=True)
+    hfrad.factorize(scene, eps=0.02, checkpoint=hfrad.Checkpoint(partial, interval=0, keep=True),
+                    options=hfrad.PrecomputeOptions(block_size=16))
     assert partial.exists()
     result = run("precompute", "cornell", "--patches", "60", "--block", "16", "-q", "-o", out)
     assert result.exit_code == 0, result.output

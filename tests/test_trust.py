@@ -78,7 +78,7 @@ def test_figures_bound_the_exact_operator_norms(cornell):
 
 
 def test_bounds_hold_against_the_dense_solve(cornell):
-    from hfrad.solve.direct import solve_direct
+    from hfrad.solve.denselu import solve_direct
 
     scene, F, fac = cornell
     rng = np.random.default_rng(0)
@@ -141,12 +141,12 @@ def test_checkpoint_of_another_kernel_is_not_resumed(tmp_path, monkeypatch):
     scene = hfrad.load_scene("cornell", patches=300)
     ckpt = tmp_path / "run.partial"
     with pytest.raises(Interrupt):
-        hfrad.factorize(scene, eps=0.05, block_size=32, checkpoint=ckpt, checkpoint_interval=0.0,
-                        status=interrupt_at(3))
+        hfrad.factorize(scene, eps=0.05, status=interrupt_at(3), checkpoint=hfrad.Checkpoint(ckpt, interval=0.0),
+                        options=hfrad.PrecomputeOptions(block_size=32))
     assert ckpt.exists()
     monkeypatch.setattr(kernel, "KERNEL_VERSION", "a newer kernel")
     with pytest.raises(ValueError, match="another scene or other parameters"):
-        hfrad.factorize(scene, eps=0.05, block_size=32, checkpoint=ckpt)
+        hfrad.factorize(scene, eps=0.05, checkpoint=ckpt, options=hfrad.PrecomputeOptions(block_size=32))
 
 
 def test_resumed_statistics_equal_a_straight_run(tmp_path):
@@ -154,11 +154,14 @@ def test_resumed_statistics_equal_a_straight_run(tmp_path):
     ckpt = tmp_path / "run.partial"
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", AccuracyWarning)
-        straight = hfrad.factorize(scene, eps=0.05, block_size=32, dtype="float64")
+        straight = hfrad.factorize(scene, eps=0.05, dtype="float64",
+                                   options=hfrad.PrecomputeOptions(block_size=32))
         with pytest.raises(Interrupt):
-            hfrad.factorize(scene, eps=0.05, block_size=32, dtype="float64", checkpoint=ckpt,
-                            checkpoint_interval=0.0, status=interrupt_at(5))
-        resumed = hfrad.factorize(scene, eps=0.05, block_size=32, dtype="float64", checkpoint=ckpt)
+            hfrad.factorize(scene, eps=0.05, dtype="float64", status=interrupt_at(5),
+                            checkpoint=hfrad.Checkpoint(ckpt, interval=0.0),
+                            options=hfrad.PrecomputeOptions(block_size=32))
+        resumed = hfrad.factorize(scene, eps=0.05, dtype="float64", checkpoint=ckpt,
+                                  options=hfrad.PrecomputeOptions(block_size=32))
     np.testing.assert_allclose(resumed.stats.row_sums, straight.stats.row_sums, rtol=1e-12)
     np.testing.assert_allclose(resumed.stats.sketch, straight.stats.sketch, rtol=1e-10, atol=1e-14)
 

@@ -78,9 +78,13 @@ def test_more_samples_converge():
     half = 0.2
     scene = subdivide(plates_with_blocker(half), max_edge=0.1)
     ref = shadowed_reference(half)
-    errs = [abs(view_factor(scene, form_factor_matrix(scene, samples=s), "plate1", "plate2") - ref)
-            for s in (1, 16)]
-    assert errs[1] < 0.01 * ref
+    samples = (1, 4, 16, 64)
+    errs = dict((s, abs(view_factor(scene, form_factor_matrix(scene, samples=s), "plate1", "plate2") - ref))
+                for s in samples)
+    # observed: 9.0e-3, 4.8e-4, 4.8e-4, 3.1e-4 of ref: never worse with more rays, 19x better from 1 to 16
+    assert all(errs[b] <= errs[a] for a, b in zip(samples, samples[1:])), errs
+    assert errs[16] < 0.1 * errs[1], errs
+    assert errs[16] < 0.01 * ref                     # observed 4.8e-4 ref
 
 
 def test_culling_is_exact_and_deterministic():

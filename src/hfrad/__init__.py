@@ -11,6 +11,9 @@ of the form-factor matrix plus Sherman-Morrison-Woodbury::
     hfrad.save(fac, "cornell.hfr"); fac = hfrad.load("cornell.hfr")
 
 A form-factor matrix you already have: ``hfrad.factorize_matrix(F, reflectance)``.
+Where and how the precompute runs: ``backend=hfrad.LocalBackend(processes=4)`` or
+``hfrad.DaskBackend(workers=4)``, ``checkpoint=hfrad.Checkpoint(path)``, and expert
+knobs in ``options=hfrad.PrecomputeOptions(block_size=...)``.
 The whole API is described in docs/api.md.
 
 Names are imported lazily so that ``import hfrad`` stays fast.
@@ -30,6 +33,10 @@ _EXPORTS = {
     "subdivide": "hfrad.scene.patches",
     "factorize": "hfrad.pipeline",
     "factorize_matrix": "hfrad.pipeline",
+    "LocalBackend": "hfrad.precompute.backends",
+    "DaskBackend": "hfrad.precompute.backends",
+    "Checkpoint": "hfrad.precompute.backends",
+    "PrecomputeOptions": "hfrad.precompute.options",
     "HFactorization": "hfrad.solve.woodbury",
     "ErrorEstimate": "hfrad.solve.bounds",
     "SolutionError": "hfrad.solve.samples",

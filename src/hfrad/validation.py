@@ -11,7 +11,7 @@ import numpy as np
 from .errors import InputError
 
 __all__ = ["check_permutation", "check_reflectance", "check_areas", "check_trans", "check_finite", "object_first",
-           "check_factorize_options", "as_real_array", "check_exitance", "check_form_factors", "MAX_EXITANCE",
+           "check_factorize_options", "check_eps", "check_tolerance", "check_dtype", "as_real_array", "check_exitance", "check_form_factors", "MAX_EXITANCE",
            "clip_token"]
 
 #: The largest exitance (W/m^2) accepted anywhere: 1e30, far above any light (the sun's surface emits
@@ -215,6 +215,33 @@ def object_first(obj, path, call: str):
     return obj, path
 
 
+def check_eps(eps, relative: bool = True) -> float:
+    """The factorization's target error: in (0, 1) when relative, a positive finite number when absolute.
+
+    The one check of a user's ``eps`` (every entry point, before anything reads it).
+    """
+    if relative and not (0.0 < eps < 1.0):
+        raise InputError(f"eps must be in (0, 1) (a relative Frobenius error, e.g. 0.02); got {eps}")
+    if not relative and not (eps > 0.0 and math.isfinite(eps)):
+        raise InputError(f"an absolute eps must be a positive number; got {eps}")
+    return float(eps)
+
+
+def check_tolerance(eps) -> float:
+    """A low-rank factorizer's tolerance (:mod:`hfrad.lowrank`): finite and >= 0 (0 keeps every singular value)."""
+    if not (eps >= 0 and np.isfinite(eps)):
+        raise InputError(f"eps must be a finite number >= 0; got {eps!r}")
+    return float(eps)
+
+
+def check_dtype(dtype) -> np.dtype:
+    """The factors' dtype: float32 or float64."""
+    dt = np.dtype(dtype)
+    if dt not in (np.float32, np.float64):
+        raise InputError(f"dtype must be float32 or float64; got {dt}")
+    return dt
+
+
 def check_factorize_options(n: int, eps: float, block_size: int, dtype, relative: bool = True) -> np.dtype:
     """The precompute's options for an n-patch scene (every backend's); returns the factor dtype.
 
@@ -224,13 +251,7 @@ def check_factorize_options(n: int, eps: float, block_size: int, dtype, relative
         eps outside (0, 1) (relative) or not positive (absolute), a block size
         outside [1, n], or a dtype other than float32/float64.
     """
-    if relative and not (0.0 < eps < 1.0):
-        raise InputError(f"eps must be in (0, 1) (a relative Frobenius error, e.g. 0.02); got {eps}")
-    if not relative and not (eps > 0.0 and math.isfinite(eps)):
-        raise InputError(f"an absolute eps must be a positive number; got {eps}")
+    check_eps(eps, relative)
     if not (1 <= block_size <= n):
         raise InputError(f"block size must be between 1 and the patch count {n}; got {block_size}")
-    dt = np.dtype(dtype)
-    if dt not in (np.float32, np.float64):
-        raise InputError(f"dtype must be float32 or float64; got {dt}")
-    return dt
+    return check_dtype(dtype)

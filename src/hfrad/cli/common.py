@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import errno
-from typing import Iterator, Optional
+import functools
+import inspect
+from typing import Iterator, List, Optional
 
 import click
 import typer
@@ -30,6 +33,59 @@ AllowMissingMaterialsOption = typer.Option(False, "--allow-missing-materials",
                                            help="Faces whose material (or .mtl file) is missing get the default "
                                                 "reflectance instead of stopping.")
 KeepDuplicatesOption = typer.Option(False, "--keep-duplicates", help="Keep faces that duplicate another face (same corners) instead of merging them (their light is then counted twice).")
+
+
+@dataclasses.dataclass(frozen=True)
+class SceneOptions:
+    """The scene options every scene-reading command shares, as one object (see :func:`scene_options`).
+
+    The fields are the keywords of :func:`hfrad.cli.info.load_scene_from_options`:
+    ``load_scene_from_options(scene, **dataclasses.asdict(options))``.
+    """
+
+    max_edge: Optional[float] = None
+    patches: Optional[int] = None
+    unit_scale: float = 1.0
+    emit: Optional[List[str]] = None
+    area_light: Optional[str] = None
+    default_reflectance: float = 0.7
+    allow_missing_materials: bool = False
+    keep_duplicates: bool = False
+
+
+#: The command-line options of :class:`SceneOptions`: (field, annotation, typer option), in --help order.
+_SCENE_PARAMETERS = [("max_edge", Optional[float], MaxEdgeOption), ("patches", Optional[int], PatchesOption),
+                     ("unit_scale", float, UnitScaleOption), ("emit", Optional[List[str]], EmissionOption),
+                     ("area_light", Optional[str], AreaLightOption),
+                     ("default_reflectance", float, DefaultReflectanceOption),
+                     ("allow_missing_materials", bool, AllowMissingMaterialsOption),
+                     ("keep_duplicates", bool, KeepDuplicatesOption)]
+
+
+def scene_options(command):
+    """Give a command the shared scene options (one definition): it declares ``scene_options: SceneOptions``.
+
+    The options (``--max-edge``, ``--patches``, ``--unit-scale``, ``--emission``,
+    ``--area-light``, ``--default-reflectance``, ``--allow-missing-materials``,
+    ``--keep-duplicates``) take the place of that parameter in the command's
+    signature, which is what typer reads; the command receives them packed.
+    """
+    signature = inspect.signature(command, eval_str=True)
+    shared = [inspect.Parameter(name, inspect.Parameter.POSITIONAL_OR_KEYWORD, default=option, annotation=kind)
+              for name, kind, option in _SCENE_PARAMETERS]
+    params = []
+    for p in signature.parameters.values():
+        params += shared if p.name == "scene_options" else [p]
+
+    @functools.wraps(command)
+    def with_scene_options(*args, **kwargs):
+        packed = SceneOptions(**{name: kwargs.pop(name) for name, _, _ in _SCENE_PARAMETERS})
+        return command(*args, scene_options=packed, **kwargs)
+
+    with_scene_options.__signature__ = signature.replace(parameters=params)
+    with_scene_options.__annotations__ = {p.name: p.annotation for p in params}
+    del with_scene_options.__wrapped__     # typer reads the signature above, not the command's
+    return with_scene_options
 
 
 def quote(value: object, limit: int = 200) -> str:
@@ -205,13 +261,6 @@ def check_choice(value: str, option: str, allowed) -> str:
     if value not in allowed:
         raise InputError(f"{option} must be one of {', '.join(allowed)}; got {quote(value)}")
     return value
-
-
-def cores() -> int:
-    """CPU cores this process may use."""
-    import os
-
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
 #: Most worker processes per core worth starting (each holds a copy of the scene's ray caster).

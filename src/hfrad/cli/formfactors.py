@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
-from typing import List, Optional
 
 import typer
 
@@ -31,17 +31,11 @@ def write_npz(path: Path, scene, F) -> None:
 
 def register(app: typer.Typer) -> None:
     @app.command()
+    @common.scene_options
     def formfactors(
         scene: str = typer.Argument(..., help="Scene file (.obj, .ply, .gltf, .glb, .rad, .ifc) or built-in name (cornell, ...)."),
         output: Path = typer.Option(..., "--output", "-o", help="Output .npz: F, area, centroid, normal, material, material_names."),
-        max_edge: Optional[float] = common.MaxEdgeOption,
-        patches: Optional[int] = common.PatchesOption,
-        unit_scale: float = common.UnitScaleOption,
-        emission: Optional[List[str]] = common.EmissionOption,
-        area_light: Optional[str] = common.AreaLightOption,
-        default_reflectance: float = common.DefaultReflectanceOption,
-        allow_missing_materials: bool = common.AllowMissingMaterialsOption,
-        keep_duplicates: bool = common.KeepDuplicatesOption,
+        scene_options: common.SceneOptions = None,
         samples: int = typer.Option(4, "--samples", help="Visibility rays per patch pair (1, 4, 9, 16, ... up to 1,024; 1 = centroid to centroid; 0 = no visibility)."),
         dtype: str = common.dtype_option("float64"),
         quiet: bool = common.QuietOption,
@@ -59,10 +53,7 @@ def register(app: typer.Typer) -> None:
             dt = common.check_dtype(dtype)
             common.check_samples(samples)
             common.check_output(npz_path(output))
-            s = load_scene_from_options(scene, unit_scale=unit_scale, emit=emission, area_light=area_light,
-                                        default_reflectance=default_reflectance,
-                                        allow_missing_materials=allow_missing_materials,
-                                        max_edge=max_edge, patches=patches, keep_duplicates=keep_duplicates,
+            s = load_scene_from_options(scene, **dataclasses.asdict(scene_options),
                                         need=lambda n: check_dense_memory(n, dt))   # before cutting
             check_dense_memory(s.n_patches, dt)
             with common.progress_bar(f"form factors ({s.n_patches} patches)", quiet) as progress:

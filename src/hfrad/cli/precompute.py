@@ -2,26 +2,28 @@
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
-from typing import List, Optional
+from typing import Optional
 
 import typer
 
 from ..errors import InputError
 from ..defaults import DEFAULT_BLOCK_SIZE
+from ..resources import cores
 from . import common
 from .info import load_scene_from_options
 
 
 def register(app: typer.Typer) -> None:
     @app.command()
+    @common.scene_options
     def precompute(
         scene: str = typer.Argument(..., help="Scene file or built-in name (cornell, furnace, ...)."),
         output: Path = typer.Option(..., "-o", "--output", help="Factorization file to write (.hfr)."),
         eps: float = typer.Option(0.02, "--eps", help="Target relative Frobenius error of RF ~ Q V^T, in (0, 1)."),
-        max_edge: Optional[float] = common.MaxEdgeOption,
-        patches: Optional[int] = common.PatchesOption,
+        scene_options: common.SceneOptions = None,
         refine: Optional[float] = typer.Option(None, "--refine", help="After cutting, solve once on those patches and split (conforming, one level) every patch on an edge where the luminance jumps by more than this fraction of the larger side, in (0, 1) (e.g. 0.2). At most 8,000 patches before refining (the coarse solve is dense)."),
         block: Optional[int] = typer.Option(None, "--block", help=f"Column block width (patches); default min({DEFAULT_BLOCK_SIZE}, n)."),
         dtype: str = common.dtype_option("float32"),
@@ -29,12 +31,6 @@ def register(app: typer.Typer) -> None:
         order: str = typer.Option("zorder", "--order", help="Internal patch order: zorder, hilbert, random, input."),
         processes: Optional[int] = typer.Option(None, "--processes", help="Form-factor worker processes, each with its own Embree scene. Default: one per core from 4,000 patches on (below, their start-up costs more than it saves), else this process; the result does not depend on it."),
         near_field: str = typer.Option("auto", "--near-field", help="Near-field split: pairs within the radius holding ~this many facing neighbours (nonzeros of a row of N) go into a sparse N, HF factors the smooth rest, the solver is Woodbury around I - D_c N (Neumann series per solve, sparse LU in the set-up). 'auto' (default): 120 where the split pays, from 20,000 (0.02 / eps)^1.5 patches on (20,000 at --eps 0.02, 5,060 at 0.05; 2,000 at least), off below; the split lowers the rank HF needs and, at equal --eps, the radiosity error; 'off' or 0: plain Woodbury."),
-        unit_scale: float = common.UnitScaleOption,
-        emission: Optional[List[str]] = common.EmissionOption,
-        area_light: Optional[str] = common.AreaLightOption,
-        default_reflectance: float = common.DefaultReflectanceOption,
-        allow_missing_materials: bool = common.AllowMissingMaterialsOption,
-        keep_duplicates: bool = common.KeepDuplicatesOption,
         scheduler: Optional[str] = typer.Option(
             None, "--scheduler", help="Run on a Dask cluster: tcp://HOST:PORT of a running `dask scheduler` "
             "(docs/cluster.md)."),
@@ -69,8 +65,8 @@ def register(app: typer.Typer) -> None:
         them); the busiest worker needs hfrad.distributed.worker_bytes(n, b, k),
         about 160 MB + 2 KB n + max(25 n b, 14 n k s) + 2 n k s (docs/cluster.md).
         """
+        from ..pipeline import Checkpoint, LocalBackend, PrecomputeOptions, factorize
         from ..solve.hfr import save_hfr
-        from ..pipeline import factorize
 
         t0 = time.perf_counter()
         with common.user_errors():
@@ -79,18 +75,15 @@ def register(app: typer.Typer) -> None:
                 raise InputError(f"output must end in .hfr; got {output}")
             _check_options(processes=processes, samples=samples, refine=refine, scheduler=scheduler,
                            workers=workers)
+            options = PrecomputeOptions(block_size=block, samples=samples)
             common.check_output(output)
             common.check_output(output.with_name(output.name + ".partial"))
 
             def need(n: int) -> None:   # before cutting: --max-edge 1e-4 is refused at once, not by the OOM killer
                 common.check_memory_for_precompute(n, min(block or DEFAULT_BLOCK_SIZE, max(n, 1)), dtype,
-                                                   count="at least" if max_edge is not None else "about")
+                                                   count="at least" if scene_options.max_edge is not None else "about")
 
-            s = load_scene_from_options(scene, unit_scale=unit_scale, emit=emission, area_light=area_light,
-                                        default_reflectance=default_reflectance,
-                                        allow_missing_materials=allow_missing_materials,
-                                        max_edge=max_edge, patches=patches, keep_duplicates=keep_duplicates,
-                                        need=need)
+            s = load_scene_from_options(scene, **dataclasses.asdict(scene_options), need=need)
             if refine is not None:
                 from ..solve.refine import refine_by_radiosity
                 before = s.n_patches
@@ -119,9 +112,9 @@ def register(app: typer.Typer) -> None:
                                      "the Dask workers compute the blocks")
                 t_load = time.perf_counter() - t0
                 parts = output.with_name(output.name + ".partial.d")   # finished subtrees: a rerun skips them
-                fac = _on_cluster(s, scheduler, workers, quiet, eps=eps, block_size=block, dtype=dtype,
-                                  samples=samples, order=order, near_field=_near_field(near_field),
-                                  checkpoint=parts, keep_checkpoint=True)
+                fac = _on_cluster(s, scheduler, workers, quiet, eps=eps, dtype=dtype, order=order,
+                                  near_field=_near_field(near_field), options=options,
+                                  checkpoint=Checkpoint(parts, keep=True))
                 common.check_space_for_hfr(output, fac)
                 save_hfr(fac, output, timings={"load": t_load, **_stage_times(fac)})
                 from ..distributed import remove_checkpoint
@@ -138,9 +131,9 @@ def register(app: typer.Typer) -> None:
                     if bar is not None:
                         bar.note(f"rank {info['rank']:,}")
 
-                fac = factorize(s, eps=eps, block_size=block, dtype=dtype, samples=samples, order=order,
-                                checkpoint=checkpoint, keep_checkpoint=True, progress=bar, status=status,
-                                processes=processes, near_field=_near_field(near_field))
+                fac = factorize(s, eps, dtype=dtype, order=order, near_field=_near_field(near_field),
+                                backend=LocalBackend(processes=processes), checkpoint=Checkpoint(checkpoint, keep=True),
+                                options=options, progress=bar, status=status)
             common.check_space_for_hfr(output, fac)
             save_hfr(fac, output, timings={"load": t_load, **_stage_times(fac)})
             checkpoint.unlink(missing_ok=True)  # only once the .hfr is safely renamed into place
@@ -151,12 +144,12 @@ def _check_options(*, processes, samples, refine, scheduler, workers) -> None:
     """Option values refused before any work, each in one line naming the option."""
     import re
 
-    limit = common.MAX_PROCESSES_PER_CORE * common.cores()
+    limit = common.MAX_PROCESSES_PER_CORE * cores()
     common.check_count(processes, "--processes", high=limit,
-                       why=f"{common.MAX_PROCESSES_PER_CORE} per core at most (this machine has {common.cores()}); "
+                       why=f"{common.MAX_PROCESSES_PER_CORE} per core at most (this machine has {cores()}); "
                            "more only add memory and start-up time")
     common.check_count(workers, "--workers", high=limit,
-                       why=f"{common.MAX_PROCESSES_PER_CORE} per core at most (this machine has {common.cores()})")
+                       why=f"{common.MAX_PROCESSES_PER_CORE} per core at most (this machine has {cores()})")
     common.check_samples(samples)
     if refine is not None and not (0 < refine < 1):   # |L_p - L_q| / max(L_p, L_q) never reaches 1: nothing marked
         raise InputError(f"--refine threshold must be in (0, 1), a relative luminance jump |L_p - L_q| / max(L_p, L_q) "
@@ -183,16 +176,17 @@ def _stage_times(fac) -> dict:
     return {k: v for k, v in fac.lowrank.info.items() if k.startswith("time")}
 
 
-def _on_cluster(scene, scheduler: Optional[str], workers: Optional[int], quiet: bool, **options):
-    """The precompute as Dask tasks; a scheduler that cannot be reached exits 2 naming its address."""
+def _on_cluster(scene, scheduler: Optional[str], workers: Optional[int], quiet: bool, **arguments):
+    """The precompute as Dask tasks (``arguments``: of :func:`hfrad.factorize`); a scheduler that cannot be
+    reached exits 2 naming its address."""
     from ..distributed import SchedulerUnreachableError, WorkerLostError, connect, rank_guess, worker_bytes
-    from ..pipeline import factorize
+    from ..pipeline import DaskBackend, factorize
     from ..memory import human
 
     if scheduler is not None and workers is not None:
         raise InputError("give --scheduler or --workers, not both")
-    n, block = scene.n_patches, min(options["block_size"] or DEFAULT_BLOCK_SIZE, scene.n_patches)
-    k = rank_guess(n, options["eps"])
+    n, block = scene.n_patches, min(arguments["options"].block_size or DEFAULT_BLOCK_SIZE, scene.n_patches)
+    k = rank_guess(n, arguments["eps"])
     try:
         with connect(scheduler, workers=workers) as cluster:
             where = f"{cluster.n_workers} local worker processes" if cluster.kind == "local" else \
@@ -203,7 +197,8 @@ def _on_cluster(scene, scheduler: Optional[str], workers: Optional[int], quiet: 
                 + (f"\nDask dashboard: {cluster.dashboard}" if cluster.dashboard else ""), highlight=False)
             with common.progress_bar(f"precompute {n:,} patches on Dask", quiet) as bar:
                 status = None if bar is None else (lambda info: bar.note(f"rank {info['rank']:,}"))
-                return factorize(scene, scheduler=cluster, progress=bar, status=status, **options)
+                return factorize(scene, backend=DaskBackend(scheduler=cluster), progress=bar, status=status,
+                                 **arguments)
     except (SchedulerUnreachableError, WorkerLostError) as exc:
         common.fail(str(exc))
 

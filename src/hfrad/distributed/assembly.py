@@ -1,6 +1,6 @@
 """The assembly step on Dask workers: the near-field set-up's pieces as tasks.
 
-:func:`hfrad.solve.assemble.assemble` builds the solver object; with the near-field
+:func:`hfrad.precompute.assemble.assemble` builds the solver object; with the near-field
 split most of its time is the set-up of :class:`~hfrad.solve.nearfield.NearFieldFactorization`:
 per distinct colour channel a sparse LU of ``A_c = I - D_c N`` and ``k`` solves
 ``Z_c = A_c^{-1} D_c Q``, then ``K_c = I - V^T Z_c``. That set-up is written as pure
@@ -37,7 +37,7 @@ import time
 
 import numpy as np
 
-from ..solve.assemble import PrecomputeOptions, assemble
+from ..precompute.assemble import PrecomputePlan, assemble
 from ..solve.nearfield import channel_solver
 from ..solve.neumann import neumann_solve, spectral_bound
 from ..solve.sparselu import PANEL
@@ -165,16 +165,16 @@ class DaskRunner:
         """Nothing to do: a future's data is freed once no task or reference needs it."""
 
 
-def assemble_on_cluster(client, scene, options: PrecomputeOptions, lowrank, stats: PassStatistics,
+def assemble_on_cluster(client, scene, options: PrecomputePlan, lowrank, stats: PassStatistics,
                         near: dict | None = None, *, backend: dict | None = None, columns: int = PANEL,
                         share_order: bool = False, neumann: bool = False, records: list | None = None):
-    """:func:`hfrad.solve.assemble.assemble` with the near-field set-up's pieces on Dask workers.
+    """:func:`hfrad.precompute.assemble.assemble` with the near-field set-up's pieces on Dask workers.
 
     Parameters
     ----------
     client : distributed.Client or hfrad.distributed.Cluster
     scene, options, lowrank, stats, near, backend
-        As for :func:`~hfrad.solve.assemble.assemble`.
+        As for :func:`~hfrad.precompute.assemble.assemble`.
     columns, share_order, neumann
         As for :class:`DaskRunner`.
     records : list, optional
@@ -184,7 +184,7 @@ def assemble_on_cluster(client, scene, options: PrecomputeOptions, lowrank, stat
     Returns
     -------
     HFactorization or NearFieldFactorization
-        The object :func:`~hfrad.solve.assemble.assemble` returns for the same
+        The object :func:`~hfrad.precompute.assemble.assemble` returns for the same
         inputs (``time_nearfield_setup`` in ``lowrank.info`` is this call's wall time).
     """
     client = getattr(client, "client", client)   # a hfrad Cluster holds its Client

@@ -2,7 +2,7 @@
 
 With fewer than :data:`~hfrad.distributed.run.ASSEMBLY_MIN_WORKERS` workers the
 near-field set-up runs in the client once the tree is done
-(:func:`hfrad.solve.assemble.assemble`, :class:`~hfrad.solve.nearfield.InProcess`).
+(:func:`hfrad.precompute.assemble.assemble`, :class:`~hfrad.solve.nearfield.InProcess`).
 Its sparse LUs (:func:`~hfrad.solve.nearfield.channel_solver`, one per distinct
 colour channel, single-threaded) need only the near field N, which is complete once
 every leaf is: for a panelled root that is when the serial subtrees' tails are done,
@@ -60,7 +60,7 @@ def channel_scales(reflectance: np.ndarray, perm: np.ndarray) -> tuple[list[int]
 
 
 def near_matrix(near: dict, n: int) -> sp.csr_matrix:
-    """N (n x n float64 CSR) from the near entries, as :func:`hfrad.solve.assemble.assemble` builds it."""
+    """N (n x n float64 CSR) from the near entries, as :func:`hfrad.precompute.assemble.assemble` builds it."""
     N = sp.csr_matrix((near["near_values"], (near["near_rows"], near["near_cols"])), shape=(n, n))
     return sp.csr_matrix(N, dtype=np.float64)
 

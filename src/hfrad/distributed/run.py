@@ -30,11 +30,12 @@ from ..lowrank.factors import LowRank
 from ..lowrank.hf import counter_tree
 from ..memory import human
 from ..progress import ProgressCallback, report
-from ..solve.assemble import PrecomputeOptions, add_statistics, assemble, concat_near
+from ..precompute.assemble import PrecomputePlan, add_statistics, assemble, concat_near
+from ..precompute.backends import DaskBackend
 from ..solve.stats import PassStatistics
 from ..solve.woodbury import HFactorization
 from . import panels, sizing, store
-from .cluster import Cluster, WorkerLostError, connect
+from .connection import Cluster, WorkerLostError, connect
 from .prefetch import NearPrefetch
 from . import tiles as tiles_mod
 from .tasks import (Job, chunk_task, form_task, gram_task, group_leaf_task, group_tree_task, leaf_task,
@@ -45,52 +46,12 @@ from .tasks import (Job, chunk_task, form_task, gram_task, group_leaf_task, grou
 _POLL_SECONDS = 0.2
 
 
-def factorize_distributed(scene, options: PrecomputeOptions, *, scheduler=None, workers: int | None = None,
-                          task_threads: int | None = None, connect_timeout: float | None = None,
-                          checkpoint=None, progress: ProgressCallback = None, status=None,
-                          records: list | None = None, panel_leaves: int | None = None,
-                          row_panels: int | None = None, tile_group: int | None = None,
-                          tile_band: int | None = None, tile_bytes: int | None = None,
-                          near_prefetch: bool = True) -> HFactorization:
-    """Precompute a scene on a Dask cluster: what :func:`hfrad.factorize` does, as Dask tasks.
+@dataclass(frozen=True)
+class DaskTuning:
+    """How :func:`factorize_distributed` cuts HF's tree into tasks; every default suits a run.
 
-    Users call ``hfrad.factorize(scene, scheduler=..., workers=...)``, which validates
-    the options and comes here; this is the backend.
-
-    Parameters
+    Attributes
     ----------
-    scene : Scene
-    options : PrecomputeOptions
-        From :func:`hfrad.solve.assemble.precompute_options` (the local path's). With
-        ``options.reciprocity`` each pair of groups of blocks within the band is computed
-        once and copied by reciprocity (:mod:`hfrad.distributed.tiles`).
-    scheduler : str, distributed.Client or Cluster, optional
-        ``tcp://HOST:PORT`` of a running scheduler, a connected Client, or a
-        :class:`~hfrad.distributed.cluster.Cluster` from :func:`~hfrad.distributed.connect`.
-    workers : int, optional
-        Instead of ``scheduler``: start a LocalCluster of this many worker processes.
-    task_threads : int, optional
-        Numba threads of the form-factor kernel per task (default: this machine's
-        cores shared among a LocalCluster's workers; the workers' own setting,
-        NUMBA_NUM_THREADS, on a scheduler). BLAS runs one thread per task.
-    connect_timeout : float, seconds, optional
-        Default: Dask's ``distributed.comm.timeouts.connect``.
-    checkpoint : path, optional
-        A folder for the finished subtrees' factors (:mod:`hfrad.distributed.store`),
-        reachable at this path from every worker; a rerun with the same scene and
-        options skips what it holds. Left in place (the caller deletes it once the
-        result is saved: :func:`hfrad.distributed.store.remove_folder`).
-    progress : callable (done, total), optional
-        Leaves (column blocks) done.
-    status : callable (dict), optional
-        Called with ``blocks``, ``rank`` (summed over the finished nodes not yet
-        merged, as the local path's stack) and ``elapsed`` when they change.
-    records : list, optional
-        Filled with one dict per task of the tree (kind, node, rank, columns,
-        rows, seconds, form-factor and SVD seconds, ranks merged, worker, resumed):
-        the measured per-task costs behind docs/cluster.md's model. Then one dict per task of
-        the panelled merges (kind "slice", "gram", "form" or "chunk": node, seconds, cpu, rows or
-        columns, ranks).
     panel_leaves : int, optional
         Merges covering more than this many column blocks run by row panels
         (:mod:`hfrad.distributed.panels`): no worker holds the whole of such a node.
@@ -109,11 +70,58 @@ def factorize_distributed(scene, options: PrecomputeOptions, *, scheduler=None, 
         With the near field, a row-panelled top and an in-process assembly (fewer than
         ``ASSEMBLY_MIN_WORKERS`` workers): factor the channels' ``I - D_c N`` in the client
         while the top merges run (:mod:`hfrad.distributed.prefetch`; the same result).
+    """
+
+    panel_leaves: int | None = None
+    row_panels: int | None = None
+    tile_group: int | None = None
+    tile_band: int | None = None
+    tile_bytes: int | None = None
+    near_prefetch: bool = True
+
+
+def factorize_distributed(scene, options: PrecomputePlan, backend: DaskBackend | None = None, *, checkpoint=None,
+                          progress: ProgressCallback = None, status=None,
+                          tuning: DaskTuning | None = None) -> HFactorization:
+    """Precompute a scene on a Dask cluster: what :func:`hfrad.factorize` does, as Dask tasks.
+
+    Users call ``hfrad.factorize(scene, backend=DaskBackend(...))``, which validates
+    the options and comes here; this is the backend.
+
+    Parameters
+    ----------
+    scene : Scene
+    options : PrecomputePlan
+        From :func:`hfrad.precompute.options.plan_precompute` (the local path's). With
+        ``options.reciprocity`` each pair of groups of blocks within the band is computed
+        once and copied by reciprocity (:mod:`hfrad.distributed.tiles`).
+    backend : DaskBackend
+        The cluster (``scheduler``, or ``workers`` for a LocalCluster; ``scheduler`` may
+        also be a :class:`~hfrad.distributed.connection.Cluster` from
+        :func:`~hfrad.distributed.connect`), numba threads per task, the connect timeout,
+        and ``records``: a list filled with one dict per task of the tree (kind, node,
+        rank, columns, rows, seconds, form-factor and SVD seconds, ranks merged, worker,
+        resumed), the measured per-task costs behind docs/cluster.md's model, then one dict
+        per task of the panelled merges (kind "slice", "gram", "form" or "chunk": node,
+        seconds, cpu, rows or columns, ranks). See :class:`hfrad.precompute.backends.DaskBackend`.
+    checkpoint : path, optional
+        A folder for the finished subtrees' factors (:mod:`hfrad.distributed.store`),
+        reachable at this path from every worker; a rerun with the same scene and
+        options skips what it holds. Left in place (the caller deletes it once the
+        result is saved: :func:`hfrad.distributed.store.remove_folder`).
+    progress : callable (done, total), optional
+        Leaves (column blocks) done.
+    status : callable (dict), optional
+        Called with ``blocks``, ``rank`` (summed over the finished nodes not yet
+        merged, as the local path's stack) and ``elapsed`` when they change.
+    tuning : DaskTuning, optional
+        How the tree is cut into tasks (row panels, reciprocity tiles, the near-field
+        prefetch); the defaults suit every run, the fields are for measurements and tests.
 
     Returns
     -------
     HFactorization or NearFieldFactorization
-        As the local path's (:func:`hfrad.solve.assemble.assemble`); ``params`` and
+        As the local path's (:func:`hfrad.precompute.assemble.assemble`); ``params`` and
         ``lowrank.info`` record ``backend="dask"``, the number of workers and the
         seconds per stage (summed over tasks, plus wall time).
 
@@ -138,16 +146,18 @@ def factorize_distributed(scene, options: PrecomputeOptions, *, scheduler=None, 
     only its tasks: Dask recomputes them from the graph. Memory per worker:
     :func:`hfrad.distributed.sizing.worker_bytes`.
     """
-    if not isinstance(options, PrecomputeOptions):
-        raise TypeError("options must come from hfrad.solve.assemble.precompute_options "
-                        "(or call hfrad.factorize(scene, scheduler=..., workers=...))")
-    tiling = {"group": tile_group, "band": tile_band, "budget_bytes": tile_bytes}
-    if isinstance(scheduler, Cluster):
-        return _run(scheduler, scene, options, task_threads, checkpoint, progress, status, records,
-                    panel_leaves, row_panels, tiling, near_prefetch)
-    with connect(scheduler, workers=workers, timeout=connect_timeout) as cluster:
-        return _run(cluster, scene, options, task_threads, checkpoint, progress, status, records,
-                    panel_leaves, row_panels, tiling, near_prefetch)
+    if not isinstance(options, PrecomputePlan):
+        raise TypeError("options must come from hfrad.precompute.options.plan_precompute "
+                        "(or call hfrad.factorize(scene, backend=hfrad.DaskBackend(...)))")
+    backend = DaskBackend() if backend is None else backend
+    tuning = DaskTuning() if tuning is None else tuning
+    tiling = {"group": tuning.tile_group, "band": tuning.tile_band, "budget_bytes": tuning.tile_bytes}
+    run = (scene, options, backend.task_threads, checkpoint, progress, status, backend.records,
+           tuning.panel_leaves, tuning.row_panels, tiling, tuning.near_prefetch)
+    if isinstance(backend.scheduler, Cluster):
+        return _run(backend.scheduler, *run)
+    with connect(backend.scheduler, workers=backend.workers, timeout=backend.connect_timeout) as cluster:
+        return _run(cluster, *run)
 
 
 def _check_worker_memory(cluster: Cluster, n: int, block_size: int) -> None:
@@ -437,7 +447,7 @@ ASSEMBLY_MIN_WORKERS = 3
 NEUMANN_COLUMNS = 16
 
 
-def make_job(scene, options: PrecomputeOptions, task_threads: int | None, token: str, checkpoint=None) -> Job:
+def make_job(scene, options: PrecomputePlan, task_threads: int | None, token: str, checkpoint=None) -> Job:
     """The :class:`~hfrad.distributed.tasks.Job` a run scatters to its workers (also used by
     benchmarks/bench_cluster_model.py to run single tasks)."""
     from ..formfactors.visibility import DEFAULT_SAMPLES
@@ -447,7 +457,7 @@ def make_job(scene, options: PrecomputeOptions, task_threads: int | None, token:
                ray_budget=options.ray_budget(scene), task_threads=task_threads, token=token, checkpoint=checkpoint)
 
 
-def tile_plan(cluster: Cluster, options: PrecomputeOptions, group=None, band=None, budget_bytes=None):
+def tile_plan(cluster: Cluster, options: PrecomputePlan, group=None, band=None, budget_bytes=None):
     """The run's :class:`~hfrad.distributed.tiles.TilePlan` (None without the reciprocity copy or with one block).
 
     The tile budget per worker: ``budget_bytes``, else ``TILE_SHARE`` of the smallest worker memory
@@ -466,7 +476,7 @@ def tile_plan(cluster: Cluster, options: PrecomputeOptions, group=None, band=Non
                           group=group, band=band, budget_bytes=budget_bytes)
 
 
-def _run(cluster: Cluster, scene, options: PrecomputeOptions, task_threads, checkpoint, progress, status,
+def _run(cluster: Cluster, scene, options: PrecomputePlan, task_threads, checkpoint, progress, status,
          records_out, panel_leaves=None, row_panels=None, tiling=None, near_prefetch=True) -> HFactorization:
     client = cluster.client
     n, block_size, m = options.n, options.block_size, options.n_blocks

@@ -7,7 +7,7 @@ form-factor block of a leaf is made, split, compressed and dropped inside the
 task, so only its factors (n x k_j and b x k_j), statistics and near entries
 ever leave the worker.
 
-Everything here trusts its input: :func:`hfrad.solve.assemble.precompute_options`
+Everything here trusts its input: :func:`hfrad.precompute.options.plan_precompute`
 validated it on the client.
 """
 
@@ -21,10 +21,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..lowrank.hf import ErrorBudget, compress_leaf, merge_nodes, root_lowrank
-from ..lowrank.nearfield import NearFieldSplit
+from ..lowrank.nearsplit import NearFieldSplit
 from ..formfactors.parallel import column_block
-from ..formfactors.visibility import RayBudget
-from ..solve.assemble import add_statistics, concat_near, far_block, statistics_state
+from ..formfactors.budget import RayBudget
+from ..precompute.assemble import add_statistics, concat_near, far_block, statistics_state
 from ..solve.stats import PassStatistics
 from . import panels, store
 
@@ -38,8 +38,8 @@ class Job:
     scene : Scene
         The patches; each worker process builds its form-factor engine and
         Embree scene from it once (:func:`hfrad.formfactors.parallel.column_block`).
-    options : PrecomputeOptions
-        The validated options (:mod:`hfrad.solve.assemble`), the local path's:
+    options : PrecomputePlan
+        The validated options (:mod:`hfrad.precompute.options`), the local path's:
         internal order ``perm``, block size, dtype, error budget, near-field radius.
     rows_rho : (n, 1) of the factors' dtype
         ``rho_max`` in internal order: a block of G is ``rows_rho * F[perm][:, cols]``.
@@ -85,7 +85,7 @@ class Job:
 class Part:
     """A factored column range, what the pass recorded on it, and the records of the tasks that made it.
 
-    ``stats``: the pass statistics of these columns (:func:`~hfrad.solve.assemble.far_block`,
+    ``stats``: the pass statistics of these columns (:func:`~hfrad.precompute.assemble.far_block`,
     additive). ``near``: their near-field entries (None without the split). ``records`` has one
     dict per task in the subtree: ``kind`` ("leaf" or "merge"), ``node``, ``rank``, ``columns``,
     ``rows``, ``seconds`` (task wall time), ``cpu`` (CPU seconds of the worker process during the

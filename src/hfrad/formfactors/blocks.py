@@ -13,9 +13,11 @@ streamed, cached on disk and resumed, or spread over machines.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import tempfile
 import warnings
+from dataclasses import dataclass
 from typing import Iterator
 
 import numpy as np
@@ -24,16 +26,18 @@ from ..defaults import DEFAULT_BLOCK_SIZE
 from ..errors import InputError, MemoryLimitError
 from ..memory import available_bytes as available_memory
 from ..progress import ProgressCallback, report
+from ..resources import cores
 from ..validation import check_permutation
+from .budget import RayBudget
 from .cache import BlockCache, array_hash, scene_hash
 from .engine import FormFactorEngine
 from .kernel import ADAPTIVE, KERNEL_VERSION, NEAR, TOLERANCE
 from .mirror import (MIRROR_LAG, SCRATCH_SHARE, ReciprocityMirror, TileScratch, band_for, mirror_bytes,
                      band_pairs, scratch_bytes, slot_bytes, spill_band_for)
-from .parallel import MIN_PARALLEL_PATCHES, ProcessEngine, default_workers
-from .visibility import CLUSTER_VISIBILITY, DEFAULT_SAMPLES, PAIR_TEST, RayBudget, check_samples
+from .parallel import MIN_PARALLEL_PATCHES, ProcessEngine
+from .visibility import CLUSTER_VISIBILITY, DEFAULT_SAMPLES, PAIR_TEST, check_samples
 
-__all__ = ["FormFactorEngine", "iter_column_blocks", "form_factor_matrix", "row_sums",
+__all__ = ["FormFactorEngine", "iter_column_blocks", "Consumer", "form_factor_matrix", "row_sums",
            "available_memory", "DEFAULT_BLOCK_SIZE"]
 
 _MEMORY_FRACTION = 0.5
@@ -67,10 +71,9 @@ def iter_column_blocks(scene, block_size: int = DEFAULT_BLOCK_SIZE, *, order=Non
                        engine: FormFactorEngine | None = None,
                        first_block: int = 0, processes: int | None = 1,
                        ray_budget: RayBudget | None = None,
-                       reciprocity: bool = True,
-                       reserved_bytes: int = 0, scratch=None,
+                       reciprocity: bool = True, scratch=None,
                        mirror_stats: dict | None = None,
-                       lend: bool = False) -> Iterator[tuple[int, int, np.ndarray]]:
+                       consumer: "Consumer | None" = None) -> Iterator[tuple[int, int, np.ndarray]]:
     """Stream F in column blocks, rows and columns in the internal ``order``.
 
     Yields ``(start, stop, block)`` with
@@ -113,9 +116,6 @@ def iter_column_blocks(scene, block_size: int = DEFAULT_BLOCK_SIZE, *, order=Non
         Holds n^2/4 entries of ``dtype`` at most, and at most ``MIRROR_SHARE`` of the
         available memory (:func:`~hfrad.formfactors.mirror.mirror_bytes`): with less, each
         block copies from fewer earlier blocks.
-    reserved_bytes : int
-        Memory the caller needs beside this pass (its estimate): the mirror's tiles
-        leave it free.
     scratch : str, Path or False, optional
         Folder of the scratch file that takes the reciprocity tiles the memory band
         cannot hold (:class:`~hfrad.formfactors.mirror.TileScratch`), so every pair is
@@ -131,11 +131,10 @@ def iter_column_blocks(scene, block_size: int = DEFAULT_BLOCK_SIZE, *, order=Non
         ``copied_pairs``, ``possible_pairs``, ``spilled_pairs``, ``scratch_bytes``,
         ``scratch_written``, ``scratch_seconds`` (this thread: copies, reads, checks),
         ``scratch_write_seconds`` (the writer thread), ``repaired_tiles``.
-    lend : bool
-        Blocks computed by worker processes come in one array reused for the whole
-        pass, valid only until the next block is asked for (no fresh n x b pages per
-        block); for a caller that is done with each block before the next. Default
-        False: every block is an array of its own.
+    consumer : Consumer, optional
+        What a caller that streams the blocks into a factorization tells the pass
+        (:class:`Consumer`: the memory it needs beside it, whether it may be lent the
+        blocks); default: nothing reserved, every block an array of its own.
 
     Raises
     ------
@@ -156,12 +155,8 @@ def iter_column_blocks(scene, block_size: int = DEFAULT_BLOCK_SIZE, *, order=Non
     _check_common(scene, samples, block_size)
     order = check_permutation(order, n)
     dtype = np.dtype(dtype)
-    store = None
-    if cache is not None:
-        store = cache if isinstance(cache, BlockCache) else BlockCache(cache)
-        store.open(cache_key(scene, samples=samples, block_size=block_size, order=order, dtype=dtype,
-                             ray_budget=ray_budget),
-                   n, block_size, dtype)
+    consumer = Consumer() if consumer is None else consumer
+    store = _open_store(cache, scene, samples, block_size, order, dtype, ray_budget, n)
     starts = list(range(0, n, block_size))[first_block:]
     # Only flags are read up front: a cached block is read when its turn comes,
     # so a cache of an out-of-core matrix is streamed, not loaded.
@@ -178,21 +173,14 @@ def iter_column_blocks(scene, block_size: int = DEFAULT_BLOCK_SIZE, *, order=Non
     # the scratch folder is checked (and its file reserved) before any work starts
     copies = None
     if reciprocity and todo:
-        try:
-            copies = _mirror_for(scene, order, block_size, first_block, dtype, reserved_bytes, scratch, recompute)
-        except BaseException:
-            if store is not None:
-                store.close()
-            raise
+        with _closing_on_error(store):
+            copies = _mirror_for(scene, order, block_size, first_block, dtype, consumer.reserved_bytes, scratch,
+                                 recompute)
     own_engine = engine is None
     if todo and engine is None:
-        try:
+        with _closing_on_error(copies):
             engine = make_engine(scene, samples=samples, processes=processes, ray_budget=ray_budget,
                                  block_size=block_size, dtype=dtype)
-        except BaseException:
-            if copies is not None:
-                copies.close()
-            raise
     skips: dict[int, slice] = {}
 
     def request(k: int):
@@ -202,7 +190,7 @@ def iter_column_blocks(scene, block_size: int = DEFAULT_BLOCK_SIZE, *, order=Non
         skips[k] = copies.copied_rows(k)          # decided when the block is handed out
         return cols, skips[k]
 
-    computed = engine.iter_blocks(order, (request(k) for k in todo), lend=lend) if todo else _empty()
+    computed = engine.iter_blocks(order, (request(k) for k in todo), lend=consumer.lend) if todo else _empty()
     try:
         for index, start in enumerate(starts, first_block):
             stop = min(n, start + block_size)
@@ -210,12 +198,7 @@ def iter_column_blocks(scene, block_size: int = DEFAULT_BLOCK_SIZE, *, order=Non
             if block is not None and copies is not None:
                 copies.discard(index)                  # read, not computed: its tiles are not needed
             if block is None:
-                with np.errstate(over="ignore", invalid="ignore"):
-                    # the rows the mirror fills next are unspecified (np.empty) until then: their
-                    # garbage must not warn "overflow encountered in cast"
-                    block = next(computed).astype(dtype, copy=False)
-                if copies is not None:
-                    copies.fill(index, block, skips.pop(index))
+                block = _computed_block(computed, dtype, copies, index, skips)
                 if store is not None:
                     store.put(index, start, stop, block)
             if copies is not None:
@@ -238,6 +221,59 @@ def iter_column_blocks(scene, block_size: int = DEFAULT_BLOCK_SIZE, *, order=Non
             repair["engine"].close()
         if own_engine and engine is not None:
             engine.close()
+
+
+@dataclass(frozen=True)
+class Consumer:
+    """What a caller streaming the column blocks into a factorization tells :func:`iter_column_blocks`.
+
+    Attributes
+    ----------
+    reserved_bytes : int
+        Memory the caller needs beside this pass (its estimate): the mirror's tiles
+        leave it free.
+    lend : bool
+        Blocks computed by worker processes come in one array reused for the whole
+        pass, valid only until the next block is asked for (no fresh n x b pages per
+        block); for a caller that is done with each block before the next. Default
+        False: every block is an array of its own.
+    """
+
+    reserved_bytes: int = 0
+    lend: bool = False
+
+
+def _open_store(cache, scene, samples, block_size, order, dtype, ray_budget, n) -> BlockCache | None:
+    """The pass's block cache, opened for this scene and these parameters (None without ``cache``)."""
+    if cache is None:
+        return None
+    store = cache if isinstance(cache, BlockCache) else BlockCache(cache)
+    store.open(cache_key(scene, samples=samples, block_size=block_size, order=order, dtype=dtype,
+                         ray_budget=ray_budget),
+               n, block_size, dtype)
+    return store
+
+
+@contextlib.contextmanager
+def _closing_on_error(resource):
+    """Close ``resource`` (if any) when the body raises, and re-raise."""
+    try:
+        yield
+    except BaseException:
+        if resource is not None:
+            resource.close()
+        raise
+
+
+def _computed_block(computed, dtype, copies, index: int, skips: dict) -> np.ndarray:
+    """The engine's next block in ``dtype``, its copied rows filled in by the mirror."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        # the rows the mirror fills next are unspecified (np.empty) until then: their
+        # garbage must not warn "overflow encountered in cast"
+        block = next(computed).astype(dtype, copy=False)
+    if copies is not None:
+        copies.fill(index, block, skips.pop(index))
+    return block
 
 
 def _mirror_for(scene, order: np.ndarray, block_size: int, first_block: int, dtype,
@@ -307,7 +343,7 @@ def make_engine(scene, *, samples: int = DEFAULT_SAMPLES, processes: int | None 
     ``MIN_PARALLEL_PATCHES`` patches and this process otherwise.
     """
     if processes is None:
-        processes = default_workers() if scene.n_patches >= MIN_PARALLEL_PATCHES else 1
+        processes = cores() if scene.n_patches >= MIN_PARALLEL_PATCHES else 1
     if int(processes) != processes or int(processes) < 1:
         raise InputError(f"processes must be a positive integer (or None for one per core), got {processes}")
     if int(processes) > 1:

@@ -9,25 +9,53 @@ of the unoccluded kernel, so it is the same in every block and every process
 ``A_i F_ij = A_j F_ji``, so reciprocity survives. A second threshold, for
 ``FEW_RAYS_FACTOR`` times that share, gives the pairs whose probe rays disagree
 with their neighbours' 4 rays instead of 16 (:func:`ray_budget`,
-:class:`~hfrad.formfactors.visibility.RayBudget`). By default the one-ray rule
+:class:`RayBudget`). By default the one-ray rule
 spends ``ONE_RAY_SHARE`` of a relative eps (:func:`default_one_ray_tol`) and is
 off for an absolute eps.
 
 This policy sits apart from the engines (:mod:`hfrad.formfactors.blocks`,
 :mod:`hfrad.formfactors.parallel`), which only apply the
-:class:`~hfrad.formfactors.visibility.RayBudget` they are given.
+:class:`RayBudget` they are given.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 
 from .clustered import block_function, kernel_for
 from .kernel import PatchGeometry
-from .visibility import RayBudget
 
-__all__ = ["ray_budget", "one_ray_threshold", "default_one_ray_tol", "FEW_RAYS_FACTOR", "ONE_RAY_SHARE",
+__all__ = ["RayBudget", "ray_budget", "one_ray_threshold", "default_one_ray_tol", "FEW_RAYS_FACTOR", "ONE_RAY_SHARE",
            "THRESHOLD_SAMPLE_COLUMNS"]
+
+
+@dataclass(frozen=True)
+class RayBudget:
+    """Fewer rays for pairs too weak to matter at the error budget (thresholds on ``A_i F_ij``, m^2).
+
+    ``A_i F_ij`` is the same number for (i, j) and (j, i), so both rules decide
+    alike from either side and V_ij == V_ji still holds. The thresholds come
+    from :func:`ray_budget` (a share of ``||F||_F``).
+
+    Attributes
+    ----------
+    one_ray_below : float
+        Pairs below this get one ray (the probe's, with probing); 0 = off.
+    few_rays_below : float
+        Flagged pairs (neighbouring probes disagree) below this get
+        ``samples`` rays (4 by default) instead of ``BOUNDARY_SAMPLES`` (16); 0 = off.
+    """
+
+    one_ray_below: float = 0.0
+    few_rays_below: float = 0.0
+
+    def key(self) -> dict:
+        """The nonzero thresholds, for cache keys (empty when both rules are off)."""
+        return {k: float(v) for k, v in (("one_ray_below", self.one_ray_below),
+                                         ("few_rays_below", self.few_rays_below)) if v}
+
 
 #: Columns sampled (spread over the scene) to pick the one-ray threshold.
 THRESHOLD_SAMPLE_COLUMNS = 128

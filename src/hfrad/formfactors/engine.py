@@ -14,10 +14,11 @@ from typing import Iterator
 
 import numpy as np
 
+from .budget import RayBudget
 from .clustered import kernel_for
 from .kernel import NEAR, TOLERANCE
 from .mirror import block_request, computed_rows, full_height
-from .visibility import DEFAULT_SAMPLES, RayBudget, Visibility
+from .visibility import DEFAULT_SAMPLES, Visibility
 
 __all__ = ["FormFactorEngine"]
 

@@ -52,9 +52,10 @@ from ..errors import WorkerError
 from .cache import scene_hash
 from .engine import FormFactorEngine
 from .mirror import block_request, computed_rows, put_computed_rows
-from .visibility import DEFAULT_SAMPLES, RayBudget
+from .budget import RayBudget
+from .visibility import DEFAULT_SAMPLES
 
-__all__ = ["ProcessEngine", "column_block", "default_workers",
+__all__ = ["ProcessEngine", "column_block",
            "MIN_PARALLEL_PATCHES", "remove_stale_segments", "SEGMENT_PREFIX"]
 
 #: Below this many patches the workers' start-up (each a spawned interpreter that imports numpy,
@@ -65,14 +66,6 @@ MIN_PARALLEL_PATCHES = 4000
 # ``workers`` processes fill ``workers`` cores without oversubscription.
 _WORKER_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
                "NUMBA_NUM_THREADS": "1"}
-
-
-def default_workers() -> int:
-    """Worker processes by default: the cores this process may use."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # pragma: no cover - non-Linux
-        return max(1, os.cpu_count() or 1)
 
 
 # -- one engine per process (workers, Dask) ---------------------------------------------

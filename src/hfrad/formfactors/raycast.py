@@ -35,6 +35,8 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 from numba import njit, types
 
+from ..resources import cores
+
 _MIN_CHUNK = 65536  # below this, thread hand-off costs more than it saves
 
 
@@ -178,14 +180,6 @@ def _occluded(scene, o, d, t, hit):
             hit[s + k] = ray[128 + k] < 0.0
 
 
-def default_threads() -> int:
-    """Threads for ray casting: the cores this process may use."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # pragma: no cover - non-Linux
-        return max(1, os.cpu_count() or 1)
-
-
 class RayCaster:
     """An Embree scene over triangles, answering batched ray queries.
 
@@ -229,7 +223,7 @@ class RayCaster:
                 self._packets = _PacketScene(lib, self.triangles)
             except OSError:  # pragma: no cover - depends on the install
                 self._packets = None
-        self.threads = threads or default_threads()
+        self.threads = threads or cores()   # the cores this process may use
         self._pool = ThreadPoolExecutor(self.threads) if self.threads > 1 else None
 
     @property

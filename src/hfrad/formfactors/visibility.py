@@ -67,12 +67,12 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
 
 import numpy as np
 from numba import njit, prange
 
 from ..errors import InputError
+from .budget import RayBudget
 from .clustervis import (MIXED, ClusterVisibility, costly_pairs,
                          full_ray_pairs_clustered)
 from .kernel import points_on_triangles, split_centroids
@@ -113,32 +113,6 @@ PAIR_TEST = True
 MAX_CULL_OCCLUDERS = 2048
 
 _OFFSET = 1e-5  # end point offset, times the scene size
-
-
-@dataclass(frozen=True)
-class RayBudget:
-    """Fewer rays for pairs too weak to matter at the error budget (thresholds on ``A_i F_ij``, m^2).
-
-    ``A_i F_ij`` is the same number for (i, j) and (j, i), so both rules decide
-    alike from either side and V_ij == V_ji still holds. The thresholds come
-    from :func:`hfrad.formfactors.budget.ray_budget` (a share of ``||F||_F``).
-
-    Attributes
-    ----------
-    one_ray_below : float
-        Pairs below this get one ray (the probe's, with probing); 0 = off.
-    few_rays_below : float
-        Flagged pairs (neighbouring probes disagree) below this get
-        ``samples`` rays (4 by default) instead of ``BOUNDARY_SAMPLES`` (16); 0 = off.
-    """
-
-    one_ray_below: float = 0.0
-    few_rays_below: float = 0.0
-
-    def key(self) -> dict:
-        """The nonzero thresholds, for cache keys (empty when both rules are off)."""
-        return {k: float(v) for k, v in (("one_ray_below", self.one_ray_below),
-                                         ("few_rays_below", self.few_rays_below)) if v}
 
 
 def settings() -> dict:

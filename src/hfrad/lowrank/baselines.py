@@ -21,6 +21,7 @@ import numpy as np
 import scipy.linalg as sla
 
 from ..errors import FactorizationError, InputError
+from ..validation import check_tolerance
 from .factors import LowRank, sign_fix, truncation_rank
 
 
@@ -35,8 +36,7 @@ def _target2(eps: float, relative: bool, norm2: float) -> float:
 
 
 def _check(A, eps: float, dtype) -> np.ndarray:
-    if not (eps >= 0 and np.isfinite(eps)):
-        raise InputError(f"eps must be a finite number >= 0; got {eps!r}")
+    check_tolerance(eps)
     A = np.asarray(A, dtype=dtype)
     if A.ndim != 2:
         raise InputError(f"expected a 2-D matrix; got shape {A.shape}")

@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import contextlib
 import math
-import os
 import time
 from dataclasses import dataclass
 from typing import Iterable
@@ -37,6 +36,8 @@ import scipy.linalg as sla
 
 from ..errors import FactorizationError, InputError
 from ..progress import ProgressCallback, report
+from ..resources import spare_threads
+from ..validation import check_tolerance
 from .factors import LowRank, sign_fix, truncation_rank
 
 
@@ -353,113 +354,6 @@ class ErrorBudget:
         return self.eps2 / (2 * self.m - 1)
 
 
-# -- BLAS threads on a shared machine ------------------------------------------------
-#: Seconds over which the other processes' CPU use is measured before a merge ...
-_BUSY_WINDOW = 0.1
-#: ... and for how long that measure is reused: at most ~0.3% of the time spent measuring where every
-#: push measures (a caller without a thread limit; the pipeline's pushes run at one thread and skip it).
-_BUSY_REUSE = 30.0
-_busy_cache: list = [float("-inf"), 0.0]    # [when measured, other processes' cores]
-
-
-def _own_pids() -> set[int]:
-    """This process and its descendants (the form-factor workers), from /proc."""
-    parent: dict[int, int] = {}
-    for entry in os.scandir("/proc"):
-        if entry.name.isdigit():
-            try:
-                with open(f"/proc/{entry.name}/stat", "rb") as fh:
-                    rest = fh.read().rsplit(b")", 1)[1].split()
-                parent[int(entry.name)] = int(rest[1])
-            except (OSError, IndexError, ValueError):
-                continue
-    own, grew = {os.getpid()}, True
-    while grew:
-        more = {pid for pid, pp in parent.items() if pp in own} - own
-        own |= more
-        grew = bool(more)
-    return own
-
-
-def _jiffies(pids) -> int:
-    """User + system clock ticks of ``pids`` (those still alive)."""
-    total = 0
-    for pid in pids:
-        try:
-            with open(f"/proc/{pid}/stat", "rb") as fh:
-                rest = fh.read().rsplit(b")", 1)[1].split()
-            total += int(rest[11]) + int(rest[12])
-        except (OSError, IndexError, ValueError):
-            continue
-    return total
-
-
-def _machine_jiffies() -> tuple[int, int]:
-    """(busy, total) clock ticks of all CPUs from /proc/stat; steal counts as busy (not ours to use)."""
-    with open("/proc/stat") as fh:
-        values = [int(x) for x in fh.readline().split()[1:9]]
-    idle = values[3] + values[4]                 # idle + iowait
-    return sum(values) - idle, sum(values)
-
-
-def other_processes_cores(window: float = _BUSY_WINDOW) -> float | None:
-    """Cores' worth of CPU that processes other than this one and its children used over ``window`` s.
-
-    None where /proc cannot be read (not Linux).
-    """
-    try:
-        tick = os.sysconf("SC_CLK_TCK")
-        own = _own_pids()
-        busy0, _ = _machine_jiffies()
-        mine0 = _jiffies(own)
-        t0 = time.perf_counter()
-        time.sleep(window)
-        busy1, _ = _machine_jiffies()
-        mine1 = _jiffies(own)
-        seconds = time.perf_counter() - t0
-    except (OSError, ValueError):
-        return None
-    return max(busy1 - busy0 - (mine1 - mine0), 0) / tick / seconds
-
-
-def _blas_threads_now() -> int:
-    from threadpoolctl import threadpool_info
-
-    return max((lib.get("num_threads") or 1 for lib in threadpool_info() if lib.get("user_api") == "blas"),
-               default=1)
-
-
-def spare_blas_threads(limit: int) -> int:
-    """At most ``limit`` BLAS threads, one fewer per core the machine's other processes keep busy.
-
-    Multi-threaded OpenBLAS on cores that other processes also want spin-waits at every
-    synchronisation, so a BLAS call on a loaded machine can take several times longer with
-    two threads than with one (benchmarks/regression.md).
-    This process's own children (the form-factor workers, which stop within a few blocks)
-    are not counted. The measure is reused for ``_BUSY_REUSE`` seconds.
-    """
-    now = time.perf_counter()
-    if now - _busy_cache[0] > _BUSY_REUSE:
-        others = other_processes_cores()
-        _busy_cache[:] = [now, 0.0 if others is None else others]
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    return max(1, min(int(limit), cores - math.ceil(_busy_cache[1] - 0.5)))
-
-
-@contextlib.contextmanager
-def spare_threads():
-    """Lower the BLAS threads inside to :func:`spare_blas_threads` (never raise them; nothing to do at one)."""
-    current = _blas_threads_now()
-    spare = spare_blas_threads(current) if current > 1 else current
-    if spare >= current:
-        yield
-        return
-    from threadpoolctl import threadpool_limits
-
-    with threadpool_limits(limits=spare, user_api="blas"):
-        yield
-
-
 class HFStream:
     """One-pass hierarchical factorization fed block by block.
 
@@ -475,8 +369,7 @@ class HFStream:
 
     def __init__(self, n: int, n_blocks: int, *, eps: float = 0.02, relative: bool = True,
                  dtype=np.float32, leaf_share: float = 0.5) -> None:
-        if not (eps >= 0 and np.isfinite(eps)):
-            raise InputError(f"eps must be a finite number >= 0; got {eps!r}")
+        check_tolerance(eps)
         if not (0.0 < leaf_share <= 1.0):
             raise InputError(f"leaf_share must be in (0, 1]; got {leaf_share!r}")
         self.n, self.n_blocks = int(n), int(n_blocks)

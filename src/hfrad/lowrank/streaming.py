@@ -6,7 +6,7 @@ resume after the last saved block without redoing finished blocks.
 
 A checkpoint is an HDF5 file protected like an ``.hfr`` file: every array
 carries HDF5's Fletcher-32 checksum, the attributes a SHA-256 digest, and the
-root a list of the datasets (:func:`~hfrad.formfactors.cache.seal`). Policy: a
+root a list of the datasets (:func:`~hfrad.integrity.seal`). Policy: a
 checkpoint that is damaged (a flipped bit, truncated, not HDF5 at all), written
 by an older hfrad (version 1 had no checksums) or made for another scene or
 other parameters is **refused** with a :class:`~hfrad.errors.FileFormatError`
@@ -25,7 +25,7 @@ import numpy as np
 
 from ..errors import FileFormatError, InputError
 from ..atomic import atomic_path
-from ..formfactors.cache import checked_dataset, integrity_problem, seal
+from ..integrity import checked_dataset, integrity_problem, seal
 from .hf import HFStream, _Node
 
 #: 2: checksums, digest and dataset list (version 1 had none: refused, it cannot be verified).

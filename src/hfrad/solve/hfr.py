@@ -67,7 +67,7 @@ from .._version import __version__
 from ..atomic import atomic_path
 from ..errors import FileFormatError
 from ..lowrank.factors import LowRank
-from ..formfactors.cache import DIGEST, attrs_digest, checked_dataset, integrity_problem, seal
+from ..integrity import DIGEST, attrs_digest, checked_dataset, integrity_problem, seal
 from ..validation import object_first
 from .nearfield import NearFieldFactorization
 from .quantized import QuantizedRows

@@ -1,6 +1,6 @@
 """Solves with the near-field split: Woodbury around the sparse ``I - D_c N``.
 
-With ``G = N + Q V^T`` (N sparse near field, :mod:`hfrad.lowrank.nearfield`)
+With ``G = N + Q V^T`` (N sparse near field, :mod:`hfrad.lowrank.nearsplit`)
 and ``D_c = diag(rho_c / rho_max)``, channel c solves
 
     (A_c - U_c V^T) B_c = E_c,    A_c = I - D_c N  (sparse),  U_c = D_c Q.
@@ -40,7 +40,8 @@ import scipy.sparse as sp
 from scipy.sparse.linalg import splu
 
 from ..errors import FactorizationError, InputError
-from ..lowrank.hf import SLAB_ROWS, spare_threads
+from ..lowrank.hf import SLAB_ROWS
+from ..resources import spare_threads
 from ..lowrank.factors import LowRank
 from . import thin
 from .bounds import power_sigma_max
@@ -258,7 +259,16 @@ class NearFieldFactorization(HFactorization):
     def __init__(self, perm, Q, V, N, rho_max, reflectance, lowrank: LowRank, *, capacitance=None,
                  near_solution=None, quantize: bool | None = None, sigma_max=None, params: dict | None = None,
                  scene=None, stats=None, runner=None):
-        self._set_state(perm, Q, V, rho_max, reflectance, lowrank, sigma_max, params, scene, stats)
+        # what the set-up needs beside the parent's arguments: read by _capacitance_inv, which the
+        # parent's constructor calls once the shared state (perm, Q, V, D_c, ...) is in place
+        self._setup = (N, near_solution, quantize, runner)
+        super().__init__(perm, Q, V, rho_max, reflectance, lowrank, capacitance=capacitance, sigma_max=sigma_max,
+                         params=params, scene=scene, stats=stats)
+
+    def _capacitance_inv(self, stored) -> np.ndarray:
+        """The near-field set-up (N, Z per distinct channel), then ``K_c^{-1}`` (3, k, k): stored or computed."""
+        N, near_solution, quantize, runner = self._setup
+        del self._setup
         self._sources = self._channel_sources()
         #: for each channel, its Z in the stack of distinct channels
         self._stored = [self.distinct_channels.index(s) for s in self._sources]
@@ -271,10 +281,10 @@ class NearFieldFactorization(HFactorization):
         self.last_sweeps = 0
         self._quantization_error: np.ndarray | None = None
         self._quantize = quantize
-        with spare_threads():   # BLAS threads that other processes leave free (hfrad.lowrank.hf)
-            Z, K_inv = self._near_solution(near_solution, capacitance, quantize, runner or InProcess())
+        with spare_threads():   # BLAS threads that other processes leave free (hfrad.resources)
+            Z, K_inv = self._near_solution(near_solution, stored, quantize, runner or InProcess())
         self.Z = Z if isinstance(Z, QuantizedRows) else read_only(Z)   # QuantizedRows holds read-only arrays
-        self.capacitance_inv = read_only(K_inv)
+        return K_inv
 
     @property
     def distinct_channels(self) -> list[int]:

@@ -1,10 +1,12 @@
-"""One precompute, two backends: the validated options and the assembly of the solver object.
+"""One precompute, two backends: what a column block adds, and the assembly of the solver object.
 
-``hfrad.factorize(scene)`` runs the precompute in this process (:mod:`hfrad.pipeline`)
+``hfrad.factorize(scene)`` runs the precompute in this process (:mod:`hfrad.precompute.local`)
 or as Dask tasks (:mod:`hfrad.distributed`); the backend only decides where column
-blocks, leaves and merges run. Both take a :class:`PrecomputeOptions` (validated
-once, here) and end in :func:`assemble`: low-rank factors + near-field entries +
-pass statistics + parameters -> the solver object. Per column block both do the
+blocks, leaves and merges run. Both take a :class:`PrecomputePlan` (validated once,
+:func:`~hfrad.precompute.options.plan_precompute`) and end in :func:`assemble`:
+low-rank factors + near-field entries + pass statistics + parameters -> the solver object;
+the matrix and blocks entry points (:mod:`hfrad.precompute.matrix`) end in its last step,
+:func:`solver_object`. Per column block both do the
 same (:func:`far_block`: the pass statistics, G and the near-field split in one read of F;
 :func:`~hfrad.lowrank.hf.compress_leaf`), so the two give the same class, the
 same ``.hfr`` contents (apart from the recorded backend and timings) and the same
@@ -22,38 +24,36 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from ..defaults import DEFAULT_BLOCK_SIZE
-from ..errors import InputError, SceneError
+from ..errors import InputError
 from ..lowrank.hf import ErrorBudget
 from ..lowrank.factors import LowRank
-from ..lowrank.nearfield import NearFieldSplit, near_radius
+from ..lowrank.nearsplit import NearFieldSplit
 from ..formfactors.energy import warn_energy
-from ..formfactors.budget import default_one_ray_tol
 from ..scene.scene import Scene
-from ..scene.zorder import patch_order
-from ..validation import check_factorize_options, check_permutation
-from .nearfield import NearFieldFactorization
-from .samples import SampledRows
-from .stats import PassStatistics
-from .woodbury import HFactorization
+from ..solve.nearfield import NearFieldFactorization
+from ..solve.samples import SampledRows
+from ..solve.stats import PassStatistics
+from ..solve.woodbury import HFactorization
 
-__all__ = ["PrecomputeOptions", "precompute_options", "assemble", "far_block", "statistics_state", "add_statistics",
-           "near_state", "concat_near"]
+__all__ = ["PrecomputePlan", "assemble", "solver_object", "far_block", "statistics_state", "add_statistics", "near_state",
+           "concat_near"]
 
 #: The arrays of the near field's coordinate lists (:meth:`NearFieldSplit.state`).
 NEAR_KEYS = ("near_rows", "near_cols", "near_values")
 
 
 @dataclass(frozen=True, eq=False)
-class PrecomputeOptions:
-    """The precompute's options for one scene, validated (:func:`precompute_options`).
+class PrecomputePlan:
+    """The precompute's options for one scene, validated and resolved (:func:`plan_precompute`).
 
     Attributes
     ----------
     n : int
         Patches.
-    eps, relative, block_size, dtype, samples, leaf_share, one_ray_tol, reciprocity
-        As in :func:`hfrad.factorize` (``one_ray_tol`` resolved: never None).
+    eps, relative, dtype, reciprocity
+        As in :func:`hfrad.factorize` (``reciprocity`` from its backend).
+    block_size, samples, leaf_share, one_ray_tol
+        As in :class:`~hfrad.precompute.options.PrecomputeOptions` (``block_size`` and ``one_ray_tol`` resolved: never None).
     order : str
         The order's name ("zorder", "hilbert", "random", "input") or "custom".
     perm : (n,) int64
@@ -91,7 +91,7 @@ class PrecomputeOptions:
         """The HF error budget every leaf and merge of either backend draws from."""
         return ErrorBudget(self.eps, self.relative, max(self.n_blocks, 1), self.leaf_share)
 
-    def replace(self, **changes) -> "PrecomputeOptions":
+    def replace(self, **changes) -> "PrecomputePlan":
         return dataclasses.replace(self, **changes)
 
     def params(self) -> dict:
@@ -134,69 +134,6 @@ class PrecomputeOptions:
 
         return ray_budget(scene, self.one_ray_tol)
 
-
-def precompute_options(scene: Scene, *, eps: float = 0.02, relative: bool = True, block_size: int | None = None,
-                       dtype="float32", samples: int | None = None, order="zorder", leaf_share: float = 0.5,
-                       one_ray_tol: float | None = None, near_entries: int = 0,
-                       reciprocity: bool = True) -> PrecomputeOptions:
-    """Validate the precompute's options for ``scene`` at the API boundary (both backends).
-
-    Parameters
-    ----------
-    scene : Scene
-    eps, relative, block_size, dtype, samples, order, leaf_share, one_ray_tol, reciprocity
-        As in :func:`hfrad.factorize`.
-    near_entries : int >= 0
-        Facing neighbours per row of the near field, already resolved from
-        ``near_field="auto"`` (:func:`hfrad.pipeline.near_entries`); 0: no split.
-
-    Returns
-    -------
-    PrecomputeOptions
-
-    Raises
-    ------
-    InputError
-        A bad option (names it).
-    SceneError
-        A scene without patches.
-    """
-    if not isinstance(scene, Scene):
-        raise TypeError(f"scene must be a hfrad Scene (see hfrad.load_scene); got {type(scene).__name__}")
-    n = scene.n_patches
-    if n == 0:
-        raise SceneError(f"{scene.name}: the scene has no patches")
-    if block_size is None:
-        block_size = min(DEFAULT_BLOCK_SIZE, n)
-    dt = check_factorize_options(n, eps, block_size, dtype, relative)
-    if not (0.0 < leaf_share <= 1.0):
-        raise InputError(f"leaf_share must be in (0, 1]; got {leaf_share!r}")
-    if samples is not None and (int(samples) != samples or samples < 0):
-        raise InputError(f"samples must be a number of rays >= 0; got {samples!r}")
-    if one_ray_tol is None:
-        one_ray_tol = default_one_ray_tol(eps, relative)
-    elif not (one_ray_tol >= 0 and np.isfinite(one_ray_tol)):
-        raise InputError(f"one_ray_tol must be a share >= 0 of ||F||_F; got {one_ray_tol!r}")
-    if isinstance(order, str):
-        perm = patch_order(scene.centroids, order)
-    else:
-        perm = check_permutation(order, n)
-        order = "custom"
-    if int(near_entries) != near_entries or near_entries < 0:
-        raise InputError(f"near_entries must be a number of neighbours per row >= 0; got {near_entries!r}")
-    entries = int(near_entries)
-    from ..formfactors.kernel import settings as kernel_settings
-    from ..formfactors.visibility import settings as visibility_settings
-
-    return PrecomputeOptions(
-        n=n, eps=float(eps), relative=bool(relative), block_size=int(block_size), dtype=dt.name,
-        samples=None if samples is None else int(samples), order=order, perm=np.asarray(perm, np.int64),
-        leaf_share=float(leaf_share), one_ray_tol=float(one_ray_tol), near_entries=entries,
-        # the radius, not only the count, is part of the checkpoint key
-        near_radius=near_radius(scene.centroids, entries, scene.normals) if entries else 0.0,
-        reciprocity=bool(reciprocity),
-        # kernel version and tolerance: recorded in the .hfr, part of the checkpoint key
-        form_factors={**kernel_settings(), **visibility_settings()})
 
 
 # -- What a column block adds: additive over blocks, so a Dask leaf returns its share -------------
@@ -265,14 +202,14 @@ def concat_near(a: dict | None, b: dict | None) -> dict | None:
 
 # -- The one assembly step ---------------------------------------------------------------------------
 
-def assemble(scene: Scene, options: PrecomputeOptions, lowrank: LowRank, stats: PassStatistics,
+def assemble(scene: Scene, options: PrecomputePlan, lowrank: LowRank, stats: PassStatistics,
              near: dict | None = None, *, backend: dict | None = None, runner=None) -> HFactorization:
     """Low-rank factors + near field + pass statistics + parameters -> the solver object.
 
     Parameters
     ----------
     scene : Scene
-    options : PrecomputeOptions
+    options : PrecomputePlan
     lowrank : LowRank
         ``G_int - N ~= Q V^T`` (internal order) with its achieved error; its ``info``
         gets ``near_radius``, ``near_nnz``, ``time_nearfield_setup`` and ``solver``.
@@ -300,20 +237,49 @@ def assemble(scene: Scene, options: PrecomputeOptions, lowrank: LowRank, stats: 
     """
     perm = options.perm
     warn_energy(scene, stats.row_sums[np.argsort(perm)])
-    rho_max = scene.reflectance.max(axis=1)
     params = {**options.params(), **(backend or {})}
-    if not options.near_entries:
-        fac = HFactorization(perm, lowrank.Q, lowrank.V, rho_max, scene.reflectance, lowrank,
-                             params=params, scene=scene, stats=stats)
-    else:
+    N = None
+    if options.near_entries:
         if near is None:
             raise InputError(f"options.near_entries is {options.near_entries} (the near-field split) but no "
                              "near entries were passed: assemble(..., near=near_state(rows, cols, values))")
-        t1 = time.perf_counter()
         N = sp.csr_matrix((near["near_values"], (near["near_rows"], near["near_cols"])),
                           shape=(options.n, options.n))
         lowrank.info.update({"near_radius": options.near_radius, "near_nnz": int(N.nnz)})
-        fac = NearFieldFactorization(perm, lowrank.Q, lowrank.V, N, rho_max, scene.reflectance, lowrank,
+    return solver_object(perm, lowrank, scene.reflectance, params, stats, scene=scene, near=N, runner=runner)
+
+
+def solver_object(perm: np.ndarray, lowrank: LowRank, reflectance: np.ndarray, params: dict,
+                  stats: PassStatistics, *, scene: Scene | None = None, near=None, runner=None) -> HFactorization:
+    """The solver object of factors in internal order: the last step of every entry point.
+
+    Parameters
+    ----------
+    perm : (n,) int
+        Internal order (internal index t holds user patch ``perm[t]``).
+    lowrank : LowRank
+        ``G_int (- N) ~= Q V^T``; its ``info`` gets ``solver`` (and ``time_nearfield_setup``).
+    reflectance : (n, 3) float in [0, 1), user order
+    params : dict
+        Recorded with the factorization (``.hfr``).
+    stats : PassStatistics
+    scene : Scene, optional
+    near : (n, n) sparse, optional
+        N in internal order: the near-field solver (Woodbury around ``I - D_c N``).
+    runner : optional
+        Where the near-field set-up runs (see :func:`assemble`).
+
+    Returns
+    -------
+    HFactorization or NearFieldFactorization
+    """
+    rho_max = reflectance.max(axis=1)
+    if near is None:
+        fac = HFactorization(perm, lowrank.Q, lowrank.V, rho_max, reflectance, lowrank,
+                             params=params, scene=scene, stats=stats)
+    else:
+        t1 = time.perf_counter()
+        fac = NearFieldFactorization(perm, lowrank.Q, lowrank.V, near, rho_max, reflectance, lowrank,
                                      params=params, scene=scene, stats=stats, runner=runner)
         lowrank.info["time_nearfield_setup"] = time.perf_counter() - t1
     lowrank.info["solver"] = fac.solver

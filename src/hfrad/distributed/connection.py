@@ -5,11 +5,11 @@ from __future__ import annotations
 import contextlib
 import importlib.util
 import logging
-import os
 from dataclasses import dataclass
 from typing import Iterator
 
 from ..errors import InputError
+from ..resources import blas_threads, cores
 
 
 def default_connect_timeout() -> float:
@@ -71,18 +71,6 @@ def _dashboard(client, served: bool) -> str | None:
         return None
 
 
-@contextlib.contextmanager
-def _one_blas_thread(active: bool):
-    """One BLAS thread in this process while in-process workers run (their pool is process-wide)."""
-    if not active:
-        yield
-        return
-    from threadpoolctl import threadpool_limits
-
-    with threadpool_limits(limits=1, user_api="blas"):
-        yield
-
-
 def _check_address(address: str) -> str:
     address = address.strip()
     if not address or any(c.isspace() for c in address):
@@ -137,14 +125,14 @@ def connect(scheduler=None, *, workers: int | None = None, timeout: float | None
             raise InputError(f"workers must be a positive integer; got {workers}")
         workers = int(workers)
         bokeh = importlib.util.find_spec("bokeh") is not None  # the dashboard needs it
-        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
         # ":0": any free port for the scheduler's HTTP server (8787 may belong to another cluster)
         with LocalCluster(n_workers=workers, threads_per_worker=1, processes=processes,
                           dashboard_address=":0", silence_logs=logging.ERROR) as lc, \
-                Client(lc) as client, _one_blas_thread(not processes):
-            # Worker processes share this machine's cores; threads of this process share its BLAS pool.
+                Client(lc) as client, blas_threads(None if processes else 1):
+            # Worker processes share this machine's cores; threads of this process share its BLAS pool
+            # (one BLAS thread while in-process workers run).
             yield Cluster(client, lc.scheduler_address, workers, _dashboard(client, bokeh), "local",
-                          max(1, cores // workers) if processes else None)
+                          max(1, cores() // workers) if processes else None)
         return
     address = _check_address(str(scheduler))
     timeout = default_connect_timeout() if timeout is None else float(timeout)

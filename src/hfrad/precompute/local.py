@@ -1,0 +1,183 @@
+"""The precompute in this process: form-factor column blocks streamed into HF, checkpointed.
+
+Column blocks of ``G = diag(rho_max) F`` are generated one at a time in the plan's
+internal order (Z-order by default), pushed into a
+:class:`~hfrad.lowrank.hf.HFStream` and dropped, so the n x n matrix never exists.
+With a :class:`~hfrad.precompute.backends.Checkpoint` the stream state (with the pass
+statistics and the near entries so far) is saved every ``interval`` seconds and a
+rerun resumes after the last saved block. The sibling of :mod:`hfrad.distributed`,
+which runs the same plan as Dask tasks; both end in
+:func:`~hfrad.precompute.assemble.assemble`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..formfactors.blocks import Consumer, iter_column_blocks
+from ..lowrank.hf import HFStream
+from ..lowrank.nearsplit import NearFieldSplit
+from ..lowrank.streaming import load_checkpoint, save_checkpoint
+from ..memory import precompute_bytes
+from ..progress import ProgressCallback, report
+from ..resources import blas_threads, cores
+from ..scene.scene import Scene
+from ..solve.stats import PassStatistics
+from ..solve.woodbury import HFactorization
+from .assemble import PrecomputePlan, assemble, far_block
+from .backends import Checkpoint, LocalBackend
+
+__all__ = ["factorize_local", "CHECKPOINT_COST_RATIO"]
+
+#: Prefix of the pass statistics among a checkpoint's extra arrays.
+_STATS = "stats_"
+#: A checkpoint is written at most once per this many times its last write took, so that
+#: writing them costs at most ~2% (1/50) of the run: the state grows with the near field (24
+#: bytes an entry, 24 n c bytes for c entries a row) and with the rank (O(n k)), so a fixed
+#: interval would spend a growing share of a large run writing.
+CHECKPOINT_COST_RATIO = 50.0
+#: A push whose merges form a node of at least this share of all column blocks gets every BLAS thread.
+_LARGE_MERGE_SHARE = 0.25
+
+
+def factorize_local(scene: Scene, plan: PrecomputePlan, backend: LocalBackend | None = None,
+                    checkpoint: Checkpoint | None = None, progress: ProgressCallback = None,
+                    status=None) -> HFactorization:
+    """Run ``plan`` in this process: streamed form factors into HF, then the solver object.
+
+    Parameters
+    ----------
+    scene : Scene
+    plan : PrecomputePlan
+        From :func:`~hfrad.precompute.options.plan_precompute`.
+    backend : LocalBackend, optional
+        Form-factor processes and BLAS threads (default ``LocalBackend()``); its
+        ``reciprocity`` is the plan's.
+    checkpoint : Checkpoint, optional
+        Resume from ``checkpoint.path`` if it exists, save there while running.
+    progress, status
+        As in :func:`hfrad.factorize`.
+
+    Returns
+    -------
+    HFactorization or NearFieldFactorization
+    """
+    backend = LocalBackend() if backend is None else backend
+    n, block_size, dt = plan.n, plan.block_size, np.dtype(plan.dtype)
+    perm, n_blocks = plan.perm, plan.n_blocks
+    key = plan.key(scene)
+    path = None if checkpoint is None else checkpoint.path
+    stream = _open_stream(path, key, plan)
+    stats = _open_stats(stream, n, plan.stats_weights(scene), scene.reflectance[perm])
+    t0 = time.perf_counter()
+    ff_kwargs = {} if plan.samples is None else {"samples": plan.samples}
+    if plan.samples != 0:
+        ff_kwargs["ray_budget"] = plan.ray_budget(scene)
+    mirror_stats: dict = {}   # what the reciprocity copy did (pairs copied, scratch I/O), kept in info
+    # the reciprocity tiles leave free what the rest of the run is estimated to need; those beyond
+    # the memory band spill to a scratch file beside the output (its checkpoint), else in TMPDIR;
+    # blocks are lent (no copy): _stream_blocks is done with each before it asks for the next
+    consumer = Consumer(reserved_bytes=precompute_bytes(n, block_size, itemsize=dt.itemsize), lend=True)
+    blocks = iter_column_blocks(scene, block_size, order=perm, first_block=stream.blocks_done,
+                                processes=backend.processes, dtype=dt, reciprocity=plan.reciprocity,
+                                scratch=None if path is None else Path(path).parent,
+                                mirror_stats=mirror_stats, consumer=consumer, **ff_kwargs)
+    rows_rho = plan.rows_rho(scene)
+    split = None
+    if plan.near_entries:
+        split = NearFieldSplit(scene.centroids[perm], plan.near_radius)
+        if stream.blocks_done:
+            split.restore(stream.extra)
+    with blas_threads(backend.blas_threads):
+        time_ff, time_ckpt = _stream_blocks(blocks, stream, stats, rows_rho, checkpoint, key, progress, status,
+                                            t0, split)
+    # the last merges (the largest: up to the root) once the form-factor engine has stopped,
+    # with every BLAS thread
+    lowrank = stream.finish()
+    lowrank.info.update({"time_formfactors": time_ff, "time_checkpoints": time_ckpt,
+                         "time_precompute": time.perf_counter() - t0})
+    if mirror_stats:
+        lowrank.info["reciprocity"] = mirror_stats
+    fac = assemble(scene, plan, lowrank, stats, None if split is None else split.state(),
+                   backend={"backend": "local"})
+    if checkpoint is not None and not checkpoint.keep:
+        Path(checkpoint.path).unlink(missing_ok=True)
+    return fac
+
+
+def _open_stats(stream: HFStream, n: int, weights, reflectance) -> PassStatistics:
+    """The pass statistics, resumed from the stream's checkpointed extras when it was resumed."""
+    if stream.blocks_done == 0:
+        return PassStatistics(n, weights, reflectance=reflectance)
+    state = {k[len(_STATS):]: v for k, v in stream.extra.items() if k.startswith(_STATS)}
+    if not state:
+        raise InputError("the checkpoint comes from an older hfrad (no pass statistics); delete it to start over")
+    return PassStatistics.from_state(state)
+
+
+def _open_stream(path, key: str, plan: PrecomputePlan) -> HFStream:
+    if path is not None and Path(path).exists():
+        return load_checkpoint(path, key)
+    return HFStream(plan.n, plan.n_blocks, eps=plan.eps, relative=plan.relative, dtype=np.dtype(plan.dtype),
+                    leaf_share=plan.leaf_share)
+
+
+def _every_blas_thread_for_a_large_merge(blocks_done: int, n_blocks: int):
+    """Every BLAS thread for the push of block ``blocks_done`` when it merges a quarter of the blocks or more.
+
+    Such a merge (binary counter: the push of the c-th block forms a node of
+    ``c & -c`` blocks) costs O(n k^2) flops at rank k, the most of the run, and
+    the form-factor workers, which are at most a few blocks ahead, stop soon
+    after its start; a single BLAS thread would leave the other cores idle for
+    the rest of it.
+    """
+    c = blocks_done + 1
+    if (c & -c) < max(_LARGE_MERGE_SHARE * n_blocks, 4):
+        return contextlib.nullcontext()
+    return blas_threads(cores())   # the cores this process may use
+
+
+def _stream_blocks(blocks, stream: HFStream, stats: PassStatistics, rows_rho, checkpoint: Checkpoint | None,
+                   key, progress, status, t0, split=None):
+    """Push every column block into the stream and the statistics (checkpointing both).
+
+    Returns the form-factor seconds and the checkpoint-writing seconds (``stream.finish()`` is the caller's). With a near-field ``split``, each
+    block's near entries are moved out before HF sees it, and the error budget
+    stays relative to the block's full norm.
+    """
+    n_blocks = stream.n_blocks
+    last_save, save_seconds = time.perf_counter(), 0.0
+    resumed = stream.blocks_done      # blocks the checkpoint held (said with the first status)
+    time_ff = time_ckpt = 0.0
+    G = None    # G's buffer, reused block after block (HF keeps nothing of it)
+    t_ff = time.perf_counter()
+    for start, stop, block in blocks:
+        time_ff += time.perf_counter() - t_ff
+        # G = diag(rho_max) F (rows in internal order), less the near field; the budget's norm is G's before the split
+        G, norm2, block_norm2 = far_block(stats, start, stop, block, rows_rho, split, out=G)
+        del block
+        with _every_blas_thread_for_a_large_merge(stream.blocks_done, n_blocks):
+            stream.push(G, norm2=norm2, block_norm2=block_norm2)
+        report(progress, stream.blocks_done, n_blocks)
+        if status is not None:
+            info = {"blocks": stream.blocks_done, "rank": stream.current_rank, "elapsed": time.perf_counter() - t0}
+            if resumed:
+                info["resumed"], resumed = resumed, 0
+            status(info)
+        if checkpoint is not None:
+            due = checkpoint.interval and max(checkpoint.interval, CHECKPOINT_COST_RATIO * save_seconds)
+            if time.perf_counter() - last_save > due and stream.blocks_done < n_blocks:
+                t_save = time.perf_counter()
+                stream.extra = {**({} if split is None else split.state()),
+                                **{_STATS + k: np.asarray(v) for k, v in stats.state().items()}}
+                save_checkpoint(stream, checkpoint.path, key)
+                last_save = time.perf_counter()
+                save_seconds = last_save - t_save
+                time_ckpt += save_seconds
+        t_ff = time.perf_counter()
+    return time_ff, time_ckpt

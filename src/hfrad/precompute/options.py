@@ -1,0 +1,177 @@
+"""The precompute's options: the expert knobs a user may set, and the plan they resolve to for one scene.
+
+:class:`PrecomputeOptions` holds the knobs besides the front door's arguments
+(block width, visibility rays, the leaves' share of the error budget, the one-ray
+rule), in the style of SciPy's ``splu(options=)``. :func:`plan_precompute`
+validates everything once, ``eps`` first, then resolves the near-field policy
+(``near_field="auto"``: :func:`near_entries`, which reads ``eps``) and the rest
+for one scene into a :class:`~hfrad.precompute.assemble.PrecomputePlan`, which both
+backends (this process, :mod:`hfrad.precompute.local`; Dask, :mod:`hfrad.distributed`)
+run and record.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..defaults import DEFAULT_BLOCK_SIZE
+from ..errors import InputError, SceneError
+from ..formfactors.budget import default_one_ray_tol
+from ..lowrank.nearsplit import DEFAULT_NEAR_ENTRIES, near_radius
+from ..scene.scene import Scene
+from ..scene.zorder import patch_order
+from ..validation import check_eps, check_factorize_options, check_permutation
+from .assemble import PrecomputePlan
+
+__all__ = ["PrecomputeOptions", "plan_precompute", "near_entries", "near_field_pays_from",
+           "NEAR_FIELD_MIN_PATCHES", "NEAR_FIELD_PAYS_FROM", "NEAR_FIELD_REFERENCE_EPS", "NEAR_FIELD_EPS_POWER"]
+
+# -- the near-field policy ---------------------------------------------------------------------------
+#: ``near_field="auto"`` never splits the near field below this many patches.
+NEAR_FIELD_MIN_PATCHES = 2000
+#: ... and from this many patches on at a relative eps of ``NEAR_FIELD_REFERENCE_EPS``:
+#: there the split's set-up (a sparse LU and k right-hand sides per colour channel) costs
+#: what its lower rank saves HF (Cornell box, eps 0.02: about even at 20K patches,
+#: 1.26x slower with the split at 10K; benchmarks/README.md, "Where the near field pays").
+NEAR_FIELD_PAYS_FROM = 20000
+NEAR_FIELD_REFERENCE_EPS = 0.02
+#: ... scaled by ``(NEAR_FIELD_REFERENCE_EPS / eps) ** NEAR_FIELD_EPS_POWER``: a looser eps
+#: leaves the far field a lower rank, so the near pairs' high rank is the larger share of
+#: it sooner (eps 0.05: about even at 5K patches, 1.42x faster with the split at 10K).
+NEAR_FIELD_EPS_POWER = 1.5
+
+
+def near_field_pays_from(eps: float, relative: bool = True) -> int:
+    """Patches from which ``near_field="auto"`` splits the near field, at this ``eps``.
+
+    An absolute eps says nothing of the rank before ``||G||_F`` is known: the split
+    then starts at ``NEAR_FIELD_MIN_PATCHES``.
+    """
+    if not relative or not eps > 0:
+        return NEAR_FIELD_MIN_PATCHES
+    scaled = NEAR_FIELD_PAYS_FROM * (NEAR_FIELD_REFERENCE_EPS / eps) ** NEAR_FIELD_EPS_POWER
+    return max(NEAR_FIELD_MIN_PATCHES, int(math.ceil(scaled)))
+
+
+def near_entries(near_field, n: int, eps: float = NEAR_FIELD_REFERENCE_EPS, relative: bool = True) -> int:
+    """Neighbours per row of the near field for ``factorize(near_field=...)`` (0 = no split).
+
+    "auto": ``DEFAULT_NEAR_ENTRIES`` where the split pays (from
+    :func:`near_field_pays_from` patches on at this ``eps``), else 0.
+    """
+    if near_field == "auto":
+        return DEFAULT_NEAR_ENTRIES if n >= near_field_pays_from(eps, relative) else 0
+    if near_field is None or near_field is False:
+        return 0
+    if isinstance(near_field, str) or int(near_field) != near_field or near_field < 0:
+        raise InputError(f"near_field must be 'auto', None or a number of neighbours per row (e.g. 64); "
+                         f"got {near_field!r}")
+    return int(near_field)
+
+
+# -- the knobs -------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class PrecomputeOptions:
+    """Expert options of the precompute (``hfrad.factorize(scene, options=PrecomputeOptions(...))``).
+
+    Validated with the rest of the front door's arguments, for the scene they are used on
+    (:func:`plan_precompute`). None of them is needed for a first run.
+
+    Attributes
+    ----------
+    block_size : int, optional
+        Column block width; default ``min(DEFAULT_BLOCK_SIZE, n)`` (256).
+    samples : int, optional
+        Visibility rays per patch pair (default: the engine's; 0: no visibility).
+    leaf_share : float in (0, 1]
+        Share of the squared error budget given to the leaf SVDs.
+    one_ray_tol : float or None
+        Pairs that together hold at most this share of ``||F||_F`` get one visibility
+        ray instead of several, and flagged pairs (probes disagree) holding
+        ``FEW_RAYS_FACTOR`` (4) times this share get 4 rays instead of 16
+        (:func:`hfrad.formfactors.budget.ray_budget`); None: ``eps / 4`` for a
+        relative eps, 0 (both rules off) for an absolute one.
+    """
+
+    block_size: int | None = None
+    samples: int | None = None
+    leaf_share: float = 0.5
+    one_ray_tol: float | None = None
+
+    def replace(self, **changes) -> "PrecomputeOptions":
+        return dataclasses.replace(self, **changes)
+
+
+def plan_precompute(scene: Scene, eps: float = 0.02, *, relative: bool = True, dtype="float32", order="zorder",
+                    near_field=None, options: PrecomputeOptions | None = None,
+                    reciprocity: bool = True) -> PrecomputePlan:
+    """Validate the precompute's options for ``scene`` at the API boundary (both backends), once.
+
+    Parameters
+    ----------
+    scene : Scene
+    eps, relative, dtype, order
+        As in :func:`hfrad.factorize`.
+    near_field : "auto", int or None
+        As in :func:`hfrad.factorize` (default None: no split); "auto" is resolved
+        (:func:`near_entries`) after ``eps`` is validated.
+    options : PrecomputeOptions, optional
+        The expert knobs (default: ``PrecomputeOptions()``).
+    reciprocity : bool
+        The backend's reciprocity copy (recorded; not part of the checkpoint key).
+
+    Returns
+    -------
+    PrecomputePlan
+
+    Raises
+    ------
+    InputError
+        A bad option (names it).
+    SceneError
+        A scene without patches.
+    """
+    if not isinstance(scene, Scene):
+        raise TypeError(f"scene must be a hfrad Scene (see hfrad.load_scene); got {type(scene).__name__}")
+    if options is None:
+        options = PrecomputeOptions()
+    elif not isinstance(options, PrecomputeOptions):
+        raise InputError(f"options must be an hfrad.PrecomputeOptions; got {type(options).__name__}")
+    n = scene.n_patches
+    if n == 0:
+        raise SceneError(f"{scene.name}: the scene has no patches")
+    eps = check_eps(eps, relative)
+    block_size = min(DEFAULT_BLOCK_SIZE, n) if options.block_size is None else options.block_size
+    dt = check_factorize_options(n, eps, block_size, dtype, relative)
+    leaf_share, samples, one_ray_tol = options.leaf_share, options.samples, options.one_ray_tol
+    if not (0.0 < leaf_share <= 1.0):
+        raise InputError(f"leaf_share must be in (0, 1]; got {leaf_share!r}")
+    if samples is not None and (int(samples) != samples or samples < 0):
+        raise InputError(f"samples must be a number of rays >= 0; got {samples!r}")
+    if one_ray_tol is None:
+        one_ray_tol = default_one_ray_tol(eps, relative)
+    elif not (one_ray_tol >= 0 and np.isfinite(one_ray_tol)):
+        raise InputError(f"one_ray_tol must be a share >= 0 of ||F||_F; got {one_ray_tol!r}")
+    if isinstance(order, str):
+        perm = patch_order(scene.centroids, order)
+    else:
+        perm = check_permutation(order, n)
+        order = "custom"
+    entries = near_entries(near_field, n, eps, relative)
+    from ..formfactors.kernel import settings as kernel_settings
+    from ..formfactors.visibility import settings as visibility_settings
+
+    return PrecomputePlan(
+        n=n, eps=float(eps), relative=bool(relative), block_size=int(block_size), dtype=dt.name,
+        samples=None if samples is None else int(samples), order=order, perm=np.asarray(perm, np.int64),
+        leaf_share=float(leaf_share), one_ray_tol=float(one_ray_tol), near_entries=entries,
+        # the radius, not only the count, is part of the checkpoint key
+        near_radius=near_radius(scene.centroids, entries, scene.normals) if entries else 0.0,
+        reciprocity=bool(reciprocity),
+        # kernel version and tolerance: recorded in the .hfr, part of the checkpoint key
+        form_factors={**kernel_settings(), **visibility_settings()})
