@@ -160,7 +160,7 @@ def test_near_field_solver_gets_the_figure_too():
     scene = hfrad.load_scene("cornell", patches=600)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", AccuracyWarning)
-        fac = hfrad.factorize(scene, eps=0.02, block_size=64, near_field=32)
+        fac = hfrad.factorize(scene, eps=0.02, near_field=32, options=hfrad.PrecomputeOptions(block_size=64))
     assert fac.solver != "woodbury"
     F = hfrad.form_factor_matrix(scene)
     results = _true_errors(F, np.asarray(fac.reflectance), np.asarray(scene.areas), fac, _emissions(scene, 8))
