@@ -171,7 +171,7 @@ def test_near_field_solver_gets_the_figure_too():
 def test_parts_without_rows_give_no_figure_rather_than_a_partial_one():
     """A Dask part saved before the rows were kept, merged with a new one: the figure is dropped, not
     computed from half the columns."""
-    from hfrad.solve.assemble import add_statistics, statistics_state
+    from hfrad.precompute.assemble import add_statistics, statistics_state
     from hfrad.solve.stats import PassStatistics
 
     n, rng = 300, np.random.default_rng(1)
