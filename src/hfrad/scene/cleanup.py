@@ -49,6 +49,9 @@ PLANE_ANGLE = 1e-4
 #: Coplanar triangles overlap if their intersection exceeds this fraction of the smaller one.
 MIN_OVERLAP = 1e-4
 
+#: Triangles of a cut face's pieces smaller than this fraction of the face are dropped (slivers).
+SLIVER = 1e-6
+
 #: Passes of finding and cutting overlaps (a cut piece can meet a face its parent's plane missed).
 ROUNDS = 3
 
@@ -366,18 +369,16 @@ def resolve_overlaps(scene: Scene, overlaps: np.ndarray, *, drop=()) -> tuple[Sc
             k0 = base + len(new_vertices)
             new_vertices.extend(poly)
             for k in range(1, len(poly) - 1):  # convex: a fan keeps the orientation of j
-                new_faces.append((k0, k0 + k, k0 + k + 1))
-                owner.append(j)
+                c = np.cross(poly[k] - poly[0], poly[k + 1] - poly[0])
+                # no slivers of rounding (their normals are noise): a real piece has area and j's normal
+                if np.dot(c, n) > 0.99 * np.linalg.norm(c) and 0.5 * np.linalg.norm(c) > SLIVER * scene.areas[j]:
+                    new_faces.append((k0, k0 + k, k0 + k + 1))
+                    owner.append(j)
     keep = np.flatnonzero(~gone)
     vertices = np.vstack([scene.vertices, np.asarray(new_vertices, np.float64).reshape(-1, 3)])
     faces = np.vstack([scene.faces[keep], np.asarray(new_faces, np.int64).reshape(-1, 3)])
     owners = np.concatenate([keep, np.asarray(owner, np.int64)])
-    out = scene.remeshed(vertices, faces, owners)
-    areas = np.asarray(out.areas)
-    if not (areas > 0).all():  # fans of rounding-thin pieces: drop what has no area
-        live = np.flatnonzero(areas > 0)
-        out = scene.remeshed(vertices, faces[live], owners[live])
-    return out, {"cut": cut, "dropped": dropped, "pieces": len(new_faces)}
+    return scene.remeshed(vertices, faces, owners), {"cut": cut, "dropped": dropped, "pieces": len(new_faces)}
 
 
 def merge_duplicates(scene: Scene, *, keep_duplicates: bool = False) -> Scene:
