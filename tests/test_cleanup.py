@@ -161,8 +161,10 @@ def test_info_reports_faces_and_flag(cube_obj):
     assert faces["merged"] is True
     kept = json.loads(runner.invoke(app, ["info", str(cube_obj), "--json", "--keep-duplicates"]).output)
     assert kept["patches"] == 16 and kept["face_problems"]["merged"] is False
-    text = runner.invoke(app, ["info", str(cube_obj)]).output
-    assert "2 duplicates (merged)" in text
+    assert faces["overlaps"]["resolved"] == {"cut": 0, "dropped": 1, "pieces": 0}  # the half-floor
+    assert "resolved" not in kept["face_problems"]["overlaps"]
+    text = " ".join(runner.invoke(app, ["info", str(cube_obj)]).output.split())  # unwrapped
+    assert "2 duplicates (merged)" in text and "2 coplanar overlapping pairs (cut 0 faces, dropped 1)" in text
 
 
 @needs_shared

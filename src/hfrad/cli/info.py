@@ -89,7 +89,7 @@ def register(app: typer.Typer) -> None:
 
         Memory: about 1 KB per patch (no form factors are computed).
         """
-        from ..scene.cleanup import find_face_problems
+        from ..scene.cleanup import clean_faces
         from ..scene.summary import scene_summary
 
         with common.user_errors():
@@ -102,7 +102,8 @@ def register(app: typer.Typer) -> None:
                                             default_reflectance=default_reflectance,
                                             allow_missing_materials=allow_missing_materials, keep_duplicates=True)
         summary = scene_summary(s)
-        summary["face_problems"] = {**find_face_problems(faces).summary(faces), "merged": not keep_duplicates}
+        report = clean_faces(faces, keep_duplicates=keep_duplicates)[1]
+        summary["face_problems"] = {**report.summary(faces), "merged": not keep_duplicates}
         if as_json:
             typer.echo(json.dumps(summary, indent=2))
             return
@@ -133,8 +134,10 @@ def _print_summary(summary: dict) -> None:
               f"power (W) " + ", ".join(f"{x:.4g}" for x in summary["emitted_power_w"]))
     faces = summary.get("face_problems")
     if faces:
+        r = faces["overlaps"].get("resolved")
+        cut = f" (cut {r['cut']} faces, dropped {r['dropped']})" if r else ""
         out.print(f"faces: {faces['duplicates']['count']} duplicates ({'merged' if faces['merged'] else 'kept'}), "
-                  f"{faces['overlaps']['count']} coplanar overlapping pairs, "
+                  f"{faces['overlaps']['count']} coplanar overlapping pairs{cut}, "
                   f"{faces['facing']['count']} pairs touching face to face")
     for w in summary["warnings"]:
         out.print(f"[yellow]warning:[/] {w}", highlight=False)

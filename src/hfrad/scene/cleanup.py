@@ -400,18 +400,24 @@ def merge_duplicates(scene: Scene, *, keep_duplicates: bool = False) -> Scene:
         materials, groups and occluder mesh; ``parent`` still points into the occluder
         mesh), with one warning per kind of problem.
     """
+    out, report = clean_faces(scene, keep_duplicates=keep_duplicates)
+    return out
+
+
+def clean_faces(scene: Scene, *, keep_duplicates: bool = False) -> tuple[Scene, FaceReport]:
+    """:func:`merge_duplicates`, also returning what was found and done (``FaceReport.resolved``)."""
     report = find_face_problems(scene)
     if not (len(report.duplicates) or len(report.overlaps) or len(report.facing)):
-        return scene
+        return scene, report
     if keep_duplicates:
-        return scene.replace(warnings=scene.warnings + tuple(report.warnings(scene, merged=False)))
+        return scene.replace(warnings=scene.warnings + tuple(report.warnings(scene, merged=False))), report
     if not len(report.overlaps):
         notes = tuple(report.warnings(scene, merged=True))
         if not len(report.duplicates):
-            return scene.replace(warnings=scene.warnings + notes)
+            return scene.replace(warnings=scene.warnings + notes), report
         keep = np.ones(scene.n_patches, bool)
         keep[report.duplicates[:, 1]] = False
-        return scene.remeshed(scene.vertices, scene.faces[keep], np.flatnonzero(keep), notes=notes)
+        return scene.remeshed(scene.vertices, scene.faces[keep], np.flatnonzero(keep), notes=notes), report
     out, resolved = resolve_overlaps(scene, report.overlaps, drop=report.duplicates[:, 1])
     for _ in range(ROUNDS - 1):
         # pieces whose plane offset rounds into a neighbouring plane's bin meet faces they missed
@@ -421,5 +427,5 @@ def merge_duplicates(scene: Scene, *, keep_duplicates: bool = False) -> Scene:
         out, more = resolve_overlaps(out, again.overlaps, drop=again.duplicates[:, 1])
         resolved = {k: resolved[k] + more[k] for k in resolved}
         resolved["dropped"] += len(again.duplicates)
-    notes = FaceReport(report.duplicates, report.overlaps, report.facing, resolved).warnings(scene, merged=True)
-    return out.replace(warnings=out.warnings + tuple(notes))
+    report = FaceReport(report.duplicates, report.overlaps, report.facing, resolved)
+    return out.replace(warnings=out.warnings + tuple(report.warnings(scene, merged=True))), report
