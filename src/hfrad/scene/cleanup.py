@@ -49,7 +49,8 @@ PLANE_ANGLE = 1e-4
 #: Coplanar triangles overlap if their intersection exceeds this fraction of the smaller one.
 MIN_OVERLAP = 1e-4
 
-#: Triangles of a cut face's pieces smaller than this fraction of the face are dropped (slivers).
+#: Triangles of a cut face's pieces smaller than this fraction of the face (or of zero area by
+#: :func:`hfrad.scene.patches.drop_degenerate`'s measure) are dropped (slivers).
 SLIVER = 1e-6
 
 #: Passes of finding and cutting overlaps (a cut piece can meet a face its parent's plane missed).
@@ -351,6 +352,7 @@ def resolve_overlaps(scene: Scene, overlaps: np.ndarray, *, drop=()) -> tuple[Sc
     gone[np.asarray(drop, np.int64)] = True
     cut = dropped = 0
     base = len(scene.vertices)
+    tiny = 1e-12 * float(np.max(scene.areas))  # what patches.drop_degenerate calls zero area
     for j, below in sorted(covers.items()):
         if gone[j]:  # a merged duplicate
             continue
@@ -371,7 +373,7 @@ def resolve_overlaps(scene: Scene, overlaps: np.ndarray, *, drop=()) -> tuple[Sc
             for k in range(1, len(poly) - 1):  # convex: a fan keeps the orientation of j
                 c = np.cross(poly[k] - poly[0], poly[k + 1] - poly[0])
                 # no slivers of rounding (their normals are noise): a real piece has area and j's normal
-                if np.dot(c, n) > 0.99 * np.linalg.norm(c) and 0.5 * np.linalg.norm(c) > SLIVER * scene.areas[j]:
+                if np.dot(c, n) > 0.99 * np.linalg.norm(c) and 0.5 * np.linalg.norm(c) > max(SLIVER * scene.areas[j], tiny):
                     new_faces.append((k0, k0 + k, k0 + k + 1))
                     owner.append(j)
     keep = np.flatnonzero(~gone)
