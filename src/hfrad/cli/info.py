@@ -89,6 +89,7 @@ def register(app: typer.Typer) -> None:
 
         Memory: about 1 KB per patch (no form factors are computed).
         """
+        from ..render.camera import Camera
         from ..scene.cleanup import clean_faces
         from ..scene.summary import scene_summary
 
@@ -104,6 +105,8 @@ def register(app: typer.Typer) -> None:
         summary = scene_summary(s)
         report = clean_faces(faces, keep_duplicates=keep_duplicates)[1]
         summary["face_problems"] = {**report.summary(faces), "merged": not keep_duplicates}
+        inside = Camera.inside(s)  # a first picture that looks at the inside of a building
+        summary["camera_inside"] = inside.spec() if inside is not None else None
         if as_json:
             typer.echo(json.dumps(summary, indent=2))
             return
@@ -139,5 +142,8 @@ def _print_summary(summary: dict) -> None:
         out.print(f"faces: {faces['duplicates']['count']} duplicates ({'merged' if faces['merged'] else 'kept'}), "
                   f"{faces['overlaps']['count']} coplanar overlapping pairs{cut}, "
                   f"{faces['facing']['count']} pairs touching face to face")
+    if summary.get("camera_inside"):
+        out.print(f"camera from inside (largest enclosed space): --camera {summary['camera_inside']}",
+                  highlight=False, soft_wrap=True)
     for w in summary["warnings"]:
         out.print(f"[yellow]warning:[/] {w}", highlight=False)
