@@ -178,3 +178,21 @@ def test_mcguire_cornell_duplicates_merged():
     assert sums.max() < 1.02
     doubled = load_scene(path, patches=800, keep_duplicates=True)
     assert form_factor_matrix(doubled).sum(axis=1).max() > 1.3
+
+
+def test_energy_warning_names_the_cause_left_after_cleaning():
+    from hfrad.formfactors.energy import energy_problems
+    from hfrad.scene.builtin import cornell_box
+    from hfrad.scene.cluster import cluster
+    from hfrad.scene.patches import subdivide
+
+    plain = cornell_box()
+    sums = np.ones(plain.n_patches)
+    sums[0] = 1.2
+    (message,) = energy_problems(plain, sums)
+    assert "--keep-duplicates" in message and "cut through each other" in message
+    clustered = cluster(subdivide(cornell_box(), patches=400), patches=100)
+    sums = np.ones(clustered.n_patches)
+    sums[3] = 1.2
+    (message,) = energy_problems(clustered, sums)
+    assert "curved cluster" in message and f"{clustered.non_flatness.max():.2f} from flat" in message
