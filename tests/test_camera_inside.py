@@ -70,3 +70,20 @@ def test_info_prints_a_camera_to_paste():
     assert (np.abs(np.array(cam.position)[[0, 2]]) < 1).all() and 0 < cam.position[1] < 2  # inside the 2 m box
     with pytest.raises(Exception):
         Camera.parse("inside-out", np.zeros((2, 3)))
+
+
+def test_first_view_goes_inside_a_building_but_not_into_the_cornell_box():
+    from hfrad.scene.builtin import cornell_box
+
+    box = cornell_box()  # one-sided walls facing in: the three-quarter view sees in through their backs
+    assert Camera.first_view(box) == Camera.auto(box.bounds)
+    assert Camera.parse("auto", box.bounds, scene=box) == Camera.auto(box.bounds)
+    # a building: the hall's walls plus an outer shell 0.3 m away facing out, which hides the inside
+    hall = _box(HALL)
+    shell = _box(HALL + 0.6)
+    vertices = np.vstack([hall.vertices, shell.vertices - 0.3])
+    faces = np.vstack([hall.faces, shell.faces[:, ::-1] + len(hall.vertices)])
+    building = Scene(vertices=vertices, faces=faces, material=np.zeros(len(faces), int), materials=hall.materials)
+    cam = Camera.first_view(building)
+    assert cam != Camera.auto(building.bounds) and cam == Camera.inside(building)
+    assert ((np.array(cam.position) > 0) & (np.array(cam.position) < HALL)).all()

@@ -22,7 +22,8 @@ def register(app: typer.Typer) -> None:
         emission_scale: float = EmissionScaleOption,
         emission_file: Optional[Path] = EmissionFileOption,
         camera: str = typer.Option("auto", "--camera",
-                                   help="auto (three-quarter view), front (along -z, the Cornell box view), "
+                                   help="auto (three-quarter view, or the inside view where that would show a building's "
+                                        "outside), front (along -z, the Cornell box view), "
                                         "inside (from within the largest enclosed space, down its longest "
                                         "level line: a building's inside; hfrad info prints it) "
                                         "or x,y,z:tx,ty,tz[:fov_degrees]."),

@@ -206,6 +206,33 @@ class Camera:
         target = points[k] + 0.5 * float(dist[k, j]) * dirs[j]
         return cls(tuple(position), tuple(target), (0.0, 1.0, 0.0), INSIDE_FOV)
 
+    @classmethod
+    def first_view(cls, scene, *, aspect: float = 1.0) -> "Camera":
+        """The three-quarter view (:meth:`auto`), or the inside view where that shows a building's outside.
+
+        A room modelled with one-sided walls facing in (the Cornell box) is seen
+        through the backs of its near walls, so the three-quarter view shows its
+        inside. A building with outer walls (Sponza, Šibenik) shows those: when
+        most pixels of a small trial picture hit faces turned away from the
+        scene's centre, the inside view (:meth:`inside`) is taken instead.
+        """
+        from .raycast import trace_camera
+
+        cam = cls.auto(scene.bounds, aspect=aspect)
+        if not scene.n_patches:
+            return cam
+        face, _, _ = trace_camera(scene, cam, 48, max(1, round(48 / aspect)))
+        hit = face[face >= 0]
+        if not hit.size:
+            return cam
+        tri = np.asarray(scene.triangles)[hit]
+        centre = 0.5 * (scene.bounds[0] + scene.bounds[1])
+        outward = np.einsum("pd,pd->p", np.asarray(scene.triangle_normals)[hit], tri.mean(axis=1) - centre) > 0
+        if outward.mean() <= 0.5:
+            return cam
+        inside = cls.inside(scene)
+        return inside if inside is not None else cam
+
     def spec(self) -> str:
         """The ``x,y,z:tx,ty,tz:fov`` string :meth:`parse` reads back (for ``--camera``)."""
         def xyz(v) -> str:
@@ -217,7 +244,9 @@ class Camera:
         """A camera from ``'auto'``, ``'front'``, ``'inside'`` or ``'x,y,z:tx,ty,tz[:fov]'``.
 
         ``'inside'`` needs ``scene`` (:meth:`inside`) and falls back to ``'auto'``
-        for a scene with no enclosed space.
+        for a scene with no enclosed space. With ``scene``, ``'auto'`` is
+        :meth:`first_view`: the inside view where the three-quarter view would
+        show the outside of a building.
 
         Raises
         ------
@@ -230,6 +259,8 @@ class Camera:
         if text == "inside" and scene is not None:
             cam = cls.inside(scene)
             return cam if cam is not None else cls.auto(bounds, aspect=aspect)
+        if text == "auto" and scene is not None:
+            return cls.first_view(scene, aspect=aspect)
         if text in ("auto", "inside"):  # no scene to look inside yet (a spec checked early)
             return cls.auto(bounds, aspect=aspect)
         if text == "front":
