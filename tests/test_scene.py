@@ -115,8 +115,9 @@ def test_mcguire_cornell_relative_indices():
 
 @needs_shared
 @pytest.mark.parametrize("path, faces, emit", [
-    ("sibenik/sibenik.obj", 73564 - 11 - 212, {"staklo_plavo": 5.0}),  # 212 duplicates merged
-    ("sponza-dabrovic/sponza.obj", 66454 - 1 - 6, {"ceiling": 1.0}),
+    # duplicates merged; coplanar overlaps cut (faces cut into pieces) or dropped (covered wholly)
+    ("sibenik/sibenik.obj", 73564 - 11 - 212 - 77 + 169 - 35, {"staklo_plavo": 5.0}),
+    ("sponza-dabrovic/sponza.obj", 66454 - 1 - 6 - 138, {"ceiling": 1.0}),
     ("conference/conference.ply", None, None),
 ])
 def test_shared_scenes_load(path, faces, emit):
@@ -138,7 +139,8 @@ def test_info_cli_json(capsys):
     result = CliRunner().invoke(app, ["info", str(SHARED / "sibenik" / "sibenik.obj"), "--json"])
     assert result.exit_code == 0, result.output
     summary = json.loads(result.output)
-    assert summary["patches"] == 73553 - 212  # duplicates merged
+    assert summary["patches"] == 73553 - 212 - 77 + 169 - 35  # duplicates merged, overlaps cut and dropped
+    assert summary["face_problems"]["overlaps"]["resolved"] == {"cut": 77, "dropped": 35, "pieces": 169}
     assert any("no emitter" in w for w in summary["warnings"])
     assert {m["name"] for m in summary["materials"]} >= {"kamen_zid", "staklo_plavo"}
 

@@ -32,7 +32,7 @@ QuietOption = typer.Option(False, "--quiet", "-q", help="No progress bars.")
 AllowMissingMaterialsOption = typer.Option(False, "--allow-missing-materials",
                                            help="Faces whose material (or .mtl file) is missing get the default "
                                                 "reflectance instead of stopping.")
-KeepDuplicatesOption = typer.Option(False, "--keep-duplicates", help="Keep faces that duplicate another face (same corners) instead of merging them (their light is then counted twice).")
+KeepDuplicatesOption = typer.Option(False, "--keep-duplicates", help="Keep faces that duplicate another face (same corners) or overlap one in its plane instead of merging duplicates and cutting overlaps to one layer (their light is then counted twice).")
 
 
 @dataclasses.dataclass(frozen=True)

@@ -90,7 +90,8 @@ def register(app: typer.Typer) -> None:
 
         Memory: about 1 KB per patch (no form factors are computed).
         """
-        from ..scene.cleanup import find_face_problems
+        from ..render.camera import Camera
+        from ..scene.cleanup import clean_faces
         from ..scene.summary import scene_summary
 
         with common.user_errors():
@@ -103,7 +104,10 @@ def register(app: typer.Typer) -> None:
                                             default_reflectance=default_reflectance,
                                             allow_missing_materials=allow_missing_materials, keep_duplicates=True)
         summary = scene_summary(s)
-        summary["face_problems"] = {**find_face_problems(faces).summary(faces), "merged": not keep_duplicates}
+        report = clean_faces(faces, keep_duplicates=keep_duplicates)[1]
+        summary["face_problems"] = {**report.summary(faces), "merged": not keep_duplicates}
+        inside = Camera.inside(s)  # a first picture that looks at the inside of a building
+        summary["camera_inside"] = inside.spec() if inside is not None else None
         if as_json:
             typer.echo(json.dumps(summary, indent=2))
             return
@@ -140,8 +144,13 @@ def _print_summary(summary: dict) -> None:
               f"power (W) " + ", ".join(f"{x:.4g}" for x in summary["emitted_power_w"]))
     faces = summary.get("face_problems")
     if faces:
+        r = faces["overlaps"].get("resolved")
+        cut = f" (cut {r['cut']} faces, dropped {r['dropped']})" if r else ""
         out.print(f"faces: {faces['duplicates']['count']} duplicates ({'merged' if faces['merged'] else 'kept'}), "
-                  f"{faces['overlaps']['count']} coplanar overlapping pairs, "
+                  f"{faces['overlaps']['count']} coplanar overlapping pairs{cut}, "
                   f"{faces['facing']['count']} pairs touching face to face")
+    if summary.get("camera_inside"):
+        out.print(f"camera from inside (largest enclosed space): --camera {summary['camera_inside']}",
+                  highlight=False, soft_wrap=True)
     for w in summary["warnings"]:
         out.print(f"[yellow]warning:[/] {w}", highlight=False)

@@ -22,7 +22,10 @@ def register(app: typer.Typer) -> None:
         emission_scale: float = EmissionScaleOption,
         emission_file: Optional[Path] = EmissionFileOption,
         camera: str = typer.Option("auto", "--camera",
-                                   help="auto (three-quarter view), front (along -z, the Cornell box view) "
+                                   help="auto (three-quarter view, or the inside view where that would show a building's "
+                                        "outside), front (along -z, the Cornell box view), "
+                                        "inside (from within the largest enclosed space, down its longest "
+                                        "level line: a building's inside; hfrad info prints it) "
                                         "or x,y,z:tx,ty,tz[:fov_degrees]."),
         width: int = typer.Option(512, "--width", min=1, help="Picture width, pixels (at most 16,384, and "
                                                               "~256 bytes a pixel of memory)."),

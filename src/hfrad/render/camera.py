@@ -26,6 +26,16 @@ _MARGIN = 1.05  # framing slack so the scene does not touch the image border
 #: Smallest half-size a framed box is given (a point scene still gets a camera).
 _TINY = 1e-300
 
+#: Field of view of the inside view, degrees (wider: a room seen from within).
+INSIDE_FOV = 60.0
+
+#: Candidate positions per axis of the bounding box, and rays cast from each, for the inside view.
+_INSIDE_GRID = 7
+_INSIDE_RAYS = 96
+
+#: A candidate is inside a room if this fraction of its rays hits the front of a face.
+_ENCLOSED = 0.9
+
 
 @dataclass(frozen=True)
 class Camera:
@@ -141,8 +151,102 @@ class Camera:
         return cls(tuple(centre + offset), tuple(centre), (0.0, 1.0, 0.0), fov)
 
     @classmethod
-    def parse(cls, spec: "str | Camera", bounds: np.ndarray, *, aspect: float = 1.0) -> "Camera":
-        """A camera from ``'auto'``, ``'front'`` or ``'x,y,z:tx,ty,tz[:fov]'``.
+    def inside(cls, scene) -> "Camera | None":
+        """A view from within the largest enclosed space of ``scene``, down its longest free line.
+
+        Candidate positions fill the bounding box (a 7 x 7 x 7 grid); from each,
+        96 rays in directions spread evenly over the sphere are cast. A position
+        is inside a room when at least 90% of them hit the front of a face (from
+        outside, or inside a solid, rays escape or meet backs). Of those, the one
+        with the largest median distance to the surfaces is the room's middle;
+        the camera looks along the most nearly level of its rays with the
+        longest free run (the length of a nave, not the height of a vault),
+        standing half-way between that middle and the wall behind it.
+
+        Parameters
+        ----------
+        scene : Scene
+
+        Returns
+        -------
+        Camera or None
+            None when no position is enclosed (an open scene: use ``auto``).
+        """
+        from .raycast import patch_caster
+
+        if not scene.n_patches:
+            return None
+        lo, hi = np.asarray(scene.bounds, dtype=np.float64)
+        g = (np.arange(_INSIDE_GRID) + 0.5) / _INSIDE_GRID
+        grid = np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1).reshape(-1, 3)
+        points = lo + grid * (hi - lo)
+        dirs = _sphere(_INSIDE_RAYS)
+        caster = patch_caster(scene)
+        try:
+            o = np.repeat(points, len(dirs), axis=0)
+            d = np.tile(dirs, (len(points), 1))
+            face, dist, _ = caster.intersect(o, d)
+            tri_n = np.asarray(scene.triangle_normals)
+            front = (face >= 0) & (np.einsum("rd,rd->r", tri_n[np.maximum(face, 0)], d) < 0)
+            front = front.reshape(len(points), len(dirs))
+            dist = np.where(front, dist.reshape(front.shape), 0.0)
+            enclosed = front.mean(axis=1) >= _ENCLOSED
+            if not enclosed.any():
+                return None
+            size = np.where(enclosed, np.median(dist, axis=1), -1.0)
+            k = int(np.argmax(size))
+            level = np.abs(dirs[:, 1]) < 0.35  # within about 20 degrees of horizontal (y up)
+            run = np.where(level & front[k], dist[k], -1.0)
+            j = int(np.argmax(run))
+            back = caster.intersect(points[k:k + 1], -dirs[j:j + 1])[1]
+        finally:
+            caster.close()
+        behind = float(back[0]) if np.isfinite(back[0]) else 0.0
+        position = points[k] - 0.5 * behind * dirs[j]
+        target = points[k] + 0.5 * float(dist[k, j]) * dirs[j]
+        return cls(tuple(position), tuple(target), (0.0, 1.0, 0.0), INSIDE_FOV)
+
+    @classmethod
+    def first_view(cls, scene, *, aspect: float = 1.0) -> "Camera":
+        """The three-quarter view (:meth:`auto`), or the inside view where that shows a building's outside.
+
+        A room modelled with one-sided walls facing in (the Cornell box) is seen
+        through the backs of its near walls, so the three-quarter view shows its
+        inside. A building with outer walls (Sponza, Šibenik) shows those: when
+        most pixels of a small trial picture hit faces turned away from the
+        scene's centre, the inside view (:meth:`inside`) is taken instead.
+        """
+        from .raycast import trace_camera
+
+        cam = cls.auto(scene.bounds, aspect=aspect)
+        if not scene.n_patches:
+            return cam
+        face, _, _ = trace_camera(scene, cam, 48, max(1, round(48 / aspect)))
+        hit = face[face >= 0]
+        if not hit.size:
+            return cam
+        tri = np.asarray(scene.triangles)[hit]
+        centre = 0.5 * (scene.bounds[0] + scene.bounds[1])
+        outward = np.einsum("pd,pd->p", np.asarray(scene.triangle_normals)[hit], tri.mean(axis=1) - centre) > 0
+        if outward.mean() <= 0.5:
+            return cam
+        inside = cls.inside(scene)
+        return inside if inside is not None else cam
+
+    def spec(self) -> str:
+        """The ``x,y,z:tx,ty,tz:fov`` string :meth:`parse` reads back (for ``--camera``)."""
+        def xyz(v) -> str:
+            return ",".join(f"{float(x):.4g}" for x in v)
+        return f"{xyz(self.position)}:{xyz(self.target)}:{self.fov:g}"
+
+    @classmethod
+    def parse(cls, spec: "str | Camera", bounds: np.ndarray, *, aspect: float = 1.0, scene=None) -> "Camera":
+        """A camera from ``'auto'``, ``'front'``, ``'inside'`` or ``'x,y,z:tx,ty,tz[:fov]'``.
+
+        ``'inside'`` needs ``scene`` (:meth:`inside`) and falls back to ``'auto'``
+        for a scene with no enclosed space. With ``scene``, ``'auto'`` is
+        :meth:`first_view`: the inside view where the three-quarter view would
+        show the outside of a building.
 
         Raises
         ------
@@ -152,7 +256,12 @@ class Camera:
         if isinstance(spec, Camera):
             return spec
         text = str(spec).strip()
-        if text == "auto":
+        if text == "inside" and scene is not None:
+            cam = cls.inside(scene)
+            return cam if cam is not None else cls.auto(bounds, aspect=aspect)
+        if text == "auto" and scene is not None:
+            return cls.first_view(scene, aspect=aspect)
+        if text in ("auto", "inside"):  # no scene to look inside yet (a spec checked early)
             return cls.auto(bounds, aspect=aspect)
         if text == "front":
             return cls.front(bounds, aspect=aspect)
@@ -167,5 +276,14 @@ class Camera:
             except ValueError:              # a part that is not a number
                 pos = ()
         if len(pos) != 3 or len(tgt) != 3:
-            raise InputError(f"camera must be 'auto', 'front' or 'x,y,z:tx,ty,tz[:fov_degrees]', got '{text}'")
+            raise InputError(f"camera must be 'auto', 'front', 'inside' or 'x,y,z:tx,ty,tz[:fov_degrees]', got '{text}'")
         return cls(pos, tgt, (0.0, 1.0, 0.0), fov)
+
+
+def _sphere(n: int) -> np.ndarray:
+    """(n, 3) unit vectors spread evenly over the sphere (a Fibonacci lattice)."""
+    k = np.arange(n) + 0.5
+    y = 1.0 - 2.0 * k / n
+    r = np.sqrt(np.maximum(0.0, 1.0 - y * y))
+    phi = k * math.pi * (3.0 - math.sqrt(5.0))
+    return np.column_stack([r * np.cos(phi), y, r * np.sin(phi)])

@@ -107,7 +107,7 @@ def render_radiance(scene, radiosity, camera: "Camera | str" = "auto", *, width:
     """
     B = _check_radiosity(scene, radiosity)
     _check_size(width, height)
-    cam = Camera.parse(camera, scene.bounds, aspect=width / height)
+    cam = Camera.parse(camera, scene.bounds, aspect=width / height, scene=scene)
     tri, _, uv = trace_camera(scene, cam, width, height, caster=caster)
     radiance = np.zeros((height, width, 3))
     hit = tri >= 0
