@@ -103,13 +103,18 @@ class SolutionError:
     norm: str = "reflected"
 
     def as_dict(self) -> dict:
-        """JSON-ready fields (inf becomes None)."""
-        fig = (lambda a: np.where(np.isfinite(a), a, np.nan).tolist())
-        clean = (lambda v: [None if isinstance(x, float) and math.isnan(x) else
-                            (clean(x) if isinstance(x, list) else x) for x in v])
-        return {"error_bound": clean(fig(self.bound)), "error_norm": self.norm, "error_bound_kind": self.kind,
-                "failure_probability": self.failure_probability, "error_absolute": clean(fig(self.absolute)),
+        """JSON-ready fields (inf becomes None); a batch's figures are (3, m) nested lists."""
+        return {"error_bound": _json_figures(self.bound), "error_norm": self.norm, "error_bound_kind": self.kind,
+                "failure_probability": self.failure_probability, "error_absolute": _json_figures(self.absolute),
                 "error_rows": self.rows}
+
+
+def _json_figures(a: np.ndarray) -> list:
+    """Nested lists of floats, None where a figure is not finite."""
+    a = np.asarray(a, np.float64)
+    if a.ndim == 0:
+        return float(a) if np.isfinite(a) else None
+    return [_json_figures(x) for x in a]
 
 
 @dataclass
