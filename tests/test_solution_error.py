@@ -190,3 +190,60 @@ def test_parts_without_rows_give_no_figure_rather_than_a_partial_one():
     old = {k: v for k, v in parts[0].items() if not k.startswith(("sample_", "smooth_"))}
     dropped = PassStatistics.from_state({**add_statistics(old, parts[1]), "weights": areas})
     assert dropped.samples is None
+
+
+def test_lux_figure_at_each_sensor_is_above_its_true_error(cornell_scene_path):
+    """`hfrad lux`'s per-sensor figure ||g_s||_{1/A} ||e||_A (in lux) against the interreflected light's true error
+    at every sensor of a grid, from an exact dense solve of the luminaires' first bounce."""
+    from hfrad.lighting import LightingModel, Luminaire, Photometry, rectangle_grid
+    from hfrad.render.falsecolor import photometric
+
+    scene, F, fac = cornell_scene_path
+    v = np.arange(0, 180.25, 0.5)
+    downlight = Photometry("C", [0.0], v, np.where(v <= 90, 1200 * np.cos(np.radians(v)) ** 3, 0.0)[None, :],
+                           name="test")
+    lums = [Luminaire(downlight, [x, 1.9, z], name=f"L{i}") for i, (x, z) in enumerate([(-0.5, -0.4), (0.4, 0.3)])]
+    model = LightingModel(fac, lums)
+    response = model.sensors(rectangle_grid((-0.9, 0.9), (-0.9, 0.9), 0.6, 0.3))
+    w = np.array([1.0, 0.4])
+    error = model.radiosity_error(w)
+    figure = model.illuminance_error(response, error)
+    E = model.exitance_basis @ w
+    rho = np.asarray(fac.reflectance)
+    exact = np.stack([np.linalg.solve(np.eye(F.shape[0]) - rho[:, c:c + 1] * F, E[:, c]) for c in range(3)], axis=1)
+    true = np.abs(photometric(response.gather.apply(model.radiosity(w) - exact), "lux"))
+    seen = true > 0                                  # sensors inside a block see no patch
+    ratio = figure[seen] / true[seen]
+    print(f"\nlux figure / true error at {seen.sum()} sensors: min {ratio.min():.2f}, median {np.median(ratio):.2f}; "
+          f"largest true error {true.max():.3g} lx, largest figure {figure.max():.3g} lx")
+    assert (figure >= true).all()
+    # Cauchy-Schwarz on a whole gather row is a worst case: observed 40x between the largest figure and the
+    # largest true error
+    assert figure.max() <= 100 * true.max()
+
+
+def test_design_mean_error_figure_is_above_the_true_error_of_each_target_mean(cornell_scene_path):
+    """`hfrad design`'s figure for a target's mean (Cauchy-Schwarz on the target's area weights) against the true
+    error of the area-weighted mean radiosity and irradiance of each material, from an exact dense solve."""
+    from hfrad.inverse.design import _mean_error
+    from hfrad.inverse.spec import Target
+    from hfrad.render.falsecolor import photometric
+
+    scene, F, fac = cornell_scene_path
+    E = np.asarray(scene.emission, float)
+    B, err = fac.solve(E, return_error=True)
+    rho, areas = np.asarray(fac.reflectance), np.asarray(scene.areas)
+    exact = np.stack([np.linalg.solve(np.eye(F.shape[0]) - rho[:, c:c + 1] * F, E[:, c]) for c in range(3)], axis=1)
+    ratios = []
+    for m, name in enumerate(scene.material_names):
+        patches = np.flatnonzero(scene.material == m)
+        if not len(patches) or (rho[patches] <= 0).any():
+            continue
+        w = areas[patches] / areas[patches].sum()
+        for quantity, scale in (("radiosity", 1.0), ("irradiance_lux", 1.0 / rho[patches])):
+            figure = _mean_error(fac, Target(name, patches, quantity), err.absolute)
+            unit = "lux" if quantity == "irradiance_lux" else "W/m2"
+            true = abs(float(photometric((w[:, None] * scale * (B - exact)[patches]).sum(axis=0), unit)))
+            assert figure >= true, (name, quantity, figure, true)
+            ratios.append(figure / true)
+    print(f"\nmean-error figure / true error over {len(ratios)} targets: {min(ratios):.1f} .. {max(ratios):.1f}")

@@ -171,7 +171,7 @@ def _lighting_summary(r: dict, output: Path, plan: Optional[Path]) -> None:
             say(f"  {g['name']} ({g['sensors']} sensors): average {a['average']:.1f} lx, min {a['minimum']:.1f}, "
                 f"max {a['maximum']:.1f}, U0 {u}{err}", highlight=False)
         if "radiosity_error" in r:
-            say(f"  {_error_words(r['radiosity_error'])}", highlight=False)
+            say(f"  {_solution_words(r['radiosity_error'])}", highlight=False)
     head = "designed" if r["feasible"] else f"[bold red]not feasible[/] ({r['status']})"
     say(f"{head}: {r['message']}", highlight=False)
     t = r["timings"]
@@ -181,14 +181,6 @@ def _lighting_summary(r: dict, output: Path, plan: Optional[Path]) -> None:
     say(f"wrote {output}" + (f" and {plan}" if plan is not None and r["feasible"] else "")
         + f": {total}precompute {t['precompute_s']:.2f} s, design {t['design_s'] * 1e3:.1f} ms"
         + (f", relighting {t['relight_s'] * 1e3:.3f} ms" if t.get("relight_s") else "") + check, highlight=False)
-
-
-def _error_words(error: dict) -> str:
-    """The design's radiosity error figure (``SolutionError.as_dict()``) in words."""
-    figures = ", ".join("none" if b is None else f"{100 * b:.3g}%" for b in error["error_bound"])
-    how = ("a bound" if error["failure_probability"] is None else
-           f"from {error['error_rows']} exact rows of F; may fail with probability {error['failure_probability']:.2g}")
-    return f"error of this design's radiosity: at most {figures} of the reflected light (R,G,B; {how})"
 
 
 def _summary(r: dict, output: Path, render: Optional[Path]) -> None:
@@ -210,7 +202,7 @@ def _summary(r: dict, output: Path, render: Optional[Path]) -> None:
                 f"max {a['max']:.4g}, uniformity {u}" + (f"; margin {margin}" if margin else "") + err,
                 highlight=False)
         if "radiosity_error" in r:
-            say(f"  {_error_words(r['radiosity_error'])}", highlight=False)
+            say(f"  {_solution_words(r['radiosity_error'])}", highlight=False)
     verified = r.get("verified") or {}
     check = (f"; verified by a full solve (max deviation {verified['max_relative_deviation']:.1e})"
              if verified else "")
@@ -218,3 +210,11 @@ def _summary(r: dict, output: Path, render: Optional[Path]) -> None:
     say(f"{head}: {r['message']}", highlight=False)
     say(f"wrote {output}" + (f" and {render}" if render is not None and r["feasible"] else "")
         + f": {r['evaluations']} radiosity solves, {r['time_s'] * 1e3:.1f} ms{check}", highlight=False)
+
+
+def _solution_words(error: dict) -> str:
+    """A design's radiosity figure (its report's JSON) in the words of ``hfrad solve``."""
+    from ..solve.bounds import solution_line
+    from ..solve.samples import SolutionError
+
+    return solution_line(SolutionError.from_dict(error))

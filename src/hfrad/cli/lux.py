@@ -89,15 +89,16 @@ def register(app: typer.Typer) -> None:
             t1 = time.perf_counter()
             values = [r.illuminance(w) for r in responses]
             relight = time.perf_counter() - t1
-            errors = [model.illuminance_error(r, w) for r in responses]   # (lux bound per sensor, radiosity's)
+            radiosity_error = model.radiosity_error(w)                   # once for every grid
+            errors = [model.illuminance_error(r, radiosity_error) for r in responses]   # lux figure per sensor
             report = {"factorization": str(factorization), "layout": None if layout is None else str(layout),
                       "background": background,
                       "luminaires": [{"name": l.name, "catalogue": l.photometry.name, "dimming": l.dimming,
                                       "position": l.position.tolist(), "aim": l.aim.tolist()} for l in luminaires],
                       "grids": [{"name": s.name, "spacing_m": s.spacing, **grid_stats(v),
                                  "error_lux": {"maximum": float(e.max()), "average": float(e.mean())}}
-                                for s, v, (e, _) in zip(sets, values, errors)],
-                      **({"radiosity_error": errors[0][1].as_dict()} if errors else {}),
+                                for s, v, e in zip(sets, values, errors)],
+                      "radiosity_error": radiosity_error.as_dict(),
                       "timings": {**model.timings, "precompute_s": pre, "relight_s": relight}}
             outs = [p for p in (output, csv_out, plan) if p is not None]
             with atomic_paths(*outs) as tmps:        # all written, or none
@@ -107,9 +108,8 @@ def register(app: typer.Typer) -> None:
                     write_csv(tmp[csv_out], sets, values, direct=[r.direct @ w for r in responses])
                 if plan is not None:
                     save_plan(tmp[plan], *[(s, v) for s, v in zip(sets, values) if s.is_grid][0])
-        if errors:
-            common.console.print(f"  {solution_line(errors[0][1])}", highlight=False)
-        for s, v, (e, _) in zip(sets, values, errors):
+        common.console.print(f"  {solution_line(radiosity_error)}", highlight=False)
+        for s, v, e in zip(sets, values, errors):
             st = grid_stats(v)
             u0 = "-" if st["U0"] is None else f"{st['U0']:.3f}"
             common.console.print(f"  {s.name} ({st['sensors']} sensors): average {st['average']:.1f} lx, "

@@ -321,13 +321,14 @@ def design_lighting(fac, spec: "LightingSpec | Mapping | str | Path", *, model: 
     sol = optimise(dspec, resp, cost)
     w = sol.intensity
     grids_out, all_met = [], w is not None
+    radiosity_error = None if w is None else model.radiosity_error(w)   # the design's figure, once
     for g, r in zip(spec.grids, responses):
         entry = {"name": g.name, "sensors": len(g.sensors), "spacing_m": g.sensors.spacing, "goals": g.goals(),
                  "achieved": None, "met": None}
         if w is not None:
             st = grid_stats(r.illuminance(w))
             entry["achieved"] = st
-            lux_error, radiosity_error = model.illuminance_error(r, w)   # the interreflected light's figure
+            lux_error = model.illuminance_error(r, radiosity_error)   # the interreflected light's figure
             entry["error_lux"] = {"maximum": float(lux_error.max()), "average": float(lux_error.mean())}
             entry["met"] = _met(dspec.targets[spec.grids.index(g)],
                                 {"min": st["minimum"], "mean": st["average"], "max": st["maximum"],

@@ -168,20 +168,20 @@ class LightingModel:
         E = self.exitance_basis @ w + self.background_exitance
         return self.fac.solution_error(E, self.radiosity(w))
 
-    def illuminance_error(self, response: "SensorResponse", dimming=None) -> tuple[np.ndarray, object]:
-        """(m,) lux: the figure of the interreflected light's error at each sensor, and the radiosity's figure.
+    def illuminance_error(self, response: "SensorResponse", error) -> np.ndarray:
+        """(m,) lux: the figure of the interreflected light's error at each sensor.
 
+        ``error`` is the lighting state's :meth:`radiosity_error` (computed once for all grids).
         The gathered irradiance is ``G B``; its error ``G e`` at sensor s is at most
         ``||g_s||_{1/A} ||e||_A`` per channel (Cauchy-Schwarz in the area norm the radiosity
         figure bounds), weighted to lux as the illuminance is. The direct light is computed
         by rays, not by the factorization, and has no part in it.
         """
-        error = self.radiosity_error(dimming)
         areas = np.asarray(self.scene.areas, np.float64)
         g = response.gather.matrix.astype(np.float64)
         spread = np.sqrt((g ** 2 / areas[None, :]).sum(axis=1))            # ||g_s||_{1/A}, (m,)
         per_channel = spread[:, None] * np.asarray(error.absolute, np.float64)[None, :]   # (m, 3) W/m^2
-        return photometric(per_channel, "lux"), error
+        return photometric(per_channel, "lux")
 
     def _check(self, dimming) -> np.ndarray:
         w = np.asarray(dimming, np.float64).reshape(-1)

@@ -108,6 +108,14 @@ class SolutionError:
                 "failure_probability": self.failure_probability, "error_absolute": _json_figures(self.absolute),
                 "error_rows": self.rows}
 
+    @classmethod
+    def from_dict(cls, d: dict) -> "SolutionError":
+        """Back from :meth:`as_dict` (a report's JSON): None figures become inf; ``reflected`` is not kept."""
+        figures = (lambda v: np.array([np.inf if x is None else x for x in v], np.float64))
+        return cls(bound=figures(d["error_bound"]), absolute=figures(d["error_absolute"]),
+                   reflected=np.full(len(d["error_bound"]), np.nan), kind=d["error_bound_kind"],
+                   failure_probability=d["failure_probability"], rows=int(d["error_rows"]), norm=d["error_norm"])
+
 
 def _json_figures(a: np.ndarray) -> list:
     """Nested lists of floats, None where a figure is not finite."""
