@@ -71,7 +71,7 @@ def test_certificate_within_2x_of_the_measured_error(name, patches):
 
 def test_certificate_within_2x_on_the_cornell_box(cornell_run):
     true, (estimate, upper), producer, _ = cornell_run
-    assert 0.5 * true <= estimate <= 2.0 * true, (true, estimate)   # observed 0.84
+    assert 0.5 * true <= estimate <= 2.0 * true, (true, estimate)   # observed 0.94
 
 
 def test_shadow_edges_are_computed_exactly(cornell_run):
@@ -80,7 +80,7 @@ def test_shadow_edges_are_computed_exactly(cornell_run):
     _, _, producer, partial_exact = cornell_run
     stats = producer.stats.as_dict(producer.n)
     assert stats["mixed_pairs"] > 0 and stats["probe_rays"] > 0
-    # observed: 84% of those rows exact on average over the blocks (the rest hold little of F)
+    # observed: 80% of those rows exact on average over the blocks (the rest hold little of F)
     assert np.mean(partial_exact) >= 0.7, partial_exact
 
 
@@ -106,7 +106,9 @@ def factorizations():
 def test_factorize_sampled_agrees_with_the_exact_pass(factorizations):
     scene, exact, sampled = factorizations
     far = sampled.lowrank.info["far_field"]
-    assert far["pairs_share"] < 0.95 and sampled.params["far_field"] == "sampled"
+    # the far part was sampled (the certification rows aside, which are many at 2,000 patches)
+    assert far["skeleton_mean"] > 0 and far["pairs"] - far["certify_pairs"] < 0.9 * scene.n_patches ** 2
+    assert sampled.params["far_field"] == "sampled"
     assert exact.params["far_field"] == "exact" and "far_field" not in exact.lowrank.info
     E = np.asarray(scene.emission, float)
     Be, Bs = exact.solve(E), sampled.solve(E)

@@ -43,8 +43,9 @@ __all__ = ["FarFieldOptions", "FarFieldStats", "FarFieldCertificate", "patch_box
 #: A column group is halved while its box's diagonal exceeds this many times the square root of its
 #: area (a flat square has ~1.4, an L across a corner ~2) ...
 GROUP_SPREAD = 3.0
-#: Patches of each cluster probed where the cluster-pair test is not conclusive (PROBES^2 rays a pair).
-PROBES = 4
+#: Rays from a far row's patch to patches of a column cluster where the cluster-pair test is not
+#: conclusive (one to each of PROBES patches spread along the cluster).
+PROBES = 6
 #: ... and it has at least twice this many patches.
 MIN_GROUP = 16
 #: The values of ``far_field`` (``hfrad.factorize``, ``hfrad precompute --far-field``).
@@ -395,16 +396,18 @@ class SampledFarField:
         is_near[near] = True
         far = np.flatnonzero(~is_near)
         self.stats.groups += 1
-        seen, inv_r, inv_c, mixed = self._visibility(far, cols)
+        state, inv_c = self._visibility(far, cols)        # (len(far), column clusters)
+        mixed = (state == MIXED).any(axis=1)
         exact = np.union1d(near, far[mixed])
         out[exact] = self._eval(exact, cols, "near_pairs")
         self.stats.mixed_pairs += int(mixed.sum()) * cols.size
         clean_pos = np.flatnonzero(~mixed)
         clean = far[clean_pos]
+        seen = (state[clean_pos] == VISIBLE).astype(np.float64)
 
         def visible(i: np.ndarray, k: np.ndarray) -> np.ndarray:
             """0/1 visibility of clean rows ``clean[i]`` to columns ``cols[k]``."""
-            return seen[np.ix_(inv_r[clean_pos[i]], inv_c[k])]
+            return seen[np.ix_(i, inv_c[k])]
 
         if clean.size <= max(2 * opt.rows, cols.size):     # little to gain: every pair
             out[clean] = self._eval(clean, cols, "near_pairs")
@@ -414,17 +417,20 @@ class SampledFarField:
         self._far_part(out, clean, visible, norm2, cols, rng)
 
     def _visibility(self, far: np.ndarray, cols: np.ndarray):
-        """Visibility of far rows to ``cols`` from the cluster-pair tests (no rays).
+        """Visibility of each far row to each cluster of ``cols``: VISIBLE, BLOCKED or MIXED.
 
-        Returns ``(seen, inv_r, inv_c, mixed)``: ``seen`` (row clusters, column clusters) is 1
-        where the cluster pair is wholly visible, 0 where wholly blocked; ``inv_r`` (len(far),)
-        and ``inv_c`` (len(cols),) index it; ``mixed`` (len(far),) marks the far rows with a
-        mixed cluster pair among the columns' (those are computed exactly).
+        The cluster-pair tests (no rays, conservative) decide where a pair of clusters is
+        wholly visible or wholly blocked; where they say MIXED, ``PROBES`` rays from the row's
+        patch to patches of the column cluster decide for that row (a row cluster can straddle
+        a shadow edge: a floor patch under a block and its neighbour beside it). MIXED rows are
+        computed exactly.
+
+        Returns ``(state (len(far), column clusters) int8, inv_c (len(cols),))``: column k of
+        ``cols`` is in column cluster ``inv_c[k]``.
         """
         clusters = self.clusters
         if clusters is None:   # no occluders: everything visible
-            return (np.ones((1, 1)), np.zeros(far.size, np.int64), np.zeros(cols.size, np.int64),
-                    np.zeros(far.size, bool))
+            return np.full((far.size, 1), VISIBLE, np.int8), np.zeros(cols.size, np.int64)
         cf = clusters.cluster[self.order[far]]
         cc = clusters.cluster[cols]
         ur, inv_r = np.unique(cf, return_inverse=True)
@@ -432,30 +438,26 @@ class SampledFarField:
         # one patch of each cluster stands for it: states() works on patch pairs, through its table
         rep_r = self.order[far][_first_of_each(inv_r, ur.size)]
         rep_c = cols[_first_of_each(inv_c, uc.size)]
-        sub = clusters.states(rep_r, rep_c)                       # (clusters of rows, clusters of cols)
-        if (sub == MIXED).any():   # the tests are conservative: probe rays decide the mixed pairs
-            sub = self._probed(sub, ur, uc)
-        mixed = (sub == MIXED).any(axis=1)[inv_r]
-        return (sub == VISIBLE).astype(np.float64), inv_r, inv_c, mixed
+        state = clusters.states(rep_r, rep_c)[inv_r]              # (far rows, clusters of cols)
+        r, c = np.nonzero(state == MIXED)
+        if r.size:   # the tests are conservative: probe rays decide, row by row
+            state[r, c] = self._probed(self.order[far[r]], uc[c])
+        return state, inv_c
 
-    def _probed(self, sub: np.ndarray, ur: np.ndarray, uc: np.ndarray) -> np.ndarray:
-        """``sub`` with its MIXED cluster pairs probed: ``PROBES`` x ``PROBES`` patches of the two
-        clusters, one ray between each pair that faces; VISIBLE or BLOCKED where all agree."""
-        a, b = np.nonzero(sub == MIXED)
+    def _probed(self, patches: np.ndarray, clusters: np.ndarray) -> np.ndarray:
+        """(m,) VISIBLE, BLOCKED or MIXED: ``PROBES`` rays from each patch to patches of its
+        cluster, VISIBLE or BLOCKED where all rays that face agree (VISIBLE where none faces:
+        F ~ 0 there)."""
         k = PROBES
-        pr = self._members(ur[a], k)          # (m, k) patches of each row cluster
-        pc = self._members(uc[b], k)
-        i = np.repeat(pr, k, axis=1).ravel()
-        j = np.tile(pc, (1, k)).ravel()
+        j = self._members(clusters, k).ravel()
+        i = np.repeat(patches, k)
         facing, blocked = self.engine.visibility.segments_blocked(i, j)
-        facing, blocked = facing.reshape(a.size, k * k), blocked.reshape(a.size, k * k)
+        facing, blocked = facing.reshape(-1, k), (blocked & facing).reshape(-1, k)
         self.stats.probe_rays += int(facing.sum())
-        n_blocked = (blocked & facing).sum(axis=1)
-        n_facing = facing.sum(axis=1)
-        out = sub.copy()
-        out[a[n_blocked == 0], b[n_blocked == 0]] = VISIBLE       # (no facing pair: F ~ 0 there)
-        full = (n_blocked == n_facing) & (n_facing > 0)
-        out[a[full], b[full]] = BLOCKED
+        n_blocked, n_facing = blocked.sum(axis=1), facing.sum(axis=1)
+        out = np.full(patches.size, MIXED, np.int8)
+        out[n_blocked == 0] = VISIBLE
+        out[(n_blocked == n_facing) & (n_facing > 0)] = BLOCKED
         return out
 
     def _members(self, clusters: np.ndarray, k: int) -> np.ndarray:
