@@ -149,7 +149,7 @@ def _design_luminaires(spec: Path, fac, output: Path, plan, render, camera, fals
         if drawn:
             from ..lighting import save_plan
             save_plan(tmp[plan], *[(g.sensors, lux) for g, lux in zip(parsed.grids, result.illuminance())
-                                   if g.sensors.is_grid][0])
+                                   if g.sensors.is_grid][0], luminaires=parsed.luminaires, scene=fac.scene)
         if image is not None:
             save_png(image, tmp[render])
     return result

@@ -107,7 +107,8 @@ def register(app: typer.Typer) -> None:
                 if csv_out is not None:
                     write_csv(tmp[csv_out], sets, values, direct=[r.direct @ w for r in responses])
                 if plan is not None:
-                    save_plan(tmp[plan], *[(s, v) for s, v in zip(sets, values) if s.is_grid][0])
+                    save_plan(tmp[plan], *[(s, v) for s, v in zip(sets, values) if s.is_grid][0],
+                              luminaires=luminaires, scene=scene)
         common.console.print(f"  {solution_line(radiosity_error)}", highlight=False)
         for s, v, e in zip(sets, values, errors):
             st = grid_stats(v)
