@@ -99,10 +99,12 @@ def corner_weights(scene, *, crease_angle: float = CREASE_ANGLE):
     docstring): the value at x_c of the area-weighted least-squares linear fit
     ``v_q ~ a + g . (c_q - x_c)`` through their centroids c_q,
 
-        W_cq = w_q (1 - (d_q - dbar)^T M^+ dbar),   d_q = c_q - x_c,
+        W_cq = w_q (1 - (d_q - dbar)^T M^+ dbar),   d_q = P (c_q - x_c),
         w_q = A_q / sum A,   dbar = sum w_q d_q,   M = sum w_q (d_q - dbar)(d_q - dbar)^T,
 
-    so each row sums to 1 and a radiosity linear over the surface (whose patch
+    (P projects on the plane of the set's area-weighted mean normal: 2-vectors,
+    2 x 2 M), so
+    each row sums to 1 and a radiosity linear over the surface (whose patch
     means are its values at the centroids) comes back exactly at every corner,
     however irregular the mesh. The plain area-weighted mean (``W_cq = w_q``)
     is off by ``g . dbar`` wherever the triangles around a vertex are lopsided,
@@ -134,21 +136,53 @@ def corner_weights(scene, *, crease_angle: float = CREASE_ANGLE):
     a, fb = a[ok], fb[ok]
     w = area[ok] / total[a]
     corner_pos = scene.vertices[scene.faces].reshape(-1, 3)
-    d = scene.vertices[scene.faces].mean(axis=1)[fb] - corner_pos[a]       # (pairs, 3), metres
-    dbar = np.stack([np.bincount(a, weights=w * d[:, i], minlength=3 * t) for i in range(3)], axis=1)
+    d3 = scene.vertices[scene.faces].mean(axis=1)[fb] - corner_pos[a]        # (pairs, 3), metres
+    # fit in the plane of the set's area-weighted mean normal: the same for every corner that shares
+    # the vertex and the set, so those corners get one value (the picture stays continuous)
+    normal = np.stack([np.bincount(a, weights=w * scene.triangle_normals[fb, i], minlength=3 * t)
+                       for i in range(3)], axis=1)
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
+    e1, e2 = _tangent_basis(normal)
+    d = np.stack([np.einsum("ij,ij->i", d3, e1[a]), np.einsum("ij,ij->i", d3, e2[a])], axis=1)
+    dbar = np.stack([np.bincount(a, weights=w * d[:, i], minlength=3 * t) for i in range(2)], axis=1)
     e = d - dbar[a]
-    M = np.zeros((3 * t, 3, 3))
-    for i in range(3):
-        for j in range(i, 3):
-            M[:, i, j] = M[:, j, i] = np.bincount(a, weights=w * e[:, i] * e[:, j], minlength=3 * t)
-    # relative cut: collinear centroids leave a rank-1 M whose rounding noise must not be inverted
-    fit = np.linalg.pinv(M, rcond=1e-6, hermitian=True) @ dbar[:, :, None]      # (3t, 3, 1)
-    vals = w * (1.0 - np.einsum("ij,ij->i", e, fit[a, :, 0]))
+    Mxx, Mxy, Myy = (np.bincount(a, weights=w * e[:, i] * e[:, j], minlength=3 * t) for i, j in ((0, 0), (0, 1), (1, 1)))
+    fit = _pinv2_times(Mxx, Mxy, Myy, dbar)                                      # (3t, 2): M^+ dbar
+    vals = w * (1.0 - np.einsum("ij,ij->i", e, fit[a]))
     lonely = np.flatnonzero(total <= 0)  # fallback: the triangle's own value
     rows = np.concatenate([a, lonely])
     cols = np.concatenate([fb, lonely // 3])
     vals = np.concatenate([vals, np.ones(len(lonely))])
     return sparse.csr_matrix((vals, (rows, cols)), shape=(3 * t, t))
+
+
+def _tangent_basis(normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two (t, 3) unit vectors spanning the plane of each unit normal."""
+    helper = np.zeros_like(normals)
+    helper[np.arange(len(normals)), np.argmin(np.abs(normals), axis=1)] = 1.0   # the axis least along n
+    e1 = np.cross(normals, helper)
+    e1 /= np.maximum(np.linalg.norm(e1, axis=1, keepdims=True), 1e-300)
+    return e1, np.cross(normals, e1)
+
+
+def _pinv2_times(a: np.ndarray, b: np.ndarray, c: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """(m, 2): the pseudo-inverse of each symmetric PSD [[a, b], [b, c]] times the rows of v (m, 2).
+
+    Full rank: the adjugate over the determinant. Where the smaller eigenvalue is below 1e-6 of the
+    larger (centroids on a line, or one), the matrix is ``lam u u^T`` with ``lam`` its trace, whose
+    pseudo-inverse is ``M / lam^2``; its rounding noise across the line is not inverted.
+    """
+    trace = a + c
+    det = a * c - b * b
+    half_gap = np.sqrt(np.maximum(0.25 * (a - c) ** 2 + b * b, 0.0))
+    small, large = 0.5 * trace - half_gap, 0.5 * trace + half_gap
+    full = small > 1e-6 * large
+    x, y = v[:, 0], v[:, 1]
+    inv_det = np.where(full, 1.0 / np.where(full, det, 1.0), 0.0)
+    inv_lam2 = np.where(~full & (trace > 0), 1.0 / np.where(trace > 0, trace, 1.0) ** 2, 0.0)
+    out_full = np.stack([c * x - b * y, -b * x + a * y], axis=1) * inv_det[:, None]
+    out_line = np.stack([a * x + b * y, b * x + c * y], axis=1) * inv_lam2[:, None]
+    return np.where(full[:, None], out_full, out_line)
 
 
 def _clip_to_set(W, values: np.ndarray, corners: np.ndarray) -> np.ndarray:
