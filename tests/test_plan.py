@@ -73,3 +73,15 @@ def test_tick_steps():
     assert [tick_step(s) for s in (1.0, 5.0, 12.0, 30.0, 100.0)] == [0.1, 0.5, 1.0, 5.0, 10.0]
     with pytest.raises(Exception):
         plan_image(rectangle_grid((0, 1), (0, 1), 0.8, 0.5), np.ones(3))
+
+
+def test_a_luminaire_that_is_off_gets_a_hollow_ring():
+    grid = rectangle_grid((0.5, 3.5), (0.5, 2.5), 0.8, 0.25, name="plane")
+    on = Luminaire(_photometry((0.0, 0.0, 0.0)), np.array([1.0, 2.7, 1.0]), name="a")
+    lums = [on, on.replace(position=np.array([3.0, 2.7, 2.0]), name="b", dimming=0.0)]
+    img = plan_image(grid, np.full(len(grid), 300.0), luminaires=lums)
+    frame, _ = _frame_of(grid, lums, [])
+    magenta = (img == LUMINAIRE_COLOR).all(axis=2)
+    (ca, cb), (ra, rb) = (np.rint(v).astype(int) for v in frame.pixel([1.0, 3.0], [1.0, 2.0]))
+    assert magenta[ra, ca] and not magenta[rb, cb]          # a dot where on, hollow where off
+    assert magenta[rb - 3:rb + 4, cb - 3:cb + 4].sum() >= 8   # the ring

@@ -11,7 +11,8 @@ maps metres to pixels; the drawing functions put on a PIL image
   near the work plane's height (:func:`desk_outlines`), light grey;
 - luminaires: a dot of :data:`LUMINAIRE_COLOR` at each position and the
   outline of its luminous opening (length along C0, width along C90, or a
-  circle), with its name.
+  circle), with its name and, where it is dimmed, its dimming in percent (a
+  luminaire that is off gets a hollow ring instead of the dot).
 """
 
 from __future__ import annotations
@@ -152,5 +153,9 @@ def draw_overlay(draw, frame: PlanFrame, grid_rect, luminaires, desks, font) -> 
         c, r = frame.pixel(pts[:, 0], pts[:, 1])
         draw.polygon(list(zip(c.tolist(), r.tolist())), outline=LUMINAIRE_COLOR)
         cx, cy = frame.pixel(lum.position[0], lum.position[2])
-        draw.ellipse([cx - 3, cy - 3, cx + 3, cy + 3], fill=LUMINAIRE_COLOR)
-        draw.text((cx + 5, cy + 2), lum.name, fill=LUMINAIRE_COLOR, font=font)
+        on = lum.dimming > 0
+        draw.ellipse([cx - 3, cy - 3, cx + 3, cy + 3], fill=LUMINAIRE_COLOR if on else None, outline=LUMINAIRE_COLOR)
+        label = lum.name if lum.dimming == 1.0 else f"{lum.name}: {100 * lum.dimming:.0f}%"
+        box = draw.textbbox((cx + 5, cy + 3), label, font=font)
+        draw.rectangle([box[0] - 1, box[1] - 1, box[2] + 1, box[3] + 1], fill=(0, 0, 0))   # legible on any colour
+        draw.text((cx + 5, cy + 3), label, fill=LUMINAIRE_COLOR, font=font)
