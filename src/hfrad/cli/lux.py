@@ -33,7 +33,8 @@ def register(app: typer.Typer) -> None:
         background: str = typer.Option("none", "--background", help="none: only the luminaires light the "
                                        "scene; scene: the scene's own emitting patches too."),
         csv_out: Optional[Path] = typer.Option(None, "--csv", help="Also write every sensor's lux (.csv)."),
-        plan: Optional[Path] = typer.Option(None, "--plan", help="Also draw the grid in false colour (.png)."),
+        plan: Optional[Path] = typer.Option(None, "--plan", help="Also draw the grid in false colour (.png), with metre "
+                                                                 "ticks, the luminaires and the desk tops."),
         quiet: bool = common.QuietOption,
     ) -> None:
         """Illuminance (lux) on work planes and at sensors: direct light of each luminaire by ray casting,
