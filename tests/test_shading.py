@@ -118,3 +118,13 @@ def test_curved_surface_stays_continuous():
     lin = smooth_corners(s, np.repeat((0.5 + y)[:, None], 3, axis=1))
     inner = (s.vertices[s.faces][..., 1] > 0.01) & (s.vertices[s.faces][..., 1] < 0.99)
     np.testing.assert_allclose(lin[..., 0][inner], 0.5 + s.vertices[s.faces][..., 1][inner], atol=1e-9)
+
+
+def test_falsecolor_scale_ignores_pixels_that_average_a_light_in(box):
+    # the bar tops at the brightest non-emitting pixel: the same scale with 1 or 4 rays a pixel
+    B = box.reflectance * 10 + box.emission * 50
+    kw = dict(camera="front", width=200, height=150, falsecolor=True, unit="lux")
+    one, four = render_image(box, B, samples=1, **kw), render_image(box, B, samples=4, **kw)
+    from hfrad.render.falsecolor import colorbar_width
+    bar = np.s_[:, 200 - colorbar_width(200):]
+    assert np.array_equal(one[bar], four[bar])

@@ -258,7 +258,10 @@ def _falsecolor(radiance: np.ndarray, hit: np.ndarray, lit: np.ndarray, width: i
     """False-colour picture from per-sample radiance (s, h, w, 3): mean over the samples that hit, faded by coverage."""
     count = hit.sum(axis=0)
     values = (photometric(radiance * np.pi, unit) * hit).sum(axis=0) / np.maximum(count, 1)   # back to radiosity
-    img = np.array(falsecolor_image(values, count > 0, width=width, unit=unit, scale_mask=lit.any(axis=0)))
+    # the scale tops at the brightest pixel none of whose samples sees a light (an edge pixel that
+    # averages a light in would set it at a share of the light's own level)
+    no_light = lit.any(axis=0) & ~(hit & ~lit).any(axis=0)
+    img = np.array(falsecolor_image(values, count > 0, width=width, unit=unit, scale_mask=no_light))
     w = values.shape[1]
     coverage = count / hit.shape[0]
     img[:, :w] = np.rint(img[:, :w] * coverage[..., None]).astype(np.uint8)
