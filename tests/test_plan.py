@@ -85,3 +85,14 @@ def test_a_luminaire_that_is_off_gets_a_hollow_ring():
     (ca, cb), (ra, rb) = (np.rint(v).astype(int) for v in frame.pixel([1.0, 3.0], [1.0, 2.0]))
     assert magenta[ra, ca] and not magenta[rb, cb]          # a dot where on, hollow where off
     assert magenta[rb - 3:rb + 4, cb - 3:cb + 4].sum() >= 8   # the ring
+
+
+def test_the_next_rooms_luminaires_and_desks_stay_off_the_plan():
+    grid = rectangle_grid((0.5, 3.5), (0.5, 2.5), 0.8, 0.25, name="plane")
+    here = Luminaire(_photometry((0.6, 0.6, 0.0)), np.array([1.0, 2.7, 1.0]), name="here")
+    there = here.replace(position=np.array([8.0, 2.7, 1.0]), name="there")     # 4.5 m past the grid
+    lux = np.full(len(grid), 300.0)
+    both = plan_image(grid, lux, luminaires=[here, there])
+    alone = plan_image(grid, lux, luminaires=[here])
+    assert both.shape == alone.shape                       # the plan does not stretch to the far one
+    assert (both == LUMINAIRE_COLOR).all(axis=2).sum() == (alone == LUMINAIRE_COLOR).all(axis=2).sum()

@@ -33,6 +33,9 @@ DESK_BAND = (0.6, 0.4)
 LEFT, TOP, BOTTOM = 42, 18, 14
 #: Border of metres around everything drawn, so a marker at the edge is whole.
 PAD_M = 0.25
+#: Luminaires and desks wholly farther than this from the grid's extent, metres, are left off the
+#: plan (the next room's, in a storey's layout): the plan shows the room of its grid.
+NEAR_M = 0.5
 
 
 @dataclasses.dataclass(frozen=True)
@@ -82,7 +85,8 @@ def luminaire_outline(luminaire, points: int = 24) -> np.ndarray:
 
 
 def desk_outlines(scene, height: float) -> list[np.ndarray]:
-    """Boundary edges, ((2, 2) metres (x, z) each), of the scene's upward faces near ``height`` (y, m).
+    """Outlines of the scene's upward surfaces near ``height`` (y, m): one (k, 2, 2) array of edges
+    (two (x, z) ends in metres each) per connected surface (a desk top).
 
     Faces whose normal is within ~18 degrees of +y and whose centroid lies in
     :data:`DESK_BAND` around the work plane (desk tops, counters, sills); an
@@ -103,14 +107,30 @@ def desk_outlines(scene, height: float) -> list[np.ndarray]:
     pos = np.stack([tri[up][:, p] for p in pairs], axis=1).reshape(-1, 2, 3)      # (3m, 2, 3) metres
     _, inverse, count = np.unique(edges, axis=0, return_inverse=True, return_counts=True)
     border = count[inverse.reshape(-1)] == 1
-    return [p[:, [0, 2]] for p in pos[border]]
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    ends = edges[border]
+    n = int(vid.max()) + 1
+    _, label = connected_components(coo_matrix((np.ones(len(ends)), (ends[:, 0], ends[:, 1])), shape=(n, n)),
+                                    directed=False)
+    surface = label[ends[:, 0]]
+    flat = pos[border][:, :, [0, 2]]
+    return [flat[surface == k] for k in np.unique(surface)]
+
+
+def near(grid_rect, points: np.ndarray) -> bool:
+    """Whether any of the (k, 2) points (x, z, metres) lies within :data:`NEAR_M` of the grid's extent."""
+    x0, z0, x1, z1 = grid_rect
+    return bool(((points[:, 0] > x0 - NEAR_M) & (points[:, 0] < x1 + NEAR_M)
+                 & (points[:, 1] > z0 - NEAR_M) & (points[:, 1] < z1 + NEAR_M)).any())
 
 
 def extent(grid_rect, luminaires=(), desks=()) -> tuple[float, float, float, float]:
     """(x0, z0, x1, z1) metres holding the grid, every luminaire outline and desk, plus :data:`PAD_M`."""
     xs = [grid_rect[0], grid_rect[2]]
     zs = [grid_rect[1], grid_rect[3]]
-    for pts in [luminaire_outline(l) for l in luminaires] + list(desks):
+    for pts in [luminaire_outline(l) for l in luminaires] + [d.reshape(-1, 2) for d in desks]:
         xs += [float(pts[:, 0].min()), float(pts[:, 0].max())]
         zs += [float(pts[:, 1].min()), float(pts[:, 1].max())]
     return min(xs) - PAD_M, min(zs) - PAD_M, max(xs) + PAD_M, max(zs) + PAD_M
@@ -143,7 +163,7 @@ def draw_axes(draw, frame: PlanFrame, box: tuple[float, float, float, float], fo
 
 def draw_overlay(draw, frame: PlanFrame, grid_rect, luminaires, desks, font) -> None:
     """The grid's extent, desk outlines and luminaires (outline, dot, name) on the plan."""
-    for seg in desks:
+    for seg in (e for desk in desks for e in desk):
         c, r = frame.pixel(seg[:, 0], seg[:, 1])
         draw.line(list(zip(c.tolist(), r.tolist())), fill=DESK_COLOR, width=1)
     (c0, c1), (r0, r1) = frame.pixel([grid_rect[0], grid_rect[2]], [grid_rect[1], grid_rect[3]])

@@ -103,7 +103,8 @@ def plan_image(sensors: SensorSet, lux: np.ndarray, *, pixels_per_cell: int | No
     from PIL import Image, ImageDraw
 
     from ..render.falsecolor import _font
-    from .plan import BOTTOM, LEFT, TOP, PlanFrame, desk_outlines, draw_axes, draw_overlay, extent
+    from .plan import (BOTTOM, LEFT, TOP, PlanFrame, desk_outlines, draw_axes, draw_overlay, extent,
+                       luminaire_outline, near)
 
     if not sensors.is_grid:
         raise InputError(f"sensors {sensors.name!r} are not a grid; a plan image needs a work-plane grid")
@@ -111,8 +112,9 @@ def plan_image(sensors: SensorSet, lux: np.ndarray, *, pixels_per_cell: int | No
     ppc = pixels_per_cell or max(4, min(40, 480 // max(nx, nz)))
     x0, z0 = sensors.origin
     rect = (x0, z0, x0 + nx * sensors.spacing, z0 + nz * sensors.spacing)
-    desks = desk_outlines(scene, float(np.median(sensors.points[:, 1])))
-    box = extent(rect, luminaires, desks)
+    desks = [d for d in desk_outlines(scene, float(np.median(sensors.points[:, 1]))) if near(rect, d.reshape(-1, 2))]
+    shown = [l for l in luminaires if near(rect, luminaire_outline(l))]
+    box = extent(rect, shown, desks)
     m_px = sensors.spacing / ppc
     head = 36 + TOP
     frame = PlanFrame(box[0], box[1], m_px, LEFT, head)
@@ -132,14 +134,20 @@ def plan_image(sensors: SensorSet, lux: np.ndarray, *, pixels_per_cell: int | No
     text = title or (f"{sensors.name}: avg {st['average']:.0f} lx, min {st['minimum']:.0f}, "
                      f"max {st['maximum']:.0f}, U0 {st['U0']:.2f}" if st["U0"] is not None else sensors.name)
     grid_text = (f"grid x {rect[0]:.2f}..{rect[2]:.2f} m, z {rect[1]:.2f}..{rect[3]:.2f} m, "
-                 f"{sensors.spacing:g} m cells" + (f"; {len(luminaires)} luminaires" if len(luminaires) else ""))
+                 f"{sensors.spacing:g} m cells" + _luminaire_count(len(shown), len(luminaires)))
     pic = Image.fromarray(img)
     draw = ImageDraw.Draw(pic)
     draw.text((4, 3), text, fill=(255, 255, 255), font=_font(12))
     draw.text((4, 19), grid_text, fill=(200, 200, 200), font=_font(11))
     draw_axes(draw, frame, box, _font(10))
-    draw_overlay(draw, frame, rect, luminaires, desks, _font(10))
+    draw_overlay(draw, frame, rect, shown, desks, _font(10))
     return np.asarray(pic)
+
+
+def _luminaire_count(shown: int, total: int) -> str:
+    if not total:
+        return ""
+    return f"; {total} luminaires" if shown == total else f"; {shown} of {total} luminaires (the rest farther off the grid)"
 
 
 def save_plan(path: "str | Path", sensors: SensorSet, lux: np.ndarray, **options) -> Path:
