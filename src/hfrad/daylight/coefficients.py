@@ -34,7 +34,7 @@ __all__ = ["first_hit"]
 
 
 def first_hit(tracer: GlazingTracer, patches: SkyPatches, points: np.ndarray, normals: np.ndarray, *,
-              k: int = 3, north: float = 0.0, progress: ProgressCallback = None) -> np.ndarray:
+              k: int = 3, north: float = 0.0, progress: ProgressCallback = None, batch: int = 1 << 20) -> np.ndarray:
     """(q, 3, P) float, sr: first-hit irradiance at ``points`` per unit radiance of each sky patch.
 
     Parameters
@@ -47,6 +47,9 @@ def first_hit(tracer: GlazingTracer, patches: SkyPatches, points: np.ndarray, no
     north : float, degrees (see :func:`direction`)
     progress : callable (done, total), optional
         Sky patches done.
+    batch : int
+        Rays per call to the tracer: directions of several patches go together, so that
+        Embree's batches are large enough for all its threads.
 
     Notes
     -----
@@ -55,16 +58,26 @@ def first_hit(tracer: GlazingTracer, patches: SkyPatches, points: np.ndarray, no
     """
     P = np.asarray(points, np.float64).reshape(-1, 3)
     N = np.asarray(normals, np.float64).reshape(-1, 3)
-    out = np.zeros((len(P), 3, len(patches)))
+    q, n_patch = len(P), len(patches)
+    dirs, owner, weight = [], [], []
     for p, (alt, azi) in enumerate(patches.samples(k)):
-        dirs = direction(alt, azi, north)                            # (k^2, 3)
-        cos = N @ dirs.T                                             # (q, k^2)
+        dirs.append(direction(alt, azi, north))
+        owner.append(np.full(len(alt), p))
+        weight.append(np.full(len(alt), patches.solid_angle[p] / len(alt)))
+    dirs, owner, weight = np.vstack(dirs), np.concatenate(owner), np.concatenate(weight)
+    out = np.zeros((q, 3, n_patch))
+    step = max(1, batch // max(q, 1))
+    for start in range(0, len(dirs), step):
+        d = dirs[start:start + step]
+        cos = N @ d.T                                                # (q, b)
         qi, di = np.nonzero(cos > 0)
         if len(qi):
-            T = tracer.transmittance(P[qi], dirs[di])                # (r, 3)
-            w = (cos[qi, di] * patches.solid_angle[p] / len(dirs))[:, None] * T
-            np.add.at(out[:, :, p], qi, w)
-        report(progress, p + 1, len(patches))
+            T = tracer.transmittance(P[qi], d[di])                   # (r, 3)
+            w = cos[qi, di] * weight[start + di]
+            cell = qi * n_patch + owner[start + di]
+            for c in range(3):
+                out[:, c, :] += np.bincount(cell, weights=w * T[:, c], minlength=q * n_patch).reshape(q, n_patch)
+        report(progress, int(owner[min(len(dirs), start + step) - 1]) + 1, n_patch)
     return out
 
 
