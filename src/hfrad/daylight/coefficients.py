@@ -33,8 +33,43 @@ from .sky import SkyPatches, direction
 __all__ = ["first_hit"]
 
 
+def _directions(patches: SkyPatches, k: int, north: float):
+    """All patches' sample directions stacked: (K, 3) unit vectors, (K,) owning patch, (K,) solid angle each (sr)."""
+    dirs, owner, weight = [], [], []
+    for p, (alt, azi) in enumerate(patches.samples(k)):
+        dirs.append(direction(alt, azi, north))
+        owner.append(np.full(len(alt), p))
+        weight.append(np.full(len(alt), patches.solid_angle[p] / len(alt)))
+    return np.vstack(dirs), np.concatenate(owner), np.concatenate(weight)
+
+
+def _accumulate(out, counts, tracer, P, N, qsel, dirs, owner, weight, batch, progress=None):
+    """Add the rays from points ``qsel`` along ``dirs`` into ``out`` (q, 3, P); with ``counts`` (2, q, P),
+    count the rays that got through (``counts[0]``) and those blocked (``counts[1]``)."""
+    n_patch = out.shape[2]
+    step = max(1, batch // max(len(qsel), 1))
+    for start in range(0, len(dirs), step):
+        d = dirs[start:start + step]
+        cos = N[qsel] @ d.T                                          # (s, b)
+        si, di = np.nonzero(cos > 0)
+        if len(si):
+            qi = qsel[si]
+            T = tracer.transmittance(P[qi], d[di])                   # (r, 3)
+            w = cos[si, di] * weight[start + di]
+            cell = qi * n_patch + owner[start + di]
+            size = out.shape[0] * n_patch
+            for c in range(3):
+                out[:, c, :] += np.bincount(cell, weights=w * T[:, c], minlength=size).reshape(-1, n_patch)
+            if counts is not None:
+                through = T.max(axis=1) > 0
+                counts[0] += np.bincount(cell[through], minlength=size).reshape(-1, n_patch)
+                counts[1] += np.bincount(cell[~through], minlength=size).reshape(-1, n_patch)
+        report(progress, int(owner[min(len(dirs), start + step) - 1]) + 1, n_patch)
+
+
 def first_hit(tracer: GlazingTracer, patches: SkyPatches, points: np.ndarray, normals: np.ndarray, *,
-              k: int = 3, north: float = 0.0, progress: ProgressCallback = None, batch: int = 1 << 20) -> np.ndarray:
+              k: int = 3, refine: int = 1, north: float = 0.0, progress: ProgressCallback = None,
+              batch: int = 1 << 20) -> np.ndarray:
     """(q, 3, P) float, sr: first-hit irradiance at ``points`` per unit radiance of each sky patch.
 
     Parameters
@@ -44,40 +79,47 @@ def first_hit(tracer: GlazingTracer, patches: SkyPatches, points: np.ndarray, no
     points, normals : (q, 3) float; normals of unit length
     k : int
         ``k x k`` ray directions per sky patch.
+    refine : int
+        Where a patch is seen in part from a point (some of its ``k^2`` rays blocked, some not: a
+        window's edge crosses it), or a neighbouring patch is seen otherwise than it is (hidden,
+        in part, whole: an edge near the border can fall between all of its rays), its rays are cast
+        again, ``(k refine)^2`` of them. Most of the sky is wholly seen or wholly hidden, so
+        refining only the edges costs little: at ``k`` 4, ``refine`` 4 a work-plane sensor's annual
+        first-hit light is within 1% of 64^2 rays in every patch; 8^2 rays everywhere are 3-4% off.
     north : float, degrees (see :func:`direction`)
     progress : callable (done, total), optional
-        Sky patches done.
+        Sky patches done (the first pass).
     batch : int
         Rays per call to the tracer: directions of several patches go together, so that
         Embree's batches are large enough for all its threads.
 
     Notes
     -----
-    Cost: up to q P k^2 rays (those below a point's horizon are not cast),
-    each followed through at most :data:`MAX_PANES` panes.
+    Cost: up to q P k^2 rays (those below a point's horizon are not cast) plus
+    (k refine)^2 per refined (point, patch) pair, each followed through at most
+    :data:`MAX_PANES` panes. A window seen through a gap narrower than a coarse
+    ray spacing (12 / k degrees at MF:1) in a patch can be missed.
     """
     P = np.asarray(points, np.float64).reshape(-1, 3)
     N = np.asarray(normals, np.float64).reshape(-1, 3)
     q, n_patch = len(P), len(patches)
-    dirs, owner, weight = [], [], []
-    for p, (alt, azi) in enumerate(patches.samples(k)):
-        dirs.append(direction(alt, azi, north))
-        owner.append(np.full(len(alt), p))
-        weight.append(np.full(len(alt), patches.solid_angle[p] / len(alt)))
-    dirs, owner, weight = np.vstack(dirs), np.concatenate(owner), np.concatenate(weight)
     out = np.zeros((q, 3, n_patch))
-    step = max(1, batch // max(q, 1))
-    for start in range(0, len(dirs), step):
-        d = dirs[start:start + step]
-        cos = N @ d.T                                                # (q, b)
-        qi, di = np.nonzero(cos > 0)
-        if len(qi):
-            T = tracer.transmittance(P[qi], d[di])                   # (r, 3)
-            w = cos[qi, di] * weight[start + di]
-            cell = qi * n_patch + owner[start + di]
-            for c in range(3):
-                out[:, c, :] += np.bincount(cell, weights=w * T[:, c], minlength=q * n_patch).reshape(q, n_patch)
-        report(progress, int(owner[min(len(dirs), start + step) - 1]) + 1, n_patch)
+    counts = np.zeros((2, q, n_patch), np.int64) if refine > 1 else None
+    _accumulate(out, counts, tracer, P, N, np.arange(q), *_directions(patches, k, north), batch, progress)
+    if refine > 1:
+        # refined: patches seen in part, and patches whose neighbour is seen differently (none, part,
+        # whole): a window's edge near a patch's border can fall between all of its coarse rays
+        through, blocked = counts[0] > 0, counts[1] > 0
+        onehot = np.stack([blocked & ~through, through & blocked, through & ~blocked], axis=2)  # (q, P, 3)
+        seen = np.einsum("qpv,pr->qrv", onehot.astype(np.float32), patches.neighbours().astype(np.float32)) > 0
+        differs = (seen & ~onehot).any(axis=2)                      # a neighbour hidden, in part or whole
+        partial = (through | blocked) & (onehot[:, :, 1] | differs)
+        fine = _directions(patches, k * refine, north)
+        for p in np.flatnonzero(partial.any(axis=0)):
+            qsel = np.flatnonzero(partial[:, p])
+            sel = fine[1] == p
+            out[qsel, :, p] = 0.0
+            _accumulate(out, None, tracer, P, N, qsel, fine[0][sel], fine[1][sel], fine[2][sel], batch)
     return out
 
 
