@@ -48,6 +48,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import os
 import shutil
@@ -284,6 +285,46 @@ def compare(h: dict, r: dict) -> dict:
             "sDA_pp": 100 * (h["sDA"] - r["sDA"]), "ASE_pp": 100 * (h["ASE"] - r["ASE"])}
 
 
+def radiance_side(scene, sensors, weather, args, t):
+    """Radiance's year (two-phase and five-phase totals, direct sun) summarised like hfrad's."""
+    repeat = 2 if args.noise else 1
+    with tempfile.TemporaryDirectory(prefix="dl-radiance-") as tmp:
+        r = radiance_year(scene, sensors, weather, ab=args.ab, ad=args.ad, threads=args.threads, work=Path(tmp), t=t,
+                          ground=args.ground, repeat=repeat)
+    tr = r["timings"]
+    print(f"  Radiance: rfluxmtx {tr['rfluxmtx_s']:.1f} s (x{repeat} sensors), direct sun {tr['sun_coefficients_s']:.1f} s",
+          flush=True)
+    m, hour = len(sensors), weather.hour
+    second = r["lux"][m:]
+    for k in ("lux", "lux_five_phase", "direct_sun"):
+        r[k] = r[k][:m]
+    rs = summary(r["lux_five_phase"], r["direct_sun"], hour)
+    r2 = summary(r["lux"], r["direct_sun"], hour)
+    info = {"timings": r["timings"], "options": r["options"], "sun_options": r["sun_options"],
+            "two_phase_mean_lux": r2["mean_lux"], "two_phase_sDA": r2["sDA"]}
+    if repeat == 2:
+        m2 = second[:, weather_occupied(hour)].mean(axis=1)
+        d = (r2["mean_lux"] - m2) / (0.5 * (r2["mean_lux"] + m2))
+        info["noise_mean_lux_rel_rms"] = float(np.sqrt(np.mean(d ** 2)) / math.sqrt(2))
+    return rs, r2, info
+
+
+def _reuse(path, name, sensors):
+    """Radiance's summary of case ``name`` from an earlier run's JSON (the same sensors), or None."""
+    if not path:
+        return None
+    for r in json.loads(Path(path).read_text())["results"]:
+        if r["case"] == name and np.allclose(r["points"], sensors.points):
+            R = dict(r["radiance"])
+            rs = {k: np.asarray(R.pop(k)) if k in ("mean_lux", "DA", "sun_hours") else R.pop(k)
+                  for k in ("sDA", "ASE", "mean_DA", "mean_UDI_useful", "mean_lux", "DA", "sun_hours")}
+            two = r["two_phase"]
+            r2 = {"mean_lux": np.asarray(two["radiance_mean_lux"]), "sDA": two["radiance_sDA"], "ASE": rs["ASE"]}
+            R.update({"two_phase_mean_lux": r2["mean_lux"], "two_phase_sDA": r2["sDA"], "reused_from": str(path)})
+            return rs, r2, R
+    return None
+
+
 def run_case(name: str, args, t: dict, weather) -> dict:
     from hfrad.daylight import sidelit_room
     from hfrad.lighting import floor_grid
@@ -294,33 +335,23 @@ def run_case(name: str, args, t: dict, weather) -> dict:
     print(f"{name}: {scene.n_patches} patches, {len(sensors)} sensors", flush=True)
     h = hfrad_year(scene, sensors, weather, eps=args.eps, ground=args.ground)
     print(f"  hfrad: precompute {h['timings']['precompute_s']:.1f} s, year {h['timings']['year_s']:.1f} s", flush=True)
-    repeat = 2 if args.noise else 1
-    with tempfile.TemporaryDirectory(prefix=f"dl-{name}-") as tmp:
-        r = radiance_year(scene, sensors, weather, ab=args.ab, ad=args.ad, threads=args.threads, work=Path(tmp), t=t,
-                          ground=args.ground, repeat=repeat)
-    tr = r["timings"]
-    print(f"  Radiance: rfluxmtx {tr['rfluxmtx_s']:.1f} s (x{repeat} sensors), direct sun {tr['sun_coefficients_s']:.1f} s",
-          flush=True)
-    m = len(sensors)
-    second = r["lux"][m:]
-    for k in ("lux", "lux_five_phase", "direct_sun"):
-        r[k] = r[k][:m]
     hour = weather.hour
-    hs, rs = summary(h["lux"], h["direct_sun"], hour), summary(r["lux_five_phase"], r["direct_sun"], hour)
-    h2, r2 = summary(h["lux_two_phase"], h["direct_sun"], hour), summary(r["lux"], r["direct_sun"], hour)
+    reused = _reuse(args.radiance_json, name, sensors)
+    if reused is None:
+        rs, r2, rinfo = radiance_side(scene, sensors, weather, args, t)
+    else:
+        rs, r2, rinfo = reused
+        print(f"  Radiance: reused from {args.radiance_json}", flush=True)
+    hs, h2 = summary(h["lux"], h["direct_sun"], hour), summary(h["lux_two_phase"], h["direct_sun"], hour)
     out = {"case": name, "room": CASES[name], "materials": MATERIALS, "patches": h["patches"], "rank": h["rank"],
            "sensors": len(sensors), "spacing_m": args.spacing,
            "hfrad": {**hs, "timings": h["timings"]},
-           "radiance": {**rs, "timings": r["timings"], "options": r["options"], "sun_options": r["sun_options"]},
+           "radiance": {**rs, **rinfo},
            "compare": compare(hs, rs),
            "two_phase": {"hfrad_mean_lux": h2["mean_lux"], "radiance_mean_lux": r2["mean_lux"],
                          "hfrad_sDA": h2["sDA"], "radiance_sDA": r2["sDA"], "compare": compare(h2, r2)},
-           "direct_sun_annual_rel": float(h["direct_sun"].sum() / max(r["direct_sun"].sum(), 1e-9) - 1),
+           "sun_hours_rel": float(hs["sun_hours"].sum() / max(rs["sun_hours"].sum(), 1) - 1),
            "points": sensors.points}
-    if repeat == 2:
-        m2 = second[:, weather_occupied(hour)].mean(axis=1)
-        d = (r2["mean_lux"] - m2) / (0.5 * (r2["mean_lux"] + m2))
-        out["radiance"]["noise_mean_lux_rel_rms"] = float(np.sqrt(np.mean(d ** 2)) / math.sqrt(2))
     return out
 
 
@@ -336,6 +367,8 @@ def main() -> None:
     p.add_argument("--ad", type=int, default=50000)
     p.add_argument("--threads", type=int, default=len(os.sched_getaffinity(0)))
     p.add_argument("--noise", action="store_true", help="trace each sensor twice in Radiance (-u+) for its noise")
+    p.add_argument("--radiance-json", default=None,
+                   help="reuse Radiance's results of the same case and sensors from an earlier run's JSON")
     p.add_argument("--weather", default=None, help="TMY3/EPW (default: pvlib's Greensboro TMY3)")
     p.add_argument("--name", default="daylight-radiance")
     args = p.parse_args()

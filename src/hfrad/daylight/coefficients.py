@@ -43,19 +43,18 @@ def _directions(patches: SkyPatches, k: int, north: float):
     return np.vstack(dirs), np.concatenate(owner), np.concatenate(weight)
 
 
-def _accumulate(out, counts, tracer, P, N, qsel, dirs, owner, weight, batch, progress=None):
-    """Add the rays from points ``qsel`` along ``dirs`` into ``out`` (q, 3, P); with ``counts`` (2, q, P),
+def _accumulate(out, counts, tracer, P, N, dirs, owner, weight, batch, progress=None):
+    """Add the rays from points ``P`` along ``dirs`` into ``out`` (q, 3, P); with ``counts`` (2, q, P),
     count the rays that got through (``counts[0]``) and those blocked (``counts[1]``)."""
     n_patch = out.shape[2]
-    step = max(1, batch // max(len(qsel), 1))
+    step = max(1, batch // max(len(P), 1))
     for start in range(0, len(dirs), step):
         d = dirs[start:start + step]
-        cos = N[qsel] @ d.T                                          # (s, b)
-        si, di = np.nonzero(cos > 0)
-        if len(si):
-            qi = qsel[si]
+        cos = N @ d.T                                                # (q, b)
+        qi, di = np.nonzero(cos > 0)
+        if len(qi):
             T = tracer.transmittance(P[qi], d[di])                   # (r, 3)
-            w = cos[si, di] * weight[start + di]
+            w = cos[qi, di] * weight[start + di]
             cell = qi * n_patch + owner[start + di]
             size = out.shape[0] * n_patch
             for c in range(3):
@@ -105,22 +104,46 @@ def first_hit(tracer: GlazingTracer, patches: SkyPatches, points: np.ndarray, no
     q, n_patch = len(P), len(patches)
     out = np.zeros((q, 3, n_patch))
     counts = np.zeros((2, q, n_patch), np.int64) if refine > 1 else None
-    _accumulate(out, counts, tracer, P, N, np.arange(q), *_directions(patches, k, north), batch, progress)
+    _accumulate(out, counts, tracer, P, N, *_directions(patches, k, north), batch, progress)
     if refine > 1:
-        # refined: patches seen in part, and patches whose neighbour is seen differently (none, part,
-        # whole): a window's edge near a patch's border can fall between all of its coarse rays
+        # refined: patches seen in part, and a wholly seen patch next to a wholly hidden one (both of
+        # them): there a window's edge runs along their border, between all of their coarse rays
         through, blocked = counts[0] > 0, counts[1] > 0
-        onehot = np.stack([blocked & ~through, through & blocked, through & ~blocked], axis=2)  # (q, P, 3)
-        seen = np.einsum("qpv,pr->qrv", onehot.astype(np.float32), patches.neighbours().astype(np.float32)) > 0
-        differs = (seen & ~onehot).any(axis=2)                      # a neighbour hidden, in part or whole
-        partial = (through | blocked) & (onehot[:, :, 1] | differs)
-        fine = _directions(patches, k * refine, north)
+        hidden, whole = (blocked & ~through).astype(np.float32), (through & ~blocked).astype(np.float32)
+        adjacent = patches.neighbours().astype(np.float32)
+        border = ((hidden > 0) & (whole @ adjacent > 0)) | ((whole > 0) & (hidden @ adjacent > 0))
+        partial = (through & blocked) | border
+        fine = [(direction(alt, azi, north), patches.solid_angle[p] / len(alt))
+                for p, (alt, azi) in enumerate(patches.samples(k * refine))]
+        group, rays = [], 0
         for p in np.flatnonzero(partial.any(axis=0)):
-            qsel = np.flatnonzero(partial[:, p])
-            sel = fine[1] == p
-            out[qsel, :, p] = 0.0
-            _accumulate(out, None, tracer, P, N, qsel, fine[0][sel], fine[1][sel], fine[2][sel], batch)
+            group.append((p, np.flatnonzero(partial[:, p])))
+            rays += len(group[-1][1]) * len(fine[p][0])
+            if rays >= batch:
+                _refine(out, tracer, P, N, group, fine)
+                group, rays = [], 0
+        _refine(out, tracer, P, N, group, fine)
     return out
+
+
+def _refine(out, tracer, P, N, group, fine) -> None:
+    """Replace ``out[q, :, p]`` for each (p, q) of ``group`` by its fine rays ``fine[p]`` (directions, sr each),
+    all of the group's rays in one call to the tracer."""
+    if not group:
+        return
+    O = np.concatenate([np.repeat(P[q], len(fine[p][0]), axis=0) for p, q in group])
+    Nr = np.concatenate([np.repeat(N[q], len(fine[p][0]), axis=0) for p, q in group])
+    D = np.concatenate([np.tile(fine[p][0], (len(q), 1)) for p, q in group])
+    W = np.concatenate([np.full(len(q) * len(fine[p][0]), fine[p][1]) for p, q in group])
+    cos = np.einsum("rd,rd->r", Nr, D)
+    up = np.flatnonzero(cos > 0)
+    L = np.zeros((len(O), 3))
+    L[up] = tracer.transmittance(O[up], D[up]) * (cos[up] * W[up])[:, None]
+    start = 0
+    for p, q in group:
+        stop = start + len(q) * len(fine[p][0])
+        out[q, :, p] = L[start:stop].reshape(len(q), -1, 3).sum(axis=1)
+        start = stop
 
 
 def patch_first_hit(scene, tracer: GlazingTracer, patches: SkyPatches, *, samples: int = 2, k: int = 3,

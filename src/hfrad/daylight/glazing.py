@@ -24,6 +24,7 @@ __all__ = ["GlazingTracer", "angular_factor", "MAX_PANES"]
 #: panes a ray may cross before it is counted as blocked (double glazing modelled as two faces is 2)
 MAX_PANES = 6
 _N_GLASS = 1.52
+_COS_TABLE = np.linspace(0.0, 1.0, 4097)
 
 
 def _pane(cos_i: np.ndarray, absorb: float) -> np.ndarray:
@@ -89,9 +90,10 @@ class GlazingTracer:
         n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
         self.normals = n / np.maximum(np.linalg.norm(n, axis=1), 1e-300)[:, None]
         self.angular = angular
-        # per glazing material: the absorption of its pane (angular_factor's), solved once
-        self._absorb = {i: _absorption(max(m.transmittance)) for i, m in enumerate(scene.materials)
-                        if max(m.transmittance) > 0}
+        # per glazing material: angular_factor tabulated once over |cos| (smooth: linear interpolation
+        # on 4,097 points is within 1e-6 of it)
+        self._table = {i: angular_factor(_COS_TABLE, max(m.transmittance)) for i, m in enumerate(scene.materials)
+                       if max(m.transmittance) > 0}
         self.material = mat
         size = float(np.ptp(scene.bounds, axis=0).max()) if len(tri) else 1.0
         self.eps = 1e-5 * max(size, 1e-3)
@@ -109,10 +111,11 @@ class GlazingTracer:
         t = self.tau[f]
         if self.angular:
             cos_i = np.clip(np.abs(np.einsum("rd,rd->r", self.normals[f], d)), 0.0, 1.0)
-            for mi, absorb in self._absorb.items():
-                sel = self.material[f] == mi
+            mat = self.material[f]
+            for mi, table in self._table.items():
+                sel = mat == mi
                 if sel.any():
-                    t[sel] *= (_pane(cos_i[sel], absorb) / _pane(np.ones(1), absorb)[0])[:, None]
+                    t[sel] *= np.interp(cos_i[sel], _COS_TABLE, table)[:, None]
         return t
 
     def transmittance(self, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
