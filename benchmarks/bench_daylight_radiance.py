@@ -256,6 +256,7 @@ def hfrad_year(scene, sensors, weather, *, eps: float, ground: float) -> dict:
     sky, sun = matrices
     two = dc.illuminance(sky + sun)          # the two-phase year: the sun spread over patches, no sun rays
     return {"lux": res.illuminance, "lux_two_phase": two, "direct_sun": res.direct_sun, "timings": times,
+            "tracer": model.tracer,
             "patches": fac.n_patches,
             "rank": fac.rank}
 
@@ -283,6 +284,27 @@ def compare(h: dict, r: dict) -> dict:
             "within_5pct": float((np.abs(rel) <= 0.05).mean()),
             "grid_mean_rel": float(h["mean_lux"].mean() / r["mean_lux"].mean() - 1),
             "sDA_pp": 100 * (h["sDA"] - r["sDA"]), "ASE_pp": 100 * (h["ASE"] - r["ASE"])}
+
+
+def sun_on_radiance_suns(tracer, sensors, weather, work: Path, t: dict, ground: float) -> np.ndarray:
+    """(m, h) lux: hfrad's direct sun by its own rays, but along Radiance's five-phase suns (the centres of
+    the MF:6 patches, gendaymtx's sun positions and ``-5`` matrix): separates the sun's position from the
+    ray tracing and the glazing in an ASE difference."""
+    (work / "wea.wea").write_text(weather.wea())
+    run([t["gendaymtx"], "-5", f"{SUN_DIAMETER}", "-d", "-m", "6", "-of", "-g", *(f"{ground}",) * 3, "wea.wea"],
+        cwd=work, out=work / "sun.smx")
+    data = (work / "sun.smx").read_bytes()
+    end = data.find(b"\n\n")
+    cols = int(dict(x.split("=", 1) for x in data[:end].decode().splitlines() if "=" in x)["NCOLS"])
+    lum = np.frombuffer(data[end + 2:], "<f4").reshape(-1, cols, 3) @ RADIANCE_Y.astype(np.float32)  # (5186, h)
+    d = reinhart_centres(6)                                                    # Radiance z-up
+    d = np.stack([d[:, 0], d[:, 2], -d[:, 1]], axis=1)                        # hfrad y-up
+    cos = sensors.normals @ d.T                                               # (m, 5185)
+    qi, pi = np.nonzero(cos > 0)
+    T = tracer.transmittance(sensors.points[qi], d[pi]).max(axis=1)          # grey glass
+    C = np.zeros(cos.shape)
+    C[qi, pi] = cos[qi, pi] * T * 2 * np.pi * (1 - np.cos(np.radians(SUN_DIAMETER / 2)))
+    return (C @ lum[1:]).astype(np.float32)
 
 
 def radiance_side(scene, sensors, weather, args, t):
@@ -343,6 +365,8 @@ def run_case(name: str, args, t: dict, weather) -> dict:
         rs, r2, rinfo = reused
         print(f"  Radiance: reused from {args.radiance_json}", flush=True)
     hs, h2 = summary(h["lux"], h["direct_sun"], hour), summary(h["lux_two_phase"], h["direct_sun"], hour)
+    with tempfile.TemporaryDirectory(prefix="dl-suns-") as tmp:
+        h5 = summary(h["lux"], sun_on_radiance_suns(h["tracer"], sensors, weather, Path(tmp), t, args.ground), hour)
     out = {"case": name, "room": CASES[name], "materials": MATERIALS, "patches": h["patches"], "rank": h["rank"],
            "sensors": len(sensors), "spacing_m": args.spacing,
            "hfrad": {**hs, "timings": h["timings"]},
@@ -351,6 +375,9 @@ def run_case(name: str, args, t: dict, weather) -> dict:
            "two_phase": {"hfrad_mean_lux": h2["mean_lux"], "radiance_mean_lux": r2["mean_lux"],
                          "hfrad_sDA": h2["sDA"], "radiance_sDA": r2["sDA"], "compare": compare(h2, r2)},
            "sun_hours_rel": float(hs["sun_hours"].sum() / max(rs["sun_hours"].sum(), 1) - 1),
+           "hfrad_on_radiance_suns": {"ASE": h5["ASE"], "sun_hours": h5["sun_hours"],
+                                      "ASE_pp": 100 * (h5["ASE"] - rs["ASE"]),
+                                      "sun_hours_rel": float(h5["sun_hours"].sum() / max(rs["sun_hours"].sum(), 1) - 1)},
            "points": sensors.points}
     return out
 
@@ -393,6 +420,7 @@ def main() -> None:
                      "2-phase RMS rel": T["compare"]["mean_lux_rel_rms"],
                      "sDA hfrad %": 100 * H["sDA"], "sDA Radiance %": 100 * R["sDA"],
                      "ASE hfrad %": 100 * H["ASE"], "ASE Radiance %": 100 * R["ASE"],
+                     "ASE hfrad, Radiance's suns %": 100 * r["hfrad_on_radiance_suns"]["ASE"],
                      "hfrad precompute s": H["timings"]["precompute_s"], "hfrad year s": H["timings"]["year_s"],
                      "Radiance 2-phase s": rt["convert_s"] + rt["rfluxmtx_s"] + rt["gendaymtx_s"] + rt["dctimestep_s"],
                      "Radiance 5-phase extra s": rt["direct_coefficients_s"] + rt["sun_coefficients_s"]
