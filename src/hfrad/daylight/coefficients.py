@@ -106,13 +106,12 @@ def first_hit(tracer: GlazingTracer, patches: SkyPatches, points: np.ndarray, no
     counts = np.zeros((2, q, n_patch), np.int64) if refine > 1 else None
     _accumulate(out, counts, tracer, P, N, *_directions(patches, k, north), batch, progress)
     if refine > 1:
-        # refined: patches seen in part, and a wholly seen patch next to a wholly hidden one (both of
-        # them): there a window's edge runs along their border, between all of their coarse rays
+        # refined: patches seen in part, and patches next to one seen otherwise (hidden, in part, whole):
+        # a window's edge near a patch's border can pass between all of its coarse rays
         through, blocked = counts[0] > 0, counts[1] > 0
-        hidden, whole = (blocked & ~through).astype(np.float32), (through & ~blocked).astype(np.float32)
-        adjacent = patches.neighbours().astype(np.float32)
-        border = ((hidden > 0) & (whole @ adjacent > 0)) | ((whole > 0) & (hidden @ adjacent > 0))
-        partial = (through & blocked) | border
+        state = np.stack([blocked & ~through, through & blocked, through & ~blocked], axis=2)   # (q, P, 3)
+        near = np.einsum("qpv,pr->qrv", state.astype(np.float32), patches.neighbours().astype(np.float32)) > 0
+        partial = (through | blocked) & (state[:, :, 1] | (near & ~state).any(axis=2))
         fine = [(direction(alt, azi, north), patches.solid_angle[p] / len(alt))
                 for p, (alt, azi) in enumerate(patches.samples(k * refine))]
         group, rays = [], 0
