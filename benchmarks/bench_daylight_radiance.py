@@ -61,6 +61,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_radiance import _zup as zup  # noqa: E402  (hfrad's y-up to Radiance's z-up)
 from common import check_load, machine, machine_line, print_table, table, write_json  # noqa: E402
 
 RADIANCE_Y = 179.0 * np.array([0.265, 0.670, 0.065])      # Radiance's lux per RGB W/(m^2) (its primaries)
@@ -83,11 +84,6 @@ def tools() -> dict:
     if missing:
         raise SystemExit(f"pyradiance's binaries are missing: {', '.join(missing)}")
     return found
-
-
-def zup(p) -> np.ndarray:
-    p = np.asarray(p, np.float64)
-    return np.stack([p[..., 0], -p[..., 2], p[..., 1]], axis=-1)
 
 
 def glass_transmissivity(tau: float) -> float:
