@@ -186,7 +186,8 @@ def test_black_room_equals_the_direct_term_and_lamberts_window(black_room):
     E = _lux(dc, _uniform(model.patches, L, L))
     window = [[0.4, 0.9, 5.0], [3.6, 0.9, 5.0], [3.6, 2.4, 5.0], [0.4, 2.4, 5.0]]
     expected = [0.7 * L * np.pi * _lambert(p, np.array([0, 1.0, 0]), window) * RADIANCE_LUMINANCE.sum() for p in pts]
-    assert np.allclose(E, expected, rtol=0.03)      # observed 0.6%, 0.6%, 1.8% (64 rays per sky patch)
+    assert np.allclose(E, expected, rtol=0.01)      # observed 0.07%, 0.03%, 0.4% (refined Hammersley rays;
+    #                                                 8 x 8 centred strata: 0.6%, 0.6%, 1.8%)
 
 
 def test_energy_through_the_window(black_room):
