@@ -47,6 +47,9 @@ class FormFactorEngine:
         Patches per cluster for visibility decided once per cluster pair where it is
         all or nothing (:mod:`hfrad.formfactors.clustervis`); 0 = off; default
         :data:`~hfrad.formfactors.visibility.CLUSTER_VISIBILITY`.
+    ray_threads : int or None
+        Threads casting a batch of rays (:class:`~hfrad.formfactors.visibility.Visibility`):
+        1 for :meth:`iter_blocks`' pipeline (default), None (every core) for callers of :meth:`block`.
 
     Notes
     -----
@@ -58,12 +61,12 @@ class FormFactorEngine:
 
     def __init__(self, scene, *, samples: int = DEFAULT_SAMPLES, near: float = NEAR,
                  tolerance: float = TOLERANCE, ray_budget: RayBudget | None = None,
-                 cluster_size: int | None = None) -> None:
+                 cluster_size: int | None = None, ray_threads: int | None = 1) -> None:
         # patches that are clusters of triangles (hfrad.scene.cluster) have their own kernel
         self.geometry, self._unoccluded = kernel_for(scene, near=near, tolerance=tolerance)
         self.samples = int(samples)
-        self.visibility = (Visibility(scene, samples=samples, ray_budget=ray_budget, cluster_size=cluster_size)
-                           if samples else None)
+        self.visibility = (Visibility(scene, samples=samples, ray_budget=ray_budget, cluster_size=cluster_size,
+                                      ray_threads=ray_threads) if samples else None)
         self.kernel_seconds = 0.0
         self.pairs = 0
         self._executor = None

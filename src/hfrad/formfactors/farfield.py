@@ -34,20 +34,21 @@ import scipy.linalg as sla
 
 from ..errors import InputError
 from ..progress import ProgressCallback, report
+from ..resources import blas_threads
 from .clustervis import BLOCKED, CLUSTER_SIZE, MIXED, VISIBLE
 from .engine import FormFactorEngine
 
-__all__ = ["FarFieldOptions", "FarFieldStats", "FarFieldCertificate", "patch_boxes", "near_leaves", "near_rows",
-           "sampled_column_blocks", "FAR_FIELD_CHOICES"]
+__all__ = ["FarFieldOptions", "FarFieldStats", "FarFieldCertificate", "SampledFarField", "patch_boxes",
+           "near_leaves", "near_rows", "skeleton", "sampled_column_blocks", "FAR_FIELD_CHOICES"]
 
 #: A column group is halved while its box's diagonal exceeds this many times the square root of its
 #: area (a flat square has ~1.4, an L across a corner ~2) ...
 GROUP_SPREAD = 3.0
+#: ... and it has at least twice this many patches.
+MIN_GROUP = 16
 #: Rays from a far row's patch to patches of a column cluster where the cluster-pair test is not
 #: conclusive (one to each of PROBES patches spread along the cluster).
 PROBES = 6
-#: ... and it has at least twice this many patches.
-MIN_GROUP = 16
 #: The values of ``far_field`` (``hfrad.factorize``, ``hfrad precompute --far-field``).
 FAR_FIELD_CHOICES = ("exact", "sampled", "auto")
 
@@ -364,8 +365,11 @@ class SampledFarField:
         rng = np.random.default_rng([self.options.seed, j])
         self.stats.blocks += 1
         out = np.empty((n, cols.size))
-        for a, c, box in self._groups(start, stop):
-            self._group(out[:, a - start:c - start], self.order[a:c], box, rng)
+        # one BLAS thread: the pivoted QRs are small, and OpenBLAS's threads spin against the
+        # kernel's and Embree's (a 96 x 256 geqp3 took 0.23 s with two, 4 ms with one)
+        with blas_threads(1):
+            for a, c, box in self._groups(start, stop):
+                self._group(out[:, a - start:c - start], self.order[a:c], box, rng)
         # the rows a caller wants exact (the per-solve figure's, the certificate's): evaluated,
         # beside what the decomposition saw
         checks = [c for c in (self.certificate, self.holdout) if c is not None]

@@ -106,3 +106,24 @@ def fill_rays(P, plane, partner, r_idx, c_idx, valid, first, o, d, t, w):
             cb = -(plane[b, 0] * dx + plane[b, 1] * dy + plane[b, 2] * dz) * inv
             w[row] = max(ca, 0.0) * max(cb, 0.0) / L2 if L2 > 0.0 else 0.0
             row += 1
+
+
+@njit(cache=True, parallel=True, nogil=True)
+def probe_segments(P, normals, i, j, o, d, t, facing):  # pragma: no cover (numba)
+    """One segment from point ``P[i[k]]`` to ``P[j[k]]`` for each k, where the two patches face
+    each other (normals ``normals``): origins, unit directions and lengths into ``o``, ``d``,
+    ``t`` (float32); elsewhere ``facing[k]`` is False and the length 0 (Embree finds no hit)."""
+    for k in prange(i.size):
+        a, b = i[k], j[k]
+        vx, vy, vz = P[b, 0] - P[a, 0], P[b, 1] - P[a, 1], P[b, 2] - P[a, 2]
+        length = math.sqrt(vx * vx + vy * vy + vz * vz)
+        front = normals[a, 0] * vx + normals[a, 1] * vy + normals[a, 2] * vz
+        back = normals[b, 0] * vx + normals[b, 1] * vy + normals[b, 2] * vz
+        o[k, 0], o[k, 1], o[k, 2] = P[a, 0], P[a, 1], P[a, 2]
+        facing[k] = front > 0.0 and back < 0.0 and length > 0.0
+        if facing[k]:
+            d[k, 0], d[k, 1], d[k, 2] = vx / length, vy / length, vz / length
+            t[k] = length
+        else:
+            d[k, 0], d[k, 1], d[k, 2] = 1.0, 0.0, 0.0
+            t[k] = 0.0

@@ -79,7 +79,7 @@ from .kernel import points_on_triangles, split_centroids
 from .probing import (NEIGHBOURS, PROBE_BELOW, PROBE_NEAR, cuttable, cuttable_one_word, full_ray_pairs,
                       nearest_patches, one_word_bits)
 from .raycast import RayCaster
-from .segments import RAY_BATCH, RayBuffers, RayJob, fill_rays, valid_rays
+from .segments import RAY_BATCH, RayBuffers, RayJob, fill_rays, probe_segments, valid_rays
 
 #: Rays per patch pair by default (a 2 x 2 split of each triangle) with probing off; with
 #: probing on (the default) the flagged pairs get max(samples, BOUNDARY_SAMPLES).
@@ -185,12 +185,16 @@ class Visibility:
         patch pairs that needs rays and would get every ray whatever its probe says
         (close or large pairs, probing.py), each patch's box as its cluster; only with
         ``cluster_size`` > 0. Default ``PAIR_TEST``.
+    ray_threads : int or None
+        Threads casting each batch of rays: 1 (default) where the caller runs Embree in a
+        thread of its own beside the kernel (the engine's pipeline); None: every core, for a
+        caller that waits for each batch (the sampled far field).
     """
 
     def __init__(self, scene, *, samples: int = DEFAULT_SAMPLES, cull: bool = True,
                  refine_samples: int = REFINE_SAMPLES, refine_above: float = REFINE_ABOVE,
                  probe: bool = True, ray_budget: RayBudget | None = None,
-                 cluster_size: int | None = None, pair_test: bool | None = None) -> None:
+                 cluster_size: int | None = None, pair_test: bool | None = None, ray_threads: int | None = 1) -> None:
         m = check_samples(samples)
         self.samples = int(samples)
         # everything below is in the scene's frame: centred, in units of its size (module docstring);
@@ -223,7 +227,7 @@ class Visibility:
         self.centroids = np.ascontiguousarray(self._frame(scene.centroids))
         edges = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max(axis=1) if len(tri) else np.zeros(0)
         self.diameters = np.ascontiguousarray(edges)
-        self.caster = RayCaster(self._frame(scene.occluder_vertices), scene.occluder_faces, threads=1,
+        self.caster = RayCaster(self._frame(scene.occluder_vertices), scene.occluder_faces, threads=ray_threads,
                                 normalise=False)  # already in the frame
         self._setup_culling(scene, tri, cull)
         self.areas = np.ascontiguousarray(scene.areas, dtype=np.float64)
@@ -346,17 +350,14 @@ class Visibility:
         """
         if not hasattr(self, "_centre_points"):
             self._centre_points = np.ascontiguousarray(self._points(1, None)[:, 0])
-        P = self._centre_points
-        v = P[j] - P[i]
-        nrm = self.plane[:, :3]
-        facing = (np.einsum("kd,kd->k", nrm[i], v) > 0) & (np.einsum("kd,kd->k", nrm[j], -v) > 0)
-        t = np.linalg.norm(v, axis=1)
-        facing &= t > 0
-        blocked = np.zeros(len(i), bool)
-        if facing.any():
-            o, d, tt = P[i][facing], v[facing] / t[facing, None], t[facing]
-            blocked[facing] = self.cast_segments(o.astype(np.float32), d.astype(np.float32), tt.astype(np.float32))
-            self.rays_cast += int(facing.sum())
+            self._normals = np.ascontiguousarray(self.plane[:, :3])
+        r = len(i)
+        o, d = np.empty((r, 3), np.float32), np.empty((r, 3), np.float32)
+        t, facing = np.empty(r, np.float32), np.empty(r, bool)
+        probe_segments(self._centre_points, self._normals, np.asarray(i, np.int64), np.asarray(j, np.int64),
+                       o, d, t, facing)
+        blocked = self.cast_segments(o, d, t) & facing
+        self.rays_cast += int(facing.sum())
         return facing, blocked
 
     # ------------------------------------------------------------------

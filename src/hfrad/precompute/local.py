@@ -123,7 +123,7 @@ def factorize_local(scene: Scene, plan: PrecomputePlan, backend: LocalBackend | 
 def _sampled_far_field(scene: Scene, plan: PrecomputePlan, stats: PassStatistics, ff_kwargs: dict):
     """The sampled far field's block producer; its certificate joins the pass statistics (resumed
     from them after a checkpoint)."""
-    engine = FormFactorEngine(scene, **ff_kwargs)
+    engine = FormFactorEngine(scene, ray_threads=None, **ff_kwargs)   # blocks one at a time: every core casts
     rows = stats.samples.row_patches if stats.samples is not None else ()
     producer = SampledFarField(scene, engine, plan.perm, plan.block_size, plan.rows_rho(scene)[:, 0], plan.eps,
                                weights=stats.weights, exact_rows=rows, near_radius=plan.near_radius,

@@ -21,7 +21,7 @@ import numpy as np
 from ..defaults import DEFAULT_BLOCK_SIZE
 from ..errors import InputError, SceneError
 from ..formfactors.budget import default_one_ray_tol
-from ..formfactors.farfield import FarFieldOptions
+from ..formfactors.farfield import FAR_FIELD_CHOICES, FarFieldOptions
 from ..lowrank.nearsplit import DEFAULT_NEAR_ENTRIES, near_radius
 from ..scene.scene import Scene
 from ..scene.zorder import patch_order
@@ -85,8 +85,8 @@ def far_field_mode(far_field, n: int, relative: bool) -> str:
     ``FAR_FIELD_SAMPLED_FROM`` patches on, with a relative eps)."""
     if far_field == "auto":
         return "sampled" if relative and n >= FAR_FIELD_SAMPLED_FROM else "exact"
-    if far_field not in ("exact", "sampled"):
-        raise InputError(f"far_field must be 'exact', 'sampled' or 'auto'; got {far_field!r}")
+    if far_field not in FAR_FIELD_CHOICES:
+        raise InputError(f"far_field must be one of {', '.join(map(repr, FAR_FIELD_CHOICES))}; got {far_field!r}")
     if far_field == "sampled" and not relative:
         raise InputError("far_field='sampled' needs a relative eps (its tolerance is a share of each "
                          "block's norm); use far_field='exact' with relative=False")
