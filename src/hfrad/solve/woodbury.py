@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import warnings
+
 import numpy as np
 import scipy.linalg as sla
 
