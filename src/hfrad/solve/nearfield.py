@@ -238,7 +238,8 @@ class NearFieldFactorization(HFactorization):
         As for :class:`HFactorization`.
     nbytes : int
         Bytes of the arrays a solve reads: V, ``Z``, N and its copy in the
-        factors' dtype, and ``capacitance_inv`` (Q too: the adjoint solve reads it).
+        factors' dtype, and ``capacitance_inv`` (Q too: the adjoint solve reads it; not
+        the transposed copy of N the first solve makes, as many bytes as that copy of N).
     near_entries : int
         The stored entries of N (as SciPy's ``SuperLU.nnz`` counts its factors').
     N : (n, n) float64 CSR, internal order
