@@ -109,7 +109,7 @@ def hfr_rows(paths: list[str]) -> list[dict]:
         rows.append({"file": os.path.basename(p), "patches": fac.n_patches,
                      "triangles": s.n_triangles if s is not None else None, "rank": fac.rank,
                      "achieved": fac.relative_error, "eps": fac.eps,
-                     "sigma_max": float(np.max(fac.sigma_max)),
+                     "sigma_max": float(np.max(fac.sigma_max())),
                      **{k: v for k, v in (fac.timings or {}).items() if isinstance(v, (int, float))}})
     return rows
 

@@ -50,8 +50,8 @@ def one_run(patches: int, eps: float, dtype: str) -> dict:
     info = fac.lowrank.info
     return {
         "patches": fac.n_patches, "eps": eps, "dtype": dtype, "rank": fac.rank,
-        "achieved_error": fac.relative_error, "sigma_max": list(fac.sigma_max),
-        "eq5_bound": list(fac.error_bound), "precompute_s": t_pre,
+        "achieved_error": fac.relative_error, "sigma_max": list(fac.sigma_max()),
+        "eq5_bound": list(fac.error_bound()), "precompute_s": t_pre,
         "formfactors_s": info["time_formfactors"], "hf_s": info["time_total"],
         "solve_rgb_ms_median": 1e3 * float(np.median(solves)), "solve_rgb_ms_min": 1e3 * min(solves),
         "solve_rgb_ms_batched_per_emission": 1e3 * t_batch,

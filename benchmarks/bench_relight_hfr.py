@@ -75,7 +75,7 @@ def main() -> None:
             key = f"{name}_{storage}"
             row[f"time_setup_{key}"] = time.perf_counter() - t
             row[key] = time_solve(other, E)
-            row[key]["quantization_share"] = float(other.quantization_error.max() / other.achieved_error)
+            row[key]["quantization_share"] = float(other.quantization_error().max() / other.achieved_error)
             B = other.solve(E)
             if quantize:     # the 16-bit Z's radiosity against the float32 Z's (relative, per channel)
                 row[key]["moved_vs_float32"] = (np.linalg.norm(B - B_float, axis=0)

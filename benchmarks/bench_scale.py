@@ -174,7 +174,7 @@ def run_one(args) -> dict:
         res = residual_norm(iter_column_blocks(scene, 256, processes=args.processes), scene.reflectance, E, B)
         row["residual"] = np.asarray(res).tolist()
         row["time_residual"] = time.perf_counter() - t
-    row["error_bound_eq5"] = np.asarray(fac.error_bound).tolist()
+    row["error_bound_eq5"] = np.asarray(fac.error_bound()).tolist()
     row["peak_rss_gb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 / 1e9
     row["peak_rss_children_gb"] = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024 / 1e9
     # the precompute's peak of the whole process tree at one instant (PSS: shared slots once), and

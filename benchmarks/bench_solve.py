@@ -11,7 +11,7 @@ LU of (I - R_c F) (scipy ``lu_factor``, float64, three channels) are built once;
   batched form here), and marked ``modelled``.
 
 Accuracy is the relative radiosity error ||B - B_exact|| / ||B_exact|| (worst channel) with
-B_exact from the float64 LU solve, next to the eq. 5 bound (``fac.error_bound``, worst channel).
+B_exact from the float64 LU solve, next to the eq. 5 bound (``fac.error_bound()``, worst channel).
 
 Hardware context, measured in the same run:
 
@@ -108,7 +108,7 @@ def bench_case(scene: str, patches: int, args, bw: float) -> list[dict]:
     t0 = time.perf_counter()
     fac = factorize_matrix(case.F, rho, eps=args.eps, dtype=np.float32, order=case.perm("zorder"))
     t_fac = time.perf_counter() - t0
-    bound = float(np.max(fac.error_bound))
+    bound = float(np.max(fac.error_bound()))
     k = fac.rank
     t0 = time.perf_counter()
     lu = LUFactorization(F64, rho)

@@ -84,7 +84,7 @@ def test_any_panels_give_the_same_object(monkeypatch):
     assert np.abs(K - K0).max() <= 1e-5 * np.abs(K0).max()
     B, B0 = other.solve(scene.emission), fac.solve(scene.emission)
     assert np.abs(B - B0).max() <= 1e-5 * np.abs(B0).max()
-    np.testing.assert_allclose(other.quantization_error, fac.quantization_error, rtol=1e-12)
+    np.testing.assert_allclose(other.quantization_error(), fac.quantization_error(), rtol=1e-12)
     np.testing.assert_allclose(other.error_estimate().bound, fac.error_estimate().bound, rtol=1e-5)
 
 

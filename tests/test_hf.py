@@ -38,16 +38,18 @@ def test_error_meets_eps(matrix, eps, b, dtype):
     normA = np.linalg.norm(A)
     assert direct <= eps * normA
     assert lr.Q.dtype == dtype and lr.V.shape == (400, lr.rank)
-    assert lr.norm == pytest.approx(normA, rel=1e-6)
+    assert lr.norm == pytest.approx(normA, rel=1e-9)   # observed 1.3e-10 (float32), 1e-16 (float64)
     # reported = sqrt(sum of discards) = actual error: the discards are orthogonal
-    assert lr.achieved_error == pytest.approx(direct, rel=1e-4 if dtype == np.float64 else 1e-2)
+    # observed at most 1.4e-12 (float64), 2.3e-6 (float32) over the 9 eps x b cases
+    assert lr.achieved_error == pytest.approx(direct, rel=1e-11 if dtype == np.float64 else 2e-5)
 
 
 def test_absolute_mode(matrix):
     A, _ = matrix
     lr = hierarchical_factorization(col_blocks(A, 64), 400, eps=0.1, relative=False, dtype=np.float64)
     assert np.linalg.norm(A - lr.Q @ lr.V.T) <= 0.1
-    assert lr.achieved_error == pytest.approx(np.linalg.norm(A - lr.Q @ lr.V.T), rel=1e-4)
+    # observed 2.8e-16; up to 1.4e-12 in float64 in test_error_meets_eps (the same figures)
+    assert lr.achieved_error == pytest.approx(np.linalg.norm(A - lr.Q @ lr.V.T), rel=1e-11)
     assert lr.target_error == 0.1
 
 
@@ -56,6 +58,7 @@ def test_generator_equals_sequence(matrix):
     lr1 = hierarchical_factorization(col_blocks(A, 64), 400, eps=0.02, dtype=np.float64)
     gen = (A[:, i:i + 64].copy() for i in range(0, 400, 64))
     lr2 = hierarchical_factorization(gen, 400, eps=0.02, dtype=np.float64, n_blocks=7)
+    # observed 0 (the same arithmetic); the margin: the load probe may change the BLAS threads between runs
     np.testing.assert_allclose(lr2.Q, lr1.Q, atol=1e-13)
     np.testing.assert_allclose(lr2.V, lr1.V, atol=1e-13)
     with pytest.raises(ValueError, match="n_blocks"):
@@ -72,7 +75,7 @@ def test_rank_near_optimal_on_smooth_kernel():
         lr = hierarchical_factorization(col_blocks(A, 64), 600, eps=eps, dtype=np.float64)
         k_opt = optimal_rank(s, lr.achieved_error)
         assert lr.relative_error <= eps
-        assert lr.rank <= 1.25 * k_opt + 1, (lr.rank, k_opt)
+        assert lr.rank <= 1.25 * k_opt + 1, (lr.rank, k_opt)   # observed k_opt + 1 (10 for 9, 20 for 19)
 
 
 @pytest.mark.parametrize("n, b", [(1, 1), (5, 1), (30, 30), (30, 7)])
@@ -86,7 +89,7 @@ def test_zero_blocks():
     A = np.zeros((50, 50))
     A[:, 20:30] = np.random.default_rng(0).random((50, 10))
     lr = hierarchical_factorization(col_blocks(A, 8), 50, eps=1e-6, dtype=np.float64)
-    np.testing.assert_allclose(lr.Q @ lr.V.T, A, atol=1e-6 * np.linalg.norm(A))
+    np.testing.assert_allclose(lr.Q @ lr.V.T, A, atol=1e-14 * np.linalg.norm(A))   # rank 10 exactly: observed 7e-16
     z = hierarchical_factorization(col_blocks(np.zeros((50, 50)), 8), 50, eps=0.02)
     assert z.rank == 0 and z.Q.shape == (50, 0) and z.V.shape == (50, 0) and z.achieved_error == 0
 
@@ -142,7 +145,8 @@ def test_cholesky_qr_refuses_nearly_dependent_columns(dtype):
     rng = np.random.default_rng(4)
     Y = rng.standard_normal((3000, 5)).astype(dtype)
     U, s, Wt = hf._cholesky_qr_svd(Y)
-    np.testing.assert_allclose((U * s) @ Wt, Y, atol=50 * np.finfo(dtype).eps * np.abs(Y).max())
+    # observed 0.8 (float32) and 3.5 (float64) machine epsilons of max |Y|
+    np.testing.assert_allclose((U * s) @ Wt, Y, atol=10 * np.finfo(dtype).eps * np.abs(Y).max())
     Y[:, 4] = Y[:, 3] + 1e-4 * Y[:, 0]
     assert hf._cholesky_qr_svd(Y) is None
     assert hf._cholesky_qr_svd(np.zeros((10, 2), dtype)) is None
@@ -167,7 +171,7 @@ def test_leaf_takes_the_gram_path_when_the_budget_norm_exceeds_the_block(monkeyp
     assert not [shape for shape in tall_svds if shape[0] == n], tall_svds
     true2 = float(np.sum(np.square(A.astype(np.float64) - (node.U * node.s) @ node.V.T)))
     assert node.norm2 == norm2             # merges keep budgeting from the full norm
-    assert abs(node.discarded2 - true2) <= 1e-6 * a2
+    assert abs(node.discarded2 - true2) <= 3e-13 * a2   # rank 12 exactly: observed 3.0e-14
     assert true2 <= budget2
 
 
@@ -213,7 +217,8 @@ def test_merges_on_a_busy_machine_run_on_one_blas_thread_and_give_the_same_facto
         assert resources.blas_threads_now() == 2   # restored after each push
     assert seen and set(seen) == {1}
     assert busy.rank == free.rank
-    np.testing.assert_allclose(busy.Q @ busy.V.T, free.Q @ free.V.T, atol=1e-12 * np.linalg.norm(A))
+    # one BLAS thread against two: summation order only, observed 5e-17 of ||A||_F
+    np.testing.assert_allclose(busy.Q @ busy.V.T, free.Q @ free.V.T, atol=1e-15 * np.linalg.norm(A))
 
 
 def test_user_errors_of_the_low_rank_entry_points_are_input_errors():

@@ -68,12 +68,13 @@ def test_gram_merge_keeps_the_gesdd_rank_and_measures_its_discard(monkeypatch, c
     assert abs(own2 - true2) <= 1e-7 * norm2
     assert true2 <= budget.merge(norm2) + left.slack2 + right.slack2
     k = node.s.size
-    # observed 2e-7 (float32 rounding of orthonormal float64 factors)
+    # observed 4.7e-7 and 7.8e-7 (float32 rounding of orthonormal float64 factors)
     np.testing.assert_allclose(node.U.T.astype(np.float64) @ node.U, np.eye(k), atol=2e-6)
     np.testing.assert_allclose(node.V.T.astype(np.float64) @ node.V, np.eye(k), atol=2e-6)
     assert np.all(np.diff(node.s) <= 0)
     # the singular values agree with gesdd's where both keep them
-    np.testing.assert_allclose(node.s[:ref.s.size], ref.s, rtol=1e-4, atol=1e-5 * ref.s[0])
+    # observed 6e-7 of s[0] at most (8.5e-7 relative)
+    np.testing.assert_allclose(node.s[:ref.s.size], ref.s, rtol=1e-5, atol=1e-6 * ref.s[0])
 
 
 def test_hf_with_gram_merges_reports_the_measured_error(monkeypatch):

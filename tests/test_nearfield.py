@@ -55,12 +55,12 @@ def test_same_radiosity_as_plain_path_within_reported_error(cornell, pair):
     B_plain, B_near = plain.solve(scene.emission), near.solve(scene.emission)
     e_plain, e_near = _err(B_plain, exact), _err(B_near, exact)
     print(f"\nrank plain {plain.rank} near {near.rank} (nnz/row {near.N.nnz / scene.n_patches:.0f}); "
-          f"error plain {e_plain} near {e_near}; bound near {near.error_bound}")
-    assert (e_near <= near.error_bound).all()
+          f"error plain {e_plain} near {e_near}; bound near {near.error_bound()}")
+    assert (e_near <= near.error_bound()).all()
     assert (e_near <= e_plain).all()  # the split never costs accuracy at equal eps
     assert near.rank < plain.rank
     # the two paths agree within the error each reports
-    assert (_err(B_near, B_plain) <= plain.error_bound + near.error_bound).all()
+    assert (_err(B_near, B_plain) <= plain.error_bound() + near.error_bound()).all()
 
 
 def test_transpose_and_batched_solves(cornell, pair):
@@ -70,10 +70,10 @@ def test_transpose_and_batched_solves(cornell, pair):
     g = rng.standard_normal((scene.n_patches, 3))
     x = near.solve(g, trans="T")
     exact = np.stack([np.linalg.solve(A.T, g[:, c]) for c, A in enumerate(systems)], axis=1)
-    assert (_err(x, exact) < 0.01).all()
+    assert (_err(x, exact) < 0.01).all()   # observed 2.3-2.5e-3 (eps 0.03)
     E = np.abs(rng.standard_normal((scene.n_patches, 3, 2)))
     Bm = near.solve(E)
-    np.testing.assert_allclose(Bm[:, :, 1], near.solve(E[:, :, 1]), rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(Bm[:, :, 1], near.solve(E[:, :, 1]), rtol=1e-14, atol=1e-14)   # observed 7e-16
 
 
 def test_with_reflectance_and_hfr_round_trip(cornell, pair, tmp_path):
@@ -86,7 +86,7 @@ def test_with_reflectance_and_hfr_round_trip(cornell, pair, tmp_path):
     assert read_hfr_metadata(path)["solver"] == near.solver
     back = load_hfr(path)
     assert isinstance(back, NearFieldFactorization) and back.N.nnz == near.N.nnz
-    np.testing.assert_allclose(back.solve(scene.emission), near.solve(scene.emission), rtol=1e-12)
+    np.testing.assert_allclose(back.solve(scene.emission), near.solve(scene.emission), rtol=1e-14)   # observed 0
     # a stored Z of the wrong shape is refused by name, not used
     import h5py
 
@@ -109,8 +109,8 @@ def test_split_moves_exactly_the_near_pairs():
     N = split.matrix().toarray()
     near = np.linalg.norm(c[:, None] - c[None], axis=2) <= r
     np.testing.assert_array_equal(N != 0, near)
-    np.testing.assert_allclose(N + rest, G)
-    assert 15 <= near.sum(axis=1).mean() <= 25
+    np.testing.assert_array_equal(N + rest, G)   # entries moved, not changed (observed exact)
+    assert 15 <= near.sum(axis=1).mean() <= 25   # 20 asked for, observed 20.2
 
 
 def test_checkpoint_resume_keeps_the_near_field(tmp_path):
@@ -132,7 +132,8 @@ def test_checkpoint_resume_keeps_the_near_field(tmp_path):
         factorize(scene, status=stop, checkpoint=Checkpoint(ckpt, interval=0.0), **kw)
     resumed = factorize(scene, checkpoint=ckpt, **kw | {"backend": LocalBackend(processes=2)})  # resume in worker processes
     assert resumed.N.nnz == full.N.nnz and resumed.rank == full.rank
-    np.testing.assert_allclose(resumed.solve(scene.emission), full.solve(scene.emission), rtol=1e-10)
+    # observed 1.6e-14 (worker processes: BLAS summation order)
+    np.testing.assert_allclose(resumed.solve(scene.emission), full.solve(scene.emission), rtol=2e-13)
 
 
 def test_near_field_option():
@@ -169,7 +170,8 @@ def test_panel_solver_equals_superlu():
     lu = splu((sp.identity(n) - N - N.T).tocsc(), permc_spec="MMD_AT_PLUS_A")
     X = rng.standard_normal((n, 150))                      # 2 full panels and a partial one
     exact = np.column_stack([lu.solve(X[:, j].copy()) for j in range(X.shape[1])])
-    np.testing.assert_allclose(PanelSolver(lu).solve(X), exact, rtol=0, atol=1e-12 * np.abs(exact).max())
+    # observed 1.8e-15 of max |exact|
+    np.testing.assert_allclose(PanelSolver(lu).solve(X), exact, rtol=0, atol=2e-14 * np.abs(exact).max())
     single = PanelSolver(lu, np.float32).solve(X)
     assert single.dtype == np.float32
     rel = np.abs(single - exact).max() / np.abs(exact).max()
@@ -223,30 +225,32 @@ def test_quantized_near_solution(dense, cornell, tmp_path):
                     options=PrecomputeOptions(block_size=128, one_ray_tol=0))
     assert fac.dtype == np.float32 and isinstance(fac.Z, QuantizedRows)
     assert fac.near_solution_storage == "int16 rows" and "int16 rows" in repr(fac)
-    share = fac.quantization_error / fac.achieved_error
+    share = fac.quantization_error() / fac.achieved_error
     plain = NearFieldFactorization(fac.perm, fac.Q, fac.V, fac.N, fac.rho_max, fac.reflectance, fac.lowrank,
                                    quantize=False, stats=fac.stats, scene=scene)
-    assert plain.Z.dtype == np.float32 and not plain.quantization_error.any()
+    assert plain.Z.dtype == np.float32 and not plain.quantization_error().any()
     assert fac.Z.nbytes < 0.51 * plain.Z.nbytes
     B, B_plain = fac.solve(scene.emission), plain.solve(scene.emission)
     moved, err = _err(B, B_plain), _err(B, exact)
     print(f"\nquantization: operator bound {share} of the achieved error, radiosity moved {moved}, "
-          f"error {err} (float Z {_err(B_plain, exact)}), bound {fac.error_bound} (float Z {plain.error_bound})")
+          f"error {err} (float Z {_err(B_plain, exact)}), bound {fac.error_bound()} (float Z {plain.error_bound()})")
     assert (share <= QUANTIZE_SHARE).all()            # observed 2.4-2.8e-3
     assert (moved <= 2e-5).all()                      # observed 3.8-4.5e-6
     # the a-posteriori figure against the exact F bounds the error, and is as tight as with float Z
     res, res_plain = fac.residual(scene.emission, B, form_factors=F), plain.residual(scene.emission, B_plain,
                                                                                    form_factors=F)
     print(f"residual bound {res.bound} (float Z {res_plain.bound})")
-    assert (err <= res.bound).all() and (res.bound <= 1.01 * res_plain.bound).all()
-    np.testing.assert_allclose(fac.error_bound, plain.error_bound, rtol=5e-4)   # observed 1e-4
+    # observed: the error 0.17-0.18 of the bound; the bounds' ratio 0.99996-1.00005
+    assert (err <= res.bound).all() and (res.bound <= 1.0005 * res_plain.bound).all()
+    np.testing.assert_allclose(fac.error_bound(), plain.error_bound(), rtol=5e-4)   # observed 1.4e-4
     # forced either way
     assert isinstance(plain.with_reflectance(scene.reflectance).Z, np.ndarray)
     # the file keeps the codes: the same solve after loading, and the figures recomputed from the scales
     back = load_hfr(save_hfr(fac, tmp_path / "q.hfr"))
     assert isinstance(back.Z, QuantizedRows)
     np.testing.assert_array_equal(back.solve(scene.emission), B)
-    np.testing.assert_allclose(back.quantization_error, fac.quantization_error, rtol=1e-6)
+    # observed 4e-16; the margin: a power iteration (to 1e-7) bounds ||V||, and may stop a step apart
+    np.testing.assert_allclose(back.quantization_error(), fac.quantization_error(), rtol=1e-6)
 
 
 def test_float32_set_up_capacitance_and_radiosity_against_the_dense_solve():

@@ -48,9 +48,9 @@ def test_cornell_error_and_its_figures(cornell, dtype):
     figure = fac.residual(scene.emission, B, form_factors=F)
     print(f"\n{dtype}: n={fac.n_patches} rank={fac.rank} achieved={fac.relative_error:.4f} "
           f"radiosity error={err} area-norm error={err_a} residual bound={figure.bound} "
-          f"a-priori bound={fac.error_bound}")
+          f"a-priori bound={fac.error_bound()}")
     assert (err < 6e-3).all(), err                                     # observed 1.7-1.9e-3
-    assert (err_a <= fac.error_bound).all()                            # guaranteed, loose
+    assert (err_a <= fac.error_bound()).all()                            # guaranteed, loose
     assert (err_a <= figure.bound).all() and (figure.bound < 10 * err_a).all()   # guaranteed, ~5x
 
 

@@ -38,7 +38,7 @@ def _check_against_dense(scene, eps, observed):
     w = np.sqrt(scene.areas)[:, None]
     err_a = np.linalg.norm(w * (B - exact), axis=0) / np.linalg.norm(w * exact, axis=0)
     print(f"\n{scene.name}: n={fac.n_patches} rank={fac.rank} achieved={fac.relative_error:.4f} "
-          f"error={err} area-norm error={err_a} residual bound={figure.bound} a-priori bound={fac.error_bound}")
+          f"error={err} area-norm error={err_a} residual bound={figure.bound} a-priori bound={fac.error_bound()}")
     assert fac.relative_error <= eps
     assert (err < 3 * observed).all(), err
     assert (err_a <= figure.bound).all() and (figure.bound < 10 * err_a).all()

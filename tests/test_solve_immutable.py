@@ -57,8 +57,8 @@ def assert_read_only(fac):
     """Every array the solve depends on refuses writes; a solve's result is the caller's to change."""
     arrays = {"perm": fac.perm, "inv_perm": fac.inv_perm, "Q": fac.Q, "V": fac.V, "rho_max": fac.rho_max,
               "reflectance": fac.reflectance, "capacitance_inv": fac.capacitance_inv,
-              "lowrank.Q": fac.lowrank.Q, "lowrank.V": fac.lowrank.V, "error_bound": fac.error_bound,
-              "sigma_max": fac.sigma_max, "eq5_bound": fac.eq5_bound}
+              "lowrank.Q": fac.lowrank.Q, "lowrank.V": fac.lowrank.V, "error_bound": fac.error_bound(),
+              "sigma_max": fac.sigma_max(), "eq5_bound": fac.eq5_bound()}
     if fac.stats is not None:
         arrays.update({"stats.sketch": fac.stats.sketch, "stats.row_sums": fac.stats.row_sums})
     if isinstance(fac, NearFieldFactorization):
@@ -74,7 +74,7 @@ def assert_read_only(fac):
     with pytest.raises(ValueError, match="read-only"):
         fac.reflectance[0] = 0.0
     with pytest.raises(ValueError, match="read-only"):
-        fac.error_bound[0] = 0.0
+        fac.error_bound()[0] = 0.0
     B = fac.solve(np.ones((fac.n_patches, 3)))
     assert B.flags.writeable
     B[0, 0] = -1.0   # the caller's own array
@@ -146,16 +146,16 @@ def counting(monkeypatch, module, name):
 
 
 def test_costly_figures_are_computed_once(system, monkeypatch):
-    """sigma_max, error_bound and eq5_bound run their power iteration and probes on the first access only."""
+    """sigma_max(), error_bound() and eq5_bound() run their power iteration and probes on the first call only."""
     F, areas, rho = system
     fac = factorize_matrix(F, rho, areas=areas, eps=0.02, block_size=16, dtype=np.float64)
     power = counting(monkeypatch, woodbury, "power_sigma_max_scaled")
     probes = counting(monkeypatch, PassStatistics, "operator_error")
-    sigma = fac.sigma_max
+    sigma = fac.sigma_max()
     assert len(power) == 1                                  # one block power iteration, every channel
-    assert fac.sigma_max is sigma and len(power) == 1
-    bound, eq5 = fac.error_bound, fac.eq5_bound
-    assert fac.error_bound is bound and fac.eq5_bound is eq5 and fac.error_estimate().bound is bound
+    assert fac.sigma_max() is sigma and len(power) == 1
+    bound, eq5 = fac.error_bound(), fac.eq5_bound()
+    assert fac.error_bound() is bound and fac.eq5_bound() is eq5 and fac.error_estimate().bound is bound
     assert len(power) == 1 and len(probes) == 1
     assert np.isfinite(bound).all() and np.isfinite(eq5).all()
 
@@ -165,16 +165,30 @@ def test_near_field_figures_are_computed_once(system, monkeypatch, tmp_path):
     power = counting(monkeypatch, NearFieldFactorization, "_power_sigma")
     spectral = counting(monkeypatch, nearfield, "spectral_bound")
     for _ in range(2):
-        fac.sigma_max, fac.error_bound, fac.eq5_bound
+        fac.sigma_max(), fac.error_bound(), fac.eq5_bound()
         fac.solve(np.ones((N_PATCHES, 3)))
         fac.solve(np.ones((N_PATCHES, 3)), trans="T")
     assert len(power) == len(fac.distinct_channels) == 3     # rho differs per channel: three distinct D_c
     assert len(spectral) == 1
-    # loaded: sigma_max is stored (no power iteration); the 16-bit storage error is bounded on first access
+    # loaded: sigma_max is stored (no power iteration); the 16-bit storage error is bounded on the first call
     back = load_hfr(save_hfr(fac, tmp_path / "q.hfr"))
     v_norm = counting(monkeypatch, nearfield, "power_sigma_max")
-    first = back.quantization_error
-    assert back.quantization_error is first and len(v_norm) == 1
-    np.testing.assert_allclose(first, fac.quantization_error, rtol=1e-6)
-    back.error_bound, back.sigma_max
+    first = back.quantization_error()
+    assert back.quantization_error() is first and len(v_norm) == 1
+    np.testing.assert_allclose(first, fac.quantization_error(), rtol=1e-6)
+    back.error_bound(), back.sigma_max()
     assert len(power) == 3 and len(v_norm) == 1
+
+
+def test_sizes_as_scipy_superlu_states_them(system, plain):
+    """``shape`` is the system's, ``nbytes`` the arrays a solve reads, ``near_entries`` N's stored entries."""
+    n, k = N_PATCHES, plain.rank
+    assert plain.shape == (n, n) and plain.Q.shape == (n, k)
+    assert plain.nbytes == (2 * n * k + 3 * k * k) * plain.dtype.itemsize
+    for quantize in (False, True):
+        fac = near_split(system, quantize=quantize, dtype=np.float32)
+        assert fac.shape == (n, n) and fac.near_entries == fac.N.nnz > 0
+        z = fac.Z.codes.nbytes + fac.Z.scale.nbytes if quantize else fac.Z.nbytes
+        assert fac.nbytes == ((2 * n * fac.rank + 3 * fac.rank ** 2) * 4 + z
+                              + fac.N.nnz * (8 + 4 + 2 * fac.N.indices.itemsize)   # N and its float32 copy
+                              + 2 * fac.N.indptr.nbytes)

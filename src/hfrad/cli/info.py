@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from typing import List, Optional
 
@@ -73,17 +74,11 @@ def load_scene_from_options(scene: str, *, unit_scale: float = 1.0, emit=None, a
 
 def register(app: typer.Typer) -> None:
     @app.command()
+    @common.scene_options
     def info(
         scene: str = typer.Argument(..., help="Scene file (.obj, .ply, .gltf, .glb, .rad, .ifc) or built-in name "
                                     "(cornell, furnace, ...)."),
-        max_edge: Optional[float] = common.MaxEdgeOption,
-        patches: Optional[int] = common.PatchesOption,
-        unit_scale: float = common.UnitScaleOption,
-        emission: Optional[List[str]] = common.EmissionOption,
-        area_light: Optional[str] = common.AreaLightOption,
-        default_reflectance: float = common.DefaultReflectanceOption,
-        allow_missing_materials: bool = common.AllowMissingMaterialsOption,
-        keep_duplicates: bool = common.KeepDuplicatesOption,
+        scene_options: common.SceneOptions = None,
         as_json: bool = typer.Option(False, "--json", help="Print JSON instead of tables."),
     ) -> None:
         """Patch count, area, bounds, materials, emitters and warnings of a scene.
@@ -94,15 +89,12 @@ def register(app: typer.Typer) -> None:
         from ..scene.cleanup import clean_faces
         from ..scene.summary import scene_summary
 
+        keep_duplicates = scene_options.keep_duplicates
         with common.user_errors():
-            s = load_scene_from_options(scene, unit_scale=unit_scale, emit=emission, area_light=area_light,
-                                        default_reflectance=default_reflectance,
-                                        allow_missing_materials=allow_missing_materials,
-                                        max_edge=max_edge, patches=patches, keep_duplicates=keep_duplicates)
-            # the input faces as read (duplicates kept), for the structured report of broken faces
-            faces = load_scene_from_options(scene, unit_scale=unit_scale, emit=emission, area_light=area_light,
-                                            default_reflectance=default_reflectance,
-                                            allow_missing_materials=allow_missing_materials, keep_duplicates=True)
+            s = load_scene_from_options(scene, **dataclasses.asdict(scene_options))
+            # the input faces as read (duplicates kept, not cut), for the structured report of broken faces
+            as_read = dataclasses.replace(scene_options, max_edge=None, patches=None, keep_duplicates=True)
+            faces = load_scene_from_options(scene, **dataclasses.asdict(as_read))
         summary = scene_summary(s)
         report = clean_faces(faces, keep_duplicates=keep_duplicates)[1]
         summary["face_problems"] = {**report.summary(faces), "merged": not keep_duplicates}

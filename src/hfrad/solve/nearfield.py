@@ -33,8 +33,6 @@ The adjoint solve (``trans="T"``) applies ``A_c^{-T}`` twice instead
 
 from __future__ import annotations
 
-from functools import cached_property
-
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.linalg import splu
@@ -58,7 +56,7 @@ __all__ = ["NearFieldFactorization", "SOLVER", "QUANTIZE_SHARE", "InProcess", "c
 #: How the solve works, as recorded in .hfr files and reports.
 SOLVER = "woodbury+neumann(I - D_c N)"
 #: ``Z_c`` is stored in 16 bits when the operator error that adds (its bound
-#: ``(1 + ||N||_2) ||Z_c - Z~_c||_F ||V||_2``, :attr:`NearFieldFactorization.quantization_error`)
+#: ``(1 + ||N||_2) ||Z_c - Z~_c||_F ||V||_2``, :meth:`NearFieldFactorization.quantization_error`)
 #: is at most this share of the factorization's achieved error: the error figures then grow by
 #: at most 1%.
 QUANTIZE_SHARE = 0.01
@@ -228,11 +226,34 @@ class NearFieldFactorization(HFactorization):
     quantize : bool or None
         Store the computed ``Z_c`` as 16-bit rows (:class:`QuantizedRows`); None
         (default) does for float32 factors where the operator error that adds
-        (:attr:`quantization_error`) is at most ``QUANTIZE_SHARE`` of the
+        (:meth:`quantization_error`) is at most ``QUANTIZE_SHARE`` of the
         achieved error (float64 factors keep float64 ``Z_c``).
     runner : optional
         Where the set-up's pieces run (:class:`InProcess`, the default, or
         :class:`hfrad.distributed.assembly.DaskRunner`); the result is the same.
+
+    Attributes
+    ----------
+    shape, n_patches, rank, dtype, perm, inv_perm, Q, V, rho_max, reflectance, lowrank, stats, solver
+        As for :class:`HFactorization`.
+    nbytes : int
+        Bytes of the arrays a solve reads: V, ``Z``, N and its copy in the
+        factors' dtype, and ``capacitance_inv`` (Q too: the adjoint solve reads it; not
+        the transposed copy of N the first solve makes, as many bytes as that copy of N).
+    near_entries : int
+        The stored entries of N (as SciPy's ``SuperLU.nnz`` counts its factors').
+    N : (n, n) float64 CSR, internal order
+        The near field, read-only.
+    Z : (d, n, k) ``dtype`` or QuantizedRows
+        ``A_c^{-1} D_c Q`` for the d :attr:`distinct_channels`.
+    distinct_channels : list of int
+        The channels with their own ``D_c`` (grey scenes have one).
+    capacitance_inv : (3, k, k) ``dtype``
+        The inverses ``K_c^{-1}``.
+    near_solution_storage : str
+        ``"int16 rows"`` or the dtype name of ``Z``.
+    last_sweeps : int
+        Sweeps of the Neumann series in the last solve (0: SuperLU solved it).
 
     Raises
     ------
@@ -244,6 +265,9 @@ class NearFieldFactorization(HFactorization):
 
     Notes
     -----
+    Costly figures are methods computed once, as for :class:`HFactorization`, and
+    :meth:`quantization_error` (a power iteration for a loaded file's 16-bit ``Z``)
+    and :meth:`near_spectral_bound` (a power iteration on ``|N|``).
     Immutable as :class:`HFactorization`: ``N`` (its ``data``, ``indices``,
     ``indptr``), ``Z`` (array or :class:`QuantizedRows`) and
     ``capacitance_inv`` are read-only too.
@@ -280,6 +304,7 @@ class NearFieldFactorization(HFactorization):
         #: sweeps of the Neumann series in the last solve (0 when SuperLU solved it)
         self.last_sweeps = 0
         self._quantization_error: np.ndarray | None = None
+        self._spectral: float | None = None
         self._quantize = quantize
         with spare_threads():   # BLAS threads that other processes leave free (hfrad.resources)
             Z, K_inv = self._near_solution(near_solution, stored, quantize, runner or InProcess())
@@ -366,7 +391,7 @@ class NearFieldFactorization(HFactorization):
         for c, s in enumerate(self._sources):
             K_inv[c] = K_inv[s]
         if coded:
-            self._quantization_error = error
+            self._quantization_error = read_only(error)
             return QuantizedRows(Z, np.stack(scales)), K_inv
         return Z, K_inv
 
@@ -393,18 +418,29 @@ class NearFieldFactorization(HFactorization):
         per_z = [(1 + norm_N) * QuantizedRows.scale_error(sc, self.rank) * norm_V for sc in scales]
         return np.array([per_z[z] for z in self._stored])
 
-    @cached_property
     def quantization_error(self) -> np.ndarray:
         """(3,) float, read-only: upper bound on the operator error that 16-bit ``Z_c`` add (0 for float ``Z_c``).
 
         Known from the set-up when it quantized; otherwise (a loaded file) the
-        first access computes it from the stored scales, with a power
-        iteration for ``||V||_2`` (O(nk) per step); later accesses are free.
+        first call computes it from the stored scales, with a power
+        iteration for ``||V||_2`` (O(nk) per step); later calls are free.
         """
-        if self._quantization_error is not None:
-            return read_only(self._quantization_error)
-        return read_only(self._quantization_bound(self.Z) if isinstance(self.Z, QuantizedRows)
-                         else np.zeros(N_CHANNELS))
+        if self._quantization_error is None:
+            self._quantization_error = read_only(self._quantization_bound(self.Z) if isinstance(self.Z, QuantizedRows)
+                                                 else np.zeros(N_CHANNELS))
+        return self._quantization_error
+
+    @property
+    def near_entries(self) -> int:
+        """The stored entries of N."""
+        return int(self.N.nnz)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the arrays a solve reads (see the class's Attributes)."""
+        Z = self.Z.codes.nbytes + self.Z.scale.nbytes if isinstance(self.Z, QuantizedRows) else self.Z.nbytes
+        near = sum(M.data.nbytes + M.indices.nbytes + M.indptr.nbytes for M in (self.N, self._sweep_N))
+        return int(super().nbytes + Z + near)
 
     @property
     def near_solution_storage(self) -> str:
@@ -412,7 +448,7 @@ class NearFieldFactorization(HFactorization):
         return "int16 rows" if isinstance(self.Z, QuantizedRows) else self.Z.dtype.name
 
     def _storage_error(self) -> np.ndarray:
-        return self.quantization_error
+        return self.quantization_error()
 
     def _operator_error(self) -> np.ndarray:
         """(3,) probed error of the operator the solve inverts: ``D_c N + A_c Z_c V^T`` against ``R_c F``."""
@@ -449,14 +485,15 @@ class NearFieldFactorization(HFactorization):
             sigma[c] = sigma[s] if s != c else self._power_sigma(c)
         return sigma
 
-    @cached_property
     def near_spectral_bound(self) -> float:
         """Upper bound on the spectral radius of every ``D_c N`` (that of N).
 
-        The first access runs a power iteration on ``|N|`` (O(nnz(N)) per
+        The first call runs a power iteration on ``|N|`` (O(nnz(N)) per
         step, :func:`~hfrad.solve.neumann.spectral_bound`); later ones are free.
         """
-        return spectral_bound(self.N)
+        if self._spectral is None:
+            self._spectral = spectral_bound(self.N)
+        return self._spectral
 
     def _sweep_transposed(self) -> sp.csr_matrix:
         """N^T in the sweeps' precision (the adjoint's sweeps; its pattern guides the forward ones), made once."""
@@ -473,9 +510,9 @@ class NearFieldFactorization(HFactorization):
         N, NT = self._sweep_N, self._sweep_transposed()
         # the rows reached from row j by a sweep with M are the nonzeros of M's column j: M^T's pattern
         if adjoint:
-            x, sweeps = neumann_solve(NT, b, rho=self.near_spectral_bound, pre=scale, reach=(N.indptr, N.indices))
+            x, sweeps = neumann_solve(NT, b, rho=self.near_spectral_bound(), pre=scale, reach=(N.indptr, N.indices))
         else:
-            x, sweeps = neumann_solve(N, b, rho=self.near_spectral_bound, post=scale, reach=(NT.indptr, NT.indices))
+            x, sweeps = neumann_solve(N, b, rho=self.near_spectral_bound(), post=scale, reach=(NT.indptr, NT.indices))
         if x is not None:
             self.last_sweeps = sweeps
             return x.reshape(n, C, m)
@@ -528,5 +565,5 @@ class NearFieldFactorization(HFactorization):
 
     def __repr__(self) -> str:
         return (f"NearFieldFactorization(n_patches={self.n_patches}, rank={self.rank}, "
-                f"near_entries={self.N.nnz}, relative_error={self.relative_error:.3g}, dtype={self.dtype.name}, "
+                f"near_entries={self.near_entries}, relative_error={self.relative_error:.3g}, dtype={self.dtype.name}, "
                 f"near_solution={self.near_solution_storage!r})")

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import dataclasses
 import warnings
-from functools import cached_property
 
 import numpy as np
 import scipy.linalg as sla
@@ -222,6 +221,41 @@ class HFactorization:
     params : dict, optional
         Parameters of the run (block size, order, method...), for the record.
 
+    Attributes
+    ----------
+    shape : (int, int)
+        ``(n, n)``, the shape of ``I - R_c F``.
+    n_patches : int
+        n.
+    rank : int
+        k, the columns of Q and V.
+    nbytes : int
+        Bytes of the arrays a solve reads (Q, V, ``capacitance_inv``).
+    dtype : numpy.dtype
+        The factors' precision (float32 or float64).
+    perm, inv_perm : (n,) int64
+        Internal index t holds user patch ``perm[t]``; ``inv_perm`` is its inverse.
+    Q, V : (n, k) ``dtype``, internal order
+        The factors, ``G_int ~= Q V^T``.
+    rho_max : (n,) float64, user order
+    reflectance : (n, 3) float64, user order
+    capacitance_inv : (3, k, k) ``dtype``
+        The inverses ``M_c^{-1}`` of the Woodbury solve.
+    lowrank : LowRank
+        The factorization's record: ``eps``, ``achieved_error``, ``relative_error``.
+    eps, achieved_error, relative_error : float
+        As in ``lowrank``.
+    stats : PassStatistics or None
+        The pass statistics (row sums, probe sketch, sampled rows of F).
+    areas : (n,) float or None
+        Patch areas, m^2 (user order), weighting the error norms.
+    solver : str
+        The method ("woodbury"; the near-field split's subclass says its own).
+    params, timings : dict
+        The run's parameters and timings, for the record.
+    scene : Scene or None
+        The scene the factorization was built from (None when built from a matrix).
+
     Raises
     ------
     InputError
@@ -233,7 +267,10 @@ class HFactorization:
 
     Notes
     -----
-    ``solver`` names the method ("woodbury"; the near-field split's subclass says its own).
+    The costly figures are methods, computed on the first call and kept:
+    :meth:`sigma_max` (a power iteration, O(nk) per step, unless stored),
+    :meth:`error_estimate` with :meth:`error_bound` and :meth:`eq5_bound`
+    (O(n k p) for the p probes, and ``sigma_max``).
     Immutable arrays: ``perm``, ``inv_perm``, ``Q``, ``V``, ``rho_max``,
     ``reflectance``, ``capacitance_inv``, ``lowrank.Q``/``lowrank.V`` and the
     pass statistics' arrays are read-only views (writing raises
@@ -253,23 +290,6 @@ class HFactorization:
 
     def __init__(self, perm, Q, V, rho_max, reflectance, lowrank: LowRank, *, capacitance=None,
                  sigma_max=None, params: dict | None = None, scene=None, stats: PassStatistics | None = None):
-        self._set_state(perm, Q, V, rho_max, reflectance, lowrank, sigma_max, params, scene, stats)
-        self.capacitance_inv = read_only(self._capacitance_inv(capacitance))
-
-    def _capacitance_inv(self, stored) -> np.ndarray:
-        """(3, k, k) ``M_c^{-1}``, ``M_c = I_k - V^T D_c Q``: ``stored`` checked, or computed."""
-        k = self.rank
-        if stored is not None:
-            inv = np.ascontiguousarray(stored, self.dtype)
-            if inv.shape != (N_CHANNELS, k, k):
-                raise InputError(f"capacitance must have shape ({N_CHANNELS}, {k}, {k}); got {inv.shape}")
-            return inv
-        M = capacitance(self.Q, self.V, self._D)
-        return np.stack([invert_capacitance(M[c], f"channel {c}: I - V^T Q_c", self.dtype)
-                         for c in range(N_CHANNELS)])
-
-    def _set_state(self, perm, Q, V, rho_max, reflectance, lowrank, sigma_max, params, scene, stats) -> None:
-        """What every solver of a factorization holds (shared with the near-field solver), read-only."""
         perm, Q, V, rho_max, reflectance = _checked_arrays(perm, Q, V, rho_max, reflectance)
         n = perm.size
         inv_perm = np.empty(n, np.int64)
@@ -289,11 +309,36 @@ class HFactorization:
         # the exact sampled rows are kept within a tenth of the factors' bytes (SAMPLE_SHARE)
         factor_bytes = (2 * Q.shape[0] * Q.shape[1] + 3 * Q.shape[1] ** 2) * Q.itemsize
         self.stats = None if stats is None else stats.frozen(factor_bytes)
+        # last: the near-field subclass's override runs its set-up here, on the state above
+        self.capacitance_inv = read_only(self._capacitance_inv(capacitance))
+
+    def _capacitance_inv(self, stored) -> np.ndarray:
+        """(3, k, k) ``M_c^{-1}``, ``M_c = I_k - V^T D_c Q``: ``stored`` checked, or computed."""
+        k = self.rank
+        if stored is not None:
+            inv = np.ascontiguousarray(stored, self.dtype)
+            if inv.shape != (N_CHANNELS, k, k):
+                raise InputError(f"capacitance must have shape ({N_CHANNELS}, {k}, {k}); got {inv.shape}")
+            return inv
+        M = capacitance(self.Q, self.V, self._D)
+        return np.stack([invert_capacitance(M[c], f"channel {c}: I - V^T Q_c", self.dtype)
+                         for c in range(N_CHANNELS)])
 
     # -- sizes and accuracy ------------------------------------------------
     @property
+    def shape(self) -> tuple[int, int]:
+        """``(n, n)``: the shape of the system ``I - R_c F`` this object solves (as SciPy's ``SuperLU.shape``)."""
+        return (self.n_patches, self.n_patches)
+
+    @property
     def n_patches(self) -> int:
+        """n, the number of patches."""
         return int(self.perm.size)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the arrays a solve reads: Q, V and the inverses ``capacitance_inv`` (``2 n k + 3 k^2`` words)."""
+        return int(self.Q.nbytes + self.V.nbytes + self.capacitance_inv.nbytes)
 
     @property
     def rank(self) -> int:
@@ -302,10 +347,12 @@ class HFactorization:
 
     @property
     def dtype(self) -> np.dtype:
+        """The factors' dtype (float32 or float64): the precision of Q, V and the solve's products."""
         return self.Q.dtype
 
     @property
     def eps(self) -> float:
+        """The tolerance the factorization was asked for (``lowrank.eps``)."""
         return float(self.lowrank.eps)
 
     @property
@@ -339,7 +386,7 @@ class HFactorization:
         Notes
         -----
         The first call costs O(n k p) for the p probes and, unless
-        :attr:`sigma_max` is known (stored in an .hfr file or read before), a
+        :meth:`sigma_max` is known (stored in an .hfr file or called before), a
         power iteration on the factors for eq. 5 (O(nk) per step, a few
         hundred steps at most); later calls return the same object (the
         factorization is immutable).
@@ -347,9 +394,9 @@ class HFactorization:
         if self._estimate is None:
             error = self.achieved_error + float(np.max(self._storage_error()))
             if self.stats is None:
-                est = estimate_errors(error, self.sigma_max)
+                est = estimate_errors(error, self.sigma_max())
             else:
-                est = estimate_errors(error, self.sigma_max, operator_error=self._operator_error(),
+                est = estimate_errors(error, self.sigma_max(), operator_error=self._operator_error(),
                                       contraction=self.stats.contraction(self.reflectance[self.perm]),
                                       norm=self.stats.norm, failure_probability=FAILURE_PROBABILITY)
             bad = ~np.isfinite(est.bound)
@@ -374,33 +421,32 @@ class HFactorization:
         """(3,) power-iteration estimates of sigma_max(Q_c V^T), for eq. 5."""
         return power_sigma_max_scaled(self.Q, self.V, self._D)
 
-    @cached_property
     def sigma_max(self) -> np.ndarray:
         """(3,) float, read-only: sigma_max(Q_c V^T) per channel (the near-field split: of ``D_c (N + Q V^T)``).
 
-        The first access runs a power iteration per distinct channel, O(nk)
+        The first call runs a power iteration per distinct channel, O(nk)
         per step (plus O(nnz(N)) with the near field), a few hundred steps at
         most, unless the value was given (an .hfr file stores it); later
-        accesses return the cached array at no cost.
+        calls return the same array at no cost.
         """
-        return self._sigma if self._sigma is not None else read_only(self._sigma_estimates())
+        if self._sigma is None:
+            self._sigma = read_only(self._sigma_estimates())
+        return self._sigma
 
-    @cached_property
     def error_bound(self) -> np.ndarray:
         """(3,) float, read-only: the relative radiosity error bound per channel (``error_estimate().bound``).
 
-        The first access computes :meth:`error_estimate` (O(n k p) for the
-        probes and, unless :attr:`sigma_max` is known, its power iteration,
-        O(nk) per step); later accesses are free.
+        The first call computes :meth:`error_estimate` (O(n k p) for the
+        probes and, unless :meth:`sigma_max` is known, its power iteration,
+        O(nk) per step); later calls are free.
         """
         return self.error_estimate().bound
 
-    @cached_property
     def eq5_bound(self) -> np.ndarray:
         """(3,) float, read-only: the paper's eq. 5 figure per channel (``error_estimate().eq5_bound``).
 
-        Costs as :attr:`error_bound` on the first access (the power
-        iteration of :attr:`sigma_max`, O(nk) per step); later accesses are free.
+        Costs as :meth:`error_bound` on the first call (the power
+        iteration of :meth:`sigma_max`, O(nk) per step); later calls are free.
         """
         return self.error_estimate().eq5_bound
 
