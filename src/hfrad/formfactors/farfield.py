@@ -31,6 +31,7 @@ from typing import Iterator
 
 import numpy as np
 import scipy.linalg as sla
+from numba import njit, prange
 
 from ..errors import InputError
 from ..progress import ProgressCallback, report
@@ -519,8 +520,7 @@ class SampledFarField:
             G_check = G(check)
         self._count_refined(refined)
         F_S = self._kernel(rows, cols[S], "skeleton_pairs") * visible(np.arange(rows.size), S)
-        out[rows] = F_S @ X
-        out[np.ix_(rows, S)] = F_S        # the skeleton columns are exact
+        _interpolate_rows(out, rows, F_S, X, S)
         self.stats.skeleton.append(int(S.size))
 
     def _count_exact(self) -> None:
@@ -531,6 +531,21 @@ class SampledFarField:
         if refined:
             self.stats.refined_groups += 1
             self.stats.refinements += refined
+
+
+@njit(cache=True, parallel=True, nogil=True)
+def _interpolate_rows(out, rows, F_S, X, S):  # pragma: no cover (numba)
+    """``out[rows] = F_S X`` in one pass, the skeleton columns ``S`` exactly ``F_S`` (no n x b temporary)."""
+    s, b = X.shape
+    for r in prange(rows.size):
+        i = rows[r]
+        for c in range(b):
+            acc = 0.0
+            for q in range(s):
+                acc += F_S[r, q] * X[q, c]
+            out[i, c] = acc
+        for q in range(s):
+            out[i, S[q]] = F_S[r, q]
 
 
 def sampled_column_blocks(producer: SampledFarField, dtype=np.float64, first_block: int = 0,
