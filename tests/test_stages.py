@@ -117,5 +117,13 @@ def test_clustered_rows_do_not_depend_on_the_thread_split():
     F = clustered_block(g, rows, cols)
     one_by_one = np.vstack([clustered_block(g, rows[r:r + 1], cols) for r in rows])
     np.testing.assert_array_equal(F, one_by_one)
+    import numba
+
+    threads = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        np.testing.assert_array_equal(clustered_block(g, rows, cols), F)   # one thread: the same numbers
+    finally:
+        numba.set_num_threads(threads)
     AF = c.areas[:, None] * clustered_block(g, rows, rows)
     np.testing.assert_allclose(AF, AF.T, rtol=1e-12, atol=1e-15)
