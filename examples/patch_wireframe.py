@@ -1,6 +1,7 @@
 """Pictures of the patches: radiosity with the patch edges drawn over it.
 
-Run:  PYTHONPATH=src python examples/patch_wireframe.py [--patches 3000] [-o docs/images] [--refine 0.3]
+Run:  PYTHONPATH=src python examples/patch_wireframe.py [--patches 3000] [-o out] [--refine 0.3]
+(into out/ by default; `-o docs/images` regenerates the committed pictures on purpose)
 
 Writes ``cornell-patches.png`` (the built-in Cornell box) and, when
 ../shared/scenes is present, ``mcguire-cornell-patches.png``
@@ -55,7 +56,9 @@ def wireframe_picture(scene, B, camera: str, size: int = 768) -> np.ndarray:
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--patches", type=int, default=3000)
-    p.add_argument("-o", "--output", type=Path, default=Path("docs/images"))
+    # default: a folder of its own (git-ignored), never over the committed docs/images pictures;
+    # `-o docs/images` regenerates those on purpose (benchmarks/README.md)
+    p.add_argument("-o", "--output", type=Path, default=Path("out"))
     p.add_argument("--refine", type=float, default=None)
     args = p.parse_args()
     args.output.mkdir(parents=True, exist_ok=True)

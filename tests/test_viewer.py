@@ -79,6 +79,25 @@ def test_vertex_colors_match_render_tonemap(fac):
     assert top > 0 and fc.shape == display.shape and (fc >= 0).all() and (fc <= 1).all()
 
 
+def test_vertex_radiosity_is_the_renderers_smoothing(fac):
+    # smooth (vertex-interpolated) shading, the one helper the renderer uses: every corner of every
+    # triangle gets the renderer's corner value, and a radiosity linear in height comes back exactly
+    # at the vertices inside the back wall (the area-weighted mean left patch-sized blotches there)
+    from hfrad.render import smooth_corners
+
+    scene = fac.scene
+    colors = MeshColors(scene)
+    B = fac.solve(scene.emission)
+    at_vertex = colors.radiosity(B)                                    # (v, 3)
+    np.testing.assert_allclose(at_vertex[colors.faces], smooth_corners(scene, B), rtol=1e-12, atol=0)
+    assert len(np.unique(np.round(at_vertex[:, 0], 9))) > 0.5 * len(at_vertex)   # not one value a patch
+    linear = np.repeat((0.2 + 0.4 * scene.vertices[scene.faces].mean(axis=1)[:, 1])[:, None], 3, axis=1)
+    v = colors.vertices
+    inner = (np.abs(v[:, 2] + 1) < 1e-9) & (np.abs(v[:, 0]) < 0.999) & (v[:, 1] > 0.001) & (v[:, 1] < 1.999)
+    assert inner.sum() > 20
+    np.testing.assert_allclose(colors.radiosity(linear)[inner, 0], 0.2 + 0.4 * v[inner, 1], rtol=1e-9)
+
+
 def test_emitter_values_are_checked():
     with pytest.raises(InputError, match=r"emitter 'lamp': intensity must be a finite number >= 0 W/m\^2, got -1"):
         Emitter("lamp", -1.0)

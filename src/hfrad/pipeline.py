@@ -32,7 +32,8 @@ StatusCallback = Callable[[dict], None] | None
 def factorize(scene: Scene, eps: float = 0.02, *, relative: bool = True, dtype="float32", order=None,
               near_field: int | str | None = "auto", backend: LocalBackend | DaskBackend | None = None,
               checkpoint: str | Path | Checkpoint | None = None, options: PrecomputeOptions | None = None,
-              progress: ProgressCallback = None, status: StatusCallback = None) -> HFactorization:
+              far_field: str = "auto", progress: ProgressCallback = None,
+              status: StatusCallback = None) -> HFactorization:
     """Factor a radiosity system once: ``diag(rho_max) F ~= Q V^T``, then solve it for any light in O(nk).
 
     Parameters
@@ -84,6 +85,16 @@ def factorize(scene: Scene, eps: float = 0.02, *, relative: bool = True, dtype="
         ``samples`` (visibility rays per patch pair), ``leaf_share`` (the leaf SVDs'
         share of the squared error budget, 0.5), ``one_ray_tol`` (the ray budget's
         share of ``||F||_F``; default ``eps / 4`` for a relative eps, off for an absolute one).
+    far_field : {"auto", "exact", "sampled"}
+        How the form factors of well-separated pairs are found. "exact": every pair is
+        computed (half of them copied by reciprocity). "sampled": near rows of each column
+        block exactly, far rows from a few sampled rows and skeleton columns, checked on
+        held-out rows and computed exactly where they do not compress; visibility of far
+        pairs from cluster-pair tests and probe rays (:mod:`hfrad.formfactors.farfield`,
+        docs/method.md section 4b). Its error is certified by exact rows of a separate
+        sample (added to ``fac.error_estimate()``). "auto" (default): sampled from
+        ``FAR_FIELD_SAMPLED_FROM`` (60,000) patches on with a relative eps, exact below.
+        This process only (a ``DaskBackend`` takes "exact" or "auto", which is exact there).
     progress : callable (done, total), optional
         Column blocks done.
     status : callable (dict), optional
@@ -139,8 +150,14 @@ def factorize(scene: Scene, eps: float = 0.02, *, relative: bool = True, dtype="
     elif not isinstance(backend, (LocalBackend, DaskBackend)):
         raise InputError(f"backend must be an hfrad.LocalBackend or hfrad.DaskBackend; got {type(backend).__name__}")
     checkpoint = as_checkpoint(checkpoint)
+    if isinstance(backend, DaskBackend):
+        if far_field == "sampled":
+            raise InputError("far_field='sampled' runs in this process for now: use a LocalBackend, or "
+                             "far_field='exact' on Dask")
+        far_field = "exact"
     plan = plan_precompute(scene, eps, relative=relative, dtype=dtype, order="zorder" if order is None else order,
-                           near_field=near_field, options=options, reciprocity=backend.reciprocity)
+                           near_field=near_field, options=options, reciprocity=backend.reciprocity,
+                           far_field=far_field)
     if isinstance(backend, LocalBackend):
         return factorize_local(scene, plan, backend, checkpoint, progress, status)
     from .distributed import factorize_distributed, remove_checkpoint

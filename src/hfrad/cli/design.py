@@ -148,8 +148,9 @@ def _design_luminaires(spec: Path, fac, output: Path, plan, render, camera, fals
         tmp[output].write_text(result.to_json() + "\n", encoding="utf-8")
         if drawn:
             from ..lighting import save_plan
+            dimmed = [l.replace(dimming=max(float(d), 0.0)) for l, d in zip(parsed.luminaires, result.dimming)]
             save_plan(tmp[plan], *[(g.sensors, lux) for g, lux in zip(parsed.grids, result.illuminance())
-                                   if g.sensors.is_grid][0])
+                                   if g.sensors.is_grid][0], scene=fac.scene, luminaires=dimmed)
         if image is not None:
             save_png(image, tmp[render])
     return result

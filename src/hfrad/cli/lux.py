@@ -33,7 +33,8 @@ def register(app: typer.Typer) -> None:
         background: str = typer.Option("none", "--background", help="none: only the luminaires light the "
                                        "scene; scene: the scene's own emitting patches too."),
         csv_out: Optional[Path] = typer.Option(None, "--csv", help="Also write every sensor's lux (.csv)."),
-        plan: Optional[Path] = typer.Option(None, "--plan", help="Also draw the grid in false colour (.png)."),
+        plan: Optional[Path] = typer.Option(None, "--plan", help="Also draw the grid in false colour (.png), with metre "
+                                                                 "ticks, the luminaires and the desk tops."),
         quiet: bool = common.QuietOption,
     ) -> None:
         """Illuminance (lux) on work planes and at sensors: direct light of each luminaire by ray casting,
@@ -107,7 +108,8 @@ def register(app: typer.Typer) -> None:
                 if csv_out is not None:
                     write_csv(tmp[csv_out], sets, values, direct=[r.direct @ w for r in responses])
                 if plan is not None:
-                    save_plan(tmp[plan], *[(s, v) for s, v in zip(sets, values) if s.is_grid][0])
+                    save_plan(tmp[plan], *[(s, v) for s, v in zip(sets, values) if s.is_grid][0],
+                              luminaires=luminaires, scene=scene)
         common.console.print(f"  {solution_line(radiosity_error)}", highlight=False)
         for s, v, e in zip(sets, values, errors):
             st = grid_stats(v)

@@ -31,6 +31,7 @@ def register(app: typer.Typer) -> None:
         order: str = typer.Option("zorder", "--order", help="Internal patch order: zorder, hilbert, random, input."),
         processes: Optional[int] = typer.Option(None, "--processes", help="Form-factor worker processes, each with its own Embree scene. Default: one per core from 4,000 patches on (below, their start-up costs more than it saves), else this process; the result does not depend on it."),
         near_field: str = typer.Option("auto", "--near-field", help="Near-field split: pairs within the radius holding ~this many facing neighbours (nonzeros of a row of N) go into a sparse N, HF factors the smooth rest, the solver is Woodbury around I - D_c N (Neumann series per solve, sparse LU in the set-up). 'auto' (default): 120 where the split pays, from 20,000 (0.02 / eps)^1.5 patches on (20,000 at --eps 0.02, 5,060 at 0.05; 2,000 at least), off below; the split lowers the rank HF needs and, at equal --eps, the radiosity error; 'off' or 0: plain Woodbury."),
+        far_field: str = typer.Option("auto", "--far-field", help="How the form factors of well-separated pairs are found: 'exact' (every pair), 'sampled' (each column block's near rows exactly, its far rows from a few sampled rows and skeleton columns, checked on held-out rows; a separate sample of exact rows certifies the error), 'auto' (default): sampled from 60,000 patches on, exact below. This process only (Dask: exact)."),
         scheduler: Optional[str] = typer.Option(
             None, "--scheduler", help="Run on a Dask cluster: tcp://HOST:PORT of a running `dask scheduler` "
             "(docs/cluster.md)."),
@@ -114,6 +115,9 @@ def register(app: typer.Typer) -> None:
                 if processes not in (None, 1):
                     raise InputError("--processes is for the in-process path; with --scheduler or --workers "
                                      "the Dask workers compute the blocks")
+                if far_field == "sampled":
+                    raise InputError("--far-field sampled runs in this process for now; drop --scheduler/--workers "
+                                     "or use --far-field exact")
                 t_load = time.perf_counter() - t0
                 clock("checks")
                 clock.stop()
@@ -146,7 +150,7 @@ def register(app: typer.Typer) -> None:
                 t_fac = time.perf_counter()
                 fac = factorize(s, eps, dtype=dtype, order=order, near_field=_near_field(near_field),
                                 backend=LocalBackend(processes=processes), checkpoint=Checkpoint(checkpoint, keep=True),
-                                options=options, progress=bar, status=status)
+                                options=options, far_field=far_field, progress=bar, status=status)
                 common.add_factorize_stages(clock, fac, time.perf_counter() - t_fac)
                 if bar is not None:   # the factorization's rank, not the last block's (the last merges truncate)
                     bar.note(f"rank {fac.rank:,}")
@@ -232,6 +236,13 @@ def _report(fac, output: Path, clock) -> None:
         f"wrote {output}: {fac.n_patches:,} patches, rank {fac.rank:,}, "
         f"achieved error {fac.relative_error:.4f} (target {fac.eps})\n{figures}\n"
         f"solver {fac.solver}, time: {clock.summary()}{dask}", highlight=False)
+    far = info.get("far_field")
+    if far:
+        common.console.print(
+            f"far field sampled: {far['pairs_share']:.2%} of the n^2 form factors evaluated "
+            f"({far['traced_share']:.2%} with rays), {far['exact_groups']:,} of {far['groups']:,} column groups "
+            f"computed exactly, {far['refined_groups']:,} refined; its error ||G - G~||_F <= "
+            f"{far['error_upper']:.3g} (from {far['certificate_rows']:,} exact rows)", highlight=False)
 
 
 def _scratch_estimate(n: int, block_size: int, itemsize: int, memory_band_bytes: int) -> int:

@@ -9,6 +9,7 @@ from typing import List, Optional
 import typer
 
 from ..errors import InputError
+from ..render.image import DEFAULT_SAMPLES
 from . import common
 from .solve import EmissionFileOption, EmissionScaleOption
 
@@ -40,6 +41,9 @@ def register(app: typer.Typer) -> None:
         falsecolor: bool = typer.Option(False, "--falsecolor", help="False colour of luminance-weighted "
                                                                     "radiosity, with a colour bar."),
         unit: str = typer.Option("W/m2", "--unit", help="False-colour unit: W/m2, or lux (683 lm/W x luminance)."),
+        samples: int = typer.Option(DEFAULT_SAMPLES, "--samples", help="Rays a pixel, a stratified k x k grid (1, 4, 9, 16, ... "
+                                                         "up to 64): anti-aliased edges; 1 turns it off. Time "
+                                                         "grows with the count."),
     ) -> None:
         """Solve for the scene's emitters (or --emission) and draw the radiosity as a PNG.
 
@@ -64,7 +68,7 @@ def register(app: typer.Typer) -> None:
                 if not (np.isfinite(exposure) and abs(exposure) <= MAX_EXPOSURE):
                     raise InputError(f"--exposure must be a finite number of EV within +-{MAX_EXPOSURE:g}; got {exposure}")
             Camera.parse(camera, np.array([[0.0, 0, 0], [1, 1, 1]]))  # fail on a bad spec before the solve
-            check_size(width, height, falsecolor=falsecolor)            # and on a picture too large for memory
+            check_size(width, height, falsecolor=falsecolor, samples=samples)   # and on a picture too large for memory
             common.check_output(output)
             fac = common.load_factorization(factorization)
             scene = fac.scene
@@ -75,7 +79,7 @@ def register(app: typer.Typer) -> None:
             t1 = time.perf_counter()
             image = render_image(scene.replace(emission=E), B, camera=camera, width=width, height=height,
                                  exposure=exposure, auto_exposure=auto_exposure, flat=flat,
-                                 falsecolor=falsecolor, unit=unit)
+                                 falsecolor=falsecolor, unit=unit, samples=samples)
             t_render = time.perf_counter() - t1
             save_png(image, output)
         common.console.print(f"wrote {output}: {width}x{height}, {scene.n_patches:,} patches; "

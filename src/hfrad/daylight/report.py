@@ -86,8 +86,11 @@ def save_png(path: Path, image: np.ndarray) -> Path:
     return path
 
 
-def metric_plans(folder: Path, result, metrics: dict) -> list[Path]:
-    """False-colour plans (grids only): DA300, UDI useful, hours of direct sun, mean occupied illuminance."""
+def metric_plans(folder: Path, result, metrics: dict, *, scene=None) -> list[Path]:
+    """False-colour plans (grids only): DA300, UDI useful, hours of direct sun, mean occupied illuminance.
+
+    With ``scene``, desk tops near the work plane are outlined (:func:`hfrad.lighting.plan.desk_outlines`).
+    """
     s = result.sensors
     if not s.is_grid:
         return []
@@ -102,7 +105,7 @@ def metric_plans(folder: Path, result, metrics: dict) -> list[Path]:
              ("plan_mean_lux.png", metrics["mean_lux"], "mean occupied lux, scale tops at 3000", dict(vmax=3000.0))]     # the window's edge would flatten the room
     out = []
     for name, v, title, opts in plans:
-        out.append(save_png(folder / name, plan_image(s, v, title=title, **opts)))
+        out.append(save_png(folder / name, plan_image(s, v, title=title, scene=scene, **opts)))
     return out
 
 

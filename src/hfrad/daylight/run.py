@@ -69,7 +69,7 @@ def daylight_year(fac, weather: "str | Path", sensors, output: "str | Path", *, 
     files = [write_hourly(out / f"illuminance.{hourly}", result)]
     files += write_metrics(out, result, metrics, {"reinhart_mf": mf, "north_deg": north, "ground": ground,
                                                   "angular_glass": angular, "timings": timings})
-    files += metric_plans(out, result, metrics)
+    files += metric_plans(out, result, metrics, scene=fac.scene)
     files.append(save_png(out / "carpet.png", carpet_image(result.illuminance, w.day_of_year, w.hour,
                                                            title=f"{w.place}: grid mean illuminance, lux "
                                                                  "(days across, hours of the day down)")))

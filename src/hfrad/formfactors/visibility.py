@@ -328,6 +328,37 @@ class Visibility:
         # the masks in one (n, 8) array when one word holds them: made once, read by every block
         self.word_bits = one_word_bits(front, back, below, above) if words == 1 else None
 
+    def cluster_pairs(self, scene, size: int) -> ClusterVisibility | None:
+        """This visibility's cluster-pair tests (:mod:`hfrad.formfactors.clustervis`), made with
+        ``size`` patches a cluster if it has none; None without occluders."""
+        if self.clusters is None and scene.n_patches > 1 and self.n_occluders:
+            occ = self._frame(scene.occluder_vertices)[np.asarray(scene.occluder_faces)]
+            self.clusters = ClusterVisibility(self.centroids, self.patch_lo, self.patch_hi, occ,
+                                              4 * self.offset, size)
+        return self.clusters
+
+    def segments_blocked(self, i: np.ndarray, j: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Whether the segment between the centre points of patches ``i[k]`` and ``j[k]`` is blocked.
+
+        Returns ``(facing, blocked)`` (len(i),) bool: ``facing`` where each patch faces the
+        other (elsewhere F is 0 and the segment says nothing), ``blocked`` where an occluder
+        cuts it. One ray a pair: a probe, not a visibility estimate.
+        """
+        if not hasattr(self, "_centre_points"):
+            self._centre_points = np.ascontiguousarray(self._points(1, None)[:, 0])
+        P = self._centre_points
+        v = P[j] - P[i]
+        nrm = self.plane[:, :3]
+        facing = (np.einsum("kd,kd->k", nrm[i], v) > 0) & (np.einsum("kd,kd->k", nrm[j], -v) > 0)
+        t = np.linalg.norm(v, axis=1)
+        facing &= t > 0
+        blocked = np.zeros(len(i), bool)
+        if facing.any():
+            o, d, tt = P[i][facing], v[facing] / t[facing, None], t[facing]
+            blocked[facing] = self.cast_segments(o.astype(np.float32), d.astype(np.float32), tt.astype(np.float32))
+            self.rays_cast += int(facing.sum())
+        return facing, blocked
+
     # ------------------------------------------------------------------
     def apply(self, F: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> None:
         """Multiply the unoccluded block ``F`` (len(rows), len(cols)) by V in place."""

@@ -78,13 +78,22 @@ def write_json(path: "str | Path", report: dict) -> Path:
 
 
 def plan_image(sensors: SensorSet, lux: np.ndarray, *, pixels_per_cell: int | None = None, vmax: float | None = None,
-               title: str | None = None, label: str | None = None) -> np.ndarray:
+               title: str | None = None, label: str | None = None, luminaires=(), scene=None) -> np.ndarray:
     """(h, w, 3) uint8: the grid seen from above in false colour (viridis), with a lux colour bar.
 
     x runs to the right, z downwards (a plan of a y-up scene seen from
-    above); cells without a sensor are black. The statistics of
+    above), with metre ticks along the top and the left; the grid's extent is
+    outlined in white, cells without a sensor are black. The statistics of
     :func:`grid_stats` are printed on top (or ``title``); ``label`` replaces
     "lux" on the colour bar for other quantities (daylight metrics in %).
+    See :mod:`hfrad.lighting.plan` for what else is drawn.
+
+    Parameters
+    ----------
+    luminaires : sequence of Luminaire, optional
+        Drawn at their positions with their luminous openings' outlines and names.
+    scene : Scene, optional
+        Its upward faces near the work plane's height (desk tops) are outlined.
 
     Raises
     ------
@@ -94,34 +103,51 @@ def plan_image(sensors: SensorSet, lux: np.ndarray, *, pixels_per_cell: int | No
     from PIL import Image, ImageDraw
 
     from ..render.falsecolor import _font
+    from .plan import (BOTTOM, LEFT, TOP, PlanFrame, desk_outlines, draw_axes, draw_overlay, extent,
+                       luminaire_outline, near)
 
     if not sensors.is_grid:
         raise InputError(f"sensors {sensors.name!r} are not a grid; a plan image needs a work-plane grid")
     nx, nz = sensors.shape
     ppc = pixels_per_cell or max(4, min(40, 480 // max(nx, nz)))
-    values = np.zeros((nz, nx))
-    valid = np.zeros((nz, nx), bool)
-    values[sensors.cells[:, 1], sensors.cells[:, 0]] = lux
-    valid[sensors.cells[:, 1], sensors.cells[:, 0]] = True
-    values = np.repeat(np.repeat(values, ppc, axis=0), ppc, axis=1)
-    valid = np.repeat(np.repeat(valid, ppc, axis=0), ppc, axis=1)
-    head = 36
-    h, w = values.shape
-    values = np.vstack([np.zeros((head, w)), values])
-    valid = np.vstack([np.zeros((head, w), bool), valid])
-    width = w + colorbar_width(max(w, 360))
-    img = falsecolor_image(values, valid, width=width, unit="lux", vmax=vmax, label=label)
+    x0, z0 = sensors.origin
+    rect = (x0, z0, x0 + nx * sensors.spacing, z0 + nz * sensors.spacing)
+    desks = [d for d in desk_outlines(scene, float(np.median(sensors.points[:, 1]))) if near(rect, d.reshape(-1, 2))]
+    shown = [l for l in luminaires if near(rect, luminaire_outline(l))]
+    box = extent(rect, shown, desks)
+    m_px = sensors.spacing / ppc
+    head = 36 + TOP
+    frame = PlanFrame(box[0], box[1], m_px, LEFT, head)
+    w = LEFT + int(math.ceil((box[2] - box[0]) / m_px)) + 1
+    h = head + int(math.ceil((box[3] - box[1]) / m_px)) + 1 + BOTTOM
+    values = np.zeros((h, w))
+    valid = np.zeros((h, w), bool)
+    c0, r0 = (int(round(v)) for v in frame.pixel(x0, z0))
+    cells = np.zeros((nz, nx))
+    inside = np.zeros((nz, nx), bool)
+    cells[sensors.cells[:, 1], sensors.cells[:, 0]] = lux
+    inside[sensors.cells[:, 1], sensors.cells[:, 0]] = True
+    values[r0:r0 + nz * ppc, c0:c0 + nx * ppc] = np.repeat(np.repeat(cells, ppc, axis=0), ppc, axis=1)
+    valid[r0:r0 + nz * ppc, c0:c0 + nx * ppc] = np.repeat(np.repeat(inside, ppc, axis=0), ppc, axis=1)
+    img = falsecolor_image(values, valid, width=w + colorbar_width(max(w, 360)), unit="lux", vmax=vmax, label=label)
     st = grid_stats(lux)
     text = title or (f"{sensors.name}: avg {st['average']:.0f} lx, min {st['minimum']:.0f}, "
                      f"max {st['maximum']:.0f}, U0 {st['U0']:.2f}" if st["U0"] is not None else sensors.name)
-    x0, z0 = sensors.origin
-    extent = (f"plan: x {x0:.2f}..{x0 + nx * sensors.spacing:.2f} m to the right, z {z0:.2f}.."
-              f"{z0 + nz * sensors.spacing:.2f} m down; {sensors.spacing:g} m cells")
+    grid_text = (f"grid x {rect[0]:.2f}..{rect[2]:.2f} m, z {rect[1]:.2f}..{rect[3]:.2f} m, "
+                 f"{sensors.spacing:g} m cells" + _luminaire_count(len(shown), len(luminaires)))
     pic = Image.fromarray(img)
     draw = ImageDraw.Draw(pic)
     draw.text((4, 3), text, fill=(255, 255, 255), font=_font(12))
-    draw.text((4, 19), extent, fill=(200, 200, 200), font=_font(11))
+    draw.text((4, 19), grid_text, fill=(200, 200, 200), font=_font(11))
+    draw_axes(draw, frame, box, _font(10))
+    draw_overlay(draw, frame, rect, shown, desks, _font(10))
     return np.asarray(pic)
+
+
+def _luminaire_count(shown: int, total: int) -> str:
+    if not total:
+        return ""
+    return f"; {total} luminaires" if shown == total else f"; {shown} of {total} luminaires (the rest farther off the grid)"
 
 
 def save_plan(path: "str | Path", sensors: SensorSet, lux: np.ndarray, **options) -> Path:

@@ -29,6 +29,7 @@ from ..lowrank.hf import ErrorBudget
 from ..lowrank.factors import LowRank
 from ..lowrank.nearsplit import NearFieldSplit
 from ..formfactors.energy import warn_energy
+from ..formfactors.farfield import FarFieldOptions
 from ..scene.scene import Scene
 from ..solve.nearfield import NearFieldFactorization
 from ..solve.samples import SampledRows
@@ -64,6 +65,10 @@ class PrecomputePlan:
         Pairs with centroid distance <= this are near (0.0 without the split).
     form_factors : dict
         The form-factor kernel's and visibility's version and settings.
+    far_field : str
+        "exact" (every pair) or "sampled" (:mod:`hfrad.formfactors.farfield`).
+    far_options : FarFieldOptions
+        The sampled far field's knobs (recorded with ``far_field="sampled"``).
     """
 
     n: int
@@ -80,6 +85,8 @@ class PrecomputePlan:
     near_radius: float
     reciprocity: bool
     form_factors: dict
+    far_field: str = "exact"
+    far_options: FarFieldOptions = dataclasses.field(default_factory=FarFieldOptions)
 
     @property
     def n_blocks(self) -> int:
@@ -96,10 +103,11 @@ class PrecomputePlan:
 
     def params(self) -> dict:
         """The parameters recorded in the ``.hfr`` (the backend adds ``backend``, ``workers``)."""
-        return {"eps": self.eps, "relative": self.relative, "block_size": self.block_size, "dtype": self.dtype,
+        far = {"far_options": dataclasses.asdict(self.far_options)} if self.far_field == "sampled" else {}
+        return far | {"eps": self.eps, "relative": self.relative, "block_size": self.block_size, "dtype": self.dtype,
                 "samples": self.samples, "order": self.order, "leaf_share": self.leaf_share,
                 "one_ray_tol": self.one_ray_tol, "near_field": self.near_entries, "near_radius": self.near_radius,
-                "form_factors": self.form_factors, "reciprocity": self.reciprocity}
+                "form_factors": self.form_factors, "reciprocity": self.reciprocity, "far_field": self.far_field}
 
     def key(self, scene: Scene) -> str:
         """A hash of everything the factorization depends on: geometry, reflectance, parameters.
@@ -139,12 +147,14 @@ class PrecomputePlan:
 # -- What a column block adds: additive over blocks, so a Dask leaf returns its share -------------
 
 def far_block(stats: PassStatistics, start: int, stop: int, F_block: np.ndarray, rows_rho: np.ndarray,
-              split: NearFieldSplit | None = None, out: np.ndarray | None = None) -> tuple[np.ndarray, float, float]:
+              split: NearFieldSplit | None = None, out: np.ndarray | None = None,
+              exact_rows: np.ndarray | None = None) -> tuple[np.ndarray, float, float]:
     """What HF gets of columns ``start:stop`` of F, recorded in ``stats`` on the way (both backends' leaves).
 
     One read of F gives the pass statistics, ``G = rows_rho F`` and ``||G||_F^2``
     (:meth:`PassStatistics.add_scaled`, into ``out`` when it fits: a buffer the caller
-    reuses); ``split`` then moves G's near entries out.
+    reuses); ``split`` then moves G's near entries out. ``exact_rows``: the exact rows at the
+    sampled rows' patches where ``F_block`` comes from the sampled far field.
 
     Returns
     -------
@@ -155,7 +165,7 @@ def far_block(stats: PassStatistics, start: int, stop: int, F_block: np.ndarray,
     block_norm2 : float
         ``||G||_F^2`` of the returned block (``norm2`` less the squares moved out).
     """
-    G, norm2 = stats.add_scaled(start, stop, F_block, rows_rho, out)
+    G, norm2 = stats.add_scaled(start, stop, F_block, rows_rho, out, exact_rows)
     if split is None:
         return G, norm2, norm2
     G = split.split(G, start)

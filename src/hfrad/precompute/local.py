@@ -20,6 +20,8 @@ import numpy as np
 
 from ..errors import InputError
 from ..formfactors.blocks import Consumer, iter_column_blocks
+from ..formfactors.engine import FormFactorEngine
+from ..formfactors.farfield import SampledFarField, sampled_column_blocks
 from ..lowrank.hf import HFStream
 from ..lowrank.nearsplit import NearFieldSplit
 from ..lowrank.streaming import load_checkpoint, save_checkpoint
@@ -79,7 +81,7 @@ def factorize_local(scene: Scene, plan: PrecomputePlan, backend: LocalBackend | 
     if plan.samples != 0:
         ff_kwargs["ray_budget"] = plan.ray_budget(scene)
     time_budget = time.perf_counter() - t0
-    if status is not None and not stream.blocks_done:
+    if status is not None and not stream.blocks_done and plan.far_field != "sampled":   # every pair's kernel
         t = time.perf_counter()
         estimate = estimate_form_factor_seconds(scene, plan)
         time_budget += time.perf_counter() - t
@@ -89,11 +91,16 @@ def factorize_local(scene: Scene, plan: PrecomputePlan, backend: LocalBackend | 
     # the memory band spill to a scratch file beside the output (its checkpoint), else in TMPDIR;
     # blocks are lent (no copy): _stream_blocks is done with each before it asks for the next
     consumer = Consumer(reserved_bytes=precompute_bytes(n, block_size, itemsize=dt.itemsize), lend=True)
-    blocks = iter_column_blocks(scene, block_size, order=perm, first_block=stream.blocks_done,
-                                processes=backend.processes, dtype=dt, reciprocity=plan.reciprocity,
-                                scratch=None if path is None else Path(path).parent,
-                                mirror_stats=mirror_stats, consumer=consumer, **ff_kwargs)
     rows_rho = plan.rows_rho(scene)
+    producer = None
+    if plan.far_field == "sampled":
+        producer = _sampled_far_field(scene, plan, stats, ff_kwargs)
+        blocks = sampled_column_blocks(producer, dt, first_block=stream.blocks_done)
+    else:
+        blocks = iter_column_blocks(scene, block_size, order=perm, first_block=stream.blocks_done,
+                                    processes=backend.processes, dtype=dt, reciprocity=plan.reciprocity,
+                                    scratch=None if path is None else Path(path).parent,
+                                    mirror_stats=mirror_stats, consumer=consumer, **ff_kwargs)
     split = None
     if plan.near_entries:
         split = NearFieldSplit(scene.centroids[perm], plan.near_radius)
@@ -109,6 +116,9 @@ def factorize_local(scene: Scene, plan: PrecomputePlan, backend: LocalBackend | 
     lowrank.info.update({**times, "time_setup": time_budget, "time_precompute": time.perf_counter() - t0})
     if mirror_stats:
         lowrank.info["reciprocity"] = mirror_stats
+    if producer is not None:
+        lowrank.info["far_field"] = _far_field_report(producer)
+        producer.close()
     t_assemble = time.perf_counter()
     fac = assemble(scene, plan, lowrank, stats, None if split is None else split.state(),
                    backend={"backend": "local"})
@@ -151,6 +161,31 @@ def estimate_form_factor_seconds(scene: Scene, plan: PrecomputePlan) -> float:
     per_pair = (time.perf_counter() - t) / (n * len(cols))
     pairs = n * (n + 1) / 2 if plan.reciprocity else float(n) * n
     return per_pair * pairs * (PASS_OVER_KERNEL if plan.samples != 0 else 1.0)
+
+
+def _sampled_far_field(scene: Scene, plan: PrecomputePlan, stats: PassStatistics, ff_kwargs: dict):
+    """The sampled far field's block producer; its certificate joins the pass statistics (resumed
+    from them after a checkpoint)."""
+    engine = FormFactorEngine(scene, **ff_kwargs)
+    rows = stats.samples.row_patches if stats.samples is not None else ()
+    producer = SampledFarField(scene, engine, plan.perm, plan.block_size, plan.rows_rho(scene)[:, 0], plan.eps,
+                               weights=stats.weights, exact_rows=rows, near_radius=plan.near_radius,
+                               options=plan.far_options)
+    if stats.far_field is not None:        # resumed: the certificate so far
+        producer.certificate = stats.far_field
+    stats.far_field = producer.certificate
+    return producer
+
+
+def _far_field_report(producer) -> dict:
+    """What the sampled far field did, and its certified error, for ``info["far_field"]``."""
+    estimate, upper = producer.certificate.frobenius()
+    out = {**producer.stats.as_dict(producer.n), "certificate_rows": int(producer.certificate.index.size),
+           "error_estimate": estimate, "error_upper": upper}
+    if producer.holdout is not None:
+        out["holdout_rows"] = int(producer.holdout.index.size)
+        out["holdout_estimate"] = producer.holdout.frobenius()[0]
+    return out
 
 
 def _open_stats(stream: HFStream, n: int, weights, reflectance) -> PassStatistics:
@@ -202,11 +237,12 @@ def _stream_blocks(blocks, stream: HFStream, stats: PassStatistics, rows_rho, ch
     time_ff = time_ckpt = time_stats = time_hf = 0.0
     G = None    # G's buffer, reused block after block (HF keeps nothing of it)
     t_ff = time.perf_counter()
-    for start, stop, block in blocks:
+    for start, stop, block, *exact in blocks:    # the sampled far field adds the exact sampled rows
         t = time.perf_counter()
         time_ff += t - t_ff
         # G = diag(rho_max) F (rows in internal order), less the near field; the budget's norm is G's before the split
-        G, norm2, block_norm2 = far_block(stats, start, stop, block, rows_rho, split, out=G)
+        G, norm2, block_norm2 = far_block(stats, start, stop, block, rows_rho, split, out=G,
+                                          exact_rows=exact[0] if exact else None)
         del block
         t_push = time.perf_counter()
         time_stats += t_push - t

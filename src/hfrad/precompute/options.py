@@ -21,6 +21,7 @@ import numpy as np
 from ..defaults import DEFAULT_BLOCK_SIZE
 from ..errors import InputError, SceneError
 from ..formfactors.budget import default_one_ray_tol
+from ..formfactors.farfield import FarFieldOptions
 from ..lowrank.nearsplit import DEFAULT_NEAR_ENTRIES, near_radius
 from ..scene.scene import Scene
 from ..scene.zorder import patch_order
@@ -73,6 +74,33 @@ def near_entries(near_field, n: int, eps: float = NEAR_FIELD_REFERENCE_EPS, rela
     return int(near_field)
 
 
+#: ``far_field="auto"`` samples the far field from this many patches on (relative eps only): below,
+#: a column block's near rows are most of its rows and the exact pass (with its reciprocity copy) is
+#: as fast (measured: benchmarks/README.md, "The sampled far field").
+FAR_FIELD_SAMPLED_FROM = 60_000
+
+
+def far_field_mode(far_field, n: int, relative: bool) -> str:
+    """``"exact"`` or ``"sampled"`` for ``factorize(far_field=...)`` ("auto": sampled from
+    ``FAR_FIELD_SAMPLED_FROM`` patches on, with a relative eps)."""
+    if far_field == "auto":
+        return "sampled" if relative and n >= FAR_FIELD_SAMPLED_FROM else "exact"
+    if far_field not in ("exact", "sampled"):
+        raise InputError(f"far_field must be 'exact', 'sampled' or 'auto'; got {far_field!r}")
+    if far_field == "sampled" and not relative:
+        raise InputError("far_field='sampled' needs a relative eps (its tolerance is a share of each "
+                         "block's norm); use far_field='exact' with relative=False")
+    return far_field
+
+
+def _far_options(far) -> FarFieldOptions:
+    if far is None:
+        return FarFieldOptions()
+    if not isinstance(far, FarFieldOptions):
+        raise InputError(f"options.far must be an hfrad.formfactors.farfield.FarFieldOptions; got {type(far).__name__}")
+    return far
+
+
 # -- the knobs -------------------------------------------------------------------------------------------
 
 @dataclass(frozen=True)
@@ -96,12 +124,17 @@ class PrecomputeOptions:
         ``FEW_RAYS_FACTOR`` (4) times this share get 4 rays instead of 16
         (:func:`hfrad.formfactors.budget.ray_budget`); None: ``eps / 4`` for a
         relative eps, 0 (both rules off) for an absolute one.
+    far : FarFieldOptions, optional
+        The sampled far field's knobs (admissibility ``eta``, its share of eps, sample
+        sizes; :class:`hfrad.formfactors.farfield.FarFieldOptions`); used with
+        ``far_field="sampled"``.
     """
 
     block_size: int | None = None
     samples: int | None = None
     leaf_share: float = 0.5
     one_ray_tol: float | None = None
+    far: FarFieldOptions | None = None
 
     def replace(self, **changes) -> "PrecomputeOptions":
         return dataclasses.replace(self, **changes)
@@ -109,7 +142,7 @@ class PrecomputeOptions:
 
 def plan_precompute(scene: Scene, eps: float = 0.02, *, relative: bool = True, dtype="float32", order="zorder",
                     near_field=None, options: PrecomputeOptions | None = None,
-                    reciprocity: bool = True) -> PrecomputePlan:
+                    reciprocity: bool = True, far_field: str = "exact") -> PrecomputePlan:
     """Validate the precompute's options for ``scene`` at the API boundary (both backends), once.
 
     Parameters
@@ -124,6 +157,8 @@ def plan_precompute(scene: Scene, eps: float = 0.02, *, relative: bool = True, d
         The expert knobs (default: ``PrecomputeOptions()``).
     reciprocity : bool
         The backend's reciprocity copy (recorded; not part of the checkpoint key).
+    far_field : {"exact", "sampled", "auto"}
+        As in :func:`hfrad.factorize` (resolved by :func:`far_field_mode`).
 
     Returns
     -------
@@ -172,6 +207,7 @@ def plan_precompute(scene: Scene, eps: float = 0.02, *, relative: bool = True, d
         leaf_share=float(leaf_share), one_ray_tol=float(one_ray_tol), near_entries=entries,
         # the radius, not only the count, is part of the checkpoint key
         near_radius=near_radius(scene.centroids, entries, scene.normals) if entries else 0.0,
-        reciprocity=bool(reciprocity),
+        reciprocity=bool(reciprocity), far_field=far_field_mode(far_field, n, bool(relative)),
+        far_options=_far_options(options.far),
         # kernel version and tolerance: recorded in the .hfr, part of the checkpoint key
         form_factors={**kernel_settings(), **visibility_settings()})

@@ -27,7 +27,7 @@ from .falsecolor import check_unit, colorbar_width, falsecolor_image, photometri
 from .raycast import trace_camera
 from .shading import CREASE_ANGLE, interpolate, smooth_corners
 from .tonemap import auto_exposure as _auto_exposure
-from .tonemap import tonemap
+from .tonemap import expose, srgb_encode, to_uint8
 
 
 def _check_radiosity(scene, radiosity) -> np.ndarray:
@@ -49,12 +49,44 @@ MAX_SIDE = 16384
 #: copy); the memory check refuses ``BYTES_PER_PIXEL * width * height`` above 80% of what is free.
 BYTES_PER_PIXEL = 256
 
+#: Rays a pixel of a picture by default (:func:`render_image`): a stratified 2 x 2 grid, so edges
+#: get intermediate values; 1 is one ray through each pixel's centre.
+DEFAULT_SAMPLES = 4
+
+#: Most rays a pixel (a 8 x 8 grid); memory and time grow with the count.
+MAX_SAMPLES = 64
+
+#: Memory a pixel needs per sample, bytes (its radiance and hit, kept until the exposure is known).
+BYTES_PER_SAMPLE = 48
+
 #: Smallest false-colour picture: the colour bar and its labels need this much beside the scene
 #: (8 pixels high or less broke the drawing of the bar; 16 x 24 is the smallest drawn whole).
 MIN_FALSECOLOR_SIZE = (16, 24)
 
 
-def check_size(width: int, height: int, *, falsecolor: bool = False) -> None:
+def check_samples(samples: int) -> int:
+    """``samples`` if it is a square number of rays a pixel from 1 to :data:`MAX_SAMPLES` (a k x k grid).
+
+    Raises
+    ------
+    InputError
+        Anything else, naming the allowed values.
+    """
+    ok = isinstance(samples, (int, np.integer)) and not isinstance(samples, bool) and 1 <= samples <= MAX_SAMPLES
+    if not ok or round(np.sqrt(samples)) ** 2 != samples:
+        raise InputError(f"samples must be a square number of rays a pixel from 1 to {MAX_SAMPLES} "
+                         f"(1, 4, 9, 16, ...: a k x k grid), got {samples!r}")
+    return int(samples)
+
+
+def _offsets(samples: int) -> list[tuple[float, float]]:
+    """Sub-pixel positions of a stratified k x k grid (cell centres), pixel units."""
+    k = int(round(np.sqrt(samples)))
+    c = (np.arange(k) + 0.5) / k
+    return [(float(x), float(y)) for y in c for x in c]
+
+
+def check_size(width: int, height: int, *, falsecolor: bool = False, samples: int = 1) -> None:
     """Refuse a picture size before any work: whole numbers of pixels, 1 to :data:`MAX_SIDE` a side,
     within the available memory (:data:`BYTES_PER_PIXEL`), and room for a colour bar in false colour.
 
@@ -73,16 +105,40 @@ def check_size(width: int, height: int, *, falsecolor: bool = False) -> None:
     if falsecolor and (width < MIN_FALSECOLOR_SIZE[0] or height < MIN_FALSECOLOR_SIZE[1]):
         raise InputError(f"a false-colour picture needs at least {MIN_FALSECOLOR_SIZE[0]} x {MIN_FALSECOLOR_SIZE[1]} "
                          f"pixels (the colour bar and its labels sit beside the scene); got {int(width)} x {int(height)}")
-    require(BYTES_PER_PIXEL * float(width) * float(height), f"rendering {int(width):,} x {int(height):,} pixels",
+    per_pixel = BYTES_PER_PIXEL + BYTES_PER_SAMPLE * (check_samples(samples) if samples != 1 else 0)
+    require(per_pixel * float(width) * float(height), f"rendering {int(width):,} x {int(height):,} pixels",
             "use a smaller width and height")
 
 
 _check_size = check_size
 
 
+def _radiance_samples(scene, B, cam: Camera, width: int, height: int, samples: int, flat: bool,
+                      crease_angle: float, caster) -> tuple[np.ndarray, np.ndarray]:
+    """(s, h, w, 3) radiance and (s, h, w) patch (-1: background) of each sub-pixel sample."""
+    corners = None if flat else smooth_corners(scene, B, crease_angle=crease_angle)
+    radiance = np.zeros((samples, height, width, 3))
+    face = np.full((samples, height, width), -1, np.int64)
+    for i, offset in enumerate(_offsets(samples) if samples > 1 else [(0.5, 0.5)]):
+        tri, _, uv = trace_camera(scene, cam, width, height, caster=caster, offset=offset)
+        hit = tri >= 0
+        face[i][hit] = scene.patch_of_triangle[tri[hit]]
+        if hit.any():
+            radiance[i][hit] = B[face[i][hit]] if flat else interpolate(corners, tri[hit], uv[hit])
+    return radiance / np.pi, face
+
+
+def _first_hit(face: np.ndarray) -> np.ndarray:
+    """(h, w): each pixel's patch from its first sample that hit one (-1 where none did)."""
+    out = face[0].copy()
+    for f in face[1:]:
+        out = np.where(out >= 0, out, f)
+    return out
+
+
 def render_radiance(scene, radiosity, camera: "Camera | str" = "auto", *, width: int = 512,
                     height: int = 512, flat: bool = False, crease_angle: float = CREASE_ANGLE,
-                    caster=None) -> tuple[np.ndarray, np.ndarray]:
+                    caster=None, samples: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """Linear picture of radiance.
 
     Parameters
@@ -97,36 +153,31 @@ def render_radiance(scene, radiosity, camera: "Camera | str" = "auto", *, width:
         See :func:`~hfrad.render.shading.smooth_corners`.
     caster : RayCaster, optional
         Over the patches (:func:`~hfrad.render.raycast.patch_caster`), to reuse.
+    samples : int
+        Rays a pixel, a stratified k x k grid (1, 4, 9, ...); the radiance is
+        their mean (background counts 0). 1: one ray through the centre, the
+        radiance at one surface point.
 
     Returns
     -------
     radiance : (height, width, 3) float, W/(m^2 sr)
-        ``B / pi`` at each pixel's surface point; 0 for background.
+        ``B / pi`` at each pixel's surface point(s); 0 for background.
     face : (height, width) int
-        Patch seen by each pixel, -1 for background.
+        Patch seen by each pixel (its first sample that hit one), -1 for background.
     """
     B = _check_radiosity(scene, radiosity)
-    _check_size(width, height)
+    samples = check_samples(samples)
+    _check_size(width, height, samples=samples)
     cam = Camera.parse(camera, scene.bounds, aspect=width / height, scene=scene)
-    tri, _, uv = trace_camera(scene, cam, width, height, caster=caster)
-    radiance = np.zeros((height, width, 3))
-    hit = tri >= 0
-    face = np.full_like(tri, -1)
-    face[hit] = scene.patch_of_triangle[tri[hit]]
-    if hit.any():
-        if flat:
-            radiance[hit] = B[face[hit]]
-        else:
-            radiance[hit] = interpolate(smooth_corners(scene, B, crease_angle=crease_angle), tri[hit], uv[hit])
-    radiance /= np.pi
-    return radiance, face
+    radiance, face = _radiance_samples(scene, B, cam, width, height, samples, flat, crease_angle, caster)
+    return radiance.mean(axis=0), _first_hit(face)
 
 
 def render_image(scene, radiosity, *, camera: "Camera | str" = "auto", width: int = 512,
                  height: int = 512, exposure: float | None = None, auto_exposure: bool = True,
                  flat: bool = False, falsecolor: bool = False, unit: str = "W/m2",
-                 crease_angle: float = CREASE_ANGLE, caster=None) -> np.ndarray:
-    """An 8-bit sRGB picture of a radiosity solution.
+                 crease_angle: float = CREASE_ANGLE, caster=None, samples: int = DEFAULT_SAMPLES) -> np.ndarray:
+    """An 8-bit sRGB picture of a radiosity solution, anti-aliased.
 
     Parameters
     ----------
@@ -151,6 +202,12 @@ def render_image(scene, radiosity, *, camera: "Camera | str" = "auto", width: in
         right (the scene takes the rest of the width).
     unit : {'W/m2', 'lux'}
         Unit of the false-colour scale (see :mod:`hfrad.render.falsecolor`).
+    samples : int
+        Rays a pixel, a stratified k x k grid (default :data:`DEFAULT_SAMPLES`);
+        the pixel is the mean of its samples' clipped display values (so a
+        light's edge blends too), sRGB-encoded after averaging. In false colour
+        a pixel takes the mean value of its samples that see a surface, and
+        fades to black with the share that see background. 1 turns it off.
 
     Returns
     -------
@@ -164,7 +221,7 @@ def render_image(scene, radiosity, *, camera: "Camera | str" = "auto", width: in
 
     Notes
     -----
-    Cost: one Embree ray per pixel and per back face passed, plus
+    Cost: ``samples`` Embree rays per pixel and per back face passed, plus
     O(n) for the per-corner smoothing.
 
     Examples
@@ -175,29 +232,40 @@ def render_image(scene, radiosity, *, camera: "Camera | str" = "auto", width: in
     >>> img.shape, img.dtype
     ((32, 32, 3), dtype('uint8'))
     """
+    B = _check_radiosity(scene, radiosity)
+    samples = check_samples(samples)
+    full_width = width
     if falsecolor:
         check_unit(unit)
-        check_size(width, height, falsecolor=True)
-        w = width - colorbar_width(width)
-        B = _check_radiosity(scene, radiosity)
-        radiance, face = render_radiance(scene, B, camera, width=w, height=height, flat=flat,
-                                         crease_angle=crease_angle, caster=caster)
-        hit = face >= 0
-        lit = np.zeros_like(hit)
-        lit[hit] = ~scene.emitters[face[hit]]
-        values = photometric(radiance * np.pi, unit)  # back to radiosity
-        return falsecolor_image(values, hit, width=width, unit=unit, scale_mask=lit)
-    radiance, face = render_radiance(scene, radiosity, camera, width=width, height=height, flat=flat,
-                                     crease_angle=crease_angle, caster=caster)
+        check_size(width, height, falsecolor=True, samples=samples)
+        width = width - colorbar_width(width)       # the scene's part; the bar takes the rest
+    else:
+        check_size(width, height, samples=samples)
+    cam = Camera.parse(camera, scene.bounds, aspect=width / height, scene=scene)
+    radiance, face = _radiance_samples(scene, B, cam, width, height, samples, flat, crease_angle, caster)
+    hit = face >= 0
+    lit = np.zeros_like(hit)
+    lit[hit] = ~scene.emitters[face[hit]]
+    if falsecolor:
+        return _falsecolor(radiance, hit, lit, full_width, unit)
     if exposure is None:
-        if auto_exposure:
-            hit = face >= 0
-            lit = np.zeros_like(hit)
-            lit[hit] = ~scene.emitters[face[hit]]
-            exposure = _auto_exposure(radiance, lit if lit.any() else hit)
-        else:
-            exposure = 0.0
-    return tonemap(radiance, exposure=float(exposure))
+        exposure = _auto_exposure(radiance, lit if lit.any() else hit) if auto_exposure else 0.0
+    display = expose(radiance, exposure=float(exposure)).mean(axis=0)
+    return to_uint8(srgb_encode(display))
+
+
+def _falsecolor(radiance: np.ndarray, hit: np.ndarray, lit: np.ndarray, width: int, unit: str) -> np.ndarray:
+    """False-colour picture from per-sample radiance (s, h, w, 3): mean over the samples that hit, faded by coverage."""
+    count = hit.sum(axis=0)
+    values = (photometric(radiance * np.pi, unit) * hit).sum(axis=0) / np.maximum(count, 1)   # back to radiosity
+    # the scale tops at the brightest pixel none of whose samples sees a light (an edge pixel that
+    # averages a light in would set it at a share of the light's own level)
+    no_light = lit.any(axis=0) & ~(hit & ~lit).any(axis=0)
+    img = np.array(falsecolor_image(values, count > 0, width=width, unit=unit, scale_mask=no_light))
+    w = values.shape[1]
+    coverage = count / hit.shape[0]
+    img[:, :w] = np.rint(img[:, :w] * coverage[..., None]).astype(np.uint8)
+    return img
 
 
 def save_png(image: np.ndarray, path: "str | os.PathLike") -> Path:

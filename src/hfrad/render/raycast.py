@@ -89,8 +89,8 @@ def trace_front(scene, origins: np.ndarray, directions: np.ndarray, *,
 _JITTER = ((0.25, 0.25), (-0.25, -0.25), (0.25, -0.25), (-0.25, 0.25))
 
 
-def trace_camera(scene, camera, width: int, height: int, *, caster: RayCaster | None = None
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def trace_camera(scene, camera, width: int, height: int, *, caster: RayCaster | None = None,
+                 offset: tuple[float, float] = (0.5, 0.5)) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Primary hits of a camera's pixels, without cracks.
 
     A ray through the exact edge between two patches (e.g. along the corner
@@ -99,6 +99,12 @@ def trace_camera(scene, camera, width: int, height: int, *, caster: RayCaster | 
     to four sub-pixel positions and takes the first hit: this closes one-pixel
     cracks and only ever moves a sample within its own pixel.
 
+    Parameters
+    ----------
+    offset : (2,) float in (0, 1), pixels
+        Where in each pixel the ray passes (column, row); the centre by default,
+        other positions for the sub-pixel samples of an anti-aliased picture.
+
     Returns
     -------
     face : (height, width) int, -1 for background
@@ -106,7 +112,8 @@ def trace_camera(scene, camera, width: int, height: int, *, caster: RayCaster | 
     uv : (height, width, 2) float
     """
     caster = caster or patch_caster(scene)
-    origins, directions = camera.rays(width, height)
+    col, row = np.meshgrid(np.arange(width) + offset[0], np.arange(height) + offset[1])
+    origins, directions = camera.rays_at(col.ravel(), row.ravel(), width, height)
     face, dist, uv = trace_front(scene, origins, directions, caster=caster)
     face, dist, uv = face.reshape(height, width), dist.reshape(height, width), uv.reshape(height, width, 2)
     hit = face >= 0
@@ -119,7 +126,7 @@ def trace_camera(scene, camera, width: int, height: int, *, caster: RayCaster | 
     for dc, dr in _JITTER:
         if not len(rows):
             break
-        o, d = camera.rays_at(cols + 0.5 + dc, rows + 0.5 + dr, width, height)
+        o, d = camera.rays_at(cols + offset[0] + dc, rows + offset[1] + dr, width, height)
         f, t, b = trace_front(scene, o, d, caster=caster)
         got = f >= 0
         face[rows[got], cols[got]] = f[got]

@@ -1,12 +1,15 @@
 """Smooth radiosity over patches: per-corner values and barycentric interpolation.
 
 Radiosity is constant per patch. For pictures it is interpolated: each patch
-corner gets the area-weighted mean radiosity of the patches around that vertex
-that belong to the same smooth surface,
+corner gets the value at its vertex of the area-weighted least-squares linear
+fit through the centroids of the patches around that vertex that belong to the
+same smooth surface,
 
-    B_c = sum_{q in S(c)} A_q B_q / sum_{q in S(c)} A_q,
+    B_c = a,   (a, g) = argmin sum_{q in S(c)} A_q (B_q - a - g . (c_q - x_c))^2,
 
-where S(c) holds the patches touching the corner's vertex whose material is the
+clipped to the range of those patches' values (see :func:`corner_weights`;
+a linear radiosity comes back exactly on any mesh, where the area-weighted mean
+left smudges on lopsided vertex fans), where S(c) holds the patches touching the corner's vertex whose material is the
 corner's patch's material and whose normal is within ``crease_angle`` of its
 normal (the patch itself always belongs). So colours do not bleed across the
 corner between the red wall and the floor, nor from a light onto the ceiling.
@@ -91,14 +94,34 @@ def _corner_pairs(scene, crease_angle: float) -> tuple[np.ndarray, np.ndarray, n
 def corner_weights(scene, *, crease_angle: float = CREASE_ANGLE):
     """(3t, t) sparse matrix W: corner values are ``W @ v`` for per-triangle values v.
 
-    Row ``3 f + k`` (corner k of triangle f) holds the area weights
-    ``A_q / sum A`` of the triangles q in that corner's smoothing set (see the
-    module docstring); a corner whose set has zero total area takes its own
+    Row ``3 f + k`` (corner k of triangle f at position x_c) holds the weights of
+    the triangles q in that corner's smoothing set S(c) (see the module
+    docstring): the value at x_c of the area-weighted least-squares linear fit
+    ``v_q ~ a + g . (c_q - x_c)`` through their centroids c_q,
+
+        W_cq = w_q (1 - (d_q - dbar)^T M^+ dbar),   d_q = P (c_q - x_c),
+        w_q = A_q / sum A,   dbar = sum w_q d_q,   M = sum w_q (d_q - dbar)(d_q - dbar)^T,
+
+    (P projects on the plane of the set's area-weighted mean normal: 2-vectors,
+    2 x 2 M), so
+    each row sums to 1 and a radiosity linear over the surface (whose patch
+    means are its values at the centroids) comes back exactly at every corner,
+    however irregular the mesh. The plain area-weighted mean (``W_cq = w_q``)
+    is off by ``g . dbar`` wherever the triangles around a vertex are lopsided,
+    which drew the faint saw-tooth smudges under the Cornell box's ceiling,
+    where the direct light falls steeply toward the corner. A set whose
+    centroids do not span a plane (one or two triangles) is fitted along what
+    they span. A corner whose set has zero total area takes its own
     triangle's value.
 
     Returns
     -------
     scipy.sparse.csr_matrix, shape (3t, t)
+
+    Notes
+    -----
+    The fit extrapolates at a surface's border; :func:`corner_smoother` clips
+    each corner to the range of its set's values so no new extremes appear.
     """
     from scipy import sparse
 
@@ -107,14 +130,66 @@ def corner_weights(scene, *, crease_angle: float = CREASE_ANGLE):
         return sparse.csr_matrix((0, 0))
     a, b, _ = _corner_pairs(scene, crease_angle)
     fb = b // 3
-    w = scene.triangle_areas[fb]
-    total = np.bincount(a, weights=w, minlength=3 * t)
+    area = scene.triangle_areas[fb]
+    total = np.bincount(a, weights=area, minlength=3 * t)
     ok = total[a] > 0
+    a, fb = a[ok], fb[ok]
+    w = area[ok] / total[a]
+    corner_pos = scene.vertices[scene.faces].reshape(-1, 3)
+    d3 = scene.vertices[scene.faces].mean(axis=1)[fb] - corner_pos[a]        # (pairs, 3), metres
+    # fit in the plane of the set's area-weighted mean normal: the same for every corner that shares
+    # the vertex and the set, so those corners get one value (the picture stays continuous)
+    normal = np.stack([np.bincount(a, weights=w * scene.triangle_normals[fb, i], minlength=3 * t)
+                       for i in range(3)], axis=1)
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
+    e1, e2 = _tangent_basis(normal)
+    d = np.stack([np.einsum("ij,ij->i", d3, e1[a]), np.einsum("ij,ij->i", d3, e2[a])], axis=1)
+    dbar = np.stack([np.bincount(a, weights=w * d[:, i], minlength=3 * t) for i in range(2)], axis=1)
+    e = d - dbar[a]
+    Mxx, Mxy, Myy = (np.bincount(a, weights=w * e[:, i] * e[:, j], minlength=3 * t) for i, j in ((0, 0), (0, 1), (1, 1)))
+    fit = _pinv2_times(Mxx, Mxy, Myy, dbar)                                      # (3t, 2): M^+ dbar
+    vals = w * (1.0 - np.einsum("ij,ij->i", e, fit[a]))
     lonely = np.flatnonzero(total <= 0)  # fallback: the triangle's own value
-    rows = np.concatenate([a[ok], lonely])
-    cols = np.concatenate([fb[ok], lonely // 3])
-    vals = np.concatenate([w[ok] / total[a[ok]], np.ones(len(lonely))])
+    rows = np.concatenate([a, lonely])
+    cols = np.concatenate([fb, lonely // 3])
+    vals = np.concatenate([vals, np.ones(len(lonely))])
     return sparse.csr_matrix((vals, (rows, cols)), shape=(3 * t, t))
+
+
+def _tangent_basis(normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two (t, 3) unit vectors spanning the plane of each unit normal."""
+    helper = np.zeros_like(normals)
+    helper[np.arange(len(normals)), np.argmin(np.abs(normals), axis=1)] = 1.0   # the axis least along n
+    e1 = np.cross(normals, helper)
+    e1 /= np.maximum(np.linalg.norm(e1, axis=1, keepdims=True), 1e-300)
+    return e1, np.cross(normals, e1)
+
+
+def _pinv2_times(a: np.ndarray, b: np.ndarray, c: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """(m, 2): the pseudo-inverse of each symmetric PSD [[a, b], [b, c]] times the rows of v (m, 2).
+
+    Full rank: the adjugate over the determinant. Where the smaller eigenvalue is below 1e-6 of the
+    larger (centroids on a line, or one), the matrix is ``lam u u^T`` with ``lam`` its trace, whose
+    pseudo-inverse is ``M / lam^2``; its rounding noise across the line is not inverted.
+    """
+    trace = a + c
+    det = a * c - b * b
+    half_gap = np.sqrt(np.maximum(0.25 * (a - c) ** 2 + b * b, 0.0))
+    small, large = 0.5 * trace - half_gap, 0.5 * trace + half_gap
+    full = small > 1e-6 * large
+    x, y = v[:, 0], v[:, 1]
+    inv_det = np.where(full, 1.0 / np.where(full, det, 1.0), 0.0)
+    inv_lam2 = np.where(~full & (trace > 0), 1.0 / np.where(trace > 0, trace, 1.0) ** 2, 0.0)
+    out_full = np.stack([c * x - b * y, -b * x + a * y], axis=1) * inv_det[:, None]
+    out_line = np.stack([a * x + b * y, b * x + c * y], axis=1) * inv_lam2[:, None]
+    return np.where(full[:, None], out_full, out_line)
+
+
+def _clip_to_set(W, values: np.ndarray, corners: np.ndarray) -> np.ndarray:
+    """Corner values clipped to the range of the values their row of W draws on (a slope limiter)."""
+    v = values[W.indices]
+    starts = W.indptr[:-1]
+    return np.clip(corners, np.minimum.reduceat(v, starts), np.maximum.reduceat(v, starts))
 
 
 def patch_field_weights(scene, *, crease_angle: float = CREASE_ANGLE):
@@ -173,7 +248,7 @@ def corner_smoother(scene, *, crease_angle: float = CREASE_ANGLE) -> Callable[[n
         values = np.asarray(radiosity, dtype=np.float64).reshape(scene.n_patches, 3)
         if t == 0:
             return np.zeros((0, 3, 3))
-        return np.asarray(W @ values).reshape(t, 3, 3)
+        return _clip_to_set(W, values, np.asarray(W @ values)).reshape(t, 3, 3)
 
     return smooth
 

@@ -104,9 +104,18 @@ def tonemap(radiance: np.ndarray, *, exposure: float = 0.0, encoding: str = "srg
     """
     if encoding not in ("srgb", "linear"):
         raise InputError(f"encoding must be 'srgb' or 'linear', got {encoding!r}")
+    x = expose(radiance, exposure=exposure)
+    return to_uint8(srgb_encode(x) if encoding == "srgb" else x)
+
+
+def expose(radiance: np.ndarray, *, exposure: float = 0.0) -> np.ndarray:
+    """(..., 3) float in [0, 1]: linear display values ``clip(L * 2**EV, 0, 1)`` (NaN -> 0, +inf -> 1).
+
+    Anti-aliased pictures average these over a pixel's samples before encoding,
+    so a light's edge blends with what is beside it instead of staying white.
+    """
     if not (np.isfinite(exposure) and abs(exposure) <= MAX_EXPOSURE):
         raise InputError(f"exposure must be a finite number of EV within +-{MAX_EXPOSURE:g} (a factor 2^EV), "
                          f"got {exposure}")
     x = np.asarray(radiance, dtype=np.float64) * (2.0 ** exposure)
-    x = np.clip(np.nan_to_num(x, nan=0.0, posinf=1.0, neginf=0.0), 0.0, 1.0)
-    return to_uint8(srgb_encode(x) if encoding == "srgb" else x)
+    return np.clip(np.nan_to_num(x, nan=0.0, posinf=1.0, neginf=0.0), 0.0, 1.0)

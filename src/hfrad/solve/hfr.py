@@ -34,7 +34,9 @@ files carry no checksums, so they are refused)::
                        per-solve error figure: sample_index (m1,), smooth_index
                        (m2,), sample_rows (m1 + m2, n) float32, smooth_products
                        (n, m2, 3) float32, sample_reflectance (n, 3); attrs
-                       sample_exact, sample_seed (:mod:`hfrad.solve.samples`)
+                       sample_exact, sample_seed (:mod:`hfrad.solve.samples`);
+                       with the sampled far field, far_index (m,) and far_q
+                       (m,): its certificate (:mod:`hfrad.formfactors.farfield`)
     /patches/...       vertices, faces, material, reflectance, emission,
                        areas, normals, centroids, group, triangle_patch
                        (only for clustered patches: the patch of each
@@ -206,6 +208,8 @@ def _dataset(g: h5py.Group, name: str, data) -> None:
 #: The exact sampled rows of F (:class:`~hfrad.solve.samples.SampledRows`): arrays, and the dtype they are stored in.
 _SAMPLE_ARRAYS = {"sample_index": np.int64, "smooth_index": np.int64, "sample_rows": np.float32,
                   "sample_reflectance": np.float64, "smooth_products": np.float32}
+#: The sampled far field's certificate (:class:`~hfrad.formfactors.farfield.FarFieldCertificate`).
+_FAR_ARRAYS = {"far_index": np.int64, "far_q": np.float64}
 
 
 def _write_stats(g: h5py.Group, stats) -> None:
@@ -219,6 +223,9 @@ def _write_stats(g: h5py.Group, stats) -> None:
             if name in state:
                 _dataset(g, name, np.asarray(state[name], dtype))
         g.attrs["sample_exact"], g.attrs["sample_seed"] = state["sample_exact"], state["sample_seed"]
+    for name, dtype in _FAR_ARRAYS.items():
+        if name in state:
+            _dataset(g, name, np.asarray(state[name], dtype))
 
 
 def _read(g: h5py.Group, name: str, path: Path):
@@ -314,7 +321,7 @@ def _read_scene(g: h5py.Group, path: Path | None = None):
 
 
 def _read_stats(g: h5py.Group, path: Path) -> PassStatistics:
-    names = ("row_sums", "col_sums", "sketch", "weights", *_SAMPLE_ARRAYS)
+    names = ("row_sums", "col_sums", "sketch", "weights", *_SAMPLE_ARRAYS, *_FAR_ARRAYS)
     state = {k: _read(g, k, path) for k in names if k in g}
     state.update(probes=int(g.attrs["probes"]), seed=int(g.attrs["seed"]))
     if "sample_rows" in state:

@@ -179,13 +179,23 @@ class SampledRows:
         products = None if (w is None or reflectance is None) else np.zeros((n, smooth.size, 3))
         return cls(index, smooth, rows, products, w, rho, exact, seed)
 
-    def record(self, start: int, stop: int, F_block: np.ndarray) -> None:
-        """Record columns ``start:stop`` of F (all n rows, internal order)."""
-        every = np.concatenate([self.index, self.smooth_index])
-        self.rows[:, start:stop] = F_block[every]
+    @property
+    def row_patches(self) -> np.ndarray:
+        """(m1 + m2,) the patches whose rows are recorded: ``index`` then ``smooth_index``."""
+        return np.concatenate([self.index, self.smooth_index])
+
+    def record(self, start: int, stop: int, F_block: np.ndarray, exact: np.ndarray | None = None) -> None:
+        """Record columns ``start:stop`` of F (all n rows, internal order).
+
+        ``exact`` ((m1 + m2, b), the rows at :attr:`row_patches`): given where ``F_block`` is an
+        approximation (the sampled far field), so the recorded rows stay exact.
+        """
+        every = self.row_patches
+        self.rows[:, start:stop] = F_block[every] if exact is None else exact
         self.span = (start, stop) if self.span is None else (min(self.span[0], start), max(self.span[1], stop))
         if self.products is not None:
-            Fs = np.asarray(F_block[self.smooth_index], np.float64)            # (m2, b)
+            Fs = np.asarray(F_block[self.smooth_index] if exact is None else exact[self.index.size:],
+                            np.float64)                                        # (m2, b), exact rows
             scale = self.reflectance[start:stop] / self.weights[start:stop, None]   # (b, 3) rho_jc / A_j
             Y = Fs.T[:, :, None] * scale[:, None, :]                           # (b, m2, 3)
             b = stop - start

@@ -15,6 +15,7 @@ import numba
 import numpy as np
 from numba import njit, prange
 
+from ..formfactors.farfield import FarFieldCertificate
 from .bounds import contraction_bound
 from .readonly import read_only
 from .samples import SAMPLE_SHARE, SampledRows
@@ -109,17 +110,21 @@ class PassStatistics:
         self.sketch = np.zeros((n, probes))
         self._omega = probe_vectors(self.weights, n, probes, seed)
         self.samples: SampledRows | None = SampledRows.design(self.n, self.weights, reflectance) if n else None
+        #: The sampled far field's certificate (``||G - G~||`` from exact rows), None for an exact pass.
+        self.far_field: FarFieldCertificate | None = None
 
     def add(self, start: int, stop: int, F_block: np.ndarray, rows_rho: np.ndarray) -> None:
         """Record columns ``start:stop`` of F (all rows, internal order); ``rows_rho`` is (n, 1) rho_max."""
         self._pass(start, stop, F_block, rows_rho, None)
 
     def add_scaled(self, start: int, stop: int, F_block: np.ndarray, rows_rho: np.ndarray,
-                   out: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+                   out: np.ndarray | None = None, exact_rows: np.ndarray | None = None) -> tuple[np.ndarray, float]:
         """:meth:`add`, and the block of G it reads F for: ``(rows_rho * F_block, ||G_block||_F^2)``.
 
         ``out``: an array of F_block's shape and dtype to write G into (a buffer reused from
         block to block: fresh pages for every n x b block cost page faults); else a new one.
+        ``exact_rows``: the exact rows of F at the sampled rows' patches where ``F_block`` is
+        an approximation (:meth:`SampledRows.record`).
 
         Returns
         -------
@@ -132,9 +137,9 @@ class PassStatistics:
         usable = (out is not None and out.shape == F_block.shape and out.dtype == F_block.dtype
                   and out.flags.c_contiguous and out.flags.writeable)
         G = out if usable else np.empty_like(F_block)
-        return G, self._pass(start, stop, F_block, rows_rho, G)
+        return G, self._pass(start, stop, F_block, rows_rho, G, exact_rows)
 
-    def _pass(self, start: int, stop: int, F_block, rows_rho, G) -> float:
+    def _pass(self, start: int, stop: int, F_block, rows_rho, G, exact_rows=None) -> float:
         """One read of the block for the sums, the sketch and (``G`` given) G and its norm.
 
         The block is read once, row by row, with float64 accumulators (:func:`_block_pass`):
@@ -157,7 +162,7 @@ class PassStatistics:
                     want_g, col_parts, g2_parts)
         self.col_sums[start:stop] = col_parts.sum(axis=0)
         if self.samples is not None:
-            self.samples.record(start, stop, F_block)
+            self.samples.record(start, stop, F_block, exact_rows)
         return float(g2_parts.sum())
 
     def state(self) -> dict:
@@ -168,6 +173,8 @@ class PassStatistics:
             out["weights"] = self.weights
         if self.samples is not None:
             out.update(self.samples.state())
+        if self.far_field is not None:
+            out.update(self.far_field.state())
         return out
 
     def frozen(self, factor_bytes: float | None = None) -> "PassStatistics":
@@ -195,6 +202,8 @@ class PassStatistics:
         stats.row_sums = np.asarray(state["row_sums"], dtype=np.float64)
         stats.col_sums = np.asarray(state["col_sums"], dtype=np.float64)
         stats.sketch = sketch
+        if "far_q" in state:
+            stats.far_field = FarFieldCertificate.from_state(state, stats.n)
         return stats
 
     def operator_error(self, Q: np.ndarray, V: np.ndarray, D: np.ndarray, *, near=None,
@@ -226,6 +235,10 @@ class PassStatistics:
             if self.weights is not None:
                 R = np.sqrt(self.weights)[:, None] * R
             out[c] = scale * np.linalg.norm(R, axis=0).max()
+        if self.far_field is not None:
+            # the sketch saw the sampled far field's G~, not G: add ||G - G~||_F (its upper figure from
+            # exact rows; channel c scales rows by D_c <= 1)
+            out += self.far_field.frobenius()[1]
         return out
 
     def contraction(self, reflectance_int: np.ndarray) -> np.ndarray:

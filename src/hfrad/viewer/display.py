@@ -1,8 +1,9 @@
 """Vertex colours for the browser: the same smoothing and tone mapping as ``hfrad render``.
 
 The patch mesh is split along creases and material borders
-(:func:`hfrad.render.corner_vertices`) and each vertex gets the area-weighted
-mean radiosity of its smoothing set (:func:`hfrad.render.corner_smoother`:
+(:func:`hfrad.render.corner_vertices`) and each vertex gets the value of the
+linear fit through its smoothing set's patches that ``hfrad render`` gives that
+corner (:func:`hfrad.render.corner_smoother`, the one helper both use:
 sparse weights built once, so a new radiosity costs a few sparse products). Then:
 
 - shaded: radiance ``B / pi`` exposed and sRGB-encoded to 8 bits by
