@@ -218,8 +218,11 @@ def _on_cluster(scene, scheduler: Optional[str], workers: Optional[int], quiet: 
                 + (f"\nDask dashboard: {cluster.dashboard}" if cluster.dashboard else ""), highlight=False)
             with common.progress_bar(f"precompute {n:,} patches on Dask", quiet) as bar:
                 status = None if bar is None else (lambda info: bar.note(f"rank {info['rank']:,}"))
-                return factorize(scene, backend=DaskBackend(scheduler=cluster), progress=bar, status=status,
-                                 **arguments)
+                fac = factorize(scene, backend=DaskBackend(scheduler=cluster), progress=bar, status=status,
+                                **arguments)
+                if bar is not None:   # the factorization's rank, as the summary says it
+                    bar.note(f"rank {fac.rank:,}")
+                return fac
     except (SchedulerUnreachableError, WorkerLostError) as exc:
         common.fail(str(exc))
 
