@@ -239,7 +239,7 @@ def test_single_triangle_kernel_equals_the_general_one():
     """Scenes of one triangle per patch take their own block loop (the distant pairs' shortcut
     in SIMD lanes over a row's columns, then the rest pair by pair): the general per-patch
     loop's numbers, bit for bit, on every kind of pair (distant, near, coplanar, itself)."""
-    from hfrad.formfactors.kernel import PatchGeometry, _unoccluded_block, unoccluded_block
+    from hfrad.formfactors.kernel import PatchGeometry, _unoccluded_block, row_chunks, unoccluded_block
     from hfrad.scene.builtin import cornell_box
     from hfrad.scene.patches import subdivide
 
@@ -252,6 +252,6 @@ def test_single_triangle_kernel_equals_the_general_one():
     general = np.empty_like(fast)
     _unoccluded_block(geom.triangles, geom.normals, geom.areas, geom.centroids, geom.diameters, geom.start,
                       geom.index, geom.patch_areas, rows, cols, geom.near, geom.adaptive, geom.eps, geom.tolerance,
-                      general)
+                      general, row_chunks(len(rows)))
     assert (fast > 0).mean() > 0.3 and (fast == 0).any()
     np.testing.assert_array_equal(fast, general)

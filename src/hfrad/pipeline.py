@@ -100,7 +100,10 @@ def factorize(scene: Scene, eps: float = 0.02, *, relative: bool = True, dtype="
     status : callable (dict), optional
         Called after each block with ``blocks``, ``rank``, ``elapsed`` (seconds);
         in this process, the first call after resuming from a ``checkpoint`` also
-        has ``resumed``: the blocks the checkpoint held.
+        has ``resumed``: the blocks the checkpoint held, and a fresh run's first call,
+        before any block (``blocks`` 0, ``rank`` 0), has ``estimate``: the form-factor
+        pass's wall seconds estimated from the kernel timed on a sample
+        (:func:`~hfrad.precompute.local.estimate_form_factor_seconds`).
 
     Returns
     -------

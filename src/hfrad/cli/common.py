@@ -171,6 +171,54 @@ def progress_bar(description: str, quiet: bool = False) -> Iterator[Optional[_Ba
                   console=console, transient=False) as bar:
         yield _Bar(bar, bar.add_task(description, total=None, note=""))
 
+@contextlib.contextmanager
+def stage_clock(quiet: bool = False, start: float | None = None):
+    """A :class:`hfrad.progress.StageClock` (total from ``start``, a ``time.perf_counter()``) whose
+    stage names show on a status line while the block runs (loading, cleaning and cutting a scene
+    print nothing else); the clock goes on counting after the block, without the line."""
+    from ..progress import StageClock
+
+    if quiet:
+        yield StageClock(start=start)
+        return
+    with console.status("starting") as line:
+        def show(name: str) -> None:
+            done = ", ".join(f"{k} {v:.1f} s" for k, v in clock.seconds.items())
+            line.update(f"{name}..." + (f" (done: {done})" if done else ""))
+
+        clock = StageClock(show, start=start)
+        try:
+            yield clock
+        finally:
+            clock.listener = None
+
+
+#: The summary's names of the stages inside ``factorize`` (keys of ``fac.lowrank.info``), in order.
+FACTORIZE_STAGES = (("time_setup", "ray budget and estimate"), ("time_formfactors", "form factors"),
+                    ("time_statistics", "pass statistics"), ("time_hf", "HF"),
+                    ("time_checkpoints", "checkpoints"), ("time_assemble", "solver set-up (near field, capacitance inverses)"))
+
+
+def add_factorize_stages(clock, fac, wall: float) -> None:
+    """Put the stages of a local ``factorize`` (``fac.lowrank.info``) on ``clock``, and what of its
+    ``wall`` seconds none of them claims as ``factorize, other``."""
+    info = fac.lowrank.info
+    inside = 0.0
+    for key, name in FACTORIZE_STAGES:
+        if key in info:
+            clock.add(name, info[key])
+            inside += info[key]
+    clock.add("factorize, other", wall - inside)
+
+
+def estimate_line(seconds: float) -> str:
+    """The form-factor estimate said before the pass (``status``'s ``estimate``)."""
+    from ..precompute.local import ESTIMATE_COLUMNS, PASS_OVER_KERNEL
+
+    return (f"estimate: form factors about {seconds:,.0f} s on this machine as loaded now (the kernel timed on "
+            f"{ESTIMATE_COLUMNS} columns; the rays and the rest of the pass as {PASS_OVER_KERNEL - 1:g} times the kernel)")
+
+
 def dtype_option(default: str):
     """``--dtype``: the precision of the numbers a command computes and stores."""
     return typer.Option(default, "--dtype", help=f"Precision: float32 or float64 (default {default}).")

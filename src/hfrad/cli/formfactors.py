@@ -53,11 +53,17 @@ def register(app: typer.Typer) -> None:
             dt = common.check_dtype(dtype)
             common.check_samples(samples)
             common.check_output(npz_path(output))
-            s = load_scene_from_options(scene, **dataclasses.asdict(scene_options),
-                                        need=lambda n: check_dense_memory(n, dt))   # before cutting
+            with common.stage_clock(quiet) as clock:
+                s = load_scene_from_options(scene, **dataclasses.asdict(scene_options),
+                                            need=lambda n: check_dense_memory(n, dt), on_stage=clock)   # before cutting
+                clock.stop()
             check_dense_memory(s.n_patches, dt)
+            clock("form factors")
             with common.progress_bar(f"form factors ({s.n_patches} patches)", quiet) as progress:
                 F = form_factor_matrix(s, samples=samples, dtype=dt, progress=progress)
+            clock("save")
             write_npz(output, s, F)
+            clock.stop()
         if not quiet:
-            common.console.print(f"wrote {output} ({s.n_patches} x {s.n_patches})", highlight=False)
+            common.console.print(f"wrote {output} ({s.n_patches} x {s.n_patches}); time: {clock.summary()}",
+                                 highlight=False)

@@ -54,22 +54,24 @@ def parse_rgb(value: Optional[str], option: str = "--area-light") -> Optional[tu
 
 def load_scene_from_options(scene: str, *, unit_scale: float = 1.0, emit=None, area_light=None,
                             default_reflectance: float = 0.7, allow_missing_materials: bool = False,
-                            max_edge=None, patches=None, keep_duplicates: bool = False, need=None):
+                            max_edge=None, patches=None, keep_duplicates: bool = False, need=None, on_stage=None):
     """Load a scene the way every command does, from its CLI options.
 
     ``need(n)``, if given, is called with the patch count the cut will make
     (:func:`hfrad.scene.load.estimate_patch_count`) before any cutting, so a
     command refuses a scene too large for its own memory (precompute,
-    formfactors) at once rather than after minutes of meshing.
+    formfactors) at once rather than after minutes of meshing. ``on_stage(name)``: told when
+    reading, cleaning and cutting start (:func:`hfrad.scene.load.load_scene`).
     """
     from ..scene.load import cut_patches, estimate_patch_count, load_scene
 
     lights = dict(emit=parse_emit(emit), area_light=parse_rgb(area_light))
     s = load_scene(scene, unit_scale=unit_scale, **lights, default_reflectance=default_reflectance,
-                   allow_missing_materials=allow_missing_materials, keep_duplicates=keep_duplicates)
+                   allow_missing_materials=allow_missing_materials, keep_duplicates=keep_duplicates,
+                   on_stage=on_stage)
     if need is not None:
         need(estimate_patch_count(s, max_edge=max_edge, patches=patches))
-    return cut_patches(s, max_edge=max_edge, patches=patches)
+    return cut_patches(s, max_edge=max_edge, patches=patches, on_stage=on_stage)
 
 
 def register(app: typer.Typer) -> None:

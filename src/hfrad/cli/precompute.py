@@ -87,14 +87,18 @@ def register(app: typer.Typer) -> None:
                 common.check_memory_for_precompute(n, min(block or DEFAULT_BLOCK_SIZE, max(n, 1)), dtype,
                                                    count="at least" if scene_options.max_edge is not None else "about")
 
-            s = load_scene_from_options(scene, **dataclasses.asdict(scene_options), need=need)
+            with common.stage_clock(quiet, start=t0) as clock:
+                s = load_scene_from_options(scene, **dataclasses.asdict(scene_options), need=need, on_stage=clock)
+                clock.stop()
             if refine is not None:
+                clock("refine")
                 from ..solve.refine import refine_by_radiosity
                 before = s.n_patches
                 with common.progress_bar(f"coarse solve on {before:,} patches", quiet) as bar:
                     s, marked = refine_by_radiosity(s, refine, progress=bar)
                 if not quiet:
                     common.console.print(f"refined: {marked:,} of {before:,} patches marked, {s.n_patches:,} patches now")
+                clock.stop()
             common.check_memory_for_precompute(s.n_patches, block or DEFAULT_BLOCK_SIZE, dtype)
             common.warn_disk_for_hfr(output, s.n_patches, dtype)
             if not quiet:
@@ -118,33 +122,46 @@ def register(app: typer.Typer) -> None:
                     raise InputError("--far-field sampled runs in this process for now; drop --scheduler/--workers "
                                      "or use --far-field exact")
                 t_load = time.perf_counter() - t0
+                clock("checks")
+                clock.stop()
                 parts = output.with_name(output.name + ".partial.d")   # finished subtrees: a rerun skips them
+                clock("factorize on Dask")
                 fac = _on_cluster(s, scheduler, workers, quiet, eps=eps, dtype=dtype, order=order,
                                   near_field=_near_field(near_field), options=options,
                                   checkpoint=Checkpoint(parts, keep=True))
+                clock("save")
                 common.check_space_for_hfr(output, fac)
                 save_hfr(fac, output, timings={"load": t_load, **_stage_times(fac)})
                 from ..distributed import remove_checkpoint
                 remove_checkpoint(parts)  # only once the .hfr is safely renamed into place
-                _report(fac, output, time.perf_counter() - t0)
+                _report(fac, output, clock)
                 return
             checkpoint = output.with_name(output.name + ".partial")
             t_load = time.perf_counter() - t0
+            clock("checks")
+            clock.stop()
             with common.progress_bar(f"precompute {s.n_patches:,} patches", quiet) as bar:
                 def status(info: dict) -> None:
                     if info.get("resumed"):    # said only once factorize has accepted the checkpoint
                         common.console.print(f"resumed from checkpoint {checkpoint} ({info['resumed']:,} "
                                              "column blocks were done)", highlight=False)
-                    if bar is not None:
+                    if "estimate" in info and not quiet:
+                        common.console.print(common.estimate_line(info["estimate"]), highlight=False)
+                    if bar is not None and info["blocks"]:
                         bar.note(f"rank {info['rank']:,}")
 
+                t_fac = time.perf_counter()
                 fac = factorize(s, eps, dtype=dtype, order=order, near_field=_near_field(near_field),
                                 backend=LocalBackend(processes=processes), checkpoint=Checkpoint(checkpoint, keep=True),
                                 options=options, far_field=far_field, progress=bar, status=status)
+                common.add_factorize_stages(clock, fac, time.perf_counter() - t_fac)
+                if bar is not None:   # the factorization's rank, not the last block's (the last merges truncate)
+                    bar.note(f"rank {fac.rank:,}")
+            clock("save")
             common.check_space_for_hfr(output, fac)
             save_hfr(fac, output, timings={"load": t_load, **_stage_times(fac)})
             checkpoint.unlink(missing_ok=True)  # only once the .hfr is safely renamed into place
-        _report(fac, output, time.perf_counter() - t0)
+        _report(fac, output, clock)
 
 
 def _check_options(*, processes, samples, refine, scheduler, workers) -> None:
@@ -204,21 +221,27 @@ def _on_cluster(scene, scheduler: Optional[str], workers: Optional[int], quiet: 
                 + (f"\nDask dashboard: {cluster.dashboard}" if cluster.dashboard else ""), highlight=False)
             with common.progress_bar(f"precompute {n:,} patches on Dask", quiet) as bar:
                 status = None if bar is None else (lambda info: bar.note(f"rank {info['rank']:,}"))
-                return factorize(scene, backend=DaskBackend(scheduler=cluster), progress=bar, status=status,
-                                 **arguments)
+                fac = factorize(scene, backend=DaskBackend(scheduler=cluster), progress=bar, status=status,
+                                **arguments)
+                if bar is not None:   # the factorization's rank, as the summary says it
+                    bar.note(f"rank {fac.rank:,}")
+                return fac
     except (SchedulerUnreachableError, WorkerLostError) as exc:
         common.fail(str(exc))
 
 
-def _report(fac, output: Path, seconds: float) -> None:
+def _report(fac, output: Path, clock) -> None:
+    """The closing lines: the file, the error figures, and where the time went (stages adding up to the total)."""
     info = fac.lowrank.info
+    clock("error figures")
+    figures = common.error_figures_line(fac)
+    clock.stop()
+    dask = (f"; form factors {info.get('time_formfactors', 0):.1f} s and HF {info.get('time_total', 0):.1f} s summed "
+            f"over {info['workers']} Dask workers" if info.get("backend") == "dask" else "")
     common.console.print(
         f"wrote {output}: {fac.n_patches:,} patches, rank {fac.rank:,}, "
-        f"achieved error {fac.relative_error:.4f} (target {fac.eps})\n{common.error_figures_line(fac)}\n"
-        f"solver {fac.solver}, time {seconds:.1f} s (form factors {info.get('time_formfactors', 0):.1f} s, "
-        f"factorization {info.get('time_total', 0):.1f} s"
-        + (f"; summed over {info['workers']} Dask workers" if info.get("backend") == "dask" else "") + ")",
-        highlight=False)
+        f"achieved error {fac.relative_error:.4f} (target {fac.eps})\n{figures}\n"
+        f"solver {fac.solver}, time: {clock.summary()}{dask}", highlight=False)
     far = info.get("far_field")
     if far:
         common.console.print(

@@ -504,14 +504,16 @@ def _pair_area_ff(i, j, T, N, A, C, D, start, index, near, adaptive, eps, tol):
 
 
 @njit(parallel=True, cache=True, fastmath=False, nogil=True)
-def _unoccluded_block(T, N, A, C, D, start, index, PA, rows, cols, near, adaptive, eps, tol, out):
-    """out[r, c] = F[rows[r], cols[c]] without visibility (parallel over rows)."""
-    for r in prange(rows.shape[0]):
-        i = rows[r]
-        for c in range(cols.shape[0]):
-            j = cols[c]
-            af = _pair_area_ff(i, j, T, N, A, C, D, start, index, near, adaptive, eps, tol)
-            out[r, c] = af / PA[i] if af > 0.0 else 0.0
+def _unoccluded_block(T, N, A, C, D, start, index, PA, rows, cols, near, adaptive, eps, tol, out, chunks):
+    """out[r, c] = F[rows[r], cols[c]] without visibility (parallel over rows, dealt out in turn
+    to ``chunks`` parts: see :func:`row_chunks`)."""
+    for part in prange(chunks):
+        for r in range(part, rows.shape[0], chunks):
+            i = rows[r]
+            for c in range(cols.shape[0]):
+                j = cols[c]
+                af = _pair_area_ff(i, j, T, N, A, C, D, start, index, near, adaptive, eps, tol)
+                out[r, c] = af / PA[i] if af > 0.0 else 0.0
 
 
 @njit(parallel=True, cache=True, fastmath=False, nogil=True, error_model="numpy")
@@ -521,7 +523,7 @@ def _unoccluded_block_triangles(T, N, A, C, D, rows, cols, near, adaptive, eps, 
 
     Each row takes the distant pairs' shortcut of :func:`_triangle_pair_area_ff` first over all
     its columns at once (:func:`_distant_row`, branch-free: SIMD), then the pairs it leaves one
-    by one. Rows go in ``chunks`` parts.
+    by one. Rows are dealt out in turn to ``chunks`` parts (:func:`row_chunks`).
     """
     nc = cols.shape[0]
     # the columns' centroids, normals, areas and diameters, column index last
@@ -534,7 +536,7 @@ def _unoccluded_block_triangles(T, N, A, C, D, rows, cols, near, adaptive, eps, 
     nr = rows.shape[0]
     for part in prange(chunks):
         left = np.empty(nc, np.bool_)    # the pairs the shortcut does not decide
-        for r in range(part * nr // chunks, (part + 1) * nr // chunks):
+        for r in range(part, nr, chunks):
             i = rows[r]
             _distant_row(i, C[i, 0], C[i, 1], C[i, 2], N[i, 0], N[i, 1], N[i, 2], A[i], D[i], cols, col,
                          near, eps, out[r], left)
@@ -584,8 +586,13 @@ def _distant_row(i, cx, cy, cz, nx, ny, nz, a, dm, cols, col, near, eps, out, le
 
 
 def row_chunks(rows: int) -> int:
-    """Parts a block's rows go in for a numba loop with work arrays of its own per part: eight
-    per thread (balance: rows cost unequally), at most one per row, at least one."""
+    """Parts a block's rows go in for a numba loop: eight per thread, at most one per row, at least one.
+
+    Row r goes to part r % chunks, so each part holds rows from the whole block: in the internal
+    (Z-)order the costly near pairs of a column block are the rows next to its columns, and numba
+    hands each thread a contiguous run of the parts, so contiguous runs of rows left one thread
+    with nearly all of a block's work (clustered Sponza, 3,129 patches: 99% in one half).
+    """
     return max(1, min(rows, 8 * numba.get_num_threads()))
 
 
@@ -608,7 +615,7 @@ def unoccluded_block(geom: PatchGeometry, rows: np.ndarray, cols: np.ndarray) ->
     elif out.size:
         _unoccluded_block(geom.triangles, geom.normals, geom.areas, geom.centroids, geom.diameters,
                           geom.start, geom.index, geom.patch_areas, rows, cols, geom.near, geom.adaptive,
-                          geom.eps, geom.tolerance, out)
+                          geom.eps, geom.tolerance, out, row_chunks(len(rows)))
     return out
 
 

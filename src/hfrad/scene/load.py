@@ -18,6 +18,7 @@ import numpy as np
 
 from ..errors import SceneError
 from ..memory import require
+from ..progress import StageCallback, stage
 from .builtin import BUILTIN_SCENES, builtin_scene
 from .cleanup import merge_duplicates
 from .cluster import cluster
@@ -54,6 +55,7 @@ def load_scene(
     max_edge: float | None = None,
     patches: int | None = None,
     keep_duplicates: bool = False,
+    on_stage: StageCallback = None,
 ) -> Scene:
     """Load a scene file (OBJ/MTL, PLY, glTF/GLB, Radiance .rad, IFC) or a built-in scene by name.
 
@@ -86,6 +88,10 @@ def load_scene(
         Keep faces that duplicate another face (same corners) instead of merging
         them; either way duplicates, coplanar overlaps and faces touching face to
         face are listed in ``scene.warnings`` (see :mod:`hfrad.scene.cleanup`).
+    on_stage : callable(name), optional
+        Told when each stage starts: ``"load"`` (reading the file), ``"clean"`` (degenerate,
+        duplicate and overlapping faces), then ``"cluster"`` or ``"mesh"`` (:func:`cut_patches`),
+        for a status line and a summary of where the time went (:class:`hfrad.progress.StageClock`).
 
     Returns
     -------
@@ -105,6 +111,7 @@ def load_scene(
         raise SceneError(f"default reflectance must be in [0, 1), got {default_reflectance}")
     if not (unit_scale > 0 and np.isfinite(unit_scale)):
         raise SceneError(f"unit scale must be a positive number, got {unit_scale}")
+    stage(on_stage, "load")
     scene = _read(source, default_reflectance, allow_missing_materials)
     if unit_scale != 1.0:
         scene = scene.replace(vertices=scene.vertices * unit_scale,
@@ -114,9 +121,10 @@ def load_scene(
     if area_light is not None:
         scene = add_area_light(scene, area_light)
     check_cut_options(max_edge, patches)
+    stage(on_stage, "clean")
     scene = drop_degenerate(scene)
     scene = merge_duplicates(scene, keep_duplicates=keep_duplicates)
-    return cut_patches(scene, max_edge=max_edge, patches=patches)
+    return cut_patches(scene, max_edge=max_edge, patches=patches, on_stage=on_stage)
 
 
 def _clusters_small_faces(longest: np.ndarray, max_edge: float) -> bool:
@@ -170,8 +178,11 @@ def estimate_patch_count(scene: Scene, *, max_edge: float | None = None, patches
     return int(min(max(float(n), min_patches_for_edge(scene.total_area, h)), 1e18))
 
 
-def cut_patches(scene: Scene, *, max_edge: float | None = None, patches: int | None = None) -> Scene:
+def cut_patches(scene: Scene, *, max_edge: float | None = None, patches: int | None = None,
+                on_stage: StageCallback = None) -> Scene:
     """Cut an uncut scene into patches (what :func:`load_scene` does with ``max_edge`` / ``patches``).
+
+    ``on_stage("cluster")`` or ``on_stage("mesh")`` is called before the cut (see :func:`load_scene`).
 
     The memory the cut needs (:data:`~hfrad.scene.patches.MESH_BYTES_PER_PATCH`
     per patch of :func:`estimate_patch_count`) is checked before any work:
@@ -194,9 +205,12 @@ def cut_patches(scene: Scene, *, max_edge: float | None = None, patches: int | N
                 "use a larger max_edge (--max-edge) or fewer patches (--patches); the count is "
                 "area / (0.433 max_edge^2) at least (docs: hfrad.scene.load.estimate_patch_count)")
     if patches is not None and patches < scene.n_patches:
+        stage(on_stage, "cluster")
         return cluster(scene, patches=int(patches))
     if max_edge is not None and scene.n_patches and _clusters_small_faces(longest_edges(scene.triangles), max_edge):
+        stage(on_stage, "cluster")
         return cluster(scene, max_edge=max_edge)
+    stage(on_stage, "mesh")
     return subdivide(scene, max_edge=max_edge, patches=None if patches is None else int(patches))
 
 

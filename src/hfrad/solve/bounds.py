@@ -13,7 +13,7 @@ import numpy as np
 
 __all__ = ["ErrorEstimate", "ResidualEstimate", "estimate_errors", "solution_bound", "relative_bound",
            "contraction_bound", "power_sigma_max", "power_sigma_max_scaled", "eq5_bound", "residual_norm", "residual_estimate",
-           "USEFUL_BOUND", "is_useful", "percent", "accuracy_lines", "solution_line"]
+           "USEFUL_BOUND", "is_useful", "not_useful_channels", "percent", "accuracy_lines", "solution_line"]
 
 
 def _figures(a) -> list:
@@ -309,6 +309,19 @@ def is_useful(bound) -> bool:
     return bool(b.size) and bool(np.all(np.isfinite(b) & (b < USEFUL_BOUND)))
 
 
+def not_useful_channels(bound) -> str:
+    """The channels whose figure is not below 100% (or none), in words: ``[0.941, inf, 1.2]`` ->
+    ``'G and B are not below 100%'``; ``'no channel is below 100%'`` when every channel fails."""
+    b = np.atleast_1d(np.asarray(bound, dtype=np.float64))
+    bad = ~(np.isfinite(b) & (b < USEFUL_BOUND))
+    names = ("R", "G", "B") if b.size == 3 else tuple(f"channel {k}" for k in range(b.size))
+    if bad.all():
+        return "no channel is below 100%" if b.size > 1 else "not below 100%"
+    failing = [name for name, f in zip(names, bad) if f]
+    listed = failing[0] if len(failing) == 1 else ", ".join(failing[:-1]) + " and " + failing[-1]
+    return f"{listed} {'is' if len(failing) == 1 else 'are'} not below 100%"
+
+
 def percent(values) -> str:
     """``[0.0031, 1.55, inf]`` -> ``'0.31%, 155%, none'``: relative figures as percentages."""
     return ", ".join(f"{100 * float(v):.3g}%" if np.isfinite(v) else "none" for v in np.atleast_1d(values))
@@ -392,7 +405,7 @@ def accuracy_lines(estimate: ErrorEstimate, *, residual: ResidualEstimate | None
                    "or lower" if eps is not None else
                    "; the reflectance times the form factors' row sums reaches 1, so no eps gives an a-priori bound"))
         lines.append(f"no useful a-priori bound on the relative radiosity error of a solve (the guaranteed figure is "
-                     f"{percent(estimate.bound)}, R,G,B: not below 100%); {todo}")
+                     f"{percent(estimate.bound)}, R,G,B: {not_useful_channels(estimate.bound)}); {todo}")
     else:
         lines.append("no a-priori bound on the relative radiosity error in this file (written without pass "
                      "statistics); `hfrad solve --residual` gives the guaranteed figure of one solution")
