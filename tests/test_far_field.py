@@ -159,7 +159,7 @@ def test_far_field_options_are_checked():
         FarFieldOptions(eta=0.0)
     with pytest.raises(InputError, match="options.far"):
         hfrad.factorize(scene, 0.05, options=hfrad.PrecomputeOptions(far={"eta": 1}))
-    # "auto" is the exact pass below FAR_FIELD_SAMPLED_FROM patches
+    # "auto" is the exact pass (no measured crossover yet: options.far_field_mode)
     fac = hfrad.factorize(scene, 0.05)
     assert fac.params["far_field"] == "exact"
 
