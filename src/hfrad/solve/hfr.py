@@ -33,7 +33,9 @@ files carry no checksums, so they are refused)::
                        and (files of 2026-12 on) the exact sampled rows of the
                        per-solve error figure: sample_index (m1,), smooth_index
                        (m2,), sample_rows (m1 + m2, n) float32, smooth_products
-                       (n, m2, 3) float32, sample_reflectance (n, 3); attrs
+                       (n, m2, 3) float32, sample_reflectance (n, 3),
+                       sample_bounce (n, 3) (first-bounce norms, files of
+                       2026-12-06 on); attrs
                        sample_exact, sample_seed (:mod:`hfrad.solve.samples`)
     /patches/...       vertices, faces, material, reflectance, emission,
                        areas, normals, centroids, group, triangle_patch
@@ -205,7 +207,8 @@ def _dataset(g: h5py.Group, name: str, data) -> None:
 
 #: The exact sampled rows of F (:class:`~hfrad.solve.samples.SampledRows`): arrays, and the dtype they are stored in.
 _SAMPLE_ARRAYS = {"sample_index": np.int64, "smooth_index": np.int64, "sample_rows": np.float32,
-                  "sample_reflectance": np.float64, "smooth_products": np.float32}
+                  "sample_reflectance": np.float64, "smooth_products": np.float32,
+                  "sample_bounce": np.float32}
 
 
 def _write_stats(g: h5py.Group, stats) -> None:

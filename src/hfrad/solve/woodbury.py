@@ -287,8 +287,11 @@ class HFactorization:
         self._sigma = None if sigma_max is None else read_only(np.asarray(sigma_max, np.float64))
         self._estimate: ErrorEstimate | None = None
         # the exact sampled rows are kept within a tenth of the factors' bytes (SAMPLE_SHARE)
-        factor_bytes = (2 * Q.shape[0] * Q.shape[1] + 3 * Q.shape[1] ** 2) * Q.itemsize
-        self.stats = None if stats is None else stats.frozen(factor_bytes)
+        self.stats = None if stats is None else stats.frozen(self._stored_factor_bytes(Q))
+
+    def _stored_factor_bytes(self, Q: np.ndarray) -> int:
+        """Bytes of what the solve keeps: Q, V and the k x k capacitances (the sampled rows' budget)."""
+        return (2 * Q.shape[0] * Q.shape[1] + 3 * Q.shape[1] ** 2) * Q.itemsize
 
     # -- sizes and accuracy ------------------------------------------------
     @property
@@ -512,7 +515,7 @@ class HFactorization:
                                  failure_probability=None, rows=0)
         rho = np.asarray(self.reflectance, np.float64)[self.perm]
         err = samples.figure(self._to_internal(E), self._to_internal(B), rho,
-                             self.stats.contraction(rho), adjoint=adjoint)
+                             self.stats.reflection_gain(rho), adjoint=adjoint)
         if batched:
             return err
         return dataclasses.replace(err, bound=err.bound[:, 0], absolute=err.absolute[:, 0],
