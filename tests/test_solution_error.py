@@ -218,6 +218,12 @@ def test_near_field_solver_gets_the_figure_too():
         warnings.simplefilter("ignore", AccuracyWarning)
         fac = hfrad.factorize(scene, eps=0.02, near_field=32, options=hfrad.PrecomputeOptions(block_size=64))
     assert fac.solver != "woodbury"
+    # the rows' budget counts N and Z beside the low-rank factors, and keeps >= MIN_RESIDUAL_ROWS (on the
+    # clustered conference room with a forced near field, rank 202, the factors alone left 32 rows, which
+    # gave a figure below the truth)
+    low_rank_bytes = (2 * fac.n_patches * fac.rank + 3 * fac.rank ** 2) * fac.dtype.itemsize
+    assert fac._stored_factor_bytes(fac.Q) > low_rank_bytes + 12 * fac.N.nnz
+    assert fac.stats.samples.index.size >= MIN_RESIDUAL_ROWS
     F = hfrad.form_factor_matrix(scene)
     results = _true_errors(F, np.asarray(fac.reflectance), np.asarray(scene.areas), fac, _emissions(scene, 8))
     for label, err, true in results:

@@ -474,7 +474,7 @@ class HFactorization:
     def solution_error(self, exitance, radiosity, trans: str = "N") -> SolutionError:
         """The error figure of a solution of this factorization, from exact rows of F kept from the pass.
 
-        ``||B~ - B|| <= ||r|| + ||R F r|| / (1 - ||R F||)`` with ``r = E - (I - R F) B~``,
+        ``||B~ - B|| <= ||r|| + (1 + gain) ||R F r||`` with ``r = E - (I - R F) B~``,
         both norms estimated from exact sampled rows of F and ``F R F`` (all rows on
         small scenes: then a bound); relative to the reflected light ``||B - E||``, in
         the area norm (docs/method.md, section 7b). No pass over F: O(n m) for m rows.
