@@ -356,7 +356,8 @@ class SampledRows:
         ||B~ - E||``: the factorization lost light that the sample does not see (a small emitter
         whose light lands on patches the sample missed)."""
         exact_upper = np.einsum("pcq,pc->cq", np.abs(E), np.sqrt(self.bounce))
-        deterministic = reflected + (1.0 + gain) * exact_upper
+        with np.errstate(invalid="ignore"):                      # no emission in a channel: 0, even with gain inf
+            deterministic = reflected + np.where(exact_upper > 0, (1.0 + gain) * exact_upper, 0.0)
         contradicted = absolute < self._first_bounce_lower(E) - reflected
         return np.where(contradicted, deterministic, np.minimum(absolute, deterministic))
 
