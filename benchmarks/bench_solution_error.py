@@ -14,8 +14,9 @@ range, and the cost: a solve of one emission against its figure (best of 5, 1 BL
 the stored rows' bytes against the factors' and the whole .hfr.
 
 Not a test: prints tables and writes results/solution-error-CASES.json.
-Run: ``PYTHONPATH=src python3 benchmarks/bench_solution_error.py [--cases cornell,conference,office]
-[--patches 3000] [--eps 0.02]``.
+Run: ``PYTHONPATH=src python3 benchmarks/bench_solution_error.py [--cases cornell,conference,office,
+conference-near] [--patches 3000] [--eps 0.02]``; ``conference-near`` forces the near-field solver
+(``near_field=120``) on the conference room (its F is computed once for both).
 """
 
 from __future__ import annotations
@@ -39,6 +40,10 @@ CASES = {
     "conference": (str(common.SHARED_SCENES / "conference" / "conference.ply"), {"area_light": (8.0, 8.0, 8.0)}),
     "office": (str(ROOT / "examples" / "office" / "office.obj"), {}),
 }
+#: Cases solved through the near-field solver (near_field=120 forced): the same scene and F.
+NEAR_CASES = {"conference-near": "conference"}
+#: Full-ray F by (scene source, patches): the near-field case reuses its scene's.
+_F_CACHE: dict = {}
 
 
 def emissions(scene, count: int, rng) -> list[tuple[str, np.ndarray]]:
@@ -80,14 +85,16 @@ def norm(weights, X):
 def run_case(name: str, patches: int, eps: float, count: int) -> dict:
     import hfrad
 
-    source, kw = CASES[name]
+    source, kw = CASES[NEAR_CASES.get(name, name)]
     t0 = time.perf_counter()
     scene = hfrad.load_scene(source, patches=patches, **kw)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", AccuracyWarning)
-        fac = hfrad.factorize(scene, eps=eps)
+        fac = hfrad.factorize(scene, eps=eps, **({"near_field": 120} if name in NEAR_CASES else {}))
     t_fac = time.perf_counter() - t0
-    F = hfrad.form_factor_matrix(scene)
+    if (source, patches) not in _F_CACHE:
+        _F_CACHE[(source, patches)] = hfrad.form_factor_matrix(scene)
+    F = _F_CACHE[(source, patches)]
     rho, areas = np.asarray(fac.reflectance), np.asarray(scene.areas)
     n = scene.n_patches
     ops = [np.eye(n) - rho[:, c:c + 1] * F for c in range(3)]
@@ -153,11 +160,12 @@ def main(argv=None) -> int:
     m = common.header("The per-solve error figure against an exact dense solve", args.blas_threads)
     results = []
     for name in common.parse_list(args.cases):
-        if name not in CASES:
-            print(f"unknown case {name!r}; known: {', '.join(CASES)}", file=sys.stderr)
+        if name not in CASES and name not in NEAR_CASES:
+            print(f"unknown case {name!r}; known: {', '.join([*CASES, *NEAR_CASES])}", file=sys.stderr)
             return 2
-        if name != "cornell" and not Path(CASES[name][0]).exists():
-            print(f"skipping {name}: {CASES[name][0]} not found (the shared scenes)", file=sys.stderr)
+        source = CASES[NEAR_CASES.get(name, name)][0]
+        if name != "cornell" and not Path(source).exists():
+            print(f"skipping {name}: {source} not found (the shared scenes)", file=sys.stderr)
             continue
         results.append(run_case(name, args.patches, args.eps, args.emissions))
         common.print_table(f"{name}: figure / true error by emission kind (forward: area norm; adjoint: dual)",

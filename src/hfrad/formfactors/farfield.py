@@ -187,6 +187,15 @@ def _leaf_rows(mask: np.ndarray, n: int, block_size: int) -> np.ndarray:
     return np.concatenate([np.arange(a, min(a + block_size, n)) for a in starts]).astype(np.int64)
 
 
+def _compact(values: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """``np.unique(values, return_inverse=True)`` for integers in ``[0, k)``, without a sort."""
+    present = np.zeros(k, bool)
+    present[values] = True
+    unique = np.flatnonzero(present)
+    index = np.cumsum(present) - 1
+    return unique, index[values]
+
+
 def _first_of_each(inverse: np.ndarray, k: int) -> np.ndarray:
     """(k,) the first position holding each value 0..k-1 of ``inverse``."""
     first = np.full(k, inverse.size, np.int64)
@@ -403,7 +412,8 @@ class SampledFarField:
         self.stats.groups += 1
         state, inv_c = self._visibility(far, cols)        # (len(far), column clusters)
         mixed = (state == MIXED).any(axis=1)
-        exact = np.union1d(near, far[mixed])
+        is_near[far[mixed]] = True
+        exact = np.flatnonzero(is_near)                    # near and mixed rows, sorted
         out[exact] = self._eval(exact, cols, "near_pairs")
         self.stats.mixed_pairs += int(mixed.sum()) * cols.size
         clean_pos = np.flatnonzero(~mixed)
@@ -438,8 +448,8 @@ class SampledFarField:
             return np.full((far.size, 1), VISIBLE, np.int8), np.zeros(cols.size, np.int64)
         cf = clusters.cluster[self.order[far]]
         cc = clusters.cluster[cols]
-        ur, inv_r = np.unique(cf, return_inverse=True)
-        uc, inv_c = np.unique(cc, return_inverse=True)
+        ur, inv_r = _compact(cf, clusters.table.shape[0])
+        uc, inv_c = _compact(cc, clusters.table.shape[0])
         # one patch of each cluster stands for it: states() works on patch pairs, through its table
         rep_r = self.order[far][_first_of_each(inv_r, ur.size)]
         rep_c = cols[_first_of_each(inv_c, uc.size)]

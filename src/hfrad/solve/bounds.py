@@ -12,8 +12,13 @@ from typing import Iterable
 import numpy as np
 
 __all__ = ["ErrorEstimate", "ResidualEstimate", "estimate_errors", "solution_bound", "relative_bound",
+<<<<<<< HEAD
            "contraction_bound", "power_sigma_max", "power_sigma_max_scaled", "eq5_bound", "residual_norm", "residual_estimate",
            "USEFUL_BOUND", "is_useful", "not_useful_channels", "percent", "accuracy_lines", "solution_line"]
+=======
+           "contraction_bound", "reflection_gain_bound", "power_sigma_max", "power_sigma_max_scaled", "eq5_bound", "residual_norm", "residual_estimate",
+           "USEFUL_BOUND", "is_useful", "percent", "accuracy_lines", "solution_line"]
+>>>>>>> i42
 
 
 def _figures(a) -> list:
@@ -159,6 +164,37 @@ def contraction_bound(reflectance, row_sums, col_sums=None, *, weighted: bool = 
     row = float(np.max(row_sums))
     norm_F = row if weighted else math.sqrt(row * float(np.max(col_sums)))
     return rho.max(axis=0) * norm_F
+
+
+def reflection_gain_bound(reflectance, row_sums, col_sums=None, *, weighted: bool = True) -> np.ndarray:
+    """(3,) upper bound on ``||(I - R_c F)^{-1} R_c F||`` per channel: the most that the
+    interreflections can multiply a vector's norm by, beside the vector itself.
+
+    ``(I - M)^{-1} M = M + M^2 + ...``, so ``||.|| <= kappa / (1 - kappa)`` for ``kappa``
+    of :func:`contraction_bound` (inf when ``kappa >= 1``). In the area norm a second,
+    often much smaller figure: in the *balanced* norm with weights ``A_i / rho_i``,
+    ``R F`` is similar to the symmetric ``R^{1/2} A^{1/2} F A^{-1/2} R^{1/2}`` (reciprocity),
+    so its norm is its spectral radius, at most ``kappa_b = max_i rho_i sum_j F_ij`` (not
+    ``max rho * max sum``: the brightest patch need not see the most); back to the area
+    norm costs ``sqrt(max rho / min rho)``. The smaller of the two, per channel.
+    """
+    rho = np.asarray(reflectance, dtype=np.float64).reshape(-1, 3)
+    if rho.size == 0:
+        return np.zeros(3)
+    out = _geometric_tail(contraction_bound(rho, row_sums, col_sums, weighted=weighted))
+    if weighted:
+        kappa_b = (rho * np.asarray(row_sums, np.float64)[:, None]).max(axis=0)
+        lo, hi = rho.min(axis=0), rho.max(axis=0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            change = np.where(lo > 0, np.sqrt(hi / np.where(lo > 0, lo, 1.0)), np.inf)
+            out = np.minimum(out, change * _geometric_tail(kappa_b))
+    return out
+
+
+def _geometric_tail(kappa: np.ndarray) -> np.ndarray:
+    """``kappa / (1 - kappa)`` where ``kappa < 1``, else inf."""
+    kappa = np.asarray(kappa, np.float64)
+    return np.divide(kappa, 1.0 - kappa, out=np.full(kappa.shape, np.inf), where=kappa < 1.0)
 
 
 def power_sigma_max(Q: np.ndarray, V: np.ndarray, *, row_scale: np.ndarray | None = None, rtol: float = 1e-7,

@@ -289,6 +289,13 @@ class NearFieldFactorization(HFactorization):
         super().__init__(perm, Q, V, rho_max, reflectance, lowrank, capacitance=capacitance, sigma_max=sigma_max,
                          params=params, scene=scene, stats=stats)
 
+    def _stored_factor_bytes(self, Q: np.ndarray) -> int:
+        """:meth:`HFactorization._stored_factor_bytes` and the near field N (values and column indices)
+        and one ``Z_c`` in 16 bits (the least it is stored as): the sampled rows' budget counts them."""
+        N = self._setup[0] if hasattr(self, "_setup") else self.N     # during the constructor: not set up yet
+        nnz = N.nnz if sp.issparse(N) else int(np.count_nonzero(N))
+        return super()._stored_factor_bytes(Q) + 12 * nnz + 2 * Q.shape[0] * Q.shape[1]
+
     def _capacitance_inv(self, stored) -> np.ndarray:
         """The near-field set-up (N, Z per distinct channel), then ``K_c^{-1}`` (3, k, k): stored or computed."""
         N, near_solution, quantize, runner = self._setup

@@ -3,11 +3,11 @@
 A solve returns ``B~`` with an unknown error ``e = B~ - B = (I - R F)^{-1} r``,
 ``r = E - (I - R F) B~`` its residual. Two exact identities bound it::
 
-    e = r + R F e,  so  ||e|| <= ||r|| + ||R F r|| / (1 - ||R F||)
+    e = r + R F e,  so  ||e|| <= ||r|| + (1 + gain) ||R F r||
 
-(``R F e = (I - R F)^{-1} R F r``). The residual of a factorization is rough (its
-error sits on near pairs), and ``R F`` smooths, so ``||R F r||`` is small and the
-amplification ``1 / (1 - ||R F||)`` (4-5 on a closed white box) falls on it alone.
+(``R F e = (I - R F)^{-1} R F r``, ``gain >= ||(I - R F)^{-1} R F||``). The residual of a
+factorization is rough (its error sits on near pairs), and ``R F`` smooths, so ``||R F r||``
+is small and the amplification (4-6 on a closed white box) falls on it alone.
 Both norms are sums over patches, estimated from a sample of patches whose rows
 are exact:
 
@@ -23,6 +23,13 @@ errors from successive differences, the standard variance estimate of a systemat
 sample), and the rough term a further ``ROUGH_SAFETY`` factor: a sample of rows can
 miss the few patches next to a small light where the residual concentrates. With at
 most ``len(index)`` patches the rows are all of F's and the figure is a bound.
+
+Relative to the reflected light ``||B - E||``, bounded from below by the largest of
+``||B~ - E|| - a``, ``||R F B~|| - (1 + gain) ||R F r||`` (``B - E = R F B``; a lower
+confidence figure from the residual rows) and, for ``E >= 0``, the exact first bounce
+``sqrt(sum_p E_p^2 ||R F e_p||^2)`` from the norms the pass records for every column
+(``bounce``), which also give a deterministic upper figure for emissions of few patches
+(docs/method.md, section 7b).
 """
 
 from __future__ import annotations
@@ -42,8 +49,14 @@ RESIDUAL_ROWS = 128
 #: patches, 60 draws x 20 emissions: figure / true error 1.2-16 with 32 rows, 1.2-16 with 8), and
 #: each costs 3 n^2 multiply-adds in the pass (the (F R_c F) rows: 24 columns against the 20 probes).
 SMOOTH_ROWS = 8
-#: The fewest residual rows kept when the storage budget would leave fewer.
-MIN_RESIDUAL_ROWS = 16
+#: The fewest residual rows a pass records however large n (16 x n float32: 64 MB at a million patches).
+PASS_MIN_ROWS = 16
+#: The fewest residual rows kept when the storage budget would leave fewer: the stated failure
+#: probability is a normal approximation, which needs a sample of some size on clustered scenes (the
+#: conference room, 3K patches, near field forced: 32 rows gave one figure at 0.64x the true error
+#: in 20 emissions, 64 rows none below 1.2x; the rows then take ~10% of the factors and N, 2.5% of
+#: the .hfr).
+MIN_RESIDUAL_ROWS = 64
 #: Standard errors added to each sampled sum of squares.
 Z_SAMPLING = 2.0
 #: Factor on the rough term's estimate (see the module's docstring).
@@ -51,6 +64,11 @@ ROUGH_SAFETY = 2.0
 #: One-sided normal tail of Z_SAMPLING standard errors: the stated chance that a sampled sum is
 #: above its upper figure (a normal approximation; the amplification factor itself is exact).
 FIGURE_FAILURE_PROBABILITY = 0.5 * math.erfc(Z_SAMPLING / math.sqrt(2.0))
+#: Rows of a column block squared in float64 at a time for the first-bounce norms.
+BOUNCE_SLAB = 8192
+#: The first-bounce lower bound is taken this much smaller: the F it was summed from is float32, as
+#: are the rows (a margin far above the rounding of either, far below the figure's own slack).
+BOUNCE_ROUNDING = 1.0 - 1e-3
 #: The stored rows may add at most this share to the factors' bytes (2 n k + 3 k^2 words).
 SAMPLE_SHARE = 0.1
 
@@ -60,7 +78,7 @@ def max_residual_rows(n: int) -> int:
     ``RESIDUAL_ROWS`` and at most ~2e7 / n (a few hundred MB at a million patches)."""
     if n <= RESIDUAL_ROWS:
         return n
-    cap = 2 ** int(math.floor(math.log2(max(2e7 / n, MIN_RESIDUAL_ROWS))))
+    cap = 2 ** int(math.floor(math.log2(max(2e7 / n, PASS_MIN_ROWS))))
     return int(min(RESIDUAL_ROWS, cap))
 
 
@@ -149,6 +167,10 @@ class SampledRows:
     seed : int
     span : (int, int) or None
         The columns recorded so far (None: none yet): a Dask leaf's state carries only those.
+    bounce : (n, 3) float64 or None
+        ``||R_c F e_p||^2`` in the norm (weights ``weights``) for every patch p: the first bounce of
+        a unit exitance at p, exactly (``sum_i w_i rho_ic^2 F_ip^2``, column p's share of the pass);
+        None in files written before them (or without reflectance).
     """
 
     index: np.ndarray
@@ -160,6 +182,7 @@ class SampledRows:
     exact: bool
     seed: int = SAMPLE_SEED
     span: tuple[int, int] | None = None
+    bounce: np.ndarray | None = None
     _smooth_rows: dict = field(default_factory=dict, repr=False, compare=False)
 
     # -- the design, and recording the pass ------------------------------------
@@ -177,7 +200,8 @@ class SampledRows:
         smooth = np.arange(n, dtype=np.int64) if exact else _systematic(sw, m2, rng)
         rows = np.zeros((index.size + smooth.size, n), np.float32)
         products = None if (w is None or reflectance is None) else np.zeros((n, smooth.size, 3))
-        return cls(index, smooth, rows, products, w, rho, exact, seed)
+        bounce = None if reflectance is None else np.zeros((n, 3))
+        return cls(index, smooth, rows, products, w, rho, exact, seed, bounce=bounce)
 
     @property
     def row_patches(self) -> np.ndarray:
@@ -202,6 +226,19 @@ class SampledRows:
             # in F's dtype (a float64 copy of an n x b block would cost 8 n b bytes), summed in float64
             product = np.asarray(F_block) @ Y.reshape(b, -1).astype(F_block.dtype)
             self.products += product.reshape(self.products.shape)
+        if self.bounce is not None:
+            self.bounce[start:stop] = self._column_bounce(F_block)
+
+    def _column_bounce(self, F_block: np.ndarray) -> np.ndarray:
+        """(b, 3) ``sum_i w_i rho_ic^2 F_ip^2`` of a column block, summed in float64 over slabs of rows
+        (a float64 copy of the whole n x b block would cost 8 n b bytes)."""
+        n = F_block.shape[0]
+        scale = self.reflectance ** 2 * (1.0 if self.weights is None else self.weights[:, None])   # (n, 3)
+        out = np.zeros((F_block.shape[1], 3))
+        for lo in range(0, n, BOUNCE_SLAB):
+            slab = np.square(np.asarray(F_block[lo:lo + BOUNCE_SLAB], np.float64))
+            out += slab.T @ scale[lo:lo + BOUNCE_SLAB]
+        return out
 
     # -- state (checkpoints, .hfr files, Dask parts) ----------------------------
     def state(self) -> dict:
@@ -215,6 +252,8 @@ class SampledRows:
                "sample_exact": int(self.exact), "sample_seed": self.seed}
         if self.products is not None:
             out["smooth_products"] = self.products
+        if self.bounce is not None:
+            out["sample_bounce"] = self.bounce
         return out
 
     @classmethod
@@ -226,11 +265,12 @@ class SampledRows:
             full = np.zeros((rows.shape[0], rho.shape[0]), np.float32)
             full[:, lo:hi] = rows
             rows = full
-        products = state.get("smooth_products")
+        products, bounce = state.get("smooth_products"), state.get("sample_bounce")
         return cls(np.asarray(state["sample_index"], np.int64), np.asarray(state["smooth_index"], np.int64),
                    rows, None if products is None else np.asarray(products, np.float64),
                    None if weights is None else np.asarray(weights, np.float64), rho,
-                   bool(int(state["sample_exact"])), int(state["sample_seed"]), (lo, hi))
+                   bool(int(state["sample_exact"])), int(state["sample_seed"]), (lo, hi),
+                   None if bounce is None else np.asarray(bounce, np.float64))
 
     @staticmethod
     def add_states(a: dict, b: dict) -> dict:
@@ -248,14 +288,15 @@ class SampledRows:
                 rows[:, lo:hi] = part["sample_rows"][:, :hi - lo] if part["sample_rows"].shape[1] != n \
                     else part["sample_rows"][:, lo:hi]
         out = {"sample_rows": rows, "sample_span": np.array([min(a_lo, b_lo), max(a_hi, b_hi)], np.int64)}
-        if "smooth_products" in a:
-            out["smooth_products"] = a["smooth_products"] + b["smooth_products"]
+        for name in ("smooth_products", "sample_bounce"):      # zero outside each part's columns
+            if name in a and name in b:
+                out[name] = a[name] + b[name]
         return out
 
     @property
     def nbytes(self) -> int:
         return int(self.rows.nbytes + (0 if self.products is None else self.products.size * 4)
-                   + self.index.nbytes + self.smooth_index.nbytes)
+                   + self.index.nbytes + self.smooth_index.nbytes + (0 if self.bounce is None else self.bounce.size * 4))
 
     def trimmed(self, max_bytes: float) -> "SampledRows":
         """A nested sub-sample within ``max_bytes`` (every 2^j-th row from a seeded offset: still a
@@ -283,26 +324,70 @@ class SampledRows:
                                                         np.float32)
         return self._smooth_rows[c]
 
-    def _sum_of_squares(self, z: np.ndarray, weights_total: float, *, upper: bool) -> np.ndarray:
+    def _sum_of_squares(self, z: np.ndarray, weights_total: float, *, bound: int = 0) -> np.ndarray:
         """Estimate of ``sum_i a_i x_i^2`` from ``z_t = x_t^2 a_t / w_t`` (m, ...) of the systematic
-        sample, plus ``Z_SAMPLING`` standard errors when ``upper`` (exact with every row)."""
+        sample, plus (``bound`` +1) or minus (-1) ``Z_SAMPLING`` standard errors (exact with every row)."""
         if self.exact:
             return z.sum(axis=0)
         m = z.shape[0]
         total = weights_total * z.mean(axis=0)
-        if not upper or m < 2:
-            return total
+        if bound == 0 or m < 2:
+            return total if bound >= 0 else np.zeros_like(total)
         var = weights_total ** 2 * (np.diff(z, axis=0) ** 2).sum(axis=0) / (2.0 * m * (m - 1))
-        return total + Z_SAMPLING * np.sqrt(var)
+        return total + bound * Z_SAMPLING * np.sqrt(var)
 
-    def figure(self, E: np.ndarray, B: np.ndarray, reflectance: np.ndarray, contraction: np.ndarray,
+    @staticmethod
+    def _rows_times(rows: np.ndarray, X: np.ndarray, at: np.ndarray, reflectance, w, adjoint: bool) -> np.ndarray:
+        """``R F X`` (forward) or ``F^T R X`` (adjoint) at the patches ``at`` (m, 3, q), from rows F[at]."""
+        n, C, q = X.shape
+        Y = reflectance[:, :, None] * X / w[:, None, None] if adjoint else X
+        FY = (rows @ Y.reshape(n, -1).astype(np.float32)).reshape(at.size, C, q).astype(np.float64)
+        return FY * (w[at, None, None] if adjoint else reflectance[at][:, :, None])
+
+    def _smoothed_residual(self, E, B, reflectance, w, adjoint: bool) -> np.ndarray:
+        """``(R F r)`` at the smoothed rows' patches (m2, 3, q), exactly:
+        ``R F (E - B) + R F R F B`` (adjoint: ``F^T R F^T R = A (F R F) A^{-1} R``)."""
+        T, C = self.smooth_index, B.shape[1]
+        Y = reflectance[:, :, None] * B / w[:, None, None] if adjoint else B
+        FRF = np.stack([self._smooth_products_rows(c) @ Y[:, c, :].astype(np.float32) for c in range(C)],
+                       axis=1).astype(np.float64)
+        FRF = FRF * (w[T, None, None] if adjoint else reflectance[T][:, :, None])
+        return self._rows_times(self.rows[self.index.size:], E - B, T, reflectance, w, adjoint) + FRF
+
+    def _first_bounce_lower(self, E: np.ndarray) -> np.ndarray:
+        """(3, q) ``sqrt(sum_p E_p^2 ||R F e_p||^2) <= ||R F E|| <= ||B - E||`` for ``E >= 0``: every term
+        of ``B - E = R F E + (R F)^2 E + ...`` and every inner product ``<R F e_p, R F e_q>`` is >= 0."""
+        return np.sqrt(np.einsum("pcq,pc->cq", E ** 2, self.bounce)) * BOUNCE_ROUNDING
+
+    def _guarded(self, absolute, E, reflected, gain) -> np.ndarray:
+        """The upper figure, never above the deterministic one ``||e|| = ||(B~ - E) - (B - E)||
+        <= ||B~ - E|| + (1 + gain) ||R F E||`` (``||R F E|| <= sum_p |E_p| ||R F e_p||``), and that
+        one alone where the sampled figure is below the exact lower bound ``||e|| >= ||B - E|| -
+        ||B~ - E||``: the factorization lost light that the sample does not see (a small emitter
+        whose light lands on patches the sample missed)."""
+        exact_upper = np.einsum("pcq,pc->cq", np.abs(E), np.sqrt(self.bounce))
+        with np.errstate(invalid="ignore"):                      # no emission in a channel: 0, even with gain inf
+            deterministic = reflected + np.where(exact_upper > 0, (1.0 + gain) * exact_upper, 0.0)
+        contradicted = absolute < self._first_bounce_lower(E) - reflected
+        return np.where(contradicted, deterministic, np.minimum(absolute, deterministic))
+
+    def figure(self, E: np.ndarray, B: np.ndarray, reflectance: np.ndarray, gain: np.ndarray,
                *, adjoint: bool = False) -> SolutionError:
         """The error figure of solutions ``B`` (n, 3, q) of exitances ``E`` (n, 3, q), internal order.
 
-        ``reflectance`` (n, 3), internal order: the solver's (the smoothed rows count only if it is
-        the one they were formed with); ``contraction`` (3,): bound on ``||R_c F||`` in the norm.
-        ``adjoint``: B solves ``(I - R F)^T B = E``; by reciprocity ``F^T = A F A^{-1}``, rows of ``F^T R x`` are ``A_s F_s (rho x / A)``, and the norm is the
-        dual one (weights ``1 / A``), in which ``||(R F)^T|| = ||R F||_A``.
+        ``reflectance`` (n, 3), internal order: the solver's (the smoothed rows and first-bounce
+        norms count only if it is the one they were formed with); ``gain`` (3,): bound on
+        ``||(I - R_c F)^{-1} R_c F||`` in the norm (:func:`~hfrad.solve.bounds.reflection_gain_bound`).
+        ``adjoint``: B solves ``(I - R F)^T B = E``; by reciprocity ``F^T = A F A^{-1}``, rows of
+        ``F^T R x`` are ``A_s F_s (rho x / A)``, and the norm is the dual one (weights ``1 / A``),
+        in which ``||(R F)^T|| = ||R F||_A``.
+
+        Upper figure ``a >= ||e||``: ``safety * ||r|| + (1 + gain) ||R F r||`` (see the module's
+        docstring). The reflected light ``||B - E||`` from below, the largest of
+        ``||B~ - E|| - a``; ``||R F B~|| - (1 + gain) ||R F r||`` (``B - E = R F B`` exactly, and
+        ``R F B~`` is smooth: the sample sees it well); and, for ``E >= 0``, the first bounce
+        ``sqrt(sum_p E_p^2 ||R F e_p||^2)`` from the exact norms recorded in the pass (the light
+        of a small emitter that the factorization lost, where the sample sees nothing).
         """
         E = np.asarray(E, np.float64)
         B = np.asarray(B, np.float64)
@@ -310,38 +395,32 @@ class SampledRows:
         w = np.ones(n) if self.weights is None else self.weights
         a = (1.0 / w) if adjoint else w                        # the norm's weights
         W = float(w.sum())
-        S, T = self.index, self.smooth_index
+        S = self.index
+        gain = np.asarray(gain, np.float64)[:, None]
+        same = np.array_equal(reflectance, self.reflectance)
 
-        def rows_times(rows, X, at):
-            """``R F X`` (forward) or ``F^T R X`` (adjoint) at the patches ``at``, from rows F[at]."""
-            Y = reflectance[:, :, None] * X / w[:, None, None] if adjoint else X
-            FY = (rows @ Y.reshape(n, -1).astype(np.float32)).reshape(at.size, C, q).astype(np.float64)
-            return FY * (w[at, None, None] if adjoint else reflectance[at][:, :, None])
+        def norm_of(rows_values, at, upper):
+            z = rows_values ** 2 * (a[at] / w[at])[:, None, None]
+            return np.sqrt(np.maximum(self._sum_of_squares(z, W, bound=upper), 0.0))
 
-        r = E[S] - B[S] + rows_times(self.rows[:S.size], B, S)     # the residual's exact rows
-        z = r ** 2 * (a[S] / w[S])[:, None, None]
-        rough = np.sqrt(np.maximum(self._sum_of_squares(z, W, upper=True), 0.0))
-        kappa = np.asarray(contraction, np.float64)[:, None]
-        amplify = np.divide(1.0, 1.0 - kappa, out=np.full(kappa.shape, np.inf), where=kappa < 1.0)
-        if self.products is not None and np.array_equal(reflectance, self.reflectance):
-            # (R F r)_s = (R F (E - B))_s + (R F R F B)_s; adjoint: F^T R F^T R = A (F R F) A^{-1} R
-            Y = reflectance[:, :, None] * B / w[:, None, None] if adjoint else B
-            FRF = np.stack([self._smooth_products_rows(c) @ Y[:, c, :].astype(np.float32) for c in range(C)],
-                           axis=1).astype(np.float64)
-            FRF = FRF * (w[T, None, None] if adjoint else reflectance[T][:, :, None])
-            rf_r = rows_times(self.rows[S.size:], E - B, T) + FRF
-            zs = rf_r ** 2 * (a[T] / w[T])[:, None, None]
-            smooth = np.sqrt(np.maximum(self._sum_of_squares(zs, W, upper=True), 0.0))
-            safety = 1.0 if self.exact else ROUGH_SAFETY
-            with np.errstate(invalid="ignore"):
-                absolute = safety * rough + smooth * amplify
-        else:
-            with np.errstate(invalid="ignore"):
-                absolute = rough * amplify
+        rfb = self._rows_times(self.rows[:S.size], B, S, reflectance, w, adjoint)     # R F B~ at S, exactly
+        rough = norm_of(E[S] - B[S] + rfb, S, +1)                  # the residual's exact rows
+        with np.errstate(invalid="ignore"):
+            if self.products is not None and same:
+                tail = (1.0 + gain) * norm_of(self._smoothed_residual(E, B, reflectance, w, adjoint), self.smooth_index, +1)
+                absolute = (1.0 if self.exact else ROUGH_SAFETY) * rough + tail
+            else:                                                  # ||e|| <= (1 + gain) ||r||
+                tail = gain * rough
+                absolute = rough + tail
         absolute = np.where(np.isnan(absolute), np.inf, absolute)
         reflected = np.sqrt(np.einsum("i,icq->cq", a, (B - E) ** 2))
+        lower = norm_of(rfb, S, -1) - tail                         # ||R F B~|| - ||R F e|| <= ||R F B||
+        if self.bounce is not None and same and not adjoint:
+            absolute = self._guarded(absolute, E, reflected, gain)
+            lower = np.maximum(lower, self._first_bounce_lower(E))
+        lower = np.maximum(lower, reflected - absolute)
         with np.errstate(divide="ignore", invalid="ignore"):
-            bound = np.where(reflected > absolute, absolute / (reflected - absolute), np.inf)
+            bound = np.where(lower > 0, absolute / np.where(lower > 0, lower, 1.0), np.inf)
         bound = np.where(absolute == 0.0, 0.0, bound)
         return SolutionError(bound=bound, absolute=absolute, reflected=reflected,
                              kind="exact-rows" if self.exact else "sampled",

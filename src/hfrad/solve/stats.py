@@ -15,8 +15,12 @@ import numba
 import numpy as np
 from numba import njit, prange
 
+<<<<<<< HEAD
 from ..formfactors.farfield import FarFieldCertificate
 from .bounds import contraction_bound
+=======
+from .bounds import contraction_bound, reflection_gain_bound
+>>>>>>> i42
 from .readonly import read_only
 from .samples import SAMPLE_SHARE, SampledRows
 
@@ -244,6 +248,11 @@ class PassStatistics:
     def contraction(self, reflectance_int: np.ndarray) -> np.ndarray:
         """(3,) upper bound on ``||R_c F||`` in this norm (:func:`~hfrad.solve.bounds.contraction_bound`)."""
         return contraction_bound(reflectance_int, self.row_sums, self.col_sums, weighted=self.weights is not None)
+
+    def reflection_gain(self, reflectance_int: np.ndarray) -> np.ndarray:
+        """(3,) upper bound on ``||(I - R_c F)^{-1} R_c F||`` in this norm
+        (:func:`~hfrad.solve.bounds.reflection_gain_bound`)."""
+        return reflection_gain_bound(reflectance_int, self.row_sums, self.col_sums, weighted=self.weights is not None)
 
     @property
     def norm(self) -> str:

@@ -307,10 +307,13 @@ class HFactorization:
         self._sigma = None if sigma_max is None else read_only(np.asarray(sigma_max, np.float64))
         self._estimate: ErrorEstimate | None = None
         # the exact sampled rows are kept within a tenth of the factors' bytes (SAMPLE_SHARE)
-        factor_bytes = (2 * Q.shape[0] * Q.shape[1] + 3 * Q.shape[1] ** 2) * Q.itemsize
-        self.stats = None if stats is None else stats.frozen(factor_bytes)
+        self.stats = None if stats is None else stats.frozen(self._stored_factor_bytes(Q))
         # last: the near-field subclass's override runs its set-up here, on the state above
         self.capacitance_inv = read_only(self._capacitance_inv(capacitance))
+
+    def _stored_factor_bytes(self, Q: np.ndarray) -> int:
+        """Bytes of what the solve keeps: Q, V and the k x k capacitances (the sampled rows' budget)."""
+        return (2 * Q.shape[0] * Q.shape[1] + 3 * Q.shape[1] ** 2) * Q.itemsize
 
     def _capacitance_inv(self, stored) -> np.ndarray:
         """(3, k, k) ``M_c^{-1}``, ``M_c = I_k - V^T D_c Q``: ``stored`` checked, or computed."""
@@ -517,7 +520,7 @@ class HFactorization:
     def solution_error(self, exitance, radiosity, trans: str = "N") -> SolutionError:
         """The error figure of a solution of this factorization, from exact rows of F kept from the pass.
 
-        ``||B~ - B|| <= ||r|| + ||R F r|| / (1 - ||R F||)`` with ``r = E - (I - R F) B~``,
+        ``||B~ - B|| <= ||r|| + (1 + gain) ||R F r||`` with ``r = E - (I - R F) B~``,
         both norms estimated from exact sampled rows of F and ``F R F`` (all rows on
         small scenes: then a bound); relative to the reflected light ``||B - E||``, in
         the area norm (docs/method.md, section 7b). No pass over F: O(n m) for m rows.
@@ -558,7 +561,7 @@ class HFactorization:
                                  failure_probability=None, rows=0)
         rho = np.asarray(self.reflectance, np.float64)[self.perm]
         err = samples.figure(self._to_internal(E), self._to_internal(B), rho,
-                             self.stats.contraction(rho), adjoint=adjoint)
+                             self.stats.reflection_gain(rho), adjoint=adjoint)
         if batched:
             return err
         return dataclasses.replace(err, bound=err.bound[:, 0], absolute=err.absolute[:, 0],
