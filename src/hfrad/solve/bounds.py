@@ -12,13 +12,9 @@ from typing import Iterable
 import numpy as np
 
 __all__ = ["ErrorEstimate", "ResidualEstimate", "estimate_errors", "solution_bound", "relative_bound",
-<<<<<<< HEAD
-           "contraction_bound", "power_sigma_max", "power_sigma_max_scaled", "eq5_bound", "residual_norm", "residual_estimate",
-           "USEFUL_BOUND", "is_useful", "not_useful_channels", "percent", "accuracy_lines", "solution_line"]
-=======
-           "contraction_bound", "reflection_gain_bound", "power_sigma_max", "power_sigma_max_scaled", "eq5_bound", "residual_norm", "residual_estimate",
-           "USEFUL_BOUND", "is_useful", "percent", "accuracy_lines", "solution_line"]
->>>>>>> i42
+           "contraction_bound", "reflection_gain_bound", "power_sigma_max", "power_sigma_max_scaled", "eq5_bound",
+           "residual_norm", "residual_estimate", "USEFUL_BOUND", "is_useful", "not_useful_channels", "percent",
+           "accuracy_lines", "solution_line"]
 
 
 def _figures(a) -> list:

@@ -33,17 +33,12 @@ files carry no checksums, so they are refused)::
                        and (files of 2026-12 on) the exact sampled rows of the
                        per-solve error figure: sample_index (m1,), smooth_index
                        (m2,), sample_rows (m1 + m2, n) float32, smooth_products
-<<<<<<< HEAD
-                       (n, m2, 3) float32, sample_reflectance (n, 3); attrs
-                       sample_exact, sample_seed (:mod:`hfrad.solve.samples`);
-                       with the sampled far field, far_index (m,) and far_q
-                       (m,): its certificate (:mod:`hfrad.formfactors.farfield`)
-=======
                        (n, m2, 3) float32, sample_reflectance (n, 3),
                        sample_bounce (n, 3) (first-bounce norms, files of
-                       2026-12-06 on); attrs
-                       sample_exact, sample_seed (:mod:`hfrad.solve.samples`)
->>>>>>> i42
+                       2026-12-06 on); attrs sample_exact, sample_seed
+                       (:mod:`hfrad.solve.samples`); with the sampled far
+                       field, far_index (m,) and far_q (m,): its certificate
+                       (:mod:`hfrad.formfactors.farfield`)
     /patches/...       vertices, faces, material, reflectance, emission,
                        areas, normals, centroids, group, triangle_patch
                        (only for clustered patches: the patch of each
@@ -214,14 +209,10 @@ def _dataset(g: h5py.Group, name: str, data) -> None:
 
 #: The exact sampled rows of F (:class:`~hfrad.solve.samples.SampledRows`): arrays, and the dtype they are stored in.
 _SAMPLE_ARRAYS = {"sample_index": np.int64, "smooth_index": np.int64, "sample_rows": np.float32,
-<<<<<<< HEAD
-                  "sample_reflectance": np.float64, "smooth_products": np.float32}
-#: The sampled far field's certificate (:class:`~hfrad.formfactors.farfield.FarFieldCertificate`).
-_FAR_ARRAYS = {"far_index": np.int64, "far_q": np.float64}
-=======
                   "sample_reflectance": np.float64, "smooth_products": np.float32,
                   "sample_bounce": np.float32}
->>>>>>> i42
+#: The sampled far field's certificate (:class:`~hfrad.formfactors.farfield.FarFieldCertificate`).
+_FAR_ARRAYS = {"far_index": np.int64, "far_q": np.float64}
 
 
 def _write_stats(g: h5py.Group, stats) -> None:

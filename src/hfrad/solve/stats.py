@@ -15,12 +15,8 @@ import numba
 import numpy as np
 from numba import njit, prange
 
-<<<<<<< HEAD
 from ..formfactors.farfield import FarFieldCertificate
-from .bounds import contraction_bound
-=======
 from .bounds import contraction_bound, reflection_gain_bound
->>>>>>> i42
 from .readonly import read_only
 from .samples import SAMPLE_SHARE, SampledRows
 
