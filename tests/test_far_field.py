@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import Interrupt, interrupt_at
 
 import hfrad
 from hfrad.errors import InputError
@@ -173,16 +174,8 @@ def test_sampled_far_field_resumes_from_a_checkpoint(tmp_path):
     kw = dict(eps=EPS, dtype="float64", far_field="sampled", near_field=None, options=options)
     full = hfrad.factorize(scene, **kw)
     ckpt = tmp_path / "run.partial"
-
-    class Stop(Exception):
-        pass
-
-    def stop_after_five(info):
-        if info["blocks"] == 5:
-            raise Stop
-
-    with pytest.raises(Stop):
-        hfrad.factorize(scene, status=stop_after_five, checkpoint=Checkpoint(ckpt, interval=0.0), **kw)
+    with pytest.raises(Interrupt):
+        hfrad.factorize(scene, status=interrupt_at(5), checkpoint=Checkpoint(ckpt, interval=0.0), **kw)
     resumed = hfrad.factorize(scene, checkpoint=ckpt, **kw)
     assert resumed.rank == full.rank
     np.testing.assert_allclose(resumed.solve(scene.emission), full.solve(scene.emission), rtol=1e-10)

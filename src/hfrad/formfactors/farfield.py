@@ -17,8 +17,9 @@ Column block j of F (the Z-order range ``C_j`` of b patches) is split by its row
   exactly. Only ``F[far, S]`` and the sampled rows are evaluated.
 
 The tolerance of each block's far part is a share (``FarFieldOptions.share``) of the
-HF tolerance, relative to the block's exact near part (a lower bound of its norm), so
-the far field adds at most that share of eps to the factorization's error. What the
+HF tolerance, relative to the group's norm (its exact rows', and its far rows' estimated
+from the sampled rows), so the far field adds about that share of eps to the
+factorization's error. What the
 sample rows promise is checked afterwards by exact rows of a separate certification
 sample (:class:`FarFieldCertificate`): the error figure of the operator without the full pass.
 """
@@ -349,22 +350,18 @@ class SampledFarField:
 
     def _kernel(self, rows: np.ndarray, cols: np.ndarray, kind: str) -> np.ndarray:
         """The unoccluded F[order[rows]][:, cols] (no rays), counted under ``kind``."""
-        if rows.size == 0 or cols.size == 0:
-            return np.zeros((rows.size, cols.size))
-        F = self.kernel_engine.block(self.order[rows], cols)
-        self.stats.pairs += F.size
-        self.stats.kernel_pairs += F.size
-        setattr(self.stats, kind, getattr(self.stats, kind) + F.size)
-        return F
+        return self._count(self.kernel_engine, rows, cols, kind, "kernel_pairs")
 
     def _eval(self, rows: np.ndarray, cols: np.ndarray, kind: str) -> np.ndarray:
-        """F[order[rows]][:, cols] (cols already user indices), counted under ``kind``."""
+        """F[order[rows]][:, cols] with visibility (cols already user indices), counted under ``kind``."""
+        return self._count(self.engine, rows, cols, kind, "traced_pairs")
+
+    def _count(self, engine, rows: np.ndarray, cols: np.ndarray, kind: str, how: str) -> np.ndarray:
         if rows.size == 0 or cols.size == 0:
             return np.zeros((rows.size, cols.size))
-        F = self.engine.block(self.order[rows], cols)
-        self.stats.pairs += F.size
-        self.stats.traced_pairs += F.size
-        setattr(self.stats, kind, getattr(self.stats, kind) + F.size)
+        F = engine.block(self.order[rows], cols)
+        for counter in ("pairs", how, kind):
+            setattr(self.stats, counter, getattr(self.stats, counter) + F.size)
         return F
 
     def block(self, j: int) -> tuple[np.ndarray, np.ndarray]:
@@ -490,8 +487,8 @@ class SampledFarField:
 
         ``rows``: far rows whose cluster pairs with the columns are all or nothing, so their
         F is the unoccluded kernel times ``visible(i, k)`` (0/1, ``i`` positions in ``rows``):
-        no ray is cast. ``norm2``: ``||G||^2`` of the block's exact rows, which the tolerance is
-        relative to.
+        no ray is cast. ``norm2``: ``||G||^2`` of the group's exact rows; the tolerance is
+        relative to it plus the far rows' norm estimated from the sampled rows.
         """
         opt, b = self.options, cols.size
         every = np.arange(b)
@@ -499,7 +496,6 @@ class SampledFarField:
         def G(i: np.ndarray) -> np.ndarray:
             return self._kernel(rows[i], cols, "sample_pairs") * visible(i, every) * self.rho[rows[i], None]
 
-        tol2 = (opt.share * self.eps) ** 2 * norm2
         t = min(opt.rows, rows.size // 2)
         picked = np.sort(_spread(np.arange(rows.size), 2 * t, rng))
         sample, check = picked[0::2], picked[1::2]
@@ -508,8 +504,9 @@ class SampledFarField:
         refined = 0
         while True:
             scale = rows.size / sample.size
-            if norm2 == 0.0:      # no exact rows to measure against: the sampled rows' own norm
-                tol2 = (opt.share * self.eps) ** 2 * scale * float(np.square(G_sample).sum())
+            # relative to the group's whole norm, as HF's eps: its exact rows' and its far rows'
+            # (estimated from the sampled rows, which stand for `scale` times as many)
+            tol2 = (opt.share * self.eps) ** 2 * (norm2 + scale * float(np.square(G_sample).sum()))
             found = skeleton(G_sample, scale, 0.25 * tol2, min(max_rank, sample.size // 2))
             if found is not None:
                 S, X = found
