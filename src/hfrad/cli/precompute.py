@@ -60,7 +60,7 @@ def register(app: typer.Typer) -> None:
         LU (about 9 times N's entries).
         With --far-field sampled: no reciprocity tiles and no scratch file; besides the
         same column blocks, the certification and sampled rows' exact values (about
-        400 b float64 a block) and the cluster-pair visibility table (n^2 / 1024 bytes).
+        (2 sqrt(n) + 400) b float64 a block) and the cluster-pair visibility table (n^2 / 1024 bytes).
         A checkpoint (OUTPUT.partial) is written every 30 s, and at least 50
         times as long as its last write took apart (writes cost at most ~2% of
         the run); rerun the same command to resume after an interruption. With
