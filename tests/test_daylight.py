@@ -392,6 +392,22 @@ def test_refined_first_hits_match_dense_rays():
     assert coarse > 2 * refined                 # observed 4.9%
 
 
+def test_first_hit_progress_moves_through_the_refinement():
+    """The progress callback counts the first pass's patches, then the refinement's rays as many steps again:
+    monotone, one total throughout, ending at it, with steps between (a bar does not stall at the edges)."""
+    scene = sidelit_room(6, 12, 3, sill=0.9, head=2.7, margin=0.5, max_edge=3.0)
+    patches = SkyPatches(1)
+    pts = np.array([[x, 0.8, z] for x in (1.3, 4.6) for z in (2.0, 9.5)])
+    calls = []
+    first_hit(GlazingTracer(scene), patches, pts, np.tile([0.0, 1.0, 0.0], (len(pts), 1)), k=4, refine=4,
+              progress=lambda done, total: calls.append((done, total)), batch=2048)
+    n = len(patches)
+    done = [d for d, _ in calls]
+    assert {t for _, t in calls} == {2 * n}
+    assert done == sorted(done) and calls[-1] == (2 * n, 2 * n)
+    assert len({d for d in done if n < d < 2 * n}) >= 3
+
+
 def test_panes_multiply_and_opaque_faces_block():
     """Two panes above a point transmit the product of their transmittances; an opaque face above them blocks."""
     def quad(y):
