@@ -173,11 +173,12 @@ def run(cmd, *, cwd: Path, data: bytes | None = None, out: Path | None = None) -
     return subprocess.run(cmd, cwd=cwd, input=data, capture_output=True, check=True).stdout
 
 
-def cached_run(cmd, *, cwd: Path, out: Path, data: bytes | None = None, inputs=(), cache: Path | None = None) -> bool:
+def cached_run(cmd, *, cwd: Path, out: Path, data: bytes | None = None, inputs=(), cache: Path | None = None) -> float:
     """:func:`run` to ``out``, reused from ``cache`` when the same command ran on the same inputs and rays.
 
     The key is a hash of the argument list, the input files' contents and the rays, so a changed scene,
-    sensor grid or option traces again. Returns whether the result came from the cache."""
+    sensor grid or option traces again. Returns the run's wall seconds (a cached result: those measured when
+    it was made, kept beside it; NaN if not kept)."""
     key = hashlib.sha256("\0".join(map(str, cmd[1:])).encode())
     for f in inputs:
         key.update((cwd / f).read_bytes())
@@ -185,13 +186,17 @@ def cached_run(cmd, *, cwd: Path, out: Path, data: bytes | None = None, inputs=(
     hit = cache / f"{key.hexdigest()[:24]}.mtx" if cache is not None else None
     if hit is not None and hit.is_file():
         shutil.copyfile(hit, out)
-        return True
+        seconds = hit.with_suffix(".seconds")
+        return float(seconds.read_text()) if seconds.is_file() else float("nan")
+    t0 = time.perf_counter()
     run(cmd, cwd=cwd, data=data, out=out)
+    elapsed = time.perf_counter() - t0
     if hit is not None:
         hit.parent.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(out, hit.with_suffix(".tmp"))
+        hit.with_suffix(".seconds").write_text(f"{elapsed:.3f}\n")
         os.replace(hit.with_suffix(".tmp"), hit)
-    return False
+    return elapsed
 
 
 def sensor_rays(sensors) -> bytes:
@@ -221,10 +226,8 @@ def radiance_year(scene, sensors, weather, *, ab: int, ad: int, threads: int, wo
     lw = 0.5 / ad
     opts = ["-I+", "-ab", str(ab), "-ad", str(ad), "-lw", f"{lw:.3g}", "-dc", "1", "-dt", "0", "-dj", "0", "-ds", "0.02",
             "-st", "0", "-u+", "-n", str(threads), "-faf"]
-    t0 = time.perf_counter()
-    cached_run([t["rfluxmtx"], *opts, "-", "sky.rad", "room.rad"], cwd=work, data=rays, out=work / "dc.mtx",
-               inputs=("sky.rad", "room.rad"), cache=cache)
-    times["rfluxmtx_s"] = time.perf_counter() - t0
+    times["rfluxmtx_s"] = cached_run([t["rfluxmtx"], *opts, "-", "sky.rad", "room.rad"], cwd=work, data=rays,
+                                     out=work / "dc.mtx", inputs=("sky.rad", "room.rad"), cache=cache)
     t0 = time.perf_counter()
     smx = pr.gendaymtx(weather.wea().encode(), header=True, outform="f", mfactor=1, ground_color=[ground] * 3)
     (work / "sky.smx").write_bytes(smx)
@@ -234,12 +237,11 @@ def radiance_year(scene, sensors, weather, *, ab: int, ad: int, threads: int, wo
     times["dctimestep_s"] = time.perf_counter() - t0
     lux = (ill @ RADIANCE_Y).astype(np.float32)                      # (m, h)
     # the direct-only coefficients (black room, -ab 1) of the same sky bins: the five-phase total below
-    t0 = time.perf_counter()
     dopts = [*opts[:2], "1", *opts[3:]]
-    cached_run([t["rfluxmtx"], *dopts, "-", "sky.rad", "black.rad"], cwd=work, data=rays, out=work / "dd.mtx",
-               inputs=("sky.rad", "black.rad"), cache=cache)
+    times["direct_coefficients_s"] = cached_run([t["rfluxmtx"], *dopts, "-", "sky.rad", "black.rad"], cwd=work,
+                                                data=rays, out=work / "dd.mtx", inputs=("sky.rad", "black.rad"),
+                                                cache=cache)
     dd = read_matrix((work / "dd.mtx").read_bytes())
-    times["direct_coefficients_s"] = time.perf_counter() - t0
     # five-phase direct sun: suns at the MF:6 patch centres, a black room, -ab 0; the year's product in numpy
     # (dctimestep took 280-330 s on this 5,186 x 8,760 matrix, numpy a few seconds: the same sums)
     t0 = time.perf_counter()
@@ -452,6 +454,36 @@ def sun_positions(weather, hs: dict) -> dict:
             "refraction_mean_deg": float(refr.mean()), "by_altitude": bands}
 
 
+def radiance_noise(scene, sensors, index, weather, args, t) -> dict:
+    """Radiance's scatter at sensors ``index``: rfluxmtx (two-phase settings) traces each ``args.noise_repeats``
+    times in one run (``-u+``: uncorrelated); the annual mean over the occupied hours of each trace.
+
+    Returns each sensor's mean of the traces (lux) and the traces' relative standard deviation."""
+    import pyradiance as pr
+
+    P, N = zup(sensors.points[index]), zup(sensors.normals[index])
+    rays = "".join(" ".join(f"{v:.9g}" for v in row) + "\n" for row in np.hstack([P, N])).encode()
+    lw = 0.5 / args.ad
+    opts = ["-I+", "-ab", str(args.ab), "-ad", str(args.ad), "-lw", f"{lw:.3g}", "-dc", "1", "-dt", "0", "-dj", "0",
+            "-ds", "0.02", "-st", "0", "-u+", "-n", str(args.threads), "-faf"]
+    with tempfile.TemporaryDirectory(prefix="dl-noise-") as tmp:
+        work = Path(tmp)
+        (work / "room.rad").write_text(scene_rad(scene))
+        (work / "sky.rad").write_text(SKY_RECEIVER)
+        t0 = time.perf_counter()
+        run([t["rfluxmtx"], *opts, "-", "sky.rad", "room.rad"], cwd=work, data=rays * args.noise_repeats,
+            out=work / "dc.mtx")
+        seconds = time.perf_counter() - t0
+        dc = read_matrix((work / "dc.mtx").read_bytes())                                     # (k r, 146, 3)
+    smx = read_matrix(pr.gendaymtx(weather.wea().encode(), header=True, outform="f", mfactor=1,
+                                   ground_color=[args.ground] * 3))                         # (146, h, 3)
+    occ = weather_occupied(weather.hour)
+    mean_sky = smx[:, occ].mean(axis=1)                                                     # (146, 3)
+    means = np.einsum("rpc,pc->r", dc, mean_sky * RADIANCE_Y).reshape(args.noise_repeats, len(index))
+    return {"sensors": [int(i) for i in index], "repeats": args.noise_repeats, "seconds": seconds,
+            "mean_lux": means.mean(axis=0), "rel_std": means.std(axis=0, ddof=1) / means.mean(axis=0)}
+
+
 #: Radiance's sun models: the per-hour sun at Radiance's position (the reference), the per-hour sun at pvlib's
 #: (SPA) position (hfrad's: like for like), the five-phase MF:6 suns, and two-phase (the sun spread over MF:1)
 VARIANTS = ("hour", "spa", "mf6", "two_phase")
@@ -484,8 +516,11 @@ def _reuse(path, name, sensors):
     if not path:
         return None
     for r in json.loads(Path(path).read_text())["results"]:
-        if r["case"] == name and np.allclose(r["points"], sensors.points) and "variants" in r["radiance"]:
+        if r["case"] == name and np.allclose(r["points"], sensors.points):
             R = r["radiance"]
+            if "variants" not in R:
+                raise SystemExit(f"{path}: case '{name}' has Radiance's results of an earlier version (MF:6 suns "
+                                 "only); run without --radiance-json (--radiance-cache keeps rfluxmtx's matrices)")
             out = {v: {k: np.asarray(x) if isinstance(x, list) else x for k, x in R["variants"][v].items()}
                    for v in VARIANTS}
             return out, {**R["info"], "reused_from": str(path)}
@@ -511,6 +546,17 @@ def run_case(name: str, args, t: dict, weather) -> dict:
         print(f"  Radiance: reused from {args.radiance_json}", flush=True)
     with tempfile.TemporaryDirectory(prefix="dl-suns-") as tmp:
         along = hfrad_on_radiance_suns(h["tracer"], sensors, weather, Path(tmp), t, args.ground)
+    noise = None
+    if args.noise_at:            # Radiance's scatter where the two-phase years differ most
+        rel = summary(h["lux_two_phase"], h["spread_direct"], hour)["mean_lux"] / R["two_phase"]["mean_lux"] - 1
+        noise = radiance_noise(scene, sensors, np.argsort(-np.abs(rel))[:args.noise_at], weather, args, t)
+        noise["hfrad_rel_to_mean"] = (summary(h["lux_two_phase"], h["spread_direct"], hour)["mean_lux"][
+            noise["sensors"]] / noise["mean_lux"] - 1)
+        noise["first_run_rel"] = rel[noise["sensors"]]
+        print(f"  Radiance noise at {args.noise_at} sensors x {args.noise_repeats}: relative std "
+              f"{', '.join(f'{100 * x:.1f}%' for x in noise['rel_std'])}; hfrad against their mean "
+              f"{', '.join(f'{100 * x:+.1f}%' for x in noise['hfrad_rel_to_mean'])} (first run "
+              f"{', '.join(f'{100 * x:+.1f}%' for x in noise['first_run_rel'])})", flush=True)
     base = h["lux"] - h["direct_sun"]
     H = {"exact": summary(h["lux"], h["direct_sun"], hour),
          "two_phase": summary(h["lux_two_phase"], h["spread_direct"], hour),
@@ -525,6 +571,7 @@ def run_case(name: str, args, t: dict, weather) -> dict:
             "radiance": {"variants": R, "info": rinfo},
             "compare": {k: compare(H[a], R[b]) for k, (a, b) in pairs.items()},
             "sun_positions": sun_positions(weather, along["hour_suns"]),
+            "radiance_noise": noise,
             "points": sensors.points}
 
 
@@ -540,6 +587,10 @@ def main() -> None:
     p.add_argument("--ad", type=int, default=50000)
     p.add_argument("--threads", type=int, default=len(os.sched_getaffinity(0)))
     p.add_argument("--noise", action="store_true", help="trace each sensor twice in Radiance (-u+) for its noise")
+    p.add_argument("--noise-at", type=int, default=0,
+                   help="trace the N sensors where the two-phase years differ most again in Radiance, "
+                        "--noise-repeats times each, for Radiance's scatter there")
+    p.add_argument("--noise-repeats", type=int, default=8)
     p.add_argument("--radiance-json", default=None,
                    help="reuse Radiance's results of the same case and sensors from an earlier run's JSON")
     p.add_argument("--radiance-cache", default=None,
