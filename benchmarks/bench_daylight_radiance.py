@@ -199,9 +199,15 @@ def cached_run(cmd, *, cwd: Path, out: Path, data: bytes | None = None, inputs=(
     return elapsed
 
 
-def sensor_rays(sensors) -> bytes:
-    P, N = zup(sensors.points), zup(sensors.normals)
+def sensor_rays(sensors, index=slice(None)) -> bytes:
+    P, N = zup(sensors.points[index]), zup(sensors.normals[index])
     return "".join(" ".join(f"{v:.9g}" for v in row) + "\n" for row in np.hstack([P, N])).encode()
+
+
+def rflux_options(ab: int, ad: int, threads: int) -> list:
+    """rfluxmtx's options for the daylight coefficients (``-lw`` 0.5 / ``ad``, uncorrelated sampling)."""
+    return ["-I+", "-ab", str(ab), "-ad", str(ad), "-lw", f"{0.5 / ad:.3g}", "-dc", "1", "-dt", "0", "-dj", "0",
+            "-ds", "0.02", "-st", "0", "-u+", "-n", str(threads), "-faf"]
 
 
 def radiance_year(scene, sensors, weather, *, ab: int, ad: int, threads: int, work: Path, t: dict, ground: float,
@@ -223,9 +229,7 @@ def radiance_year(scene, sensors, weather, *, ab: int, ad: int, threads: int, wo
     (work / "wea.wea").write_text(weather.wea())
     times["convert_s"] = time.perf_counter() - t0
     rays = sensor_rays(sensors) * repeat
-    lw = 0.5 / ad
-    opts = ["-I+", "-ab", str(ab), "-ad", str(ad), "-lw", f"{lw:.3g}", "-dc", "1", "-dt", "0", "-dj", "0", "-ds", "0.02",
-            "-st", "0", "-u+", "-n", str(threads), "-faf"]
+    opts = rflux_options(ab, ad, threads)
     times["rfluxmtx_s"] = cached_run([t["rfluxmtx"], *opts, "-", "sky.rad", "room.rad"], cwd=work, data=rays,
                                      out=work / "dc.mtx", inputs=("sky.rad", "room.rad"), cache=cache)
     t0 = time.perf_counter()
@@ -461,11 +465,7 @@ def radiance_noise(scene, sensors, index, weather, args, t) -> dict:
     Returns each sensor's mean of the traces (lux) and the traces' relative standard deviation."""
     import pyradiance as pr
 
-    P, N = zup(sensors.points[index]), zup(sensors.normals[index])
-    rays = "".join(" ".join(f"{v:.9g}" for v in row) + "\n" for row in np.hstack([P, N])).encode()
-    lw = 0.5 / args.ad
-    opts = ["-I+", "-ab", str(args.ab), "-ad", str(args.ad), "-lw", f"{lw:.3g}", "-dc", "1", "-dt", "0", "-dj", "0",
-            "-ds", "0.02", "-st", "0", "-u+", "-n", str(args.threads), "-faf"]
+    rays, opts = sensor_rays(sensors, index), rflux_options(args.ab, args.ad, args.threads)
     with tempfile.TemporaryDirectory(prefix="dl-noise-") as tmp:
         work = Path(tmp)
         (work / "room.rad").write_text(scene_rad(scene))
