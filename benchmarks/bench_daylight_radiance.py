@@ -618,7 +618,8 @@ def main() -> None:
             h = H["two_phase" if v == "two_phase" else "exact"]
             same = {"hour": "on_hour_suns", "mf6": "on_mf6_suns"}.get(v)
             rows.append({"case": r["case"], "Radiance's sun": names[v],
-                         "mean lx hfrad": float(h["mean_lux"].mean()), "mean lx Radiance": float(R[v]["mean_lux"].mean()),
+                         "mean lx hfrad": float(h["mean_lux"].mean()),
+                         "mean lx Radiance": float(R[v]["mean_lux"].mean()),
                          "sensor max |rel|": C[v]["mean_lux_rel_max_abs"], "sensor RMS rel": C[v]["mean_lux_rel_rms"],
                          "sDA hfrad %": 100 * h["sDA"], "sDA Radiance %": 100 * R[v]["sDA"],
                          "ASE hfrad %": 100 * h["ASE"], "ASE Radiance %": 100 * R[v]["ASE"],
