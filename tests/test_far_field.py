@@ -88,6 +88,18 @@ def test_shadow_edges_are_computed_exactly(cornell_run):
 
 
 @pytest.mark.slow
+def test_a_group_that_does_not_compress_is_halved():
+    """A column group whose far rows need more skeleton columns than allowed is halved and the
+    halves tried again (not computed pair by pair over every row at once); the certificate
+    still measures what the blocks hold."""
+    options = FarFieldOptions(eta=0.5, rows=32, certify_rows=128, max_skeleton_share=0.05)
+    true, (estimate, _), producer, _ = _sampled_against_exact(load_scene("cornell", patches=CORNELL), options)
+    stats = producer.stats.as_dict(producer.n)
+    assert stats["split_groups"] > 0 and stats["skeleton_mean"] > 0      # observed 24 halvings
+    assert 0.5 * true <= estimate <= 2.0 * true, (true, estimate)      # observed 0.96
+
+
+@pytest.mark.slow
 def test_sampled_far_field_error_within_its_share(cornell_run):
     """Relative to ||G||, the far field's error stays near its share of eps (0.2 * 0.05 = 1%)."""
     true, *_ = cornell_run

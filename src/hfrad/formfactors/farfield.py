@@ -126,6 +126,7 @@ class FarFieldStats:
     exact_groups: int = 0          # groups computed exactly (few far rows, or did not compress)
     refined_groups: int = 0        # groups whose sample grew after a failed check
     refinements: int = 0           # sample doublings in all
+    split_groups: int = 0          # groups halved because their far rows did not compress
     piece_blocks: int = 0          # blocks handed on in pieces (dense rows + W X), not dense
     dense_rows: int = 0            # rows held densely in those blocks, summed
     skeleton: list = field(default_factory=list)   # skeleton columns of each group (0: exact)
@@ -140,6 +141,7 @@ class FarFieldStats:
                 "skeleton_pairs": int(self.skeleton_pairs), "certify_pairs": int(self.certify_pairs),
                 "blocks": int(self.blocks), "groups": int(self.groups), "exact_groups": int(self.exact_groups),
                 "refined_groups": int(self.refined_groups), "refinements": int(self.refinements),
+                "split_groups": int(self.split_groups),
                 "piece_blocks": int(self.piece_blocks),
                 "dense_row_share": self.dense_rows / max(self.piece_blocks * n, 1),
                 "skeleton_mean": float(sk.mean()), "skeleton_max": int(sk.max())}
@@ -385,7 +387,7 @@ class SampledFarField:
         # one BLAS thread: the pivoted QRs are small, and OpenBLAS's threads spin against the
         # kernel's and Embree's (a 96 x 256 geqp3 took 0.23 s with two, 4 ms with one)
         with blas_threads(1):
-            parts = [(a - start, self._group(self.order[a:c], box, rng)) for a, c, box in self._groups(start, stop)]
+            parts = self._parts(start, stop, rng)
         pieces = _assemble_pieces(n, cols.size, parts)
         if not pieces.is_dense:
             self.stats.piece_blocks += 1
@@ -400,20 +402,47 @@ class SampledFarField:
                   start, stop)
         return pieces, exact[np.searchsorted(wanted, self.exact_rows)]
 
+    def _parts(self, start: int, stop: int, rng) -> list:
+        """``(column offset, _GroupPart)`` of every group of columns ``start:stop``.
+
+        A group whose far rows do not compress (its checks failed ``options.rounds`` times:
+        a shadow edge or a contact across it) is halved and each half tried again, down to
+        ``2 MIN_GROUP`` columns, below which it is computed pair by pair: halves are smoother
+        and have fewer near rows, where a whole group computed exactly costs every row.
+        """
+        work, parts = self._groups(start, stop), []
+        while work:
+            a, c, box = work.pop(0)
+            part = self._group(self.order[a:c], box, rng, may_split=c - a >= 2 * MIN_GROUP)
+            if part is None:
+                mid = (a + c) // 2
+                work[:0] = [(a, mid, self._box(a, mid)), (mid, c, self._box(mid, c))]
+                self.stats.split_groups += 1
+                continue
+            parts.append((a - start, part))
+        return parts
+
+    def _box(self, a: int, c: int) -> tuple[np.ndarray, np.ndarray]:
+        """Lower and upper corners of the patches at internal positions ``a:c``."""
+        return self.patch_lo[a:c].min(axis=0), self.patch_hi[a:c].max(axis=0)
+
     def _groups(self, a: int, c: int) -> list:
         """Compact pieces ``(a, c, box)`` of columns ``a:c``: a Z-order range can jump across the
         scene (a box far larger than its patches), so it is halved until its diagonal is at most
         ``GROUP_SPREAD`` times the square root of its area, or it has ``MIN_GROUP`` patches."""
-        lo, hi = self.patch_lo[a:c].min(axis=0), self.patch_hi[a:c].max(axis=0)
+        lo, hi = self._box(a, c)
         diam = float(np.sqrt(((hi - lo) ** 2).sum()))
         if c - a <= 2 * MIN_GROUP or diam <= GROUP_SPREAD * math.sqrt(float(self.areas[a:c].sum())):
             return [(a, c, (lo, hi))]
         mid = (a + c) // 2
         return self._groups(a, mid) + self._groups(mid, c)
 
-    def _group(self, cols: np.ndarray, box, rng) -> "_GroupPart":
+    def _group(self, cols: np.ndarray, box, rng, may_split: bool = False) -> "_GroupPart | None":
         """One column group: near rows and rows whose visibility is mixed exactly, the other far
-        rows by a checked decomposition of the unoccluded kernel times their visibility."""
+        rows by a checked decomposition of the unoccluded kernel times their visibility.
+
+        None where the far rows did not compress and ``may_split`` (the caller halves the group);
+        else such a group is computed pair by pair."""
         opt, n = self.options, self.n
         near = near_rows(self.patch_lo, self.patch_hi, self.lo, self.hi, box, opt.eta, self.block_size,
                          self.near_radius)
@@ -439,6 +468,8 @@ class SampledFarField:
             return self._exact_group(exact, values, clean, cols)
         norm2 = float(np.square(values * self.rho[exact, None]).sum())
         found = self._far_part(clean, visible, norm2, cols, rng)
+        if found is None and may_split:
+            return None
         if found is None:
             return self._exact_group(exact, values, clean, cols)
         S, X, F_S = found
