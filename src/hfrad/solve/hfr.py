@@ -35,9 +35,7 @@ files carry no checksums, so they are refused)::
                        (m2,), sample_rows (m1 + m2, n) float32, smooth_products
                        (n, m2, 3) float32, sample_reflectance (n, 3),
                        sample_bounce (n, 3) (first-bounce norms, files of
-                       2026-12-06 on); attrs sample_exact, sample_seed,
-                       sample_design (0: residual rows drawn by area, 1: the
-                       area / inverse-area mixture; absent in older files: 0)
+                       2026-12-06 on); attrs sample_exact, sample_seed
                        (:mod:`hfrad.solve.samples`); with the sampled far
                        field, far_index (m,) and far_q (m,): its certificate
                        (:mod:`hfrad.formfactors.farfield`)
@@ -228,7 +226,6 @@ def _write_stats(g: h5py.Group, stats) -> None:
             if name in state:
                 _dataset(g, name, np.asarray(state[name], dtype))
         g.attrs["sample_exact"], g.attrs["sample_seed"] = state["sample_exact"], state["sample_seed"]
-        g.attrs["sample_design"] = state["sample_design"]
     for name, dtype in _FAR_ARRAYS.items():
         if name in state:
             _dataset(g, name, np.asarray(state[name], dtype))
@@ -331,8 +328,7 @@ def _read_stats(g: h5py.Group, path: Path) -> PassStatistics:
     state = {k: _read(g, k, path) for k in names if k in g}
     state.update(probes=int(g.attrs["probes"]), seed=int(g.attrs["seed"]))
     if "sample_rows" in state:
-        state.update(sample_exact=int(g.attrs["sample_exact"]), sample_seed=int(g.attrs["sample_seed"]),
-                     sample_design=int(g.attrs.get("sample_design", 0)))      # 0: drawn by area (older files)
+        state.update(sample_exact=int(g.attrs["sample_exact"]), sample_seed=int(g.attrs["sample_seed"]))
     return PassStatistics.from_state(state)
 
 

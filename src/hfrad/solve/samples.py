@@ -39,7 +39,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-__all__ = ["SampledRows", "SolutionError", "design_probabilities", "SAMPLE_SEED", "ROUGH_SAFETY", "Z_SAMPLING",
+__all__ = ["SampledRows", "SolutionError", "SAMPLE_SEED", "ROUGH_SAFETY", "Z_SAMPLING",
            "FIGURE_FAILURE_PROBABILITY", "SAMPLE_SHARE", "max_residual_rows"]
 
 SAMPLE_SEED = 20162
@@ -80,33 +80,6 @@ def max_residual_rows(n: int) -> int:
         return n
     cap = 2 ** int(math.floor(math.log2(max(2e7 / n, PASS_MIN_ROWS))))
     return int(min(RESIDUAL_ROWS, cap))
-
-
-#: The residual rows' designs, as stored (``sample_design``: the position in this tuple).
-DESIGNS = ("area", "mixture")
-
-
-def design_probabilities(weights, n: int, design: str) -> np.ndarray:
-    """(n,) a patch's chance in one draw of a design, summing to 1.
-
-    "area": proportional to area, ``A_p / sum A`` (uniform without areas): what the area norm's sum
-    ``sum_p A_p r_p^2`` weighs. "mixture": half that, half ``(1/A_p) / sum 1/A``, what the dual norm's
-    ``sum_p r_p^2 / A_p`` (adjoint solves) weighs: a factorization's error is absolute, block by block,
-    so the residual on a small patch is not smaller than on a large one, and the dual norm counts it
-    ``1/A_p`` times. A sample drawn by area alone sees a patch of a quarter of the average area a
-    quarter as often while its residual counts four times (the conference room, 3K patches: 70% of one
-    adjoint residual on two such patches, each drawn with chance 0.01; the figure was 0.58x the
-    truth). The defensive mixture keeps each draw's estimate within twice that of the better design
-    for either norm (Hesterberg 1995).
-    """
-    if weights is None:
-        return np.full(n, 1.0 / n)
-    w = np.asarray(weights, np.float64)
-    area = w / w.sum()
-    if design == "area":
-        return area
-    inverse = 1.0 / w
-    return 0.5 * area + 0.5 * inverse / inverse.sum()
 
 
 def _systematic(weights: np.ndarray, m: int, rng: np.random.Generator) -> np.ndarray:
@@ -194,9 +167,6 @@ class SampledRows:
     seed : int
     span : (int, int) or None
         The columns recorded so far (None: none yet): a Dask leaf's state carries only those.
-    design : {"mixture", "area"}
-        How the residual rows were drawn (:func:`design_probabilities`); "area" in files written before
-        2026-12-06 10:00 UTC.
     bounce : (n, 3) float64 or None
         ``||R_c F e_p||^2`` in the norm (weights ``weights``) for every patch p: the first bounce of
         a unit exitance at p, exactly (``sum_i w_i rho_ic^2 F_ip^2``, column p's share of the pass);
@@ -213,7 +183,6 @@ class SampledRows:
     seed: int = SAMPLE_SEED
     span: tuple[int, int] | None = None
     bounce: np.ndarray | None = None
-    design: str = "area"
     _smooth_rows: dict = field(default_factory=dict, repr=False, compare=False)
 
     # -- the design, and recording the pass ------------------------------------
@@ -225,13 +194,14 @@ class SampledRows:
         m1 = max_residual_rows(n)
         exact = m1 == n
         rng = np.random.default_rng(seed)
-        index = np.arange(n, dtype=np.int64) if exact else _systematic(design_probabilities(w, n, "mixture"), m1, rng)
+        sw = np.ones(n) if w is None else w
+        index = np.arange(n, dtype=np.int64) if exact else _systematic(sw, m1, rng)
         m2 = min(SMOOTH_ROWS, n)
-        smooth = np.arange(n, dtype=np.int64) if exact else _systematic(design_probabilities(w, n, "area"), m2, rng)
+        smooth = np.arange(n, dtype=np.int64) if exact else _systematic(sw, m2, rng)
         rows = np.zeros((index.size + smooth.size, n), np.float32)
         products = None if (w is None or reflectance is None) else np.zeros((n, smooth.size, 3))
         bounce = None if reflectance is None else np.zeros((n, 3))
-        return cls(index, smooth, rows, products, w, rho, exact, seed, bounce=bounce, design="mixture")
+        return cls(index, smooth, rows, products, w, rho, exact, seed, bounce=bounce)
 
     @property
     def row_patches(self) -> np.ndarray:
@@ -279,8 +249,7 @@ class SampledRows:
         out = {"sample_index": self.index, "smooth_index": self.smooth_index,
                "sample_rows": self.rows if (lo, hi) == (0, n) else self.rows[:, lo:hi],
                "sample_span": np.array([lo, hi], np.int64), "sample_reflectance": self.reflectance,
-               "sample_exact": int(self.exact), "sample_seed": self.seed,
-               "sample_design": DESIGNS.index(self.design)}
+               "sample_exact": int(self.exact), "sample_seed": self.seed}
         if self.products is not None:
             out["smooth_products"] = self.products
         if self.bounce is not None:
@@ -301,8 +270,7 @@ class SampledRows:
                    rows, None if products is None else np.asarray(products, np.float64),
                    None if weights is None else np.asarray(weights, np.float64), rho,
                    bool(int(state["sample_exact"])), int(state["sample_seed"]), (lo, hi),
-                   None if bounce is None else np.asarray(bounce, np.float64),
-                   DESIGNS[int(state.get("sample_design", 0))])
+                   None if bounce is None else np.asarray(bounce, np.float64))
 
     @staticmethod
     def add_states(a: dict, b: dict) -> dict:
@@ -356,26 +324,17 @@ class SampledRows:
                                                         np.float32)
         return self._smooth_rows[c]
 
-    def _sum_of_squares(self, z: np.ndarray, *, bound: int = 0) -> np.ndarray:
-        """Estimate of ``sum_i a_i x_i^2`` from the systematic sample's per-draw estimates
-        ``z_t = a_t x_t^2 / q_t`` (m, ...; :meth:`probabilities`), plus (``bound`` +1) or minus (-1)
-        ``Z_SAMPLING`` standard errors (successive differences); exact with every row (``q_t = 1``)."""
+    def _sum_of_squares(self, z: np.ndarray, weights_total: float, *, bound: int = 0) -> np.ndarray:
+        """Estimate of ``sum_i a_i x_i^2`` from ``z_t = x_t^2 a_t / w_t`` (m, ...) of the systematic
+        sample, plus (``bound`` +1) or minus (-1) ``Z_SAMPLING`` standard errors (exact with every row)."""
         if self.exact:
             return z.sum(axis=0)
         m = z.shape[0]
-        total = z.mean(axis=0)
+        total = weights_total * z.mean(axis=0)
         if bound == 0 or m < 2:
             return total if bound >= 0 else np.zeros_like(total)
-        var = (np.diff(z, axis=0) ** 2).sum(axis=0) / (2.0 * m * (m - 1))
+        var = weights_total ** 2 * (np.diff(z, axis=0) ** 2).sum(axis=0) / (2.0 * m * (m - 1))
         return total + bound * Z_SAMPLING * np.sqrt(var)
-
-    def probabilities(self, smooth: bool = False) -> np.ndarray:
-        """(n,) the chance of each patch in one draw of the residual (or ``smooth``) rows' design, summing to 1
-        (all ones with every row kept). See :func:`design_probabilities`."""
-        n = self.rows.shape[1]
-        if self.exact:
-            return np.ones(n)
-        return design_probabilities(self.weights, n, "area" if smooth else self.design)
 
     @staticmethod
     def _rows_times(rows: np.ndarray, X: np.ndarray, at: np.ndarray, reflectance, w, adjoint: bool) -> np.ndarray:
@@ -435,20 +394,20 @@ class SampledRows:
         n, C, q = B.shape
         w = np.ones(n) if self.weights is None else self.weights
         a = (1.0 / w) if adjoint else w                        # the norm's weights
+        W = float(w.sum())
         S = self.index
         gain = np.asarray(gain, np.float64)[:, None]
         same = np.array_equal(reflectance, self.reflectance)
 
-        def norm_of(rows_values, at, upper, smooth=False):
-            z = rows_values ** 2 * (a[at] / self.probabilities(smooth)[at])[:, None, None]   # per-draw totals
-            return np.sqrt(np.maximum(self._sum_of_squares(z, bound=upper), 0.0))
+        def norm_of(rows_values, at, upper):
+            z = rows_values ** 2 * (a[at] / w[at])[:, None, None]
+            return np.sqrt(np.maximum(self._sum_of_squares(z, W, bound=upper), 0.0))
 
         rfb = self._rows_times(self.rows[:S.size], B, S, reflectance, w, adjoint)     # R F B~ at S, exactly
         rough = norm_of(E[S] - B[S] + rfb, S, +1)                  # the residual's exact rows
         with np.errstate(invalid="ignore"):
             if self.products is not None and same:
-                tail = (1.0 + gain) * norm_of(self._smoothed_residual(E, B, reflectance, w, adjoint), self.smooth_index, +1,
-                                              smooth=True)
+                tail = (1.0 + gain) * norm_of(self._smoothed_residual(E, B, reflectance, w, adjoint), self.smooth_index, +1)
                 absolute = (1.0 if self.exact else ROUGH_SAFETY) * rough + tail
             else:                                                  # ||e|| <= (1 + gain) ||r||
                 tail = gain * rough
