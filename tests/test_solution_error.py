@@ -9,6 +9,7 @@ it is a bound.
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 
 import numpy as np
@@ -362,3 +363,24 @@ def test_design_mean_error_figure_is_above_the_true_error_of_each_target_mean(co
             assert figure >= true, (name, quantity, figure, true)
             ratios.append(figure / true)
     print(f"\nmean-error figure / true error over {len(ratios)} targets: {min(ratios):.1f} .. {max(ratios):.1f}")
+
+
+def test_adjoint_figure_says_it_has_no_stated_probability(small_box):
+    """An adjoint solve's figure is an estimate (kind "sampled-estimate", no failure probability: see
+    SolutionError.kind), and its line in words says so rather than quoting the forward figures' 0.023."""
+    from hfrad.solve.bounds import reflection_gain_bound, solution_line
+
+    scene, F = small_box
+    areas, rho = np.asarray(scene.areas), np.asarray(scene.reflectance)
+    rows = _recorded(F, areas, rho)
+    gain = reflection_gain_bound(rho, F.sum(axis=1))
+    E = np.zeros((F.shape[0], 3, 1))
+    E[::7] = 1.0
+    B = np.stack([np.linalg.solve((np.eye(F.shape[0]) - rho[:, c:c + 1] * F).T, E[:, c, 0]) for c in range(3)], axis=1)
+    B = B[:, :, None] * 1.01                                      # a solution 1% off
+    forward, adjoint = rows.figure(E, B, rho, gain), rows.figure(E, B, rho, gain, adjoint=True)
+    assert forward.kind == "sampled" and forward.failure_probability > 0
+    assert adjoint.kind == "sampled-estimate" and adjoint.failure_probability is None
+    one = dataclasses.replace(adjoint, bound=adjoint.bound[:, 0], absolute=adjoint.absolute[:, 0],
+                              reflected=adjoint.reflected[:, 0])
+    assert "no stated failure probability" in solution_line(one) and "probability 0.023" not in solution_line(one)
