@@ -20,18 +20,29 @@ so hfrad's north, ``-z``, is Radiance's ``+y``):
   daylight coefficients of 145 sky bins and the ground (``rfluxmtx -I+``
   receivers ``h=u`` and ``h=r1``) times gendaymtx's whole matrix (sun spread
   over 4 patches) by ``dctimestep``;
-- ASE needs the direct sun alone: on Radiance's side the five-phase direct-sun
-  step, 0.533 degree ``light`` suns at the centres of the 5,186 Reinhart MF:6
-  patches, ``rcontrib -I+ -ab 0`` binned with ``reinhart.cal`` against a black
-  room (glass kept), times ``gendaymtx -5 0.533 -d -m 6``; the same is done for
-  hfrad with its own direct-sun rays;
+- the direct sun (ASE counts it alone; the totals replace the spread sun's direct part by it, the
+  five-phase method's step: two-phase year, less the direct-only coefficients of ``rfluxmtx -ab 1`` in a
+  black room times gendaymtx's spread sun, plus the direct sun), with three sun models on Radiance's side,
+  each ``rcontrib -I+ -ab 0`` against the black room (glass kept):
+
+  ``hour`` (the reference): one 0.533 degree ``light`` sun per sun-up hour at Radiance's own position and
+  radiance, ``gendaymtx -D suns.rad -M suns.mod`` (its time-step suns), each its own modifier, ``-V+``;
+  ``spa``: the same with the sun along pvlib's SPA position, hfrad's sun (separates the sun's position
+  from the transport: like for like); ``mf6``: the five-phase suns at the centres of the 5,186 Reinhart
+  MF:6 patches (``reinhart.cal``) times ``gendaymtx -5 0.533 -d -m 6`` (the product in numpy), where
+  gendaymtx moves each hour's sun to the nearest patch centre. hfrad's rays are also sent along Radiance's
+  ``hour`` and ``mf6`` suns. Radiance's sun position (sun.c: a one-sine declination per day, a two-sine
+  equation of time, no refraction) is compared with SPA hour by hour;
+- ``two_phase``: both sides with the sun spread over 4 MF:1 patches (ASE from that spread sun's direct part);
 - the sensors: the work plane 0.8 m over the floor at ``--spacing`` (``--margin``
   border), facing up.
 
 Converged Radiance settings for daylight coefficients (rfluxmtx's manual and the
-two-phase tutorials: ``-lw`` at most ``1 / -ad``): ``-ab 12 -ad 50000 -lw 2e-5``
+two-phase tutorials: ``-lw`` at most ``1 / -ad``): ``-ab 12 -ad 50000 -lw 1e-5``
 (``--ad``, ``--ab`` to change; ``-lw`` follows ``0.5 / ad``). Radiance's noise is
 estimated by tracing every sensor twice in one run (``-u+``, ``--noise``; it doubles rfluxmtx's time).
+``--radiance-cache DIR`` keeps rfluxmtx's matrices (keyed by the options, scene and rays) for a rerun;
+``--radiance-json`` takes Radiance's summaries from an earlier run's JSON.
 
 Metrics (hfrad.daylight.daylight_metrics on both results): per-sensor mean
 illuminance over the occupied hours, sDA300/50%, ASE1000,250h, mean DA300 and
@@ -48,9 +59,11 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import math
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -139,8 +152,8 @@ def sun_sources(mf: int = 6) -> str:
     return "\n".join(lines) + "\n"
 
 
-def read_matrix(data: bytes) -> np.ndarray:
-    """A Radiance matrix (header, ``FORMAT=float``, 3 components) as (rows, cols, 3) float64."""
+def read_matrix(data: bytes, dtype=np.float64) -> np.ndarray:
+    """A Radiance matrix (header, ``FORMAT=float``, 3 components) as (rows, cols, 3) ``dtype``."""
     end = data.find(b"\n\n")
     head = data[:end].decode(errors="replace")
     fields = dict(line.strip().split("=", 1) for line in head.splitlines() if "=" in line)
@@ -148,7 +161,7 @@ def read_matrix(data: bytes) -> np.ndarray:
         raise RuntimeError(f"expected a float matrix, got FORMAT={fields.get('FORMAT')}")
     cols = int(fields["NCOLS"])                        # NROWS is absent where the rows came from stdin
     order = ">f4" if fields.get("BigEndian", "0") == "1" else "<f4"
-    return np.frombuffer(data[end + 2:], dtype=order).reshape(-1, cols, 3).astype(np.float64)
+    return np.frombuffer(data[end + 2:], dtype=order).reshape(-1, cols, 3).astype(dtype)
 
 
 def run(cmd, *, cwd: Path, data: bytes | None = None, out: Path | None = None) -> bytes:
@@ -160,15 +173,49 @@ def run(cmd, *, cwd: Path, data: bytes | None = None, out: Path | None = None) -
     return subprocess.run(cmd, cwd=cwd, input=data, capture_output=True, check=True).stdout
 
 
-def sensor_rays(sensors) -> bytes:
-    P, N = zup(sensors.points), zup(sensors.normals)
+def cached_run(cmd, *, cwd: Path, out: Path, data: bytes | None = None, inputs=(), cache: Path | None = None) -> float:
+    """:func:`run` to ``out``, reused from ``cache`` when the same command ran on the same inputs and rays.
+
+    The key is a hash of the argument list, the input files' contents and the rays, so a changed scene,
+    sensor grid or option traces again. Returns the run's wall seconds (a cached result: those measured when
+    it was made, kept beside it; NaN if not kept)."""
+    key = hashlib.sha256("\0".join(map(str, cmd[1:])).encode())
+    for f in inputs:
+        key.update((cwd / f).read_bytes())
+    key.update(data or b"")
+    hit = cache / f"{key.hexdigest()[:24]}.mtx" if cache is not None else None
+    if hit is not None and hit.is_file():
+        shutil.copyfile(hit, out)
+        seconds = hit.with_suffix(".seconds")
+        return float(seconds.read_text()) if seconds.is_file() else float("nan")
+    t0 = time.perf_counter()
+    run(cmd, cwd=cwd, data=data, out=out)
+    elapsed = time.perf_counter() - t0
+    if hit is not None:
+        hit.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(out, hit.with_suffix(".tmp"))
+        hit.with_suffix(".seconds").write_text(f"{elapsed:.3f}\n")
+        os.replace(hit.with_suffix(".tmp"), hit)
+    return elapsed
+
+
+def sensor_rays(sensors, index=slice(None)) -> bytes:
+    P, N = zup(sensors.points[index]), zup(sensors.normals[index])
     return "".join(" ".join(f"{v:.9g}" for v in row) + "\n" for row in np.hstack([P, N])).encode()
 
 
+def rflux_options(ab: int, ad: int, threads: int) -> list:
+    """rfluxmtx's options for the daylight coefficients (``-lw`` 0.5 / ``ad``, uncorrelated sampling)."""
+    return ["-I+", "-ab", str(ab), "-ad", str(ad), "-lw", f"{0.5 / ad:.3g}", "-dc", "1", "-dt", "0", "-dj", "0",
+            "-ds", "0.02", "-st", "0", "-u+", "-n", str(threads), "-faf"]
+
+
 def radiance_year(scene, sensors, weather, *, ab: int, ad: int, threads: int, work: Path, t: dict, ground: float,
-                  repeat: int = 1) -> dict:
-    """Two-phase: rfluxmtx daylight coefficients x gendaymtx (sky + spread sun) by dctimestep; plus the
-    five-phase direct-sun step for ASE. Returns lux (repeat m, h) of both and the seconds of each step.
+                  repeat: int = 1, cache: Path | None = None) -> dict:
+    """Two-phase: rfluxmtx daylight coefficients x gendaymtx (sky + spread sun) by dctimestep; the direct sun
+    by the three sun models of the module's docstring. Returns lux (repeat m, h): ``lux`` (two-phase),
+    ``totals`` and ``direct`` of each sun model, ``spread_direct`` (two-phase's direct sun), the seconds of
+    each step. rfluxmtx's matrices are kept in (and taken from) ``cache`` when given.
 
     ``repeat``: each sensor traced that many times in the one run (``-u+``: uncorrelated), for the noise."""
     import pyradiance as pr
@@ -182,12 +229,9 @@ def radiance_year(scene, sensors, weather, *, ab: int, ad: int, threads: int, wo
     (work / "wea.wea").write_text(weather.wea())
     times["convert_s"] = time.perf_counter() - t0
     rays = sensor_rays(sensors) * repeat
-    lw = 0.5 / ad
-    opts = ["-I+", "-ab", str(ab), "-ad", str(ad), "-lw", f"{lw:.3g}", "-dc", "1", "-dt", "0", "-dj", "0", "-ds", "0.02",
-            "-st", "0", "-u+", "-n", str(threads), "-faf"]
-    t0 = time.perf_counter()
-    run([t["rfluxmtx"], *opts, "-", "sky.rad", "room.rad"], cwd=work, data=rays, out=work / "dc.mtx")
-    times["rfluxmtx_s"] = time.perf_counter() - t0
+    opts = rflux_options(ab, ad, threads)
+    times["rfluxmtx_s"] = cached_run([t["rfluxmtx"], *opts, "-", "sky.rad", "room.rad"], cwd=work, data=rays,
+                                     out=work / "dc.mtx", inputs=("sky.rad", "room.rad"), cache=cache)
     t0 = time.perf_counter()
     smx = pr.gendaymtx(weather.wea().encode(), header=True, outform="f", mfactor=1, ground_color=[ground] * 3)
     (work / "sky.smx").write_bytes(smx)
@@ -197,11 +241,13 @@ def radiance_year(scene, sensors, weather, *, ab: int, ad: int, threads: int, wo
     times["dctimestep_s"] = time.perf_counter() - t0
     lux = (ill @ RADIANCE_Y).astype(np.float32)                      # (m, h)
     # the direct-only coefficients (black room, -ab 1) of the same sky bins: the five-phase total below
-    t0 = time.perf_counter()
     dopts = [*opts[:2], "1", *opts[3:]]
-    dd = read_matrix(run([t["rfluxmtx"], *dopts, "-", "sky.rad", "black.rad"], cwd=work, data=rays))
-    times["direct_coefficients_s"] = time.perf_counter() - t0
-    # five-phase direct sun (ASE): suns at MF:6 patch centres, a black room, -ab 0
+    times["direct_coefficients_s"] = cached_run([t["rfluxmtx"], *dopts, "-", "sky.rad", "black.rad"], cwd=work,
+                                                data=rays, out=work / "dd.mtx", inputs=("sky.rad", "black.rad"),
+                                                cache=cache)
+    dd = read_matrix((work / "dd.mtx").read_bytes())
+    # five-phase direct sun: suns at the MF:6 patch centres, a black room, -ab 0; the year's product in numpy
+    # (dctimestep took 280-330 s on this 5,186 x 8,760 matrix, numpy a few seconds: the same sums)
     t0 = time.perf_counter()
     run([t["oconv"], "black.rad", "suns.rad"], cwd=work, out=work / "suns.oct")
     sopts = ["-I+", "-ab", "0", "-dc", "1", "-dt", "0", "-dj", "0", "-st", "0", "-lw", "1e-9", "-n", str(threads), "-faf",
@@ -211,18 +257,75 @@ def radiance_year(scene, sensors, weather, *, ab: int, ad: int, threads: int, wo
     t0 = time.perf_counter()
     run([t["gendaymtx"], "-5", f"{SUN_DIAMETER}", "-d", "-m", "6", "-of", "-g", *(f"{ground}",) * 3, "wea.wea"],
         cwd=work, out=work / "sun.smx")
-    sun = read_matrix(run([t["dctimestep"], "-of", "sun.mtx", "sun.smx"], cwd=work))
+    C = read_matrix((work / "sun.mtx").read_bytes(), np.float32)                      # (m, 5186, 3)
+    S = read_matrix((work / "sun.smx").read_bytes(), np.float32)                      # (5186, h, 3)
+    sun_mf6 = sum(RADIANCE_Y[c] * (C[:, :, c] @ S[:, :, c]) for c in range(3)).astype(np.float32)
+    del C, S
     times["sun_year_s"] = time.perf_counter() - t0
-    direct_sun = (sun @ RADIANCE_Y).astype(np.float32)
-    # five-phase total: the two-phase year less the spread sun's direct part, plus the sun coefficients' year;
-    # gendaymtx -d writes the whole ground glow too: dropped, so that the ground's direct view stays
+    # one sun per hour at Radiance's own position (gendaymtx -D: the time-step suns of its manual, 0.533 degree
+    # ``light`` sources of the hour's direct radiance), each its own modifier; rcontrib -V+ gives contributions
+    t0 = time.perf_counter()
+    run([t["gendaymtx"], "-D", "hour_suns.rad", "-M", "hour_suns.mod", "-n", "-d", "wea.wea"], cwd=work)
+    hs = parse_suns((work / "hour_suns.rad").read_text(), weather)
+    sun_hour = sun_year(work, t, rays, "hour_suns.rad", "hour_suns.mod", hs["hour"], len(weather.hour), threads)
+    times["hour_suns_s"] = time.perf_counter() - t0
+    # the same transport along pvlib's (SPA) suns, hfrad's: separates the sun's position from the tracing
     d_sun = read_matrix(pr.gendaymtx(weather.wea().encode(), header=True, outform="f", mfactor=1, sun_only=True,
                                      ground_color=[ground] * 3)).transpose(0, 2, 1).copy()     # (146, 3, h)
-    d_sun[0] = 0.0
+    d_sun[0] = 0.0      # gendaymtx -d writes the whole ground glow too: dropped (the two-phase year has it)
+    spa = spa_suns(weather, d_sun)
+    (work / "spa_suns.rad").write_text(spa["rad"])
+    (work / "spa_suns.mod").write_text(spa["mod"])
+    sun_spa = sun_year(work, t, rays, "spa_suns.rad", "spa_suns.mod", spa["hour"], len(weather.hour), threads)
+    # five-phase-style totals: the two-phase year less the spread sun's direct part, plus the direct sun
     spread = np.einsum("mpc,pch->mh", dd * RADIANCE_Y, d_sun)
-    five = (lux - spread + direct_sun).astype(np.float32)
-    return {"lux": lux, "lux_five_phase": five, "direct_sun": direct_sun, "timings": times,
-            "options": " ".join(opts), "sun_options": " ".join(sopts)}
+    base = lux - spread
+    totals = {k: (base + v).astype(np.float32) for k, v in (("hour", sun_hour), ("mf6", sun_mf6), ("spa", sun_spa))}
+    return {"lux": lux, "totals": totals, "direct": {"hour": sun_hour, "mf6": sun_mf6, "spa": sun_spa},
+            "spread_direct": spread.astype(np.float32),
+            "hour_suns": hs, "timings": times, "options": " ".join(opts), "sun_options": " ".join(sopts)}
+
+
+def parse_suns(text: str, weather) -> dict:
+    """gendaymtx ``-D`` suns: hour index (s,), direction (s, 3) z-up, radiance (s, 3) W/(sr m^2).
+
+    Each sun is named by gendaymtx's solar minute, ``1440 (julian day - 1) + round(60 hour)``."""
+    found = re.findall(r"void light solar(\d+)\s+0\s+0\s+3 (\S+) (\S+) (\S+)\s+solar\d+ source sun\d+\s+0\s+0\s+"
+                       r"4 (\S+) (\S+) (\S+) \S+", text)
+    minute = 1440 * weather.day_of_year + np.floor(weather.hour * 60 + 0.5).astype(int)
+    index = {int(m): i for i, m in enumerate(minute)}
+    vals = np.array([[float(v) for v in f[1:]] for f in found])
+    return {"hour": np.array([index[int(f[0])] for f in found]), "radiance": vals[:, :3], "direction": vals[:, 3:]}
+
+
+def spa_suns(weather, d_sun) -> dict:
+    """Radiance ``light`` suns along pvlib's (SPA) sun of each hour with hfrad's direct-normal irradiance.
+
+    The hours and magnitudes of :meth:`DaylightModel.direct_sun`: altitude above 0, the sun matrix's
+    per-hour sum ``sum_p sun_p Omega_p`` (``d_sun`` (146, 3, h), MF:1)."""
+    from hfrad.daylight.sky import direction, sky_patches
+
+    normal = np.einsum("pch,p->hc", d_sun, sky_patches(1).solid_angle)                    # (h, 3)
+    alt, azi = weather.sun()
+    hours = np.flatnonzero((alt > 0) & (normal.max(axis=1) > 0))
+    d = zup(direction(np.radians(alt[hours]), np.radians(azi[hours])))
+    radiance = normal[hours] / (np.pi * np.radians(SUN_DIAMETER / 2) ** 2)              # gendaymtx's disc
+    rad = [f"void light spa{h}\n0\n0\n3 {r[0]:.6e} {r[1]:.6e} {r[2]:.6e}\n"
+           f"spa{h} source sun{h}\n0\n0\n4 {v[0]:.7f} {v[1]:.7f} {v[2]:.7f} {SUN_DIAMETER}\n"
+           for h, r, v in zip(hours, radiance, d)]
+    return {"hour": hours, "rad": "\n".join(rad), "mod": "".join(f"spa{h}\n" for h in hours)}
+
+
+def sun_year(work: Path, t: dict, rays: bytes, suns: str, mods: str, hour: np.ndarray, n_hours: int,
+             threads: int) -> np.ndarray:
+    """(m, h) lux: rcontrib ``-ab 0 -V+`` in the black room (glass kept), one modifier per hour's sun."""
+    run([t["oconv"], "black.rad", suns], cwd=work, out=work / "hsun.oct")
+    run([t["rcontrib"], "-I+", "-ab", "0", "-dc", "1", "-dt", "0", "-dj", "0", "-st", "0", "-lw", "1e-9", "-V+",
+         "-n", str(threads), "-faf", "-M", mods, "hsun.oct"], cwd=work, data=rays, out=work / "hsun.mtx")
+    E = read_matrix((work / "hsun.mtx").read_bytes(), np.float32) @ RADIANCE_Y.astype(np.float32)   # (m, s)
+    out = np.zeros((E.shape[0], n_hours), np.float32)
+    out[:, hour] = E
+    return out
 
 
 def hfrad_year(scene, sensors, weather, *, eps: float, ground: float) -> dict:
@@ -251,7 +354,9 @@ def hfrad_year(scene, sensors, weather, *, eps: float, ground: float) -> dict:
     times["precompute_s"] = times["factorize_s"] + times["sky_patches_s"] + times["sensor_coefficients_s"]
     sky, sun = matrices
     two = dc.illuminance(sky + sun)          # the two-phase year: the sun spread over patches, no sun rays
+    spread = np.einsum("mcp,pch->mh", dc.direct * RADIANCE_Y[None, :, None], sun)   # its direct part
     return {"lux": res.illuminance, "lux_two_phase": two, "direct_sun": res.direct_sun, "timings": times,
+            "spread_direct": spread.astype(np.float32),
             "tracer": model.tracer,
             "patches": fac.n_patches,
             "rank": fac.rank}
@@ -282,64 +387,143 @@ def compare(h: dict, r: dict) -> dict:
             "sDA_pp": 100 * (h["sDA"] - r["sDA"]), "ASE_pp": 100 * (h["ASE"] - r["ASE"])}
 
 
-def sun_on_radiance_suns(tracer, sensors, weather, work: Path, t: dict, ground: float) -> np.ndarray:
-    """(m, h) lux: hfrad's direct sun by its own rays, but along Radiance's five-phase suns (the centres of
-    the MF:6 patches, gendaymtx's sun positions and ``-5`` matrix): separates the sun's position from the
-    ray tracing and the glazing in an ASE difference."""
+def hfrad_along(tracer, sensors, direction: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    """(m, s) lux: hfrad's direct-sun rays along Radiance z-up ``direction`` (s, 3), direct-normal illuminance
+    ``normal`` (s,) lux: one ray per sensor and sun through hfrad's glazing, as DaylightModel.direct_sun."""
+    d = np.stack([direction[:, 0], direction[:, 2], -direction[:, 1]], axis=1)           # hfrad y-up
+    cos = sensors.normals @ d.T                                                          # (m, s)
+    qi, pi = np.nonzero(cos > 0)
+    T = tracer.transmittance(sensors.points[qi], d[pi]).max(axis=1)                     # grey glass
+    C = np.zeros(cos.shape)
+    C[qi, pi] = cos[qi, pi] * T
+    return (C * normal).astype(np.float32)
+
+
+def hfrad_on_radiance_suns(tracer, sensors, weather, work: Path, t: dict, ground: float) -> dict:
+    """(m, h) lux of hfrad's direct-sun rays along Radiance's suns: ``hour`` gendaymtx ``-D``'s sun of each
+    hour, ``mf6`` the five-phase suns (MF:6 patch centres and gendaymtx ``-5``'s matrix). With Radiance's
+    totals on the same suns, separates the sun's position from the ray tracing and the glazing."""
     (work / "wea.wea").write_text(weather.wea())
+    disc = np.pi * np.radians(SUN_DIAMETER / 2) ** 2
+    run([t["gendaymtx"], "-D", "hour_suns.rad", "-M", "hour_suns.mod", "-n", "-d", "wea.wea"], cwd=work)
+    hs = parse_suns((work / "hour_suns.rad").read_text(), weather)
+    hour = np.zeros((len(sensors), len(weather.hour)), np.float32)
+    hour[:, hs["hour"]] = hfrad_along(tracer, sensors, hs["direction"], disc * hs["radiance"] @ RADIANCE_Y)
     run([t["gendaymtx"], "-5", f"{SUN_DIAMETER}", "-d", "-m", "6", "-of", "-g", *(f"{ground}",) * 3, "wea.wea"],
         cwd=work, out=work / "sun.smx")
-    data = (work / "sun.smx").read_bytes()
-    end = data.find(b"\n\n")
-    cols = int(dict(x.split("=", 1) for x in data[:end].decode().splitlines() if "=" in x)["NCOLS"])
-    lum = np.frombuffer(data[end + 2:], "<f4").reshape(-1, cols, 3) @ RADIANCE_Y.astype(np.float32)  # (5186, h)
-    d = reinhart_centres(6)                                                    # Radiance z-up
-    d = np.stack([d[:, 0], d[:, 2], -d[:, 1]], axis=1)                        # hfrad y-up
-    cos = sensors.normals @ d.T                                               # (m, 5185)
-    qi, pi = np.nonzero(cos > 0)
-    T = tracer.transmittance(sensors.points[qi], d[pi]).max(axis=1)          # grey glass
-    C = np.zeros(cos.shape)
-    C[qi, pi] = cos[qi, pi] * T * 2 * np.pi * (1 - np.cos(np.radians(SUN_DIAMETER / 2)))
-    return (C @ lum[1:]).astype(np.float32)
+    lum = read_matrix((work / "sun.smx").read_bytes(), np.float32) @ RADIANCE_Y.astype(np.float32)   # (5186, h)
+    C = hfrad_along(tracer, sensors, reinhart_centres(6), np.full(5185, 2 * np.pi * (1 - np.cos(np.radians(
+        SUN_DIAMETER / 2)))))
+    return {"hour": hour, "mf6": (C @ lum[1:]).astype(np.float32), "hour_suns": hs}
+
+
+def sun_positions(weather, hs: dict) -> dict:
+    """Radiance's sun of each hour (gendaymtx, Radiance's sun.c) against pvlib's SPA sun: the angle between
+    them, degrees, and its parts: altitude, declination (Radiance's one-sine formula against Spencer's series,
+    per day), equation of time (minutes) and refraction (SPA's apparent minus true altitude)."""
+    import pandas as pd
+    import pvlib
+
+    h = hs["hour"]
+    lit = hs["radiance"].max(axis=1) > 0
+    alt, azi = weather.sun()
+    a, z = np.radians(alt[h]), np.radians(azi[h])
+    p = np.stack([np.cos(a) * np.sin(z), np.cos(a) * np.cos(z), np.sin(a)], axis=1)
+    ang = np.degrees(np.arccos(np.clip((p * hs["direction"]).sum(axis=1), -1, 1)))[lit]
+    ralt = np.degrees(np.arcsin(hs["direction"][:, 2]))
+    dalt = (alt[h] - ralt)[lit]
+    jd = weather.day_of_year[h][lit] + 1
+    dec_rad = np.degrees(0.4093 * np.sin(2 * np.pi / 368 * (jd - 81)))
+    dec_ref = np.degrees(pvlib.solarposition.declination_spencer71(jd))
+    eot_rad = 60 * (0.170 * np.sin(4 * np.pi / 373 * (jd - 80)) - 0.129 * np.sin(2 * np.pi / 355 * (jd - 8)))
+    eot_ref = pvlib.solarposition.equation_of_time_spencer71(jd)
+    minutes = np.round(weather.hour[h][lit] * 60).astype(int)
+    times = (pd.to_datetime({"year": np.full(len(minutes), 2001), "month": weather.month[h][lit],
+                             "day": weather.day[h][lit]}) + pd.to_timedelta(minutes, unit="min"))
+    tz = pd.Timedelta(hours=weather.timezone)
+    pos = pvlib.solarposition.get_solarposition(pd.DatetimeIndex(times - tz).tz_localize("UTC"), weather.latitude,
+                                                weather.longitude, altitude=weather.elevation)
+    refr = np.asarray(pos["apparent_elevation"] - pos["elevation"])
+    bands = {}
+    for lo, hi in ((0, 10), (10, 30), (30, 90)):
+        k = (ralt[lit] >= lo) & (ralt[lit] < hi)
+        bands[f"{lo}-{hi}"] = {"hours": int(k.sum()), "angle_mean_deg": float(ang[k].mean()),
+                               "altitude_diff_mean_deg": float(dalt[k].mean())}
+    return {"sunlit_hours": int(lit.sum()), "angle_mean_deg": float(ang.mean()),
+            "angle_p95_deg": float(np.percentile(ang, 95)), "angle_max_deg": float(ang.max()),
+            "altitude_diff_mean_deg": float(dalt.mean()), "altitude_diff_max_deg": float(np.abs(dalt).max()),
+            "declination_diff_max_deg": float(np.abs(dec_ref - dec_rad).max()),
+            "declination_diff_mean_deg": float((dec_ref - dec_rad).mean()),
+            "equation_of_time_diff_max_min": float(np.abs(eot_ref - eot_rad).max()),
+            "refraction_mean_deg": float(refr.mean()), "by_altitude": bands}
+
+
+def radiance_noise(scene, sensors, index, weather, args, t) -> dict:
+    """Radiance's scatter at sensors ``index``: rfluxmtx (two-phase settings) traces each ``args.noise_repeats``
+    times in one run (``-u+``: uncorrelated); the annual mean over the occupied hours of each trace.
+
+    Returns each sensor's mean of the traces (lux) and the traces' relative standard deviation."""
+    import pyradiance as pr
+
+    rays, opts = sensor_rays(sensors, index), rflux_options(args.ab, args.ad, args.threads)
+    with tempfile.TemporaryDirectory(prefix="dl-noise-") as tmp:
+        work = Path(tmp)
+        (work / "room.rad").write_text(scene_rad(scene))
+        (work / "sky.rad").write_text(SKY_RECEIVER)
+        t0 = time.perf_counter()
+        run([t["rfluxmtx"], *opts, "-", "sky.rad", "room.rad"], cwd=work, data=rays * args.noise_repeats,
+            out=work / "dc.mtx")
+        seconds = time.perf_counter() - t0
+        dc = read_matrix((work / "dc.mtx").read_bytes())                                     # (k r, 146, 3)
+    smx = read_matrix(pr.gendaymtx(weather.wea().encode(), header=True, outform="f", mfactor=1,
+                                   ground_color=[args.ground] * 3))                         # (146, h, 3)
+    occ = weather_occupied(weather.hour)
+    mean_sky = smx[:, occ].mean(axis=1)                                                     # (146, 3)
+    means = np.einsum("rpc,pc->r", dc, mean_sky * RADIANCE_Y).reshape(args.noise_repeats, len(index))
+    return {"sensors": [int(i) for i in index], "repeats": args.noise_repeats, "seconds": seconds,
+            "mean_lux": means.mean(axis=0), "rel_std": means.std(axis=0, ddof=1) / means.mean(axis=0)}
+
+
+#: Radiance's sun models: the per-hour sun at Radiance's position (the reference), the per-hour sun at pvlib's
+#: (SPA) position (hfrad's: like for like), the five-phase MF:6 suns, and two-phase (the sun spread over MF:1)
+VARIANTS = ("hour", "spa", "mf6", "two_phase")
 
 
 def radiance_side(scene, sensors, weather, args, t):
-    """Radiance's year (two-phase and five-phase totals, direct sun) summarised like hfrad's."""
+    """Radiance's year summarised like hfrad's, for each sun model of :data:`VARIANTS`."""
     repeat = 2 if args.noise else 1
     with tempfile.TemporaryDirectory(prefix="dl-radiance-") as tmp:
         r = radiance_year(scene, sensors, weather, ab=args.ab, ad=args.ad, threads=args.threads, work=Path(tmp), t=t,
-                          ground=args.ground, repeat=repeat)
+                          ground=args.ground, repeat=repeat,
+                          cache=Path(args.radiance_cache) if args.radiance_cache else None)
     tr = r["timings"]
-    print(f"  Radiance: rfluxmtx {tr['rfluxmtx_s']:.1f} s (x{repeat} sensors), direct sun {tr['sun_coefficients_s']:.1f} s",
+    print(f"  Radiance: rfluxmtx {tr['rfluxmtx_s']:.1f} s (x{repeat} sensors), suns per hour {tr['hour_suns_s']:.1f} s",
           flush=True)
     m, hour = len(sensors), weather.hour
-    second = r["lux"][m:]
-    for k in ("lux", "lux_five_phase", "direct_sun"):
-        r[k] = r[k][:m]
-    rs = summary(r["lux_five_phase"], r["direct_sun"], hour)
-    r2 = summary(r["lux"], r["direct_sun"], hour)
-    info = {"timings": r["timings"], "options": r["options"], "sun_options": r["sun_options"],
-            "two_phase_mean_lux": r2["mean_lux"], "two_phase_sDA": r2["sDA"]}
+    out = {v: summary(r["totals"][v][:m], r["direct"][v][:m], hour) for v in VARIANTS[:3]}
+    out["two_phase"] = summary(r["lux"][:m], r["spread_direct"][:m], hour)
+    info = {"timings": r["timings"], "options": r["options"], "sun_options": r["sun_options"]}
     if repeat == 2:
-        m2 = second[:, weather_occupied(hour)].mean(axis=1)
-        d = (r2["mean_lux"] - m2) / (0.5 * (r2["mean_lux"] + m2))
+        m2 = r["lux"][m:, weather_occupied(hour)].mean(axis=1)
+        m1 = out["two_phase"]["mean_lux"]
+        d = (m1 - m2) / (0.5 * (m1 + m2))
         info["noise_mean_lux_rel_rms"] = float(np.sqrt(np.mean(d ** 2)) / math.sqrt(2))
-    return rs, r2, info
+    return out, info
 
 
 def _reuse(path, name, sensors):
-    """Radiance's summary of case ``name`` from an earlier run's JSON (the same sensors), or None."""
+    """Radiance's summaries of case ``name`` from an earlier run's JSON (the same sensors), or None."""
     if not path:
         return None
     for r in json.loads(Path(path).read_text())["results"]:
         if r["case"] == name and np.allclose(r["points"], sensors.points):
-            R = dict(r["radiance"])
-            rs = {k: np.asarray(R.pop(k)) if k in ("mean_lux", "DA", "sun_hours") else R.pop(k)
-                  for k in ("sDA", "ASE", "mean_DA", "mean_UDI_useful", "mean_lux", "DA", "sun_hours")}
-            two = r["two_phase"]
-            r2 = {"mean_lux": np.asarray(two["radiance_mean_lux"]), "sDA": two["radiance_sDA"], "ASE": rs["ASE"]}
-            R.update({"two_phase_mean_lux": r2["mean_lux"], "two_phase_sDA": r2["sDA"], "reused_from": str(path)})
-            return rs, r2, R
+            R = r["radiance"]
+            if "variants" not in R:
+                raise SystemExit(f"{path}: case '{name}' has Radiance's results of an earlier version (MF:6 suns "
+                                 "only); run without --radiance-json (--radiance-cache keeps rfluxmtx's matrices)")
+            out = {v: {k: np.asarray(x) if isinstance(x, list) else x for k, x in R["variants"][v].items()}
+                   for v in VARIANTS}
+            return out, {**R["info"], "reused_from": str(path)}
     return None
 
 
@@ -356,26 +540,39 @@ def run_case(name: str, args, t: dict, weather) -> dict:
     hour = weather.hour
     reused = _reuse(args.radiance_json, name, sensors)
     if reused is None:
-        rs, r2, rinfo = radiance_side(scene, sensors, weather, args, t)
+        R, rinfo = radiance_side(scene, sensors, weather, args, t)
     else:
-        rs, r2, rinfo = reused
+        R, rinfo = reused
         print(f"  Radiance: reused from {args.radiance_json}", flush=True)
-    hs, h2 = summary(h["lux"], h["direct_sun"], hour), summary(h["lux_two_phase"], h["direct_sun"], hour)
     with tempfile.TemporaryDirectory(prefix="dl-suns-") as tmp:
-        h5 = summary(h["lux"], sun_on_radiance_suns(h["tracer"], sensors, weather, Path(tmp), t, args.ground), hour)
-    out = {"case": name, "room": CASES[name], "materials": MATERIALS, "patches": h["patches"], "rank": h["rank"],
-           "sensors": len(sensors), "spacing_m": args.spacing,
-           "hfrad": {**hs, "timings": h["timings"]},
-           "radiance": {**rs, **rinfo},
-           "compare": compare(hs, rs),
-           "two_phase": {"hfrad_mean_lux": h2["mean_lux"], "radiance_mean_lux": r2["mean_lux"],
-                         "hfrad_sDA": h2["sDA"], "radiance_sDA": r2["sDA"], "compare": compare(h2, r2)},
-           "sun_hours_rel": float(hs["sun_hours"].sum() / max(rs["sun_hours"].sum(), 1) - 1),
-           "hfrad_on_radiance_suns": {"ASE": h5["ASE"], "sun_hours": h5["sun_hours"],
-                                      "ASE_pp": 100 * (h5["ASE"] - rs["ASE"]),
-                                      "sun_hours_rel": float(h5["sun_hours"].sum() / max(rs["sun_hours"].sum(), 1) - 1)},
-           "points": sensors.points}
-    return out
+        along = hfrad_on_radiance_suns(h["tracer"], sensors, weather, Path(tmp), t, args.ground)
+    noise = None
+    if args.noise_at:            # Radiance's scatter where the two-phase years differ most
+        rel = summary(h["lux_two_phase"], h["spread_direct"], hour)["mean_lux"] / R["two_phase"]["mean_lux"] - 1
+        noise = radiance_noise(scene, sensors, np.argsort(-np.abs(rel))[:args.noise_at], weather, args, t)
+        noise["hfrad_rel_to_mean"] = (summary(h["lux_two_phase"], h["spread_direct"], hour)["mean_lux"][
+            noise["sensors"]] / noise["mean_lux"] - 1)
+        noise["first_run_rel"] = rel[noise["sensors"]]
+        print(f"  Radiance noise at {args.noise_at} sensors x {args.noise_repeats}: relative std "
+              f"{', '.join(f'{100 * x:.1f}%' for x in noise['rel_std'])}; hfrad against their mean "
+              f"{', '.join(f'{100 * x:+.1f}%' for x in noise['hfrad_rel_to_mean'])} (first run "
+              f"{', '.join(f'{100 * x:+.1f}%' for x in noise['first_run_rel'])})", flush=True)
+    base = h["lux"] - h["direct_sun"]
+    H = {"exact": summary(h["lux"], h["direct_sun"], hour),
+         "two_phase": summary(h["lux_two_phase"], h["spread_direct"], hour),
+         "on_hour_suns": summary(base + along["hour"], along["hour"], hour),
+         "on_mf6_suns": summary(base + along["mf6"], along["mf6"], hour)}
+    pairs = {"hour": ("exact", "hour"), "spa": ("exact", "spa"), "mf6": ("exact", "mf6"),
+             "two_phase": ("two_phase", "two_phase"), "same_suns_hour": ("on_hour_suns", "hour"),
+             "same_suns_mf6": ("on_mf6_suns", "mf6")}
+    return {"case": name, "room": CASES[name], "materials": MATERIALS, "patches": h["patches"], "rank": h["rank"],
+            "sensors": len(sensors), "spacing_m": args.spacing,
+            "hfrad": {**H, "timings": h["timings"]},
+            "radiance": {"variants": R, "info": rinfo},
+            "compare": {k: compare(H[a], R[b]) for k, (a, b) in pairs.items()},
+            "sun_positions": sun_positions(weather, along["hour_suns"]),
+            "radiance_noise": noise,
+            "points": sensors.points}
 
 
 def main() -> None:
@@ -390,8 +587,15 @@ def main() -> None:
     p.add_argument("--ad", type=int, default=50000)
     p.add_argument("--threads", type=int, default=len(os.sched_getaffinity(0)))
     p.add_argument("--noise", action="store_true", help="trace each sensor twice in Radiance (-u+) for its noise")
+    p.add_argument("--noise-at", type=int, default=0,
+                   help="trace the N sensors where the two-phase years differ most again in Radiance, "
+                        "--noise-repeats times each, for Radiance's scatter there")
+    p.add_argument("--noise-repeats", type=int, default=8)
     p.add_argument("--radiance-json", default=None,
                    help="reuse Radiance's results of the same case and sensors from an earlier run's JSON")
+    p.add_argument("--radiance-cache", default=None,
+                   help="folder keeping Radiance's daylight coefficient matrices (rfluxmtx), reused when the "
+                        "scene, sensors and options are the same")
     p.add_argument("--weather", default=None, help="TMY3/EPW (default: pvlib's Greensboro TMY3)")
     p.add_argument("--name", default="daylight-radiance")
     args = p.parse_args()
@@ -405,26 +609,39 @@ def main() -> None:
     m = machine()
     print(machine_line(m))
     results = [run_case(c.strip(), args, t, weather) for c in args.cases.split(",")]
-    rows = []
+    names = {"hour": "per hour, Radiance's position", "spa": "per hour, pvlib's (SPA) position",
+             "mf6": "five-phase MF:6 patch centres", "two_phase": "two-phase (spread over MF:1)"}
+    rows, trows = [], []
     for r in results:
-        H, R, C, T = r["hfrad"], r["radiance"], r["compare"], r["two_phase"]
-        rt = R["timings"]
-        rows.append({"case": r["case"], "sensors": r["sensors"], "patches": r["patches"],
-                     "mean lx hfrad": float(H["mean_lux"].mean()), "mean lx Radiance": float(R["mean_lux"].mean()),
-                     "sensor max |rel|": C["mean_lux_rel_max_abs"], "sensor RMS rel": C["mean_lux_rel_rms"],
-                     "2-phase max |rel|": T["compare"]["mean_lux_rel_max_abs"],
-                     "2-phase RMS rel": T["compare"]["mean_lux_rel_rms"],
-                     "sDA hfrad %": 100 * H["sDA"], "sDA Radiance %": 100 * R["sDA"],
-                     "ASE hfrad %": 100 * H["ASE"], "ASE Radiance %": 100 * R["ASE"],
-                     "ASE hfrad, Radiance's suns %": 100 * r["hfrad_on_radiance_suns"]["ASE"],
-                     "hfrad precompute s": H["timings"]["precompute_s"], "hfrad year s": H["timings"]["year_s"],
-                     "Radiance 2-phase s": rt["convert_s"] + rt["rfluxmtx_s"] + rt["gendaymtx_s"] + rt["dctimestep_s"],
-                     "Radiance 5-phase extra s": rt["direct_coefficients_s"] + rt["sun_coefficients_s"]
-                     + rt["sun_year_s"]})
-    cols = list(rows[0].keys())
-    print_table(f"hfrad vs Radiance two-phase (rfluxmtx -ab {args.ab} -ad {args.ad}), Greensboro TMY3", rows, cols)
-    print(table(rows, cols, markdown=True))
-    path = write_json(args.name, {"machine": m, "args": vars(args), "results": results, "table": rows})
+        H, R, C = r["hfrad"], r["radiance"]["variants"], r["compare"]
+        for v in VARIANTS:
+            h = H["two_phase" if v == "two_phase" else "exact"]
+            same = {"hour": "on_hour_suns", "mf6": "on_mf6_suns"}.get(v)
+            rows.append({"case": r["case"], "Radiance's sun": names[v],
+                         "mean lx hfrad": float(h["mean_lux"].mean()),
+                         "mean lx Radiance": float(R[v]["mean_lux"].mean()),
+                         "sensor max |rel|": C[v]["mean_lux_rel_max_abs"], "sensor RMS rel": C[v]["mean_lux_rel_rms"],
+                         "sDA hfrad %": 100 * h["sDA"], "sDA Radiance %": 100 * R[v]["sDA"],
+                         "ASE hfrad %": 100 * h["ASE"], "ASE Radiance %": 100 * R[v]["ASE"],
+                         "ASE hfrad on Radiance's suns %": 100 * H[same]["ASE"] if same else float("nan")})
+        ht, rt = H["timings"], r["radiance"]["info"]["timings"]
+        trows.append({"case": r["case"], "sensors": r["sensors"], "patches": r["patches"],
+                      "hfrad precompute s": ht["precompute_s"], "hfrad year s": ht["year_s"],
+                      "Radiance 2-phase s": rt["convert_s"] + rt["rfluxmtx_s"] + rt["gendaymtx_s"] + rt["dctimestep_s"],
+                      "Radiance suns per hour s": rt["hour_suns_s"],
+                      "Radiance 5-phase MF:6 s": rt["direct_coefficients_s"] + rt["sun_coefficients_s"]
+                      + rt["sun_year_s"]})
+        sp = r["sun_positions"]
+        print(f"{r['case']}: Radiance's sun vs pvlib SPA over {sp['sunlit_hours']} sunlit hours: "
+              f"{sp['angle_mean_deg']:.2f} deg mean, {sp['angle_p95_deg']:.2f} p95, {sp['angle_max_deg']:.2f} max; "
+              f"altitude {sp['altitude_diff_mean_deg']:+.2f} deg mean (SPA higher)")
+    for title, rr in ((f"hfrad vs Radiance (rfluxmtx -ab {args.ab} -ad {args.ad}), Greensboro TMY3", rows),
+                      ("timings, s", trows)):
+        cols = list(rr[0].keys())
+        print_table(title, rr, cols)
+        print(table(rr, cols, markdown=True))
+    path = write_json(args.name, {"machine": m, "args": vars(args), "results": results, "table": rows,
+                                  "timings": trows})
     print(f"wrote {path}")
 
 

@@ -392,6 +392,22 @@ def test_refined_first_hits_match_dense_rays():
     assert coarse > 2 * refined                 # observed 4.9%
 
 
+def test_first_hit_progress_moves_through_the_refinement():
+    """The progress callback counts the first pass's patches, then the refinement's rays as many steps again:
+    monotone, one total throughout, ending at it, with steps between (a bar does not stall at the edges)."""
+    scene = sidelit_room(6, 12, 3, sill=0.9, head=2.7, margin=0.5, max_edge=3.0)
+    patches = SkyPatches(1)
+    pts = np.array([[x, 0.8, z] for x in (1.3, 4.6) for z in (2.0, 9.5)])
+    calls = []
+    first_hit(GlazingTracer(scene), patches, pts, np.tile([0.0, 1.0, 0.0], (len(pts), 1)), k=4, refine=4,
+              progress=lambda done, total: calls.append((done, total)), batch=2048)
+    n = len(patches)
+    done = [d for d, _ in calls]
+    assert {t for _, t in calls} == {2 * n}
+    assert done == sorted(done) and calls[-1] == (2 * n, 2 * n)
+    assert len({d for d in done if n < d < 2 * n}) >= 3
+
+
 def test_panes_multiply_and_opaque_faces_block():
     """Two panes above a point transmit the product of their transmittances; an opaque face above them blocks."""
     def quad(y):
@@ -447,3 +463,26 @@ def test_first_hits_against_radiance_rfluxmtx(tmp_path):
     alt, azi = patches.alt_range.mean(axis=1), patches.azi_range.mean(axis=1)
     for w in (np.ones(len(alt)), 1.2 + np.sin(azi), 1.2 - np.sin(azi), 1 + 3 * np.sin(alt)):
         assert np.allclose(H @ w, R @ w, rtol=0.02)      # observed 0.1-0.5%
+
+
+def test_direct_sun_against_radiance_rcontrib_along_the_same_suns(black_room, weather, tmp_path):
+    """hfrad's direct sun of every hour against Radiance's ``rcontrib -ab 0`` with one 0.533 degree ``light``
+    sun per sunlit hour along the same (SPA) direction and direct-normal radiance, through Radiance's
+    ``glass``: the benchmark's like-for-like sun (its ASE and sun hours equal hfrad's)."""
+    if not all(shutil.which(b) for b in ("rcontrib", "oconv")):
+        pytest.skip("pyradiance's Radiance binaries (rcontrib, oconv) are missing")
+    bench = _radiance_bench()
+    scene, fac = black_room
+    grid = _sensors(np.array([[2.0, 0.8, 2.5], [1.0, 0.8, 3.5], [3.2, 0.8, 4.5]]), [[0, 1, 0]] * 3)
+    sky, sun = sky_matrices(weather, 1)
+    S = DaylightModel(fac, rays=2).direct_sun(grid, weather, sun)                       # (3, h) lux
+    spa = bench.spa_suns(weather, sun)
+    (tmp_path / "black.rad").write_text(bench.scene_rad(scene, black=True))
+    (tmp_path / "spa_suns.rad").write_text(spa["rad"])
+    (tmp_path / "spa_suns.mod").write_text(spa["mod"])
+    tools = {"oconv": shutil.which("oconv"), "rcontrib": shutil.which("rcontrib")}
+    R = bench.sun_year(tmp_path, tools, bench.sensor_rays(grid), "spa_suns.rad", "spa_suns.mod", spa["hour"],
+                       len(weather.hour), 1)
+    assert (S > 0).sum(axis=1).min() > 200 and ((S > 0) == (R > 0)).all()   # the same sunlit hours at each sensor
+    assert np.abs(S - R).max() < 1e-4 * S.max()                   # observed 2e-6 (float32, Radiance's 7 digits)
+    assert np.allclose(S.sum(axis=1), R.sum(axis=1), rtol=1e-4)   # observed 2e-6

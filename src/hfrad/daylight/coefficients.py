@@ -87,7 +87,8 @@ def first_hit(tracer: GlazingTracer, patches: SkyPatches, points: np.ndarray, no
         first-hit light is within 1% of 64^2 rays in every patch; 8^2 rays everywhere are 3-4% off.
     north : float, degrees (see :func:`direction`)
     progress : callable (done, total), optional
-        Sky patches done (the first pass).
+        Sky patches done in the first pass; with ``refine`` the total is twice the patch count and the
+        second half follows the refinement's rays (so that a bar keeps moving while edges are refined).
     batch : int
         Rays per call to the tracer: directions of several patches go together, so that
         Embree's batches are large enough for all its threads.
@@ -104,7 +105,9 @@ def first_hit(tracer: GlazingTracer, patches: SkyPatches, points: np.ndarray, no
     q, n_patch = len(P), len(patches)
     out = np.zeros((q, 3, n_patch))
     counts = np.zeros((2, q, n_patch), np.int64) if refine > 1 else None
-    _accumulate(out, counts, tracer, P, N, *_directions(patches, k, north), batch, progress)
+    total = 2 * n_patch if refine > 1 else n_patch
+    first = (lambda done, _: progress(done, total)) if progress is not None else None
+    _accumulate(out, counts, tracer, P, N, *_directions(patches, k, north), batch, first)
     if refine > 1:
         # refined: patches seen in part, and patches next to one seen otherwise (hidden, in part, whole):
         # a window's edge near a patch's border can pass between all of its coarse rays
@@ -114,14 +117,19 @@ def first_hit(tracer: GlazingTracer, patches: SkyPatches, points: np.ndarray, no
         partial = (through | blocked) & (state[:, :, 1] | (near & ~state).any(axis=2))
         fine = [(direction(alt, azi, north), patches.solid_angle[p] / len(alt))
                 for p, (alt, azi) in enumerate(patches.samples(k * refine))]
-        group, rays = [], 0
+        groups, rays = [[]], [0]
         for p in np.flatnonzero(partial.any(axis=0)):
-            group.append((p, np.flatnonzero(partial[:, p])))
-            rays += len(group[-1][1]) * len(fine[p][0])
-            if rays >= batch:
-                _refine(out, tracer, P, N, group, fine)
-                group, rays = [], 0
-        _refine(out, tracer, P, N, group, fine)
+            groups[-1].append((p, np.flatnonzero(partial[:, p])))
+            rays[-1] += len(groups[-1][-1][1]) * len(fine[p][0])
+            if rays[-1] >= batch:
+                groups.append([])
+                rays.append(0)
+        done, all_rays = 0, max(sum(rays), 1)
+        for group, r in zip(groups, rays):
+            _refine(out, tracer, P, N, group, fine)
+            done += r
+            report(progress, n_patch + (n_patch * done) // all_rays, total)
+        report(progress, total, total)
     return out
 
 

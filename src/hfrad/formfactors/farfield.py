@@ -32,13 +32,13 @@ from typing import Iterator
 
 import numpy as np
 import scipy.linalg as sla
-from numba import njit, prange
 
 from ..errors import InputError
 from ..progress import ProgressCallback, report
 from ..resources import blas_threads
 from .clustervis import BLOCKED, CLUSTER_SIZE, MIXED, VISIBLE
 from .engine import FormFactorEngine
+from .pieces import BlockPieces
 
 __all__ = ["FarFieldOptions", "FarFieldStats", "FarFieldCertificate", "SampledFarField", "patch_boxes",
            "near_leaves", "near_rows", "skeleton", "sampled_column_blocks", "FAR_FIELD_CHOICES"]
@@ -126,6 +126,8 @@ class FarFieldStats:
     exact_groups: int = 0          # groups computed exactly (few far rows, or did not compress)
     refined_groups: int = 0        # groups whose sample grew after a failed check
     refinements: int = 0           # sample doublings in all
+    piece_blocks: int = 0          # blocks handed on in pieces (dense rows + W X), not dense
+    dense_rows: int = 0            # rows held densely in those blocks, summed
     skeleton: list = field(default_factory=list)   # skeleton columns of each group (0: exact)
 
     def as_dict(self, n: int) -> dict:
@@ -138,6 +140,8 @@ class FarFieldStats:
                 "skeleton_pairs": int(self.skeleton_pairs), "certify_pairs": int(self.certify_pairs),
                 "blocks": int(self.blocks), "groups": int(self.groups), "exact_groups": int(self.exact_groups),
                 "refined_groups": int(self.refined_groups), "refinements": int(self.refinements),
+                "piece_blocks": int(self.piece_blocks),
+                "dense_row_share": self.dense_rows / max(self.piece_blocks * n, 1),
                 "skeleton_mean": float(sk.mean()), "skeleton_max": int(sk.max())}
 
 
@@ -370,27 +374,31 @@ class SampledFarField:
             setattr(self.stats, counter, getattr(self.stats, counter) + F.size)
         return F
 
-    def block(self, j: int) -> tuple[np.ndarray, np.ndarray]:
-        """Column block ``j`` of F (n x b, float64, internal order) and the exact rows at ``exact_rows``."""
+    def block(self, j: int) -> tuple[BlockPieces, np.ndarray]:
+        """Column block ``j`` of F (n x b, internal order, float64) in pieces (exact rows and the
+        far rows' skeleton factors, never the dense block), and the exact rows at ``exact_rows``."""
         n, b0 = self.n, self.block_size
         start, stop = j * b0, min(n, (j + 1) * b0)
         cols = self.order[start:stop]
         rng = np.random.default_rng([self.options.seed, j])
         self.stats.blocks += 1
-        out = np.empty((n, cols.size))
         # one BLAS thread: the pivoted QRs are small, and OpenBLAS's threads spin against the
         # kernel's and Embree's (a 96 x 256 geqp3 took 0.23 s with two, 4 ms with one)
         with blas_threads(1):
-            for a, c, box in self._groups(start, stop):
-                self._group(out[:, a - start:c - start], self.order[a:c], box, rng)
+            parts = [(a - start, self._group(self.order[a:c], box, rng)) for a, c, box in self._groups(start, stop)]
+        pieces = _assemble_pieces(n, cols.size, parts)
+        if not pieces.is_dense:
+            self.stats.piece_blocks += 1
+            self.stats.dense_rows += pieces.rows.size
         # the rows a caller wants exact (the per-solve figure's, the certificate's): evaluated,
         # beside what the decomposition saw
         checks = [c for c in (self.certificate, self.holdout) if c is not None]
         wanted = np.unique(np.concatenate([self.exact_rows, *(c.index for c in checks)]))
         exact = self._eval(wanted, cols, "certify_pairs")
         for c in checks:
-            c.add(exact[np.searchsorted(wanted, c.index)], out[c.index], self.rho, self.weights, start, stop)
-        return out, exact[np.searchsorted(wanted, self.exact_rows)]
+            c.add(exact[np.searchsorted(wanted, c.index)], pieces.take_rows(c.index), self.rho, self.weights,
+                  start, stop)
+        return pieces, exact[np.searchsorted(wanted, self.exact_rows)]
 
     def _groups(self, a: int, c: int) -> list:
         """Compact pieces ``(a, c, box)`` of columns ``a:c``: a Z-order range can jump across the
@@ -403,9 +411,9 @@ class SampledFarField:
         mid = (a + c) // 2
         return self._groups(a, mid) + self._groups(mid, c)
 
-    def _group(self, out: np.ndarray, cols: np.ndarray, box, rng) -> None:
-        """Fill ``out`` (n x len(cols)): near rows and rows whose visibility is mixed exactly, the
-        other far rows by a checked decomposition of the unoccluded kernel times their visibility."""
+    def _group(self, cols: np.ndarray, box, rng) -> "_GroupPart":
+        """One column group: near rows and rows whose visibility is mixed exactly, the other far
+        rows by a checked decomposition of the unoccluded kernel times their visibility."""
         opt, n = self.options, self.n
         near = near_rows(self.patch_lo, self.patch_hi, self.lo, self.hi, box, opt.eta, self.block_size,
                          self.near_radius)
@@ -417,7 +425,7 @@ class SampledFarField:
         mixed = (state == MIXED).any(axis=1)
         is_near[far[mixed]] = True
         exact = np.flatnonzero(is_near)                    # near and mixed rows, sorted
-        out[exact] = self._eval(exact, cols, "near_pairs")
+        values = self._eval(exact, cols, "near_pairs")
         self.stats.mixed_pairs += int(mixed.sum()) * cols.size
         clean_pos = np.flatnonzero(~mixed)
         clean = far[clean_pos]
@@ -428,11 +436,22 @@ class SampledFarField:
             return seen[np.ix_(i, inv_c[k])]
 
         if clean.size <= max(2 * opt.rows, cols.size):     # little to gain: every pair
-            out[clean] = self._eval(clean, cols, "near_pairs")
-            self._count_exact()
-            return
-        norm2 = float(np.square(out[exact] * self.rho[exact, None]).sum())
-        self._far_part(out, clean, visible, norm2, cols, rng)
+            return self._exact_group(exact, values, clean, cols)
+        norm2 = float(np.square(values * self.rho[exact, None]).sum())
+        found = self._far_part(clean, visible, norm2, cols, rng)
+        if found is None:
+            return self._exact_group(exact, values, clean, cols)
+        S, X, F_S = found
+        return _GroupPart(exact, values, clean, F_S, X)
+
+    def _exact_group(self, exact, values, clean, cols) -> "_GroupPart":
+        """A group computed pair by pair: its clean rows evaluated too."""
+        rows = np.union1d(exact, clean)
+        out = np.empty((rows.size, cols.size))
+        out[np.searchsorted(rows, exact)] = values
+        out[np.searchsorted(rows, clean)] = self._eval(clean, cols, "near_pairs")
+        self._count_exact()
+        return _GroupPart(rows, out, np.zeros(0, np.int64), None, None)
 
     def _visibility(self, far: np.ndarray, cols: np.ndarray):
         """Visibility of each far row to each cluster of ``cols``: VISIBLE, BLOCKED or MIXED.
@@ -487,14 +506,18 @@ class SampledFarField:
         pick = lo[:, None] + ((hi - lo)[:, None] * (2 * np.arange(k) + 1)) // (2 * k)
         return self._cluster_members[pick]
 
-    def _far_part(self, out: np.ndarray, rows: np.ndarray, visible, norm2: float, cols: np.ndarray,
-                  rng) -> None:
-        """Fill ``out[rows]`` by an interpolative decomposition checked on held-out rows.
+    def _far_part(self, rows: np.ndarray, visible, norm2: float, cols: np.ndarray, rng):
+        """An interpolative decomposition of ``F[rows, cols]`` checked on held-out rows.
 
         ``rows``: far rows whose cluster pairs with the columns are all or nothing, so their
         F is the unoccluded kernel times ``visible(i, k)`` (0/1, ``i`` positions in ``rows``):
         no ray is cast. ``norm2``: ``||G||^2`` of the group's exact rows; the tolerance is
         relative to it plus the far rows' norm estimated from the sampled rows.
+
+        Returns
+        -------
+        (S (s,), X (s, b), F_S (len(rows), s)): ``F[rows, cols] ~ F_S X``, ``F_S = F[rows, cols[S]]``;
+        or None where the check failed ``options.rounds`` times (the caller computes the group).
         """
         opt, b = self.options, cols.size
         every = np.arange(b)
@@ -520,10 +543,8 @@ class SampledFarField:
                 if err2 <= tol2:
                     break
             if refined >= opt.rounds or sample.size + check.size >= rows.size // 2:
-                out[rows] = self._eval(rows, cols, "near_pairs")
-                self._count_exact()
                 self._count_refined(refined)
-                return
+                return None
             # the check failed: the held-out rows join the sample, and as many new rows are held out
             refined += 1
             sample = np.concatenate([sample, check])
@@ -533,8 +554,8 @@ class SampledFarField:
             G_check = G(check)
         self._count_refined(refined)
         F_S = self._kernel(rows, cols[S], "skeleton_pairs") * visible(np.arange(rows.size), S)
-        _interpolate_rows(out, rows, F_S, X, S)
         self.stats.skeleton.append(int(S.size))
+        return S, X, F_S
 
     def _count_exact(self) -> None:
         self.stats.exact_groups += 1
@@ -546,28 +567,54 @@ class SampledFarField:
             self.stats.refinements += refined
 
 
-@njit(cache=True, parallel=True, nogil=True)
-def _interpolate_rows(out, rows, F_S, X, S):  # pragma: no cover (numba)
-    """``out[rows] = F_S X`` in one pass, the skeleton columns ``S`` exactly ``F_S`` (no n x b temporary)."""
-    s, b = X.shape
-    for r in prange(rows.size):
-        i = rows[r]
-        for c in range(b):
-            acc = 0.0
-            for q in range(s):
-                acc += F_S[r, q] * X[q, c]
-            out[i, c] = acc
-        for q in range(s):
-            out[i, S[q]] = F_S[r, q]
+@dataclass
+class _GroupPart:
+    """What one column group gave: ``rows`` computed pair by pair (``values``: len(rows) x b_g),
+    the ``clean`` rows (the rest) as ``F_S X`` (None for a group computed wholly)."""
+
+    rows: np.ndarray
+    values: np.ndarray
+    clean: np.ndarray
+    F_S: np.ndarray | None
+    X: np.ndarray | None
+
+
+def _assemble_pieces(n: int, b: int, parts: list) -> BlockPieces:
+    """The block's pieces from its groups ``(column offset, _GroupPart)``.
+
+    Rows computed pair by pair in any group are held densely (in the other groups their
+    values come from those groups' ``F_S X``); every other row is clean in every group, so
+    it is the row of ``W X`` with ``W`` the groups' ``F_S`` side by side and ``X`` their
+    interpolations, block diagonal. A group computed wholly makes every row dense.
+    """
+    dense_rows = np.unique(np.concatenate([p.rows for _, p in parts]))
+    far = np.setdiff1d(np.arange(n, dtype=np.int64), dense_rows, assume_unique=True)
+    widths = [0 if p.X is None else p.X.shape[0] for _, p in parts]
+    D = np.empty((dense_rows.size, b))
+    W = np.empty((far.size, sum(widths)))
+    X = np.zeros((sum(widths), b))
+    k = 0
+    for (offset, p), s in zip(parts, widths):
+        cols = slice(offset, offset + p.values.shape[1])
+        D[np.searchsorted(dense_rows, p.rows), cols] = p.values
+        if p.X is None:
+            continue
+        others = np.setdiff1d(dense_rows, p.rows, assume_unique=True)     # clean here, dense elsewhere
+        D[np.searchsorted(dense_rows, others), cols] = p.F_S[np.searchsorted(p.clean, others)] @ p.X
+        W[:, k:k + s] = p.F_S[np.searchsorted(p.clean, far)]
+        X[k:k + s, cols] = p.X
+        k += s
+    return BlockPieces(n, dense_rows, D, far, W, X)
 
 
 def sampled_column_blocks(producer: SampledFarField, dtype=np.float64, first_block: int = 0,
-                          progress: ProgressCallback = None) -> Iterator[tuple[int, int, np.ndarray, np.ndarray]]:
-    """Yield ``(start, stop, block, exact_rows)`` for every column block, as :func:`iter_column_blocks`
-    yields ``(start, stop, block)``; ``exact_rows`` are the exact rows at ``producer.exact_rows``."""
+                          progress: ProgressCallback = None) -> Iterator[tuple[int, int, BlockPieces, np.ndarray]]:
+    """Yield ``(start, stop, pieces, exact_rows)`` for every column block, as :func:`iter_column_blocks`
+    yields ``(start, stop, block)`` (here :class:`BlockPieces`: never the dense block);
+    ``exact_rows`` are the exact rows at ``producer.exact_rows``."""
     n, b = producer.n, producer.block_size
     for j in range(first_block, -(-n // b)):
         block, exact = producer.block(j)
         stop = min(n, (j + 1) * b)
         report(progress, stop, n)
-        yield j * b, stop, block.astype(dtype, copy=False), exact
+        yield j * b, stop, block.astype(dtype), exact

@@ -35,6 +35,7 @@ import numpy as np
 import scipy.linalg as sla
 
 from ..errors import FactorizationError, InputError
+from ..formfactors.pieces import BlockPieces
 from ..progress import ProgressCallback, report
 from ..resources import spare_threads
 from ..validation import check_tolerance
@@ -390,22 +391,25 @@ class HFStream:
         return int(sum(node.s.size for node in self.stack))
 
     def push(self, block: np.ndarray, norm2: float | None = None, *, block_norm2: float | None = None) -> None:
-        """Compress the next column block (n x b) and merge along the binary counter.
+        """Compress the next column block (n x b, an array or
+        :class:`~hfrad.formfactors.pieces.BlockPieces`) and merge along the binary counter.
 
         ``norm2`` overrides ``||block||_F^2`` as the measure the relative error
         budget is taken from (the near-field split passes the norm of the block
         before its near entries were moved out, so eps stays relative to ``||G||_F``);
         ``block_norm2`` is ``||block||_F^2`` (float64) when the caller has it.
         """
-        A = np.asarray(block, dtype=self.dtype)
+        pieces = isinstance(block, BlockPieces)
+        A = block.astype(self.dtype) if pieces else np.asarray(block, dtype=self.dtype)
         j = self.blocks_done
-        if A.ndim != 2 or A.shape[0] != self.n:
+        if len(A.shape) != 2 or A.shape[0] != self.n:
             raise InputError(f"column block {j} must have shape ({self.n}, b); got {A.shape}")
         if j >= self.n_blocks:
             raise InputError(f"more than the announced n_blocks={self.n_blocks} column blocks were pushed")
         with spare_threads():   # a caller's BLAS threads, fewer where other processes want the cores
             t = time.perf_counter()
-            node = compress_leaf(A, self._budget, j, norm2, block_norm2)
+            leaf = compress_leaf_pieces if pieces else compress_leaf
+            node = leaf(A, self._budget, j, norm2, block_norm2)
             self.leaf_ranks.append(node.s.size)
             self.time_leaf += time.perf_counter() - t
             t = time.perf_counter()
@@ -454,6 +458,34 @@ def compress_leaf(A: np.ndarray, budget: ErrorBudget, j: int, norm2: float | Non
     if norm2 is None:
         norm2 = a2 = frobenius2(A) if a2 is None else a2
     return _leaf(A, norm2, budget.leaf(norm2), j, a2)
+
+
+def compress_leaf_pieces(P: BlockPieces, budget: ErrorBudget, j: int, norm2: float | None = None,
+                         block_norm2: float | None = None) -> _Node:
+    """:func:`compress_leaf` of a block in pieces, ``A = P_E D + P_R W X``, never forming A.
+
+    ``W = Q R`` (thin QR, n s^2 flops for s skeleton columns) gives ``A = [P_E, P_R Q] C`` with
+    ``C = [D; R X]`` ((m + s) x b) and ``[P_E, P_R Q]`` orthonormal (disjoint rows), so the
+    truncated SVD of the small C is that of A, with the same discard; its left factor is lifted
+    to n rows. ``A`` in the working dtype.
+    """
+    if P.is_dense:
+        return compress_leaf(P.to_dense(), budget, j, norm2, block_norm2)
+    dtype = P.dtype
+    Q, R = sla.qr(np.asarray(P.W, np.float64), mode="economic", check_finite=False)
+    m = P.rows.size
+    C = np.empty((m + R.shape[0], P.X.shape[1]), dtype)
+    C[:m] = P.dense
+    C[m:] = R @ P.X
+    a2 = frobenius2(C)
+    if norm2 is None:
+        norm2 = a2
+    node = _leaf(C, norm2, budget.leaf(norm2), j, a2)
+    U = np.empty((P.n, node.s.size), dtype)
+    U[P.rows] = node.U[:m]
+    U[P.far] = Q.astype(dtype) @ node.U[m:]
+    node.U = U
+    return node
 
 
 def merge_nodes(left: _Node, right: _Node, budget: ErrorBudget, where: str) -> _Node:

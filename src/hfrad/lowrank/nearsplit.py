@@ -24,6 +24,8 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
+from ..formfactors.pieces import BlockPieces
+
 __all__ = ["NearFieldSplit", "near_radius", "DEFAULT_NEAR_ENTRIES"]
 
 #: Facing neighbours per row the default radius aims at: patches that can exchange light
@@ -106,17 +108,29 @@ class NearFieldSplit:
         self.values: list[np.ndarray] = []
         self.moved2 = 0.0
 
-    def split(self, block: np.ndarray, start: int) -> np.ndarray:
+    def split(self, block, start: int):
         """Move the near entries of ``block`` (= G[:, start:start + b]) out; zeroes them in place.
 
-        Returns ``block`` (now ``G - N`` on those columns).
+        ``block``: an array, or :class:`~hfrad.formfactors.pieces.BlockPieces` (its rows that
+        hold near entries are then made dense first).
+
+        Returns ``block`` (now ``G - N`` on those columns; pieces: new pieces).
         """
         b = block.shape[1]
         lists = self._tree.query_ball_point(self.centroids[start:start + b], self.radius)
         counts = np.fromiter((len(x) for x in lists), np.int64, count=b)
         r = np.fromiter((i for x in lists for i in x), np.int64, count=int(counts.sum()))
         c = np.repeat(np.arange(b, dtype=np.int64), counts)
-        v = block[r, c]
+        if isinstance(block, BlockPieces):
+            pieces = block.with_dense_rows(np.unique(r))
+            self._move(pieces.dense, np.searchsorted(pieces.rows, r), r, c, start)
+            return pieces
+        self._move(block, r, r, c, start)
+        return block
+
+    def _move(self, dense: np.ndarray, at: np.ndarray, r: np.ndarray, c: np.ndarray, start: int) -> None:
+        """Move entries ``dense[at, c]`` (rows ``r`` of G) into the lists and zero them."""
+        v = dense[at, c]
         keep = v != 0
         self.rows.append(r[keep])
         self.cols.append(c[keep] + start)
@@ -124,8 +138,7 @@ class NearFieldSplit:
         self.values.append(moved)
         #: the squares of the entries the last :meth:`split` moved out, summed (float64)
         self.moved2 = float(np.dot(moved, moved))
-        block[r, c] = 0
-        return block
+        dense[at, c] = 0
 
     def state(self) -> dict:
         """The near entries so far as three arrays (for checkpoints)."""

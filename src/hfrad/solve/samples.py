@@ -39,6 +39,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from ..formfactors.pieces import column_squares, product, rows_of
+
 __all__ = ["SampledRows", "SolutionError", "SAMPLE_SEED", "ROUGH_SAFETY", "Z_SAMPLING",
            "FIGURE_FAILURE_PROBABILITY", "SAMPLE_SHARE", "max_residual_rows"]
 
@@ -64,8 +66,6 @@ ROUGH_SAFETY = 2.0
 #: One-sided normal tail of Z_SAMPLING standard errors: the stated chance that a sampled sum is
 #: above its upper figure (a normal approximation; the amplification factor itself is exact).
 FIGURE_FAILURE_PROBABILITY = 0.5 * math.erfc(Z_SAMPLING / math.sqrt(2.0))
-#: Rows of a column block squared in float64 at a time for the first-bounce norms.
-BOUNCE_SLAB = 8192
 #: The first-bounce lower bound is taken this much smaller: the F it was summed from is float32, as
 #: are the rows (a margin far above the rounding of either, far below the figure's own slack).
 BOUNCE_ROUNDING = 1.0 - 1e-3
@@ -212,37 +212,31 @@ class SampledRows:
         """(m1 + m2,) the patches whose rows are recorded: ``index`` then ``smooth_index``."""
         return np.concatenate([self.index, self.smooth_index])
 
-    def record(self, start: int, stop: int, F_block: np.ndarray, exact: np.ndarray | None = None) -> None:
-        """Record columns ``start:stop`` of F (all n rows, internal order).
+    def record(self, start: int, stop: int, F_block, exact: np.ndarray | None = None) -> None:
+        """Record columns ``start:stop`` of F (all n rows, internal order; an array or
+        :class:`~hfrad.formfactors.pieces.BlockPieces`).
 
         ``exact`` ((m1 + m2, b), the rows at :attr:`row_patches`): given where ``F_block`` is an
         approximation (the sampled far field), so the recorded rows stay exact.
         """
         every = self.row_patches
-        self.rows[:, start:stop] = F_block[every] if exact is None else exact
+        self.rows[:, start:stop] = rows_of(F_block, every) if exact is None else exact
         self.span = (start, stop) if self.span is None else (min(self.span[0], start), max(self.span[1], stop))
         if self.products is not None:
-            Fs = np.asarray(F_block[self.smooth_index] if exact is None else exact[self.index.size:],
+            Fs = np.asarray(rows_of(F_block, self.smooth_index) if exact is None else exact[self.index.size:],
                             np.float64)                                        # (m2, b), exact rows
             scale = self.reflectance[start:stop] / self.weights[start:stop, None]   # (b, 3) rho_jc / A_j
             Y = Fs.T[:, :, None] * scale[:, None, :]                           # (b, m2, 3)
             b = stop - start
             # in F's dtype (a float64 copy of an n x b block would cost 8 n b bytes), summed in float64
-            product = np.asarray(F_block) @ Y.reshape(b, -1).astype(F_block.dtype)
-            self.products += product.reshape(self.products.shape)
+            self.products += product(F_block, Y.reshape(b, -1)).reshape(self.products.shape)
         if self.bounce is not None:
             self.bounce[start:stop] = self._column_bounce(F_block)
 
-    def _column_bounce(self, F_block: np.ndarray) -> np.ndarray:
-        """(b, 3) ``sum_i w_i rho_ic^2 F_ip^2`` of a column block, summed in float64 over slabs of rows
-        (a float64 copy of the whole n x b block would cost 8 n b bytes)."""
-        n = F_block.shape[0]
+    def _column_bounce(self, F_block) -> np.ndarray:
+        """(b, 3) ``sum_i w_i rho_ic^2 F_ip^2`` of a column block, in float64."""
         scale = self.reflectance ** 2 * (1.0 if self.weights is None else self.weights[:, None])   # (n, 3)
-        out = np.zeros((F_block.shape[1], 3))
-        for lo in range(0, n, BOUNCE_SLAB):
-            slab = np.square(np.asarray(F_block[lo:lo + BOUNCE_SLAB], np.float64))
-            out += slab.T @ scale[lo:lo + BOUNCE_SLAB]
-        return out
+        return column_squares(F_block, scale)
 
     # -- state (checkpoints, .hfr files, Dask parts) ----------------------------
     def state(self) -> dict:

@@ -16,6 +16,7 @@ import numpy as np
 from numba import njit, prange
 
 from ..formfactors.farfield import FarFieldCertificate
+from ..formfactors.pieces import BlockPieces
 from .bounds import contraction_bound, reflection_gain_bound
 from .readonly import read_only
 from .samples import SAMPLE_SHARE, SampledRows
@@ -124,7 +125,8 @@ class PassStatistics:
         ``out``: an array of F_block's shape and dtype to write G into (a buffer reused from
         block to block: fresh pages for every n x b block cost page faults); else a new one.
         ``exact_rows``: the exact rows of F at the sampled rows' patches where ``F_block`` is
-        an approximation (:meth:`SampledRows.record`).
+        an approximation (:meth:`SampledRows.record`). ``F_block`` may be
+        :class:`~hfrad.formfactors.pieces.BlockPieces` (then G is too, and ``out`` is not used).
 
         Returns
         -------
@@ -133,11 +135,33 @@ class PassStatistics:
         norm2 : float
             ``||G||_F^2`` summed in float64 (what :func:`hfrad.lowrank.hf.frobenius2` gives).
         """
+        if isinstance(F_block, BlockPieces):
+            return self._pass_pieces(start, stop, F_block, rows_rho, exact_rows)
         F_block = np.ascontiguousarray(F_block)
         usable = (out is not None and out.shape == F_block.shape and out.dtype == F_block.dtype
                   and out.flags.c_contiguous and out.flags.writeable)
         G = out if usable else np.empty_like(F_block)
         return G, self._pass(start, stop, F_block, rows_rho, G, exact_rows)
+
+    def _pass_pieces(self, start: int, stop: int, F: BlockPieces, rows_rho, exact_rows=None):
+        """:meth:`add_scaled` of a block in pieces (the sampled far field): the same sums, sketch and
+        samples from the pieces, and G in pieces (never the dense n x b block)."""
+        self._check_writable()
+        if F.shape != (self.n, stop - start):
+            raise ValueError(f"a block of columns {start}:{stop} must be ({self.n}, {stop - start}); got {F.shape}")
+        rho = np.asarray(rows_rho).reshape(self.n)
+        self.row_sums += F.row_sums()
+        self.col_sums[start:stop] = F.col_sums()
+        self.sketch += rho.astype(np.float64)[:, None] * F.matmul(self._omega[start:stop])
+        if self.samples is not None:
+            self.samples.record(start, stop, F, exact_rows)
+        G = F.scaled(rho, F.dtype)
+        return G, G.frobenius2()
+
+    def _check_writable(self) -> None:
+        if not all(a.flags.writeable for a in (self.row_sums, self.col_sums, self.sketch)):
+            raise ValueError("these pass statistics are read-only (a factorization's frozen copy): "
+                             "record columns on the PassStatistics they were frozen from")
 
     def _pass(self, start: int, stop: int, F_block, rows_rho, G, exact_rows=None) -> float:
         """One read of the block for the sums, the sketch and (``G`` given) G and its norm.
@@ -146,9 +170,7 @@ class PassStatistics:
         separate NumPy passes (the product, float64 slabs for the sums and the probe GEMM,
         the norm) read a 165K x 256 block four times and cost ~0.5 s a block at 163K.
         """
-        if not all(a.flags.writeable for a in (self.row_sums, self.col_sums, self.sketch)):
-            raise ValueError("these pass statistics are read-only (a factorization's frozen copy): "
-                             "record columns on the PassStatistics they were frozen from")
+        self._check_writable()
         F_block = np.ascontiguousarray(F_block)
         if F_block.ndim != 2 or F_block.shape != (self.n, stop - start):
             raise ValueError(f"a block of columns {start}:{stop} must be ({self.n}, {stop - start}); got {F_block.shape}")
