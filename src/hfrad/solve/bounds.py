@@ -383,6 +383,8 @@ def solution_line(error) -> str:
         return ("no per-solve error figure: this file has no sampled rows of F (written by an older hfrad); "
                 "`hfrad solve --residual` gives one, or precompute again")
     how = ("a bound: every row of F is stored" if error.kind == "exact-rows" else
+           f"an estimate from {error.rows} exact rows of F, no stated failure probability"
+           if error.failure_probability is None else
            f"from {error.rows} exact rows of F; may fail with probability {error.failure_probability:.2g}")
     if not is_useful(error.bound):
         return (f"error of this solution: no useful figure ({percent(error.bound)} of the reflected light, R,G,B; "

@@ -537,8 +537,9 @@ class HFactorization:
         -------
         SolutionError
             ``bound`` (3,) or (3, m): relative to the reflected light; ``kind``
-            "exact-rows" (a bound) or "sampled" (with ``failure_probability``), or
-            "unavailable" (a file written without sampled rows: inf).
+            "exact-rows" (a bound), "sampled" (with ``failure_probability``),
+            "sampled-estimate" (``trans="T"``: none stated; see :class:`SolutionError`),
+            or "unavailable" (a file written without sampled rows: inf).
         """
         adjoint = check_trans(trans)
         E = self._validate(exitance, adjoint)
