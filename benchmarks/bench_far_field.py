@@ -16,9 +16,12 @@ second, held-out sample of exact rows, and the radiosity of the scene's lights: 
 against exact, relative to the reflected light (``||B_s - B_e||_A / ||B_e - E||_A`` per
 channel), beside the per-solve error figure each gives for its own solution.
 
-Not a test: prints tables and writes results/far-field-{blocks,end-to-end}-SCENE-SIZES.json.
+**After the form factors** (``--downstream``): the same sampled blocks through the pass statistics
+and HF's leaf, handed on in pieces (exact rows + W X) and made dense, side by side.
+
+Not a test: prints tables and writes results/far-field-{blocks,end-to-end,downstream}-SCENE-SIZES.json.
 Run: ``PYTHONPATH=src python3 benchmarks/bench_far_field.py [--patches 40000,163000] [--blocks 6]
-[--eps 0.02] [--scene cornell]`` or ``... --end-to-end [--modes exact,sampled]``.
+[--eps 0.02] [--scene cornell]`` or ``... --end-to-end [--modes exact,sampled]`` or ``... --downstream``.
 """
 
 from __future__ import annotations
@@ -116,6 +119,48 @@ def per_block(scene, blocks: int, eps: float, block_size: int = 256) -> dict:
             "target": FarFieldOptions().share * eps, "far_field": far}
 
 
+def downstream(scene, blocks: int, eps: float, block_size: int = 256) -> dict:
+    """Seconds a block costs after the form factors (pass statistics, per-solve samples, HF's leaf),
+    for the sampled far field's blocks handed on in pieces and the same blocks made dense, at one
+    BLAS thread (as the precompute's pushes run while the form factors are computed)."""
+    from hfrad.formfactors.budget import ray_budget
+    from hfrad.formfactors.engine import FormFactorEngine
+    from hfrad.formfactors.farfield import SampledFarField
+    from hfrad.lowrank.hf import ErrorBudget, compress_leaf, compress_leaf_pieces
+    from hfrad.resources import blas_threads
+    from hfrad.scene.zorder import zorder_permutation
+    from hfrad.solve.stats import PassStatistics
+
+    n = scene.n_patches
+    perm = zorder_permutation(scene.centroids)
+    rho = scene.reflectance.max(axis=1)[perm]
+    w = np.asarray(scene.areas)[perm]
+    engine = FormFactorEngine(scene, ray_budget=ray_budget(scene, eps / 4), ray_threads=None)
+    producer = SampledFarField(scene, engine, perm, block_size, rho, eps, weights=w)
+    m = -(-n // block_size)
+    budget = ErrorBudget(eps, True, m, 0.5)
+    stats = {mode: PassStatistics(n, w, reflectance=scene.reflectance[perm]) for mode in ("pieces", "dense")}
+    seconds = {"pieces": 0.0, "dense": 0.0}
+    ranks = {"pieces": [], "dense": []}
+    dense_rows = 0
+    with blas_threads(1):
+        for j in np.linspace(1, m - 1, blocks).astype(int):
+            P = producer.block(j)[0].astype(np.float32)
+            dense_rows += P.rows.size
+            start = j * block_size
+            for mode in ("pieces", "dense"):
+                t = time.perf_counter()
+                A = P if mode == "pieces" else P.to_dense()
+                G, norm2 = stats[mode].add_scaled(start, start + P.shape[1], A, rho[:, None].astype(np.float32))
+                node = (compress_leaf_pieces if mode == "pieces" else compress_leaf)(G, budget, j, norm2)
+                seconds[mode] += time.perf_counter() - t
+                ranks[mode].append(int(node.s.size))
+    producer.close()
+    return {"n": n, "blocks": blocks, "pieces_s_per_block": seconds["pieces"] / blocks,
+            "dense_s_per_block": seconds["dense"] / blocks, "speedup": seconds["dense"] / seconds["pieces"],
+            "dense_row_share": dense_rows / (blocks * n), "same_leaf_ranks": ranks["pieces"] == ranks["dense"]}
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--patches", default="40000")
@@ -124,9 +169,21 @@ def main() -> None:
     p.add_argument("--scene", default="cornell")
     p.add_argument("--blocks", type=int, default=6)
     p.add_argument("--end-to-end", action="store_true")
+    p.add_argument("--downstream", action="store_true",
+                   help="what a block costs after the form factors, in pieces and dense")
     common.add_blas_arg(p)
     args = p.parse_args()
     m = common.header("The sampled far field against the exact pass", args.blas_threads)
+    if args.downstream:
+        rows = [downstream(common.load_bench_scene(args.scene, size), args.blocks, args.eps)
+                for size in common.parse_sizes(args.patches)]
+        common.print_table(f"{args.scene}, eps {args.eps}: after the form factors, {args.blocks} blocks", rows,
+                           ["n", "pieces_s_per_block", "dense_s_per_block", "speedup", "dense_row_share",
+                            "same_leaf_ranks"])
+        path = common.write_json(f"far-field-downstream-{args.scene}-" + "-".join(str(r["n"]) for r in rows),
+                                 {"machine": m, "eps": args.eps, "rows": rows})
+        print(f"wrote {path}")
+        return
     if not args.end_to_end:
         rows = [per_block(common.load_bench_scene(args.scene, size), args.blocks, args.eps)
                 for size in common.parse_sizes(args.patches)]
