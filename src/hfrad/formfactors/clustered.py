@@ -43,8 +43,8 @@ x, and wholly in front of x's tangent plane, takes the disk-corrected point rule
 F_{dx->u} ~ A_u cos_x cos_u / (pi r^2 + A_u) (exact for a coaxial disk; 0.2-0.4%
 off for a triangle at 4 diameters) instead of eq. (1)'s three arc tangents; the
 others eq. (1). A quadrature point of the middle and near rules sees most of the
-other patch's triangles from that far (Sponza, 3,129 patches: the middle rule
-3.5x and the near rule 2x cheaper, F moved by 6e-4 in the Frobenius norm, against
+other patch's triangles from that far (Sponza, 3,129 patches: the middle and near rules
+about 3x cheaper, F moved by 6e-4 in the Frobenius norm, against
 the rules' own 4.8% from an all-triangle-pairs reference).
 
 A patch of more than KERNEL_TRIANGLES triangles (micro-triangle crumbs such
