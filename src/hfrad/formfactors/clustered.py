@@ -38,6 +38,15 @@ eq. 2), with a rule chosen by the centroid distance d:
   with its own triangle's normal, weighted by the other patch's area^4 as
   the single-triangle near field does.
 
+In eq. (3) a triangle u at least POINT_FAR = 4 of its diameters D_u from the point
+x, and wholly in front of x's tangent plane, takes the disk-corrected point rule
+F_{dx->u} ~ A_u cos_x cos_u / (pi r^2 + A_u) (exact for a coaxial disk; 0.2-0.4%
+off for a triangle at 4 diameters) instead of eq. (1)'s three arc tangents; the
+others eq. (1). A quadrature point of the middle and near rules sees most of the
+other patch's triangles from that far (Sponza, 3,129 patches: the middle and near rules
+about 3x cheaper, F moved by 6e-4 in the Frobenius norm, against
+the rules' own 4.8% from an all-triangle-pairs reference).
+
 A patch of more than KERNEL_TRIANGLES triangles (micro-triangle crumbs such
 as screws that clustering joined to it) is integrated, as the target of eq.
 (3), over its KERNEL_TRIANGLES largest triangles, the sum scaled by A_P / (their
@@ -82,6 +91,10 @@ CLUSTER_TOLERANCE = 3e-2
 #: Most triangles of a patch that eq. (3) sums over (the largest; see the module docstring).
 KERNEL_TRIANGLES = 256
 
+#: In eq. (3), a triangle at least this many of its diameters from the point takes the
+#: disk-corrected point rule instead of eq. (1) (see :func:`_point_to_cluster`).
+POINT_FAR = 4.0
+
 #: Quadrature points per patch in the near field (at most 2 x this with padding).
 NEAR_POINTS = 16
 
@@ -100,7 +113,8 @@ class ClusterGeometry:
     clustered = True
 
     def __init__(self, scene, *, far: float = FAR, near: float = NEAR, tolerance: float = CLUSTER_TOLERANCE,
-                 exact_pairs: int = EXACT_PAIRS, exact_near: float = EXACT_NEAR) -> None:
+                 exact_pairs: int = EXACT_PAIRS, exact_near: float = EXACT_NEAR,
+                 point_far: float = POINT_FAR) -> None:
         start, index = scene.patch_triangles
         self.centre = 0.5 * (scene.bounds[0] + scene.bounds[1]) if scene.n_triangles else np.zeros(3)
         tri = np.ascontiguousarray(scene.triangles[index] - self.centre)
@@ -141,6 +155,7 @@ class ClusterGeometry:
         self.eps = 1e-9 * self.scale
         self.far = float(far)
         self.near = float(near)
+        self.point_far = float(point_far)
 
     @property
     def n(self) -> int:
@@ -226,22 +241,42 @@ def near_points(T: np.ndarray, TN: np.ndarray, TA: np.ndarray, start: np.ndarray
 
 
 @njit(cache=True, fastmath=False, inline="always")
-def _point_to_cluster(x, y, z, nx, ny, nz, T, N, s0, s1, eps):
-    """Eq. (3): F from dA at (x, y, z) with normal n to triangles s0..s1-1."""
+def _point_to_cluster(x, y, z, nx, ny, nz, T, N, TA, TC, TD, s0, s1, eps, far2):
+    """Eq. (3): F from dA at (x, y, z) with normal n to triangles s0..s1-1.
+
+    A triangle u at least sqrt(far2) of its diameters D_u from x and wholly in front of
+    dA's tangent plane (its centroid at least D_u in front: every corner lies within D_u
+    of it) takes the disk-corrected point rule A_u cos_x cos_u / (pi r^2 + A_u), exact for
+    a coaxial disk, relative error O((D_u / r)^2) otherwise; the others eq. (1).
+    """
     g = 0.0
     for u in range(s0, s1):
+        rx = TC[u, 0] - x
+        ry = TC[u, 1] - y
+        rz = TC[u, 2] - z
+        r2 = rx * rx + ry * ry + rz * rz
+        if r2 >= far2 * TD[u] * TD[u]:
+            hx = -(N[u, 0] * rx + N[u, 1] * ry + N[u, 2] * rz)  # x's height over u's plane (times 1)
+            if hx <= eps:   # x on or behind u's plane: the cos(theta_y) clamp of eq. (1) gives 0
+                continue
+            hu = nx * rx + ny * ry + nz * rz                   # u's centroid over dA's tangent plane
+            if hu >= TD[u]:
+                g += TA[u] * hu * hx / (r2 * (math.pi * r2 + TA[u]))
+                continue
+            if hu <= -TD[u]:
+                continue
         g += _point_to_patch(x, y, z, nx, ny, nz, T, N, u, eps)
     return g
 
 
 @njit(cache=True, fastmath=False, inline="always")
-def _points_to_cluster(P, PN, W, i, T, N, s0, s1, eps):
+def _points_to_cluster(P, PN, W, i, T, N, TA, TC, TD, s0, s1, eps, far2):
     """sum_k W[i, k] F_{dA(P[i, k], PN[i, k]) -> triangles s0..s1-1}: patch i's weighted points, eq. (3)."""
     g = 0.0
     for k in range(P.shape[1]):
         if W[i, k] > 0.0:
             g += W[i, k] * _point_to_cluster(P[i, k, 0], P[i, k, 1], P[i, k, 2], PN[i, k, 0], PN[i, k, 1],
-                                             PN[i, k, 2], T, N, s0, s1, eps)
+                                             PN[i, k, 2], T, N, TA, TC, TD, s0, s1, eps, far2)
     return g
 
 
@@ -261,7 +296,7 @@ def _points_area_ff(xi, yi, zi, Si, xj, yj, zj, Sj):
 
 @njit(cache=True, fastmath=False, inline="always")
 def _cluster_pair_area_ff(i, j, T, N, start, K, A, S, C, D, M, MN, MS, MW, Q, QN, W, far, near, eps,
-                          TA, TC, TD, TI, tol, exact, exact_near):
+                          TA, TC, TD, TI, tol, exact, exact_near, far2):
     """A_i F_ij (unoccluded) between two patches, symmetric in (i, j)."""
     if i == j or A[i] <= 0.0 or A[j] <= 0.0:
         return 0.0
@@ -285,14 +320,14 @@ def _cluster_pair_area_ff(i, j, T, N, start, K, A, S, C, D, M, MN, MS, MW, Q, QN
                                              M[j, m, 0], M[j, m, 1], M[j, m, 2], MS[j, m])
         return total
     if d2 >= (near * reach) ** 2:
-        g_ij = K[j] * _points_to_cluster(M, MN, MW, i, T, N, start[j], start[j + 1], eps)
-        g_ji = K[i] * _points_to_cluster(M, MN, MW, j, T, N, start[i], start[i + 1], eps)
+        g_ij = K[j] * _points_to_cluster(M, MN, MW, i, T, N, TA, TC, TD, start[j], start[j + 1], eps, far2)
+        g_ji = K[i] * _points_to_cluster(M, MN, MW, j, T, N, TA, TC, TD, start[i], start[i + 1], eps, far2)
         return 0.5 * (A[i] * g_ij + A[j] * g_ji)
     if (start[i + 1] - start[i]) * (start[j + 1] - start[j]) <= exact and d2 < (exact_near * reach) ** 2:
         # few triangle pairs: kernel.py's per-pair rules, canonical order (reciprocity to the bit)
         return K[i] * K[j] * _pair_area_ff(i, j, T, N, TA, TC, TD, start, TI, KERNEL_NEAR, ADAPTIVE, eps, tol)
-    g_ij = K[j] * _points_to_cluster(Q, QN, W, i, T, N, start[j], start[j + 1], eps)
-    g_ji = K[i] * _points_to_cluster(Q, QN, W, j, T, N, start[i], start[i + 1], eps)
+    g_ij = K[j] * _points_to_cluster(Q, QN, W, i, T, N, TA, TC, TD, start[j], start[j + 1], eps, far2)
+    g_ji = K[i] * _points_to_cluster(Q, QN, W, j, T, N, TA, TC, TD, start[i], start[i + 1], eps, far2)
     # the points of the smaller patch resolve the interaction (as in kernel.py)
     a_i = A[i] ** _WEIGHT_POWER
     a_j = A[j] ** _WEIGHT_POWER
@@ -301,7 +336,7 @@ def _cluster_pair_area_ff(i, j, T, N, start, K, A, S, C, D, M, MN, MS, MW, Q, QN
 
 @njit(parallel=True, cache=True, fastmath=False, nogil=True)
 def _clustered_block(T, N, start, K, A, S, C, D, M, MN, MS, MW, Q, QN, W, rows, cols, far, near, eps, TA, TC, TD,
-                     TI, tol, exact, exact_near, out, chunks):
+                     TI, tol, exact, exact_near, far2, out, chunks):
     # rows dealt out in turn (row r to part r % chunks), not in contiguous runs: the costly near
     # pairs of a block sit in the rows next to its columns (Z-order), which a split into
     # contiguous runs gave to one thread (Sponza, 3,129 patches: 99% of a block's time on one core)
@@ -310,7 +345,7 @@ def _clustered_block(T, N, start, K, A, S, C, D, M, MN, MS, MW, Q, QN, W, rows, 
             i = rows[r]
             for c in range(cols.shape[0]):
                 af = _cluster_pair_area_ff(i, cols[c], T, N, start, K, A, S, C, D, M, MN, MS, MW, Q, QN, W, far, near,
-                                           eps, TA, TC, TD, TI, tol, exact, exact_near)
+                                           eps, TA, TC, TD, TI, tol, exact, exact_near, far2)
                 out[r, c] = af / A[i] if af > 0.0 else 0.0
 
 
@@ -324,7 +359,8 @@ def clustered_block(geom: ClusterGeometry, rows: np.ndarray, cols: np.ndarray) -
                          geom.centroids, geom.diameters, geom.mid_points, geom.mid_normals, geom.mid_vectors, geom.mid_weights,
                          geom.points, geom.point_normals, geom.weights, rows, cols, geom.far, geom.near,
                          geom.eps, geom.tri_areas, geom.tri_centroids, geom.tri_diameters, geom.tri_index,
-                         geom.tolerance, geom.exact_pairs, geom.exact_near, out, row_chunks(len(rows)))
+                         geom.tolerance, geom.exact_pairs, geom.exact_near, geom.point_far ** 2, out,
+                         row_chunks(len(rows)))
     return out
 
 
