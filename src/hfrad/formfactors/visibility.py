@@ -38,6 +38,17 @@ records the cost of each round and the figures measured.
 There is no random jitter on purpose: Monte Carlo noise in F is full rank and
 destroys the low rank the hierarchical factorization relies on (docs/method.md, section 2).
 
+Clustered patches that are not flat (*bent*: a corner of their triangles farther than
+``BENT_DEPTH`` times their diameter from their mean plane: curved vaults, folds, saw teeth) get
+other segments in every round, paired alike: their end points are spread over the patch's own
+triangles (:func:`bent_points`), and a segment counts where it leaves the front of the triangle at
+each end, weighted by those triangles' cosines, as the clustered kernel weighs it (clustered.py,
+eq. 3); one that passes through the patch's own other triangles is blocked by Embree (a cluster
+shading itself). The patch planes' test threw exactly those away: between a wall and a touching
+vault cluster of Sponza it gave a visibility of 0.97 against 0.71 from random segments, and two
+interleaved clusters of saw teeth, which see each other across every groove, a form factor of 0.
+Pairs of flat patches keep the segments above, bit for bit.
+
 End points are moved off their surfaces along the patch normals by
 ``1e-5 x scene size`` so that a ray never hits the face it starts or ends on.
 Rays are cast in the scene's own frame: coordinates relative to the centre of
@@ -214,7 +225,6 @@ class Visibility:
         self._scene = scene
         self._tri = tri
         self._design_cache: dict = {}
-        self._design_normals: dict = {}
         nrm = np.asarray(scene.normals, np.float64)
         # patch planes n . x = n . v0, or through the centroid of a clustered patch
         # (sample points are `offset` in front of their own triangles)
@@ -279,8 +289,6 @@ class Visibility:
             if key not in self._design_cache:
                 pts, nrm = sample_points(scene, m)
                 self._design_cache[key] = np.ascontiguousarray(self._frame(pts) + self.offset * nrm)
-                if scene.is_clustered:  # the normals of the points' own triangles (bent patches)
-                    self._design_normals[m] = np.ascontiguousarray(nrm)
                 if patches is None:
                     return self._design_cache.pop(key)
             allp = self._design_cache[key]
@@ -436,11 +444,8 @@ class Visibility:
             counts = np.empty(len(pairs), np.int64)
             valid_rays(P, self.plane, partner, r_idx, c_idx, valid, counts)
             if self.budget.one_ray_below > 0.0 and s > 1:
-                weak = np.flatnonzero(self.areas[r_idx] * F.ravel()[pairs] < self.budget.one_ray_below)
-                first_valid = valid[weak].argmax(axis=1)
-                valid[weak] = False
-                valid[weak, first_valid] = True
-                counts[weak] = 1
+                weak = self.areas[r_idx] * F.ravel()[pairs] < self.budget.one_ray_below
+                _keep_one(valid, counts, np.flatnonzero(weak))
             first = np.zeros(len(pairs) + 1, np.int64)
             np.cumsum(counts, out=first[1:])
             r = int(first[-1])
@@ -555,12 +560,8 @@ class Visibility:
             counts = np.empty(k, np.int64)
             flat_pair = np.empty(k, np.bool_)
             valid_rays_on_triangles(P, N, plane, ka, kb, ri, ci, valid, counts, flat_pair)
-            if weak is not None and weak[sl].any():
-                w = np.flatnonzero(weak[sl])
-                first_valid = valid[w].argmax(axis=1)
-                valid[w] = False
-                valid[w, first_valid] = True
-                counts[w] = 1
+            if weak is not None and s > 1:
+                _keep_one(valid, counts, np.flatnonzero(weak[sl]))
             first = np.zeros(k + 1, np.int64)
             np.cumsum(counts, out=first[1:])
             r = int(first[-1])
@@ -573,6 +574,14 @@ class Visibility:
         self.caster.close()
 
 
+def _keep_one(valid: np.ndarray, counts: np.ndarray, pairs: np.ndarray) -> None:
+    """Pairs ``pairs`` (rows of ``valid``) keep only their first valid segment (too weak to matter)."""
+    first_valid = valid[pairs].argmax(axis=1)
+    valid[pairs] = False
+    valid[pairs, first_valid] = True
+    counts[pairs] = 1
+
+
 def bent_points(scene, m: int) -> tuple[np.ndarray, np.ndarray]:
     """(n, m^2, 3) points of each clustered patch for the segments of bent pairs, and the normals of
     their triangles.
@@ -581,9 +590,9 @@ def bent_points(scene, m: int) -> tuple[np.ndarray, np.ndarray]:
     total (as :func:`sample_points`), at (u, g_k) of the unit square mapped onto that triangle by the
     area-preserving warp (sqrt(u) on the edge from its first corner): u the position of (k + 1/2) / m^2
     within that triangle's share of the area, g_k = frac(1/2 + k / golden ratio). Points so reach
-    into a fold's corners, where centroids of splits do not: on a saw-toothed ceiling every pair of
-    4 x 4 centroid designs overestimated its interleaved clusters' visibility (0.81 against 0.68 from
-    random segments).
+    into a fold's corners and up to its edges, where the centroids of :func:`sample_points` do not:
+    with those, 24 rows of Sponza at 3,129 patches (its 10 worst and 14 others) reached 1.093 against
+    1.00 from ray shooting, 7 of them more than 0.02 over; with these, 1.023 and one.
     """
     tri = np.asarray(scene.triangles, np.float64)
     s = m * m
