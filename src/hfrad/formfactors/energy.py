@@ -41,15 +41,18 @@ def _worst(scene, idx: np.ndarray, row_sums: np.ndarray) -> str:
 
 def _likely_cause(scene) -> str:
     """Why rows exceed 1, as far as the scene tells (measured against cosine-weighted ray shooting
-    on the public scenes, issue 46: after duplicates and overlaps are resolved at load, every
-    worst row's excess sat on one neighbour, a curved cluster it touches)."""
+    on the public scenes, issue 46: after duplicates and overlaps are resolved at load, and since
+    bent clusters get segments on their own triangles (visibility.py), the worst rows' excess sits on
+    a few touching neighbours, bent clusters whose visibility the paired segments estimate with a
+    large scatter: the weights cos cos / r^2 of a few short segments dominate)."""
     if not scene.is_clustered:
         return ("Duplicate or overlapping faces kept (--keep-duplicates), or faces that cut through each "
                 "other? (hfrad info lists the broken faces)")
     return ("Duplicates and coplanar overlaps are merged and cut at load unless --keep-duplicates; on a "
             "clustered mesh the rest comes from patches touching a curved cluster (up to "
             f"{float(np.max(scene.non_flatness)):.2f} from flat, 1 - |mean normal|): the visibility rays "
-            "between them miss the cluster shading itself")
+            "between touching curved clusters scatter (a few short rays weigh most); more patches "
+            "(smaller, flatter clusters) bring the rows closer to 1")
 
 
 def energy_problems(scene, row_sums, *, tolerance: float = ROW_SUM_TOLERANCE) -> list[str]:

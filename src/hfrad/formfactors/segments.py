@@ -49,6 +49,51 @@ class RayBuffers:
         self._free.append(buf)
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _in_front(P, plane, a, i, b, j):
+    """Point i of patch a is in front of patch b's plane and point j of b in front of a's."""
+    fa = (plane[b, 0] * P[a, i, 0] + plane[b, 1] * P[a, i, 1] + plane[b, 2] * P[a, i, 2]) > plane[b, 3]
+    fb = (plane[a, 0] * P[b, j, 0] + plane[a, 1] * P[b, j, 1] + plane[a, 2] * P[b, j, 2]) > plane[a, 3]
+    return fa and fb
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _valid_by_planes(P, plane, ka, kb, a, b, valid):
+    """valid[k]: segment k (point ka[k] of a to kb[k] of b) has both ends in front of the other
+    patch's plane; all True if none has. Returns the count of valid segments."""
+    m = 0
+    for k in range(ka.shape[0]):
+        valid[k] = _in_front(P, plane, a, ka[k], b, kb[k])
+        if valid[k]:
+            m += 1
+    if m == 0:
+        valid[:] = True
+        m = ka.shape[0]
+    return m
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _put_segment(P, a, i, b, j, na, nb, o, d, t, w, row):
+    """Row ``row`` of o, d, t, w: the segment from point i of patch a to point j of b, weighted by
+    cos_a cos_b / L^2 with the normals na at its start and nb at its end."""
+    dx = P[b, j, 0] - P[a, i, 0]
+    dy = P[b, j, 1] - P[a, i, 1]
+    dz = P[b, j, 2] - P[a, i, 2]
+    L2 = dx * dx + dy * dy + dz * dz
+    L = math.sqrt(L2)
+    inv = 1.0 / L if L > 0.0 else 0.0
+    o[row, 0] = P[a, i, 0]
+    o[row, 1] = P[a, i, 1]
+    o[row, 2] = P[a, i, 2]
+    d[row, 0] = dx * inv
+    d[row, 1] = dy * inv
+    d[row, 2] = dz * inv
+    t[row] = L
+    ca = (na[0] * dx + na[1] * dy + na[2] * dz) * inv
+    cb = -(nb[0] * dx + nb[1] * dy + nb[2] * dz) * inv
+    w[row] = max(ca, 0.0) * max(cb, 0.0) / L2 if L2 > 0.0 else 0.0
+
+
 @njit(parallel=True, cache=True, nogil=True)
 def valid_rays(P, plane, partner, r_idx, c_idx, valid, counts):
     """A ray is valid if each end point is in front of the other patch's plane.
@@ -57,23 +102,10 @@ def valid_rays(P, plane, partner, r_idx, c_idx, valid, counts):
     rays from them must not count as blocked a second time. A pair with no
     valid ray (a sliver only the near-field rule sees) keeps all of its rays.
     """
-    s = P.shape[1]
+    own = np.arange(P.shape[1])
     for p in prange(r_idx.shape[0]):
-        a = min(r_idx[p], c_idx[p])
-        b = max(r_idx[p], c_idx[p])
-        m = 0
-        for k in range(s):
-            q = partner[k]
-            fa = (plane[b, 0] * P[a, k, 0] + plane[b, 1] * P[a, k, 1] + plane[b, 2] * P[a, k, 2]) > plane[b, 3]
-            fb = (plane[a, 0] * P[b, q, 0] + plane[a, 1] * P[b, q, 1] + plane[a, 2] * P[b, q, 2]) > plane[a, 3]
-            valid[p, k] = fa and fb
-            if fa and fb:
-                m += 1
-        if m == 0:
-            for k in range(s):
-                valid[p, k] = True
-            m = s
-        counts[p] = m
+        counts[p] = _valid_by_planes(P, plane, own, partner, min(r_idx[p], c_idx[p]), max(r_idx[p], c_idx[p]),
+                                     valid[p])
 
 
 @njit(parallel=True, cache=True, nogil=True)
@@ -86,26 +118,9 @@ def fill_rays(P, plane, partner, r_idx, c_idx, valid, first, o, d, t, w):
         b = max(r_idx[p], c_idx[p])
         row = first[p]
         for k in range(s):
-            if not valid[p, k]:
-                continue
-            q = partner[k]
-            dx = P[b, q, 0] - P[a, k, 0]
-            dy = P[b, q, 1] - P[a, k, 1]
-            dz = P[b, q, 2] - P[a, k, 2]
-            L2 = dx * dx + dy * dy + dz * dz
-            L = math.sqrt(L2)
-            inv = 1.0 / L if L > 0.0 else 0.0
-            o[row, 0] = P[a, k, 0]
-            o[row, 1] = P[a, k, 1]
-            o[row, 2] = P[a, k, 2]
-            d[row, 0] = dx * inv
-            d[row, 1] = dy * inv
-            d[row, 2] = dz * inv
-            t[row] = L
-            ca = (plane[a, 0] * dx + plane[a, 1] * dy + plane[a, 2] * dz) * inv
-            cb = -(plane[b, 0] * dx + plane[b, 1] * dy + plane[b, 2] * dz) * inv
-            w[row] = max(ca, 0.0) * max(cb, 0.0) / L2 if L2 > 0.0 else 0.0
-            row += 1
+            if valid[p, k]:
+                _put_segment(P, a, k, b, partner[k], plane[a], plane[b], o, d, t, w, row)
+                row += 1
 
 
 @njit(cache=True, parallel=True, nogil=True)
@@ -127,3 +142,57 @@ def probe_segments(P, normals, i, j, o, d, t, facing):  # pragma: no cover (numb
         else:
             d[k, 0], d[k, 1], d[k, 2] = 1.0, 0.0, 0.0
             t[k] = 0.0
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def valid_rays_on_triangles(P, N, plane, ka, kb, r_idx, c_idx, valid, counts, flat_pair):
+    """:func:`valid_rays` for pairs with a patch that is not flat (points on triangles of normals
+    ``N``, same shape as ``P``); segment k joins point ``ka[k]`` of the lower patch to ``kb[k]`` of
+    the other.
+
+    A segment is valid where it leaves the front of the triangle at each end (both cosines
+    positive): the clustered kernel integrates each triangle with its own clamped cosines
+    (clustered.py, eq. 3), so those are the segments its integrand weighs. A segment that passes
+    through the patch's own other triangles is kept, and Embree finds it blocked (a curved or
+    saw-toothed cluster shading itself). Testing the ends against the other patch's mean plane
+    instead (:func:`valid_rays`) throws away exactly those. A pair with no such segment falls back
+    to the mean planes' test, and ``flat_pair[p]`` says so.
+    """
+    s = ka.shape[0]
+    for p in prange(r_idx.shape[0]):
+        a = min(r_idx[p], c_idx[p])
+        b = max(r_idx[p], c_idx[p])
+        m = 0
+        for k in range(s):
+            i, j = ka[k], kb[k]
+            dx = P[b, j, 0] - P[a, i, 0]
+            dy = P[b, j, 1] - P[a, i, 1]
+            dz = P[b, j, 2] - P[a, i, 2]
+            ok = (N[a, i, 0] * dx + N[a, i, 1] * dy + N[a, i, 2] * dz > 0.0
+                  and N[b, j, 0] * dx + N[b, j, 1] * dy + N[b, j, 2] * dz < 0.0)
+            valid[p, k] = ok
+            if ok:
+                m += 1
+        flat_pair[p] = m == 0
+        counts[p] = _valid_by_planes(P, plane, ka, kb, a, b, valid[p]) if m == 0 else m
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def fill_rays_on_triangles(P, N, plane, ka, kb, r_idx, c_idx, valid, first, flat_pair, o, d, t, w):
+    """:func:`fill_rays` for the segments of :func:`valid_rays_on_triangles`, each weighted by the
+    cosines of the triangles its ends lie on (normals ``N``), or of the patch planes where
+    ``flat_pair[p]``."""
+    s = ka.shape[0]
+    for p in prange(r_idx.shape[0]):
+        a = min(r_idx[p], c_idx[p])
+        b = max(r_idx[p], c_idx[p])
+        row = first[p]
+        for k in range(s):
+            if not valid[p, k]:
+                continue
+            i, j = ka[k], kb[k]
+            if flat_pair[p]:
+                _put_segment(P, a, i, b, j, plane[a], plane[b], o, d, t, w, row)
+            else:
+                _put_segment(P, a, i, b, j, N[a, i], N[b, j], o, d, t, w, row)
+            row += 1

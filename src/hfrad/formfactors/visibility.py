@@ -38,6 +38,17 @@ records the cost of each round and the figures measured.
 There is no random jitter on purpose: Monte Carlo noise in F is full rank and
 destroys the low rank the hierarchical factorization relies on (docs/method.md, section 2).
 
+Clustered patches that are not flat (*bent*: a corner of their triangles farther than
+``BENT_DEPTH`` times their diameter from their mean plane: curved vaults, folds, saw teeth) get
+other segments in every round, paired alike: their end points are spread over the patch's own
+triangles (:func:`bent_points`), and a segment counts where it leaves the front of the triangle at
+each end, weighted by those triangles' cosines, as the clustered kernel weighs it (clustered.py,
+eq. 3); one that passes through the patch's own other triangles is blocked by Embree (a cluster
+shading itself). The patch planes' test threw exactly those away: between a wall and a touching
+vault cluster of Sponza it gave a visibility of 0.97 against 0.71 from random segments, and two
+interleaved clusters of saw teeth, which see each other across every groove, a form factor of 0.
+Pairs of flat patches keep the segments above, bit for bit.
+
 End points are moved off their surfaces along the patch normals by
 ``1e-5 x scene size`` so that a ray never hits the face it starts or ends on.
 Rays are cast in the scene's own frame: coordinates relative to the centre of
@@ -79,7 +90,8 @@ from .kernel import points_on_triangles, split_centroids
 from .probing import (NEIGHBOURS, PROBE_BELOW, PROBE_NEAR, cuttable, cuttable_one_word, full_ray_pairs,
                       nearest_patches, one_word_bits)
 from .raycast import RayCaster
-from .segments import RAY_BATCH, RayBuffers, RayJob, fill_rays, probe_segments, valid_rays
+from .segments import (RAY_BATCH, RayBuffers, RayJob, fill_rays, fill_rays_on_triangles, probe_segments,
+                       valid_rays, valid_rays_on_triangles)
 
 #: Rays per patch pair by default (a 2 x 2 split of each triangle) with probing off; with
 #: probing on (the default) the flagged pairs get max(samples, BOUNDARY_SAMPLES).
@@ -108,6 +120,11 @@ CLUSTER_VISIBILITY = 0
 
 #: Whether the cluster test is repeated per patch pair where the cluster pair is mixed.
 PAIR_TEST = True
+
+#: A clustered patch is *bent* when a corner of its triangles lies farther than this times its
+#: diameter from its mean plane (curved, folded or saw-toothed: its own triangles can shade it);
+#: pairs with a bent patch get the segments of :meth:`Visibility._bent_jobs`.
+BENT_DEPTH = 1e-3
 
 #: Above this many occluder triangles the per-pair culling test costs more than it saves.
 MAX_CULL_OCCLUDERS = 2048
@@ -215,6 +232,7 @@ class Visibility:
         self.plane = np.ascontiguousarray(np.column_stack([nrm, np.einsum("nd,nd->n", nrm, on_plane)
                                                            if len(tri) else np.zeros(0)]))
         self.points = self._points(m, None)
+        self.bent = bent_patches(scene, self.plane, tri, self.offset) if scene.is_clustered else None
         self.partner = pairing(self.samples)
         # the flagged pairs' first round, and the second round (module docstring)
         self.refine_samples = int(refine_samples) if refine_samples > samples else 0
@@ -409,8 +427,15 @@ class Visibility:
 
     def _jobs(self, F, rows, cols, flat, P, partner, pool, final=False):
         s = partner.shape[0]
-        per = max(1, RAY_BATCH // s)
         nc = len(cols)
+        if self.bent is not None:  # pairs with a bent patch: segments between its triangles' points
+            bent = self.bent[rows[flat // nc]] | self.bent[cols[flat % nc]]
+            if bent.any():
+                pairs = flat[bent]
+                weak = self.areas[rows[pairs // nc]] * F.ravel()[pairs] < self.budget.one_ray_below
+                yield from self._bent_jobs(pairs, rows[pairs // nc], cols[pairs % nc], s, pool, final, weak)
+                flat = flat[~bent]
+        per = max(1, RAY_BATCH // s)
         for start in range(0, len(flat), per):
             pairs = flat[start:start + per]
             r_idx = rows[pairs // nc]
@@ -419,11 +444,8 @@ class Visibility:
             counts = np.empty(len(pairs), np.int64)
             valid_rays(P, self.plane, partner, r_idx, c_idx, valid, counts)
             if self.budget.one_ray_below > 0.0 and s > 1:
-                weak = np.flatnonzero(self.areas[r_idx] * F.ravel()[pairs] < self.budget.one_ray_below)
-                first_valid = valid[weak].argmax(axis=1)
-                valid[weak] = False
-                valid[weak, first_valid] = True
-                counts[weak] = 1
+                weak = self.areas[r_idx] * F.ravel()[pairs] < self.budget.one_ray_below
+                _keep_one(valid, counts, np.flatnonzero(weak))
             first = np.zeros(len(pairs) + 1, np.int64)
             np.cumsum(counts, out=first[1:])
             r = int(first[-1])
@@ -477,10 +499,16 @@ class Visibility:
     def _refine_jobs(self, pairs: np.ndarray, r_idx: np.ndarray, c_idx: np.ndarray, s: int,
                      pool: "RayBuffers") -> list:
         """Second-round jobs of ``s`` rays for ``pairs`` (flat indices into F), in buffers from ``pool``."""
+        out = []
+        if self.bent is not None:
+            bent = self.bent[r_idx] | self.bent[c_idx]
+            if bent.any():
+                out.extend(self._bent_jobs(pairs[bent], r_idx[bent], c_idx[bent], s, pool, True))
+                self.rays_refined += sum(len(job.t) for job in out)
+                pairs, r_idx, c_idx = pairs[~bent], r_idx[~bent], c_idx[~bent]
         m = check_samples(s)
         partner = pairing(s)
         per = max(1, RAY_BATCH // s)
-        out = []
         for start in range(0, len(pairs), per):
             sl = slice(start, start + per)
             # the points of the patches involved only (sorted, so canonical order is kept)
@@ -502,8 +530,97 @@ class Visibility:
             out.append(RayJob(pairs[sl], first, o, d, t, w, buf, pool, r_idx[sl], c_idx[sl], True))
         return out
 
+    def _bent_points(self, m: int, patches: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Points of the m x m bent design (:func:`bent_points`) of ``patches``, offset off their
+        triangles, and those triangles' normals."""
+        key = ("bent", m)
+        if key not in self._design_cache:
+            pts, nrm = bent_points(self._scene, m)
+            self._design_cache[key] = (np.ascontiguousarray(self._frame(pts) + self.offset * nrm),
+                                       np.ascontiguousarray(nrm))
+        P, N = self._design_cache[key]
+        return np.ascontiguousarray(P[patches]), np.ascontiguousarray(N[patches])
+
+    def _bent_jobs(self, pairs, r_idx, c_idx, s: int, pool: "RayBuffers", final: bool, weak=None):
+        """Jobs for pairs with a bent patch: ``s`` segments between the points of :func:`bent_points`
+        (paired as :func:`pairing`), valid where both ends leave the front of their own triangles and
+        weighted by those triangles' cosines (segments.py). ``weak`` (bool per pair): one segment
+        only (``RayBudget.one_ray_below``)."""
+        m = check_samples(s)
+        ka, kb = np.arange(s, dtype=np.int64), pairing(s)
+        per = max(1, RAY_BATCH // len(ka))
+        for start in range(0, len(pairs), per):
+            sl = slice(start, start + per)
+            patches, inverse = np.unique(np.concatenate([r_idx[sl], c_idx[sl]]), return_inverse=True)
+            k = len(r_idx[sl])
+            ri, ci = inverse[:k].astype(np.int64), inverse[k:].astype(np.int64)
+            P, N = self._bent_points(m, patches)
+            plane = np.ascontiguousarray(self.plane[patches])
+            valid = np.empty((k, len(ka)), np.bool_)
+            counts = np.empty(k, np.int64)
+            flat_pair = np.empty(k, np.bool_)
+            valid_rays_on_triangles(P, N, plane, ka, kb, ri, ci, valid, counts, flat_pair)
+            if weak is not None and s > 1:
+                _keep_one(valid, counts, np.flatnonzero(weak[sl]))
+            first = np.zeros(k + 1, np.int64)
+            np.cumsum(counts, out=first[1:])
+            r = int(first[-1])
+            buf = pool.get(r)
+            o, d, t, w = buf[0][:r], buf[1][:r], buf[2][:r], buf[3][:r]
+            fill_rays_on_triangles(P, N, plane, ka, kb, ri, ci, valid, first, flat_pair, o, d, t, w)
+            yield RayJob(pairs[sl], first, o, d, t, w, buf, pool, r_idx[sl], c_idx[sl], final)
+
     def close(self) -> None:
         self.caster.close()
+
+
+def _keep_one(valid: np.ndarray, counts: np.ndarray, pairs: np.ndarray) -> None:
+    """Pairs ``pairs`` (rows of ``valid``) keep only their first valid segment (too weak to matter)."""
+    first_valid = valid[pairs].argmax(axis=1)
+    valid[pairs] = False
+    valid[pairs, first_valid] = True
+    counts[pairs] = 1
+
+
+def bent_points(scene, m: int) -> tuple[np.ndarray, np.ndarray]:
+    """(n, m^2, 3) points of each clustered patch for the segments of bent pairs, and the normals of
+    their triangles.
+
+    Point k lies in the triangle where the patch's cumulative area reaches (k + 1/2) / m^2 of the
+    total (as :func:`sample_points`), at (u, g_k) of the unit square mapped onto that triangle by the
+    area-preserving warp (sqrt(u) on the edge from its first corner): u the position of (k + 1/2) / m^2
+    within that triangle's share of the area, g_k = frac(1/2 + k / golden ratio). Points so reach
+    into a fold's corners and up to its edges, where the centroids of :func:`sample_points` do not:
+    with those, 24 rows of Sponza at 3,129 patches (its 10 worst and 14 others) reached 1.093 against
+    1.00 from ray shooting, 7 of them more than 0.02 over; with these, 1.023 and one.
+    """
+    tri = np.asarray(scene.triangles, np.float64)
+    s = m * m
+    start, index = scene.patch_triangles
+    ta = scene.triangle_areas[index]
+    cum = np.cumsum(ta)
+    before = np.r_[0.0, cum][start[:-1]]
+    target = before[:, None] + (np.arange(s) + 0.5)[None, :] / s * scene.areas[:, None]
+    k = np.clip(np.searchsorted(cum, target, side="right"), start[:-1, None], start[1:, None] - 1)
+    u = np.sqrt(np.clip((target - (cum[k] - ta[k])) / ta[k], 0.0, 1.0))
+    g = np.mod(0.5 + np.arange(s) * 0.6180339887498949, 1.0)[None, :]
+    w = np.stack([1.0 - u, u * (1.0 - g), u * g], axis=-1)
+    return np.einsum("nsk,nskd->nsd", w, tri[index[k]]), scene.triangle_normals[index[k]]
+
+
+def bent_patches(scene, plane: np.ndarray, tri: np.ndarray, offset: float) -> np.ndarray:
+    """(n,) bool: clustered patches with a triangle corner farther than ``BENT_DEPTH`` times the
+    patch's diameter (and the points' offset) from its mean plane ``plane`` (frame units)."""
+    start, index = scene.patch_triangles
+    if not len(index):
+        return np.zeros(scene.n_patches, np.bool_)
+    t = tri[index]  # (m, 3, 3), each patch's triangles contiguous
+    owner = np.repeat(np.arange(scene.n_patches), np.diff(start))
+    depth = np.abs(np.einsum("tkd,td->tk", t, plane[owner, :3]) - plane[owner, 3, None]).max(axis=1)
+    depth = np.maximum.reduceat(depth, start[:-1])
+    lo = np.minimum.reduceat(t.min(axis=1), start[:-1], axis=0)
+    hi = np.maximum.reduceat(t.max(axis=1), start[:-1], axis=0)
+    return depth > BENT_DEPTH * np.linalg.norm(hi - lo, axis=1) + 2 * offset
 
 
 def sample_points(scene, m: int) -> tuple[np.ndarray, np.ndarray]:
