@@ -216,7 +216,8 @@ def estimate_line(seconds: float) -> str:
     from ..precompute.local import ESTIMATE_COLUMNS, PASS_OVER_KERNEL
 
     return (f"estimate: form factors about {seconds:,.0f} s on this machine as loaded now (the kernel timed on "
-            f"{ESTIMATE_COLUMNS} columns; the rays and the rest of the pass as {PASS_OVER_KERNEL - 1:g} times the kernel)")
+            f"{ESTIMATE_COLUMNS} columns; the rays and the rest of the pass as {PASS_OVER_KERNEL - 1:g} times the kernel; "
+            "the first run after an install also compiles the ray code, once, which can take minutes)")
 
 
 def dtype_option(default: str):
