@@ -130,6 +130,18 @@ def test_falsecolor_has_colour_bar(cornell):
         render_image(s, B, falsecolor=True, unit="nits", width=16, height=16)
 
 
+@pytest.mark.parametrize("vmax", [15_000.0, 2.5e6])
+def test_colour_bar_labels_fit_the_narrowest_bar(vmax):
+    """Large scales ("15k", "2.5M") stay inside the bar's panel: its last column is panel grey."""
+    from hfrad.render.falsecolor import falsecolor_image
+
+    h, width = 360, 360
+    w = width - colorbar_width(width)
+    values = np.linspace(0.0, vmax, h * w).reshape(h, w)
+    img = falsecolor_image(values, np.ones((h, w), bool), width=width, unit="lux", vmax=vmax)
+    assert (img[:, -2:] == 32).all()
+
+
 def test_photometric_units():
     B = np.array([[1.0, 1.0, 1.0], [0.0, 1.0, 0.0]])
     np.testing.assert_allclose(photometric(B, "W/m2"), [1.0, 0.7152])

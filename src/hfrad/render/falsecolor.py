@@ -86,7 +86,13 @@ def _font(size: int):
 
 
 def _label(v: float) -> str:
-    return f"{v:.4g}" if abs(v) < 1e4 else f"{v:.2g}"
+    """A tick's label, short enough for the bar: "2500", "15k", "2.5M" (not "1.5e+04", which the
+    bar's narrowest width cuts off)."""
+    if abs(v) < 1e4:
+        return f"{v:.4g}"
+    if abs(v) < 1e6:
+        return f"{v / 1e3:.3g}k"
+    return f"{v / 1e6:.3g}M"
 
 
 def falsecolor_image(values: np.ndarray, valid: np.ndarray, *, width: int, unit: str = "W/m2",
