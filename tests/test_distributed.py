@@ -216,6 +216,14 @@ def test_both_backends_write_the_same_hfr(cornell, tmp_path):
             assert np.allclose(x, y, rtol=1e-3), key
 
 
+def _wait_until_no_task_runs(client, timeout: float = 120.0) -> None:
+    """Until no worker executes a task (cancelled ones included), at most ``timeout`` seconds."""
+    t0 = time.perf_counter()
+    while any(client.run(lambda dask_worker: len(dask_worker.state.executing)).values()):
+        assert time.perf_counter() - t0 < timeout, "a cancelled task still runs"
+        time.sleep(0.05)
+
+
 def test_rerun_skips_the_saved_subtrees(cornell, tmp_path):
     """Finished parts persist in the checkpoint folder: a rerun after a lost client runs only what is missing."""
     scene, local = cornell
@@ -232,6 +240,9 @@ def test_rerun_skips_the_saved_subtrees(cornell, tmp_path):
                       backend=DaskBackend(scheduler=cluster), checkpoint=folder,
                       options=PrecomputeOptions(block_size=64))
         assert any(folder.glob("node-*.sha256"))
+        # a cancelled task that had started runs on (Dask cannot stop a running thread) and may save a merge
+        # and drop its children's parts: wait for it, as a user rerunning later would
+        _wait_until_no_task_runs(cluster.client)
         resumed = factorize(scene, eps=EPS, near_field=NEAR, backend=DaskBackend(scheduler=cluster),
                             checkpoint=Checkpoint(folder, keep=True), options=PrecomputeOptions(block_size=64))
         info = resumed.lowrank.info
