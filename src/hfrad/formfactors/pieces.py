@@ -79,7 +79,10 @@ class BlockPieces:
                            self.W.astype(dtype, copy=False), self.X)
 
     def to_dense(self, out: np.ndarray | None = None) -> np.ndarray:
-        """The n x b block (into ``out`` when given)."""
+        """The n x b block (into ``out`` when given; pieces holding every row densely are their
+        ``dense`` already, rows in order: returned as they are, no copy)."""
+        if self.is_dense and out is None:
+            return self.dense
         out = np.empty(self.shape, self.dtype) if out is None else out
         out[self.rows] = self.dense
         if self.far.size:

@@ -467,7 +467,8 @@ def compress_leaf_pieces(P: BlockPieces, budget: ErrorBudget, j: int, norm2: flo
     ``W = Q R`` (thin QR, n s^2 flops for s skeleton columns) gives ``A = [P_E, P_R Q] C`` with
     ``C = [D; R X]`` ((m + s) x b) and ``[P_E, P_R Q]`` orthonormal (disjoint rows), so the
     truncated SVD of the small C is that of A, with the same discard; its left factor is lifted
-    to n rows. ``A`` in the working dtype.
+    to n rows. ``A`` in the working dtype. The leaf's norm is measured on C (it equals
+    ``||A||^2``; ``block_norm2``, the caller's figure of it, is not needed).
     """
     if P.is_dense:
         return compress_leaf(P.to_dense(), budget, j, norm2, block_norm2)

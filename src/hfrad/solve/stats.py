@@ -136,9 +136,11 @@ class PassStatistics:
             ``||G||_F^2`` summed in float64 (what :func:`hfrad.lowrank.hf.frobenius2` gives).
         """
         if isinstance(F_block, BlockPieces):
-            return self._pass_pieces(start, stop, F_block, rows_rho, exact_rows)
+            if not F_block.is_dense:
+                return self._pass_pieces(start, stop, F_block, rows_rho, exact_rows)
+            F_block = F_block.dense          # every row dense: the one-read pass below
         F_block = np.ascontiguousarray(F_block)
-        usable = (out is not None and out.shape == F_block.shape and out.dtype == F_block.dtype
+        usable = (isinstance(out, np.ndarray) and out.shape == F_block.shape and out.dtype == F_block.dtype
                   and out.flags.c_contiguous and out.flags.writeable)
         G = out if usable else np.empty_like(F_block)
         return G, self._pass(start, stop, F_block, rows_rho, G, exact_rows)
