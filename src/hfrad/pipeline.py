@@ -95,7 +95,8 @@ def factorize(scene: Scene, eps: float = 0.02, *, relative: bool = True, dtype="
         sample (added to ``fac.error_estimate()``). "auto" (default): the faster of the two
         for the scene, which is "exact" at every size measured so far (up to 163,000
         patches: the sampled field evaluates 4-5 times fewer pairs but costs more wall time
-        per block). This process only (a ``DaskBackend`` takes "exact" or "auto").
+        per block). Both backends: a ``DaskBackend``'s leaves run the same block producer
+        (the same factorization, certificate and counters as this process's).
     progress : callable (done, total), optional
         Column blocks done.
     status : callable (dict), optional
@@ -151,11 +152,6 @@ def factorize(scene: Scene, eps: float = 0.02, *, relative: bool = True, dtype="
     elif not isinstance(backend, (LocalBackend, DaskBackend)):
         raise InputError(f"backend must be an hfrad.LocalBackend or hfrad.DaskBackend; got {type(backend).__name__}")
     checkpoint = as_checkpoint(checkpoint)
-    if isinstance(backend, DaskBackend):
-        if far_field == "sampled":
-            raise InputError("far_field='sampled' runs in this process for now: use a LocalBackend, or "
-                             "far_field='exact' on Dask")
-        far_field = "exact"
     plan = plan_precompute(scene, eps, relative=relative, dtype=dtype, order="zorder" if order is None else order,
                            near_field=near_field, options=options, reciprocity=backend.reciprocity,
                            far_field=far_field)
