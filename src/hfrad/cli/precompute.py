@@ -80,6 +80,7 @@ def register(app: typer.Typer) -> None:
             _check_options(processes=processes, samples=samples, refine=refine, scheduler=scheduler,
                            workers=workers)
             options = PrecomputeOptions(block_size=block, samples=samples)
+            near = _near_field(near_field)      # a bad value is refused before the scene is read
             common.check_output(output)
             common.check_output(output.with_name(output.name + ".partial"))
 
@@ -124,7 +125,7 @@ def register(app: typer.Typer) -> None:
                 parts = output.with_name(output.name + ".partial.d")   # finished subtrees: a rerun skips them
                 clock("factorize on Dask")
                 fac = _on_cluster(s, scheduler, workers, quiet, eps=eps, dtype=dtype, order=order,
-                                  near_field=_near_field(near_field), options=options, far_field=far_field,
+                                  near_field=near, options=options, far_field=far_field,
                                   checkpoint=Checkpoint(parts, keep=True))
                 clock("save")
                 common.check_space_for_hfr(output, fac)
@@ -148,7 +149,7 @@ def register(app: typer.Typer) -> None:
                         bar.note(f"rank {info['rank']:,}")
 
                 t_fac = time.perf_counter()
-                fac = factorize(s, eps, dtype=dtype, order=order, near_field=_near_field(near_field),
+                fac = factorize(s, eps, dtype=dtype, order=order, near_field=near,
                                 backend=LocalBackend(processes=processes), checkpoint=Checkpoint(checkpoint, keep=True),
                                 options=options, far_field=far_field, progress=bar, status=status)
                 common.add_factorize_stages(clock, fac, time.perf_counter() - t_fac)
