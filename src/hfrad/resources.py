@@ -159,8 +159,9 @@ _quick: dict = {"t": None, "busy": 0, "mine": 0, "spare": None}
 
 def spare_cores_now() -> int:
     """Cores a solve may use: :func:`cores` less the cores other processes kept busy since the last
-    reading (read from /proc without waiting; every core on the first call, after a stale reading,
-    or where /proc cannot be read).
+    reading (read from /proc without waiting). On the first call, or after a stale reading, the
+    machine's one-minute load average stands for them (this process has used little of it yet: a
+    command's one solve gets the right count too); every core where neither can be read.
 
     A parallel numba loop or BLAS call whose threads compete with other processes for the cores
     spin-waits at every synchronisation: on the 2-core VM at load 9 a 3,000-patch near-field solve
@@ -176,10 +177,11 @@ def spare_cores_now() -> int:
         mine = _jiffies({os.getpid()})
     except (OSError, ValueError):
         return cores()
-    spare = cores()
     if last is not None and now - last < _QUICK_STALE:
         others = max(busy - _quick["busy"] - (mine - _quick["mine"]), 0) / tick / (now - last)
-        spare = max(1, cores() - math.ceil(others - 0.5))
+    else:
+        others = os.getloadavg()[0] if hasattr(os, "getloadavg") else 0.0
+    spare = max(1, cores() - math.ceil(others - 0.5))
     _quick.update(t=now, busy=busy, mine=mine, spare=spare)
     return spare
 
