@@ -256,21 +256,21 @@ def _machine(monkeypatch, others_per_second: float, cores: int = 4):
     monkeypatch.setattr(resources, "_machine_jiffies", lambda: (int(100 * others_per_second * clock["t"]), 0))
     monkeypatch.setattr(resources, "_jiffies", lambda pids: 0)
     monkeypatch.setattr(resources, "_quick", {"t": None, "busy": 0, "mine": 0, "spare": None})
-    monkeypatch.setattr(resources.os, "getloadavg", lambda: (others_per_second, 0.0, 0.0))
+    monkeypatch.setattr(resources, "other_processes_cores", lambda window: others_per_second)
     return resources, clock
 
 
 @pytest.mark.parametrize("others, expected", [(0.0, 4), (0.4, 4), (1.6, 2), (3.5, 1), (9.0, 1)])
 def test_a_solve_uses_the_cores_other_processes_leave(monkeypatch, others, expected):
     resources, clock = _machine(monkeypatch, others)
-    assert resources.spare_cores_now() == expected     # no reading yet: the load average
-    resources.os.getloadavg = lambda: (0.0, 0.0, 0.0)  # (monkeypatched: undone after the test)
+    assert resources.spare_cores_now() == expected     # no reading yet: measured over a short window
+    monkeypatch.setattr(resources, "other_processes_cores", lambda window: 0.0)
     clock["t"] = 2.0
     assert resources.spare_cores_now() == expected     # measured over the 2 s since
     clock["t"] = 2.5
     assert resources.spare_cores_now() == expected     # reused within a second
     clock["t"] = 100.0
-    assert resources.spare_cores_now() == 4            # a stale reading: the load average again (now 0)
+    assert resources.spare_cores_now() == 4            # a stale reading: measured again (now idle)
 
 
 def test_solve_threads_lower_numba_inside_only(monkeypatch):

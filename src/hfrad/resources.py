@@ -152,16 +152,18 @@ def spare_threads():
 #: A solve takes the machine's load from the time since the previous reading (no sleep: a relighting
 #: may take milliseconds), re-read at most this often (seconds) ...
 _QUICK_EVERY = 1.0
-#: ... and a reading older than this says nothing of now (the next solve uses every core).
+#: ... and a reading older than this says nothing of now (the next solve measures again, over this window).
 _QUICK_STALE = 30.0
+_QUICK_FIRST_WINDOW = 0.05
 _quick: dict = {"t": None, "busy": 0, "mine": 0, "spare": None}
 
 
 def spare_cores_now() -> int:
     """Cores a solve may use: :func:`cores` less the cores other processes kept busy since the last
-    reading (read from /proc without waiting). On the first call, or after a stale reading, the
-    machine's one-minute load average stands for them (this process has used little of it yet: a
-    command's one solve gets the right count too); every core where neither can be read.
+    reading (read from /proc without waiting). On the first call, or after a stale reading, they
+    are measured over ``_QUICK_FIRST_WINDOW`` seconds (once: a command's one solve is limited too;
+    not the load average, which would count this process's own precompute of the last minute);
+    every core where /proc cannot be read.
 
     A parallel numba loop or BLAS call whose threads compete with other processes for the cores
     spin-waits at every synchronisation: on the 2-core VM at load 9 a 3,000-patch near-field solve
@@ -180,7 +182,7 @@ def spare_cores_now() -> int:
     if last is not None and now - last < _QUICK_STALE:
         others = max(busy - _quick["busy"] - (mine - _quick["mine"]), 0) / tick / (now - last)
     else:
-        others = os.getloadavg()[0] if hasattr(os, "getloadavg") else 0.0
+        others = other_processes_cores(_QUICK_FIRST_WINDOW) or 0.0
     spare = max(1, cores() - math.ceil(others - 0.5))
     _quick.update(t=now, busy=busy, mine=mine, spare=spare)
     return spare
