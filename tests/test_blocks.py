@@ -32,7 +32,9 @@ def test_blocks_equal_the_permuted_dense_matrix(scene, dense, kind):
     seen = 0
     for start, stop, block in iter_column_blocks(scene, 64, order=order):
         assert block.shape == (n, stop - start)
-        np.testing.assert_array_equal(block, dense[np.ix_(perm, perm[start:stop])])
+        # the rows of earlier blocks are reciprocity copies A_j F_ji / A_i of pairs the dense matrix
+        # computed as F_ij: equal to rounding (observed at most 6.1e-16 relative)
+        np.testing.assert_allclose(block, dense[np.ix_(perm, perm[start:stop])], rtol=4e-15, atol=0)
         seen = stop
     assert seen == n
 
@@ -67,14 +69,15 @@ def test_cache_round_trip_resume_and_mismatch(scene, dense, tmp_path):
     assert not path.exists() and (tmp_path / "ff.h5.partial").exists()
     # resume: the stored blocks are read back, the rest computed, then renamed
     got = np.concatenate([b for _, _, b in iter_column_blocks(scene, 64, order=order, cache=path)], axis=1)
-    np.testing.assert_array_equal(got, want)
+    # the resumed pass copies rows only from the blocks it computed: equal to the dense matrix to rounding
+    np.testing.assert_allclose(got, want, rtol=4e-15, atol=0)
     assert path.exists() and not (tmp_path / "ff.h5.partial").exists()
     # complete cache: read without computing (engine untouched)
     from hfrad.formfactors.blocks import FormFactorEngine
     eng = FormFactorEngine(scene)
     again = np.concatenate([b for _, _, b in iter_column_blocks(scene, 64, order=order, cache=path,
                                                                 engine=eng)], axis=1)
-    np.testing.assert_array_equal(again, want)
+    np.testing.assert_array_equal(again, got)       # the cache holds what the pass gave, bit for bit
     assert eng.pairs == 0
     # mismatch: other parameters or another scene
     with pytest.raises(CacheMismatchError, match="samples"):
@@ -88,7 +91,7 @@ def test_corrupt_partial_cache_is_discarded(scene, dense, tmp_path):
     (tmp_path / "ff.h5.partial").write_bytes(b"not hdf5")
     with pytest.warns(UserWarning, match="discarding"):
         got = np.concatenate([b for _, _, b in iter_column_blocks(scene, 128, cache=path)], axis=1)
-    np.testing.assert_array_equal(got, dense)
+    np.testing.assert_allclose(got, dense, rtol=4e-15, atol=0)     # reciprocity copies: to rounding
 
 
 def test_cli_writes_npz(tmp_path):

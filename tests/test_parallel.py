@@ -35,7 +35,10 @@ def test_processes_give_the_same_blocks_as_one_process(scene):
     np.testing.assert_array_equal(multi, single)
     # and the plain function the Dask backend calls, in this process
     cols = order[96:192]
-    np.testing.assert_array_equal(column_block(scene, cols, order=order, ray_budget=thr), single[:, 96:192])
+    # which computes every row; the pass copies the rows of earlier blocks by reciprocity, in float32
+    # here: equal to a float32 rounding (observed 1.2e-7 relative)
+    np.testing.assert_allclose(column_block(scene, cols, order=order, ray_budget=thr), single[:, 96:192],
+                               rtol=2.5e-7, atol=0)
 
 
 def test_process_engine_counts_rays_and_pairs(scene):

@@ -59,9 +59,11 @@ __all__ = ["ReciprocityMirror", "TileScratch", "ScratchDamageError", "MIRROR_LAG
 
 log = logging.getLogger(__name__)
 
-#: Block b copies rows only from blocks before b - MIRROR_LAG: those are finished when b is
-#: handed to a worker (up to workers + 1 blocks are in flight), for any count up to 7 processes.
-MIRROR_LAG = 8
+#: Block b copies rows only from blocks before b - MIRROR_LAG. Which rows is decided when b is handed
+#: to a worker, but they are filled in when b comes back, in order, after every earlier block was
+#: kept: so b can copy from all blocks before it, whatever is in flight. (A lag of 8 left a
+#: 3,129-patch scene of 13 blocks computing 9.34M of its 9.79M pairs, both orders of 93%.)
+MIRROR_LAG = 0
 
 #: Share of the available memory that the kept tiles may take (iter_column_blocks' default).
 MIRROR_SHARE = 0.25
@@ -442,11 +444,12 @@ class ReciprocityMirror:
     def copied_rows(self, b: int) -> slice:
         """The rows (internal order) block b takes from kept tiles: one contiguous range, maybe empty.
 
-        Asked when block b is handed out: the blocks it copies from must have been
-        kept by then (true while fewer than ``lag`` blocks are in flight).
+        A function of b alone (the same F with any number of processes), asked when block b
+        is handed out; the blocks it copies from need only be kept by the time b is filled
+        (:meth:`fill`, when b comes back: blocks come back in order).
         """
         lo = max(self.first, b - self.lag - self.band)
-        hi = min(b - self.lag, self.kept)
+        hi = b - self.lag
         if hi <= lo:
             return slice(0, 0)
         return slice(int(self.starts[lo]), int(self.starts[hi]))
