@@ -106,8 +106,10 @@ POINT_FAR = 4.0
 #: Quadrature points per patch in the near field (at most 2 x this with padding).
 NEAR_POINTS = 16
 
-#: Most pairs the memo keeps (12 bytes each: index and value); a scene with more keeps none.
-MEMO_PAIRS = 1 << 25
+#: Most pairs the memo keeps (12 bytes each: column and value, 200 MB at most); a scene with more
+#: keeps none. Sponza: ~380 pairs a patch (1.19M at 3,129 patches, 14 MB), about the same per patch
+#: at any patch count (patches shrink as they multiply).
+MEMO_PAIRS = 1 << 24
 
 _WEIGHT_POWER = 4.0
 _INV_PI = 1.0 / math.pi
@@ -119,6 +121,10 @@ class ClusterGeometry:
     Positions are relative to the scene's bounding-box centre (the plane tests
     use eps = 1e-9 x scene size). Triangles are stored patch by patch:
     patch p owns rows ``start[p]:start[p + 1]`` of ``triangles``.
+
+    ``memo`` (default True): keep A_P F_PQ of the pairs closer than FAR / 2 (D_P + D_Q) once
+    computed (``memo_start``, ``memo_cols``, ``memo_values``, :func:`memo_table`; see the
+    module docstring); False computes every pair each time it is asked for (the same numbers).
     """
 
     clustered = True
