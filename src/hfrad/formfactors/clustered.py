@@ -53,7 +53,15 @@ as screws that clustering joined to it) is integrated, as the target of eq.
 area): the cost of a pair stays bounded; ``ClusterGeometry.dropped`` is the
 area fraction left out per patch (for a check of the approximation's reach).
 
-All three rules are symmetric in (P, Q), so A_P F_PQ = A_Q F_QP to rounding.
+All three rules are symmetric in (P, Q), so A_P F_PQ = A_Q F_QP to rounding; the middle, near
+and touching rules to the bit (their two halves are added in either order, the touching sum runs
+in canonical order). Those rules are ~95% of the kernel's time on a real scene (Sponza, 3,129
+patches: 24% of the pairs) and a pass over F's column blocks asks for nearly every pair twice, as
+(P, Q) and as (Q, P) (the reciprocity copy takes only blocks 8 or more apart, and the diagonal
+tiles hold both orders): :class:`ClusterGeometry` keeps each such pair's A_P F_PQ once computed
+(the *memo*: one float64 a pair closer than FAR / 2 (D_P + D_Q), in a table fixed when the
+geometry is built), and the second order reads it. F is the same to the bit, whatever the order
+in which blocks and threads meet the pair.
 A patch of one triangle gets the same points as in kernel.py (its centroid
 far away, the 16 centroids of a 4 x 4 split near).
 """
@@ -98,6 +106,11 @@ POINT_FAR = 4.0
 #: Quadrature points per patch in the near field (at most 2 x this with padding).
 NEAR_POINTS = 16
 
+#: Most pairs the memo keeps (12 bytes each: column and value, 200 MB at most); a scene with more
+#: keeps none. Sponza: 1.19M pairs at 3,129 patches (14 MB, ~380 a patch), 3.56M at 20,102 (43 MB,
+#: ~180 a patch); listing them is O(n^2) distance tests (~4 s at 20K patches on the loaded 2 cores).
+MEMO_PAIRS = 1 << 24
+
 _WEIGHT_POWER = 4.0
 _INV_PI = 1.0 / math.pi
 
@@ -108,13 +121,17 @@ class ClusterGeometry:
     Positions are relative to the scene's bounding-box centre (the plane tests
     use eps = 1e-9 x scene size). Triangles are stored patch by patch:
     patch p owns rows ``start[p]:start[p + 1]`` of ``triangles``.
+
+    ``memo`` (default True): keep A_P F_PQ of the pairs closer than FAR / 2 (D_P + D_Q) once
+    computed (``memo_start``, ``memo_cols``, ``memo_values``, :func:`memo_table`; see the
+    module docstring); False computes every pair each time it is asked for (the same numbers).
     """
 
     clustered = True
 
     def __init__(self, scene, *, far: float = FAR, near: float = NEAR, tolerance: float = CLUSTER_TOLERANCE,
                  exact_pairs: int = EXACT_PAIRS, exact_near: float = EXACT_NEAR,
-                 point_far: float = POINT_FAR) -> None:
+                 point_far: float = POINT_FAR, memo: bool = True) -> None:
         start, index = scene.patch_triangles
         self.centre = 0.5 * (scene.bounds[0] + scene.bounds[1]) if scene.n_triangles else np.zeros(3)
         tri = np.ascontiguousarray(scene.triangles[index] - self.centre)
@@ -156,6 +173,8 @@ class ClusterGeometry:
         self.far = float(far)
         self.near = float(near)
         self.point_far = float(point_far)
+        self.memo_start, self.memo_cols, self.memo_values = memo_table(self.centroids, self.diameters,
+                                                                       0.5 * self.far, MEMO_PAIRS if memo else 0)
 
     @property
     def n(self) -> int:
@@ -171,6 +190,76 @@ def _kernel_triangles(TA: np.ndarray, start: np.ndarray, most: int) -> np.ndarra
         order = np.argsort(TA[s:s + counts[p]], kind="stable")[::-1]
         keep[s + order[most:]] = False
     return keep
+
+
+def memo_table(C: np.ndarray, D: np.ndarray, reach: float, most: int
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The memo's slots: every pair (i, j), i < j, with centroids closer than ``reach`` (D_i + D_j).
+
+    Parameters
+    ----------
+    C : (n, 3) float, patch centroids
+    D : (n,) float, patch diameters
+    reach : float, the memo's distance in units of D_i + D_j (the quadrant rule's inner edge)
+    most : int, most slots; more pairs than this: no slots at all
+
+    Returns
+    -------
+    start : (n + 1,) int64, patch i's slots are ``start[i]:start[i + 1]``
+    cols : (slots,) int32, j of each slot, increasing within a patch
+    values : (slots,) float64, NaN (not computed yet)
+    """
+    n = len(D)
+    counts = np.zeros(n, np.int64)
+    _memo_pairs(C, D, reach, counts, np.zeros(0, np.int32), np.zeros(n + 1, np.int64))
+    start = np.zeros(n + 1, np.int64)
+    np.cumsum(counts, out=start[1:])
+    if start[-1] > most:
+        return np.zeros(n + 1, np.int64), np.zeros(0, np.int32), np.zeros(0)
+    cols = np.empty(start[-1], np.int32)
+    _memo_pairs(C, D, reach, counts, cols, start)
+    return start, cols, np.full(len(cols), np.nan)
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def _memo_pairs(C, D, reach, counts, cols, start):
+    """Count (``cols`` empty) or list the memo pairs (i, j > i) of each patch i (see :func:`memo_table`).
+
+    d2 and the bound are the same expressions as in :func:`_cluster_pair_area_ff` (which reads them
+    with i and j swapped for j < i: the squares of negated differences, the same numbers).
+    """
+    n = D.shape[0]
+    fill = cols.shape[0] > 0
+    for i in prange(n):
+        k = start[i]
+        m = 0
+        for j in range(i + 1, n):
+            rx = C[j, 0] - C[i, 0]
+            ry = C[j, 1] - C[i, 1]
+            rz = C[j, 2] - C[i, 2]
+            if rx * rx + ry * ry + rz * rz < (reach * (D[i] + D[j])) ** 2:
+                if fill:
+                    cols[k + m] = j
+                m += 1
+        counts[i] = m
+
+
+@njit(cache=True, fastmath=False, inline="always")
+def _memo_slot(i, j, MA, MC):
+    """Index of the pair (i, j) in the memo (``MA`` starts, ``MC`` columns), -1 if it has none."""
+    a = min(i, j)
+    b = max(i, j)
+    lo = MA[a]
+    hi = MA[a + 1]
+    while lo < hi:            # the first slot of a whose column is >= b
+        mid = (lo + hi) >> 1
+        if MC[mid] < b:
+            lo = mid + 1
+        else:
+            hi = mid
+    if lo < MA[a + 1] and MC[lo] == b:
+        return lo
+    return -1
 
 
 def quadrant_points(T: np.ndarray, TN: np.ndarray, TA: np.ndarray, start: np.ndarray, C: np.ndarray,
@@ -336,16 +425,33 @@ def _cluster_pair_area_ff(i, j, T, N, start, K, A, S, C, D, M, MN, MS, MW, Q, QN
 
 @njit(parallel=True, cache=True, fastmath=False, nogil=True)
 def _clustered_block(T, N, start, K, A, S, C, D, M, MN, MS, MW, Q, QN, W, rows, cols, far, near, eps, TA, TC, TD,
-                     TI, tol, exact, exact_near, far2, out, chunks):
+                     TI, tol, exact, exact_near, far2, MA, MC, MV, out, chunks):
     # rows dealt out in turn (row r to part r % chunks), not in contiguous runs: the costly near
     # pairs of a block sit in the rows next to its columns (Z-order), which a split into
     # contiguous runs gave to one thread (Sponza, 3,129 patches: 99% of a block's time on one core)
+    memo = MC.shape[0] > 0
+    half = 0.5 * far
     for part in prange(chunks):
         for r in range(part, rows.shape[0], chunks):
             i = rows[r]
             for c in range(cols.shape[0]):
-                af = _cluster_pair_area_ff(i, cols[c], T, N, start, K, A, S, C, D, M, MN, MS, MW, Q, QN, W, far, near,
-                                           eps, TA, TC, TD, TI, tol, exact, exact_near, far2)
+                j = cols[c]
+                slot = -1
+                if memo:
+                    rx = C[j, 0] - C[i, 0]
+                    ry = C[j, 1] - C[i, 1]
+                    rz = C[j, 2] - C[i, 2]
+                    if rx * rx + ry * ry + rz * rz < (half * (D[i] + D[j])) ** 2:
+                        slot = _memo_slot(i, j, MA, MC)
+                if slot >= 0 and MV[slot] == MV[slot]:     # computed before (NaN: not yet)
+                    af = MV[slot]
+                else:
+                    af = _cluster_pair_area_ff(i, j, T, N, start, K, A, S, C, D, M, MN, MS, MW, Q, QN, W, far,
+                                               near, eps, TA, TC, TD, TI, tol, exact, exact_near, far2)
+                    if slot >= 0:
+                        # two threads meeting (i, j) and (j, i) at once both store the same bits:
+                        # an aligned 8-byte store, no torn value
+                        MV[slot] = af
                 out[r, c] = af / A[i] if af > 0.0 else 0.0
 
 
@@ -359,8 +465,8 @@ def clustered_block(geom: ClusterGeometry, rows: np.ndarray, cols: np.ndarray) -
                          geom.centroids, geom.diameters, geom.mid_points, geom.mid_normals, geom.mid_vectors, geom.mid_weights,
                          geom.points, geom.point_normals, geom.weights, rows, cols, geom.far, geom.near,
                          geom.eps, geom.tri_areas, geom.tri_centroids, geom.tri_diameters, geom.tri_index,
-                         geom.tolerance, geom.exact_pairs, geom.exact_near, geom.point_far ** 2, out,
-                         row_chunks(len(rows)))
+                         geom.tolerance, geom.exact_pairs, geom.exact_near, geom.point_far ** 2,
+                         geom.memo_start, geom.memo_cols, geom.memo_values, out, row_chunks(len(rows)))
     return out
 
 

@@ -306,12 +306,15 @@ _RULE_W = (0.223381589678011, 0.109951743655322)
 
 
 @njit(cache=True, fastmath=False)
-def _rules(x0, y0, z0, x1, y1, z1, x2, y2, z2, nx, ny, nz, T, N, u, eps):
+def _rules(x0, y0, z0, x1, y1, z1, x2, y2, z2, nx, ny, nz, T, N, u, eps, groups=3):
     """area(S) x quadratures of F_{dx->u} over the triangle S with corners (x_k, y_k, z_k).
 
     Returns (Q6, Q3): Dunavant's 6-point rule (exact to degree 4) and the
     3-point rule (2/3, 1/6, 1/6) (exact to degree 2). |Q6 - Q3| estimates the
     error of Q3 and bounds that of Q6 (much smaller for a smooth integrand).
+    ``groups`` = 2: Q6 alone (the same number), Q3 returned as 0: the middle
+    distance's one degree-4 rule, which used to evaluate and discard Q3's three
+    points (a third of its work; clustered Sponza's touching pairs: ~38 such triangle pairs each).
     Corners come as scalars: the adaptive path calls this once per sub-triangle,
     and small arrays there cost a heap allocation each.
     """
@@ -323,7 +326,7 @@ def _rules(x0, y0, z0, x1, y1, z1, x2, y2, z2, nx, ny, nz, T, N, u, eps):
     area = 0.5 * math.sqrt(cx * cx + cy * cy + cz * cz)
     q6 = 0.0
     q3 = 0.0
-    for g in range(3):
+    for g in range(groups):
         a = _RULE_A[2 * g]  # two corners get weight a, the third b = 1 - 2a
         b = _RULE_A[2 * g + 1]
         acc = 0.0
@@ -486,7 +489,7 @@ def _triangle_pair_area_ff(t, u, T, N, A, C, D, near, adaptive, eps, tol):
             p, q = (u, t) if back_t else (t, u)
     if d2 >= adaptive * adaptive * s2:  # middle distance (or both straddle): one degree-4 rule
         return _rules(T[p, 0, 0], T[p, 0, 1], T[p, 0, 2], T[p, 1, 0], T[p, 1, 1], T[p, 1, 2],
-                      T[p, 2, 0], T[p, 2, 1], T[p, 2, 2], N[p, 0], N[p, 1], N[p, 2], T, N, q, eps)[0]
+                      T[p, 2, 0], T[p, 2, 1], T[p, 2, 2], N[p, 0], N[p, 1], N[p, 2], T, N, q, eps, 2)[0]
     return _adaptive_area_ff(p, q, T, N, A, eps, tol)
 
 
