@@ -26,7 +26,9 @@ Rounds (probing on, the default; probing.py):
    (centroid distance below REFINE_NEAR (D_i + D_j)), and the pair matters
    (F_ij or F_ji above ``refine_above``, 1e-4), ``REFINE_SAMPLES`` = 64 segments
    (8 x 8 split), ``REFINE_LARGE_SAMPLES`` = 256 (16 x 16) when F_ij or F_ji
-   exceeds REFINE_LARGE_ABOVE, replace the estimate.
+   exceeds REFINE_LARGE_ABOVE, replace the estimate. With a ray budget, pairs too weak to
+   matter at the factorization's error budget skip this round (``RayBudget.refine_below``)
+   or get 64 segments instead of 256 (``RayBudget.large_below``).
 
 With probing off every pair that needs rays gets ``samples`` segments, then round 3.
 
@@ -252,6 +254,9 @@ class Visibility:
         self.budget = ray_budget if ray_budget is not None else RayBudget()
         self.rays_cast = 0
         self.embree_seconds = 0.0
+        #: per round ("probe", "4", "16", "64", "256"; " bent" for pairs with a bent patch): pairs,
+        #: rays and Embree seconds (the cost of each round, benchmarks/bench_visibility_rounds.py)
+        self.rounds: dict[str, list] = {}
         # ray buffers reused from block to block (fresh pages cost page faults: ~10% of the time)
         self.buffers = RayBuffers()
         # one probe ray per pair first, every ray only where neighbouring pairs disagree (probing.py)
@@ -452,17 +457,25 @@ class Visibility:
             buf = pool.get(r)
             o, d, t, w = buf[0][:r], buf[1][:r], buf[2][:r], buf[3][:r]
             fill_rays(P, self.plane, partner, r_idx, c_idx, valid, first, o, d, t, w)
-            yield RayJob(pairs, first, o, d, t, w, buf, pool, r_idx, c_idx, final)
+            yield RayJob(pairs, first, o, d, t, w, buf, pool, r_idx, c_idx, final, str(s))
 
     def cast(self, job: "RayJob") -> np.ndarray:
         """(r,) bool: blocked segments of a job (Embree, in packets of 16; holds no GIL)."""
-        return self.cast_segments(job.o, job.d, job.t)
+        return self.cast_segments(job.o, job.d, job.t, job.round, len(job.pairs))
 
-    def cast_segments(self, o: np.ndarray, d: np.ndarray, t: np.ndarray) -> np.ndarray:
-        """(r,) bool: which segments (origins, unit directions, lengths; float32) are blocked."""
+    def cast_segments(self, o: np.ndarray, d: np.ndarray, t: np.ndarray, round: str = "",
+                      pairs: int | None = None) -> np.ndarray:
+        """(r,) bool: which segments (origins, unit directions, lengths; float32) are blocked.
+        ``round`` and ``pairs`` (default: one a segment) go to the counters of :attr:`rounds`."""
         t0 = time.perf_counter()
         hit = self.caster.occluded(o, d, t)
-        self.embree_seconds += time.perf_counter() - t0
+        seconds = time.perf_counter() - t0
+        self.embree_seconds += seconds
+        if round:
+            count = self.rounds.setdefault(round, [0, 0, 0.0])
+            count[0] += len(t) if pairs is None else pairs
+            count[1] += len(t)
+            count[2] += seconds
         return hit
 
     def finish(self, F: np.ndarray, job: "RayJob", hit: np.ndarray) -> list:
@@ -486,7 +499,7 @@ class Visibility:
         if self.refine_samples:
             _partial_and_large(flat, job.pairs, job.first, hit, job.r_idx, job.c_idx, self.areas,
                                self.centroids, self.diameters, self.refine_near, self.refine_above,
-                               self.refine_large_above, again)
+                               self.refine_large_above, self.budget.refine_below, self.budget.large_below, again)
         _scale_by_visibility(flat, job.pairs, job.first, hit, job.w, again != 0)
         job.pool.put(job.buf)
         more = []
@@ -527,7 +540,7 @@ class Visibility:
             o, d, t, w = buf[0][:r], buf[1][:r], buf[2][:r], buf[3][:r]
             fill_rays(P, plane, partner, ri, ci, valid, first, o, d, t, w)
             self.rays_refined += r
-            out.append(RayJob(pairs[sl], first, o, d, t, w, buf, pool, r_idx[sl], c_idx[sl], True))
+            out.append(RayJob(pairs[sl], first, o, d, t, w, buf, pool, r_idx[sl], c_idx[sl], True, str(s)))
         return out
 
     def _bent_points(self, m: int, patches: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -568,7 +581,7 @@ class Visibility:
             buf = pool.get(r)
             o, d, t, w = buf[0][:r], buf[1][:r], buf[2][:r], buf[3][:r]
             fill_rays_on_triangles(P, N, plane, ka, kb, ri, ci, valid, first, flat_pair, o, d, t, w)
-            yield RayJob(pairs[sl], first, o, d, t, w, buf, pool, r_idx[sl], c_idx[sl], final)
+            yield RayJob(pairs[sl], first, o, d, t, w, buf, pool, r_idx[sl], c_idx[sl], final, f"{s} bent")
 
     def close(self) -> None:
         self.caster.close()
@@ -712,9 +725,11 @@ def _needs_rays_words(F, rows, cols, front, back, below, above, cull, need):
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def _partial_and_large(F, pairs, first, hit, r_idx, c_idx, areas, C, D, near, above, large, out):
+def _partial_and_large(F, pairs, first, hit, r_idx, c_idx, areas, C, D, near, above, large, refine_below,
+                       large_below, out):
     """out[p]: 1 if the rays of pair p disagree, or the patches are close, and max(F_ij, F_ji) > above;
-    2 if moreover max(F_ij, F_ji) > large; else 0.
+    2 if moreover max(F_ij, F_ji) > large; else 0. The ray budget's thresholds on A_i F_ij lower
+    that: 0 below ``refine_below``, at most 1 below ``large_below`` (RayBudget; 0 = off).
 
     Close: centroid distance below near * (D_i + D_j); rays between near
     patches can all agree and still be wrong. Every test is symmetric in (i, j).
@@ -738,7 +753,9 @@ def _partial_and_large(F, pairs, first, hit, r_idx, c_idx, areas, C, D, near, ab
         if (0 < blocked < total) or close:
             a = F[pairs[p]] * areas[i]
             m = min(areas[i], areas[j])
-            if a > large * m:
+            if a < refine_below:
+                continue
+            if a > large * m and a >= large_below:
                 out[p] = 2
             elif a > above * m:
                 out[p] = 1
