@@ -30,6 +30,7 @@ from pathlib import Path
 import common
 import numpy as np
 
+import hfrad
 from hfrad.formfactors.blocks import iter_column_blocks
 from hfrad.formfactors.budget import ray_budget
 from hfrad.formfactors.engine import FormFactorEngine
@@ -80,7 +81,7 @@ def _second_round_reasons(vis, reasons: dict) -> None:
             partial = (blocked > 0) & (blocked < total)
             gap = np.linalg.norm(vis.centroids[i] - vis.centroids[j], axis=1)
             close = gap < vis.refine_near * (vis.diameters[i] + vis.diameters[j])
-            tag = "bent" if job.round.endswith("bent") else "flat"
+            tag = "bent" if getattr(job, "round", "").endswith("bent") else "flat"   # older code: no rounds
             for key, sel in ((f"{tag} first-round pairs", np.ones(len(i), bool)),
                              (f"{tag} partial", partial & matters), (f"{tag} close, rays agree", close & ~partial & matters),
                              (f"{tag} close, all visible", close & (blocked == 0) & matters)):
@@ -116,7 +117,7 @@ def rounds(scene, plan, blocks: int = 0, ray_threads: int | None = 1) -> dict:
            "occluders": vis.n_occluders, "one_ray_below": vis.budget.one_ray_below,
            "few_rays_below": vis.budget.few_rays_below, "reasons": reasons,
            "rounds": {k: {"pairs": v[0], "rays": v[1], "embree_s": v[2], "Mrays_per_s": v[1] / max(v[2], 1e-9) / 1e6}
-                      for k, v in sorted(vis.rounds.items(), key=lambda kv: -kv[1][1])}}
+                      for k, v in sorted(getattr(vis, "rounds", {}).items(), key=lambda kv: -kv[1][1])}}
     engine.close()
     return out
 
@@ -181,7 +182,8 @@ def row_accuracy(scene, plan, name: str, count: int, shots: int) -> dict:
             "rel_fro_all_vs_shots": float(np.linalg.norm(F_all - ref) / np.linalg.norm(ref)),
             # the shots' own share of those distances: binomial variance F_ij / shots per entry
             "rel_fro_shot_noise": float(np.sqrt(ref.sum() / shots) / np.linalg.norm(ref)),
-            "max_row_sum": float(F.sum(axis=1).max()),
+            "mean_abs_sum_diff_all": float(np.abs(F_all.sum(axis=1) - ref.sum(axis=1)).mean()),
+            "max_row_sum": float(F.sum(axis=1).max()), "max_row_sum_all": float(F_all.sum(axis=1).max()),
             "rows_over_1.05": int((F.sum(axis=1) > 1.05).sum()), "rays": engine.rays, "rays_all": full.rays}
 
 
@@ -201,7 +203,8 @@ def main() -> None:
     t = time.perf_counter()
     scene = scene_of(args.scene, args.patches)
     plan = plan_precompute(scene, 0.02)
-    result = {"scene": args.scene, "patches": scene.n_patches, "factors": FACTORS, "load_s": time.perf_counter() - t,
+    result = {"scene": args.scene, "patches": scene.n_patches, "factors": FACTORS, "hfrad": hfrad.__file__,
+              "load_s": time.perf_counter() - t,
               "machine": common.machine_line()}
     print(f"{args.scene}: {scene.n_patches} patches, {result['load_s']:.1f} s to load", flush=True)
     for mode in args.mode.split(","):

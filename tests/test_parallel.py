@@ -100,7 +100,7 @@ def test_few_rays_rule_stays_within_its_share(scene):
 def test_second_round_rules_stay_within_their_share(scene):
     """Pairs below refine_below get no second visibility round, those below large_below 64 rays
     instead of 256: fewer rays, F within the rules' share, the closed box's rows still close."""
-    tol = 0.005   # the precompute's one-ray share at eps 0.02
+    tol = 0.01   # the one-ray share at eps 0.04
     full = ray_budget(scene, tol)
     assert full.few_rays_below < full.refine_below < full.large_below
     order = zorder_permutation(scene.centroids)
@@ -112,14 +112,14 @@ def test_second_round_rules_stay_within_their_share(scene):
         engine.close()
     share = rays["all"] / rays["first rules"]
     diff = np.linalg.norm(blocks["all"] - blocks["first rules"]) / np.linalg.norm(blocks["first rules"])
-    print(f"second-round rules: {share:.3f} of the rays, F moved {diff:.2e}")
-    assert share < 0.9   # observed 0.81
+    worst = {k: np.abs(F.sum(axis=1) - 1).max() for k, F in blocks.items()}
+    print(f"second-round rules: {share:.3f} of the rays, F moved {diff:.2e}, worst rows {worst}")
+    assert share < 0.92   # observed 0.843
     # the pairs below refine_below hold REFINE_FACTOR * tol of ||F||_F, and each moves by at most F_ij;
-    # observed 3.2e-3, ~0.04 of that bound
+    # observed 1.8e-3, ~0.02 of that bound
     assert 0 < diff <= 0.1 * REFINE_FACTOR * tol, diff
     # rows of the closed box (area light included) sum to 1 with every second round, and still do
-    worst = {k: np.abs(F.sum(axis=1) - 1).max() for k, F in blocks.items()}
-    assert worst["all"] < worst["first rules"] + 2e-3, worst   # observed 3.1e-3 against 2.8e-3
+    assert worst["all"] < worst["first rules"] + 1e-3, worst   # observed 4.26e-3 against 4.18e-3
     a = scene.areas[order][:, None] * blocks["all"]
     np.testing.assert_allclose(a, a.T, rtol=1e-12, atol=1e-18)
 

@@ -95,8 +95,8 @@ FEW_RAYS_FACTOR = 4.0
 #: Pairs that together hold REFINE_FACTOR times the one-ray rule's share of ||F||_F get no second
 #: visibility round, and those holding LARGE_FACTOR times it 64 rays there instead of 256
 #: (benchmarks/README.md, "Form-factor accuracy and its cost", records what they save and cost).
-REFINE_FACTOR = 16.0
-LARGE_FACTOR = 32.0
+REFINE_FACTOR = 8.0
+LARGE_FACTOR = 16.0
 
 
 def ray_budget(scene, one_ray_tol: float, *, few_rays_factor: float = FEW_RAYS_FACTOR,

@@ -23,12 +23,14 @@ Rounds (probing on, the default; probing.py):
    and no round 3 if the pair is too weak to matter at the factorization's error
    budget (``RayBudget.few_rays_below``; off unless a budget is given);
 3. where those disagree (a partly visible pair) or the patches are close
-   (centroid distance below REFINE_NEAR (D_i + D_j)), and the pair matters
+   (centroid distance below REFINE_NEAR (D_i + D_j): such a pair skips round 2,
+   whose rays could not change this), and the pair matters
    (F_ij or F_ji above ``refine_above``, 1e-4), ``REFINE_SAMPLES`` = 64 segments
    (8 x 8 split), ``REFINE_LARGE_SAMPLES`` = 256 (16 x 16) when F_ij or F_ji
    exceeds REFINE_LARGE_ABOVE, replace the estimate. With a ray budget, pairs too weak to
    matter at the factorization's error budget skip this round (``RayBudget.refine_below``)
-   or get 64 segments instead of 256 (``RayBudget.large_below``).
+   or get 64 segments instead of 256 (``RayBudget.large_below``). On Sponza at 3K the
+   256-segment round of bent pairs was 41% of all rays (benchmarks/README.md).
 
 With probing off every pair that needs rays gets ``samples`` segments, then round 3.
 
@@ -428,7 +430,25 @@ class Visibility:
         if few.any():
             yield from self._jobs(F, rows, cols, flat[few], self.points, self.partner, pool, final=True)
             flat = flat[~few]
+        if self.refine_samples:   # close pairs get the second round whatever their first rays say: only it
+            flat = yield from self._close_jobs(F, rows, cols, flat, pool)
         yield from self._jobs(F, rows, cols, flat, self.boundary_points, self.boundary_partner, pool)
+
+    def _close_jobs(self, F, rows, cols, flat, pool):
+        """Second-round jobs for the pairs of ``flat`` (flat indices into F) that :meth:`finish` would
+        send there for being close, whatever their first rays said (the same F, without those rays);
+        returns the others."""
+        nc = len(cols)
+        r_idx, c_idx = rows[flat // nc], cols[flat % nc]
+        level = np.empty(len(flat), np.int8)
+        _close_level(F.reshape(-1), flat, r_idx, c_idx, self.areas, self.centroids, self.diameters, self.refine_near,
+                     self.refine_above, self.refine_large_above, self.budget.refine_below, self.budget.large_below,
+                     level)
+        for lv, samples in ((1, self.refine_samples), (2, self.refine_large_samples)):
+            sel = level == lv
+            if sel.any():
+                yield from self._refine_jobs(flat[sel], r_idx[sel], c_idx[sel], samples, pool)
+        return flat[level == 0]
 
     def _jobs(self, F, rows, cols, flat, P, partner, pool, final=False):
         s = partner.shape[0]
@@ -745,20 +765,45 @@ def _partial_and_large(F, pairs, first, hit, r_idx, c_idx, areas, C, D, near, ab
         total = first[p + 1] - first[p]
         i = r_idx[p]
         j = c_idx[p]
-        dx = C[i, 0] - C[j, 0]
-        dy = C[i, 1] - C[j, 1]
-        dz = C[i, 2] - C[j, 2]
-        close = dx * dx + dy * dy + dz * dz < (near * (D[i] + D[j])) ** 2
         out[p] = 0
-        if (0 < blocked < total) or close:
-            a = F[pairs[p]] * areas[i]
-            m = min(areas[i], areas[j])
-            if a < refine_below:
-                continue
-            if a > large * m and a >= large_below:
-                out[p] = 2
-            elif a > above * m:
-                out[p] = 1
+        if (0 < blocked < total) or _close(C, D, near, i, j):
+            out[p] = _refine_level(F[pairs[p]] * areas[i], min(areas[i], areas[j]), above, large, refine_below,
+                                   large_below)
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def _close_level(F, pairs, r_idx, c_idx, areas, C, D, near, above, large, refine_below, large_below, out):
+    """out[p]: the second round :func:`_partial_and_large` gives pair p whatever its first rays say
+    (its patches are close), else 0."""
+    for p in prange(pairs.shape[0]):
+        i = r_idx[p]
+        j = c_idx[p]
+        out[p] = 0
+        if _close(C, D, near, i, j):
+            out[p] = _refine_level(F[pairs[p]] * areas[i], min(areas[i], areas[j]), above, large, refine_below,
+                                   large_below)
+
+
+@njit(cache=True, inline="always")
+def _close(C, D, near, i, j):
+    """Centroid distance below near * (D_i + D_j) (symmetric)."""
+    dx = C[i, 0] - C[j, 0]
+    dy = C[i, 1] - C[j, 1]
+    dz = C[i, 2] - C[j, 2]
+    return dx * dx + dy * dy + dz * dz < (near * (D[i] + D[j])) ** 2
+
+
+@njit(cache=True, inline="always")
+def _refine_level(a, m, above, large, refine_below, large_below):
+    """0, 1 or 2 (no second round, REFINE_SAMPLES, REFINE_LARGE_SAMPLES) for a pair that asks for one,
+    from a = A_i F_ij and m = min(A_i, A_j): see :func:`_partial_and_large`."""
+    if a < refine_below:
+        return 0
+    if a > large * m and a >= large_below:
+        return 2
+    if a > above * m:
+        return 1
+    return 0
 
 
 @njit(parallel=True, cache=True, nogil=True)
