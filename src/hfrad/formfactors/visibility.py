@@ -87,7 +87,7 @@ import numpy as np
 from numba import njit, prange
 
 from ..errors import InputError
-from .budget import RayBudget
+from .budget import FEW_RAYS_FACTOR, LARGE_FACTOR, REFINE_FACTOR, RayBudget
 from .clustervis import (MIXED, ClusterVisibility, costly_pairs,
                          full_ray_pairs_clustered)
 from .kernel import points_on_triangles, split_centroids
@@ -137,11 +137,13 @@ _OFFSET = 1e-5  # end point offset, times the scene size
 
 
 def settings() -> dict:
-    """The second-round visibility parameters, as recorded with results (.hfr files)."""
+    """The second-round visibility parameters, as recorded with results (.hfr files), and the ray
+    budget's factors (budget.py: a checkpoint made with other rules is not resumed)."""
     return {"boundary_samples": BOUNDARY_SAMPLES, "refine_samples": REFINE_SAMPLES,
             "refine_large_samples": REFINE_LARGE_SAMPLES, "refine_large_above": REFINE_LARGE_ABOVE,
             "refine_above": REFINE_ABOVE, "refine_near": REFINE_NEAR, "weighted": True,
-            "probe_neighbours": NEIGHBOURS, "probe_below": PROBE_BELOW, "probe_near": PROBE_NEAR}
+            "probe_neighbours": NEIGHBOURS, "probe_below": PROBE_BELOW, "probe_near": PROBE_NEAR,
+            "budget_factors": {"few_rays": FEW_RAYS_FACTOR, "refine": REFINE_FACTOR, "large": LARGE_FACTOR}}
 
 
 def check_samples(samples: int) -> int:
