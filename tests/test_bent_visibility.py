@@ -166,3 +166,12 @@ def test_bent_points_lie_on_their_triangles(saw):
     for i in range(0, room.n_patches, 7):
         T = room.triangles[index[start[i]:start[i + 1]]]
         assert all(_in_some_triangle(p, T) for p in P[i])
+
+
+def test_close_bent_pairs_skip_the_first_round(saw, monkeypatch):
+    """Close pairs with a bent patch also cast only their second round: the same F, fewer rays."""
+    from test_probing import same_F_with_and_without_close_shortcut
+
+    F, rays, F_old, rays_old = same_F_with_and_without_close_shortcut(saw[0], monkeypatch)
+    np.testing.assert_array_equal(F, F_old)
+    assert rays < 0.99 * rays_old, (rays, rays_old)   # observed 0.975

@@ -235,6 +235,8 @@ def test_kernel_settings_are_recorded_in_the_hfr(tmp_path):
     assert recorded["tolerance"] == TOLERANCE and recorded["kernel_version"] == KERNEL_VERSION
     from hfrad.formfactors.visibility import BOUNDARY_SAMPLES, REFINE_SAMPLES
     assert recorded["refine_samples"] == REFINE_SAMPLES and recorded["boundary_samples"] == BOUNDARY_SAMPLES
+    from hfrad.formfactors.budget import LARGE_FACTOR, REFINE_FACTOR
+    assert recorded["budget_factors"]["refine"] == REFINE_FACTOR and recorded["budget_factors"]["large"] == LARGE_FACTOR
 
 
 def test_single_triangle_kernel_equals_the_general_one():

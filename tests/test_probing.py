@@ -7,7 +7,7 @@ import pytest
 
 from hfrad.formfactors.blocks import FormFactorEngine
 from hfrad.formfactors.probing import nearest_patches
-from hfrad.formfactors.visibility import BOUNDARY_SAMPLES
+from hfrad.formfactors.visibility import BOUNDARY_SAMPLES, Visibility
 from hfrad.scene.builtin import cornell_box
 from hfrad.scene.patches import subdivide
 
@@ -176,3 +176,31 @@ def test_probe_decision_follows_the_rule_pair_by_pair(both):
     assert out.any() and (need & ~out).any() and (Fd != Fu).any()   # both outcomes, and blocked probes
     np.testing.assert_array_equal(out, ref_out)
     np.testing.assert_array_equal(Fd, ref_F)
+
+
+def _without_close_shortcut(self, F, rows, cols, flat, pool):
+    """Visibility._close_jobs that sends no pair ahead: every flagged pair casts its first round."""
+    return flat
+    yield  # a generator, as the method is
+
+
+def same_F_with_and_without_close_shortcut(scene, monkeypatch):
+    """F and rays with close pairs sent straight to the second round (the default), then without."""
+    everything = np.arange(scene.n_patches)
+    out = []
+    for patch in (False, True):
+        if patch:
+            monkeypatch.setattr(Visibility, "_close_jobs", _without_close_shortcut)
+        engine = FormFactorEngine(scene)
+        out += [engine.block(everything, everything), engine.rays]
+        engine.close()
+    return out
+
+
+def test_close_pairs_skip_the_first_round(monkeypatch):
+    """Close pairs get the second round whatever their first rays say, so they cast only it:
+    the same F bit for bit, fewer rays."""
+    F, rays, F_old, rays_old = same_F_with_and_without_close_shortcut(subdivide(cornell_box(), patches=600),
+                                                                      monkeypatch)
+    np.testing.assert_array_equal(F, F_old)
+    assert rays < 0.97 * rays_old, (rays, rays_old)   # observed 0.939

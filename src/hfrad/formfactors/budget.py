@@ -9,7 +9,9 @@ of the unoccluded kernel, so it is the same in every block and every process
 ``A_i F_ij = A_j F_ji``, so reciprocity survives. A second threshold, for
 ``FEW_RAYS_FACTOR`` times that share, gives the pairs whose probe rays disagree
 with their neighbours' 4 rays instead of 16 (:func:`ray_budget`,
-:class:`RayBudget`). By default the one-ray rule
+:class:`RayBudget`). Two more, for ``REFINE_FACTOR`` and ``LARGE_FACTOR`` times the share, give
+the pairs whose 16 rays disagree no second round (their 16-ray estimate stands), or 64 rays in it
+instead of 256. By default the one-ray rule
 spends ``ONE_RAY_SHARE`` of a relative eps (:func:`default_one_ray_tol`) and is
 off for an absolute eps.
 
@@ -28,7 +30,7 @@ from .clustered import block_function, kernel_for
 from .kernel import PatchGeometry
 
 __all__ = ["RayBudget", "ray_budget", "one_ray_threshold", "default_one_ray_tol", "FEW_RAYS_FACTOR", "ONE_RAY_SHARE",
-           "THRESHOLD_SAMPLE_COLUMNS"]
+           "REFINE_FACTOR", "LARGE_FACTOR", "THRESHOLD_SAMPLE_COLUMNS"]
 
 
 @dataclass(frozen=True)
@@ -46,15 +48,25 @@ class RayBudget:
     few_rays_below : float
         Flagged pairs (neighbouring probes disagree) below this get
         ``samples`` rays (4 by default) instead of ``BOUNDARY_SAMPLES`` (16); 0 = off.
+    refine_below : float
+        Pairs below this get no second visibility round (visibility.py: their first
+        rays' estimate stands where those rays disagree or the patches are close); 0 = off.
+    large_below : float
+        Pairs below this whose second round would be ``REFINE_LARGE_SAMPLES`` (256)
+        rays get ``REFINE_SAMPLES`` (64); 0 = off.
     """
 
     one_ray_below: float = 0.0
     few_rays_below: float = 0.0
+    refine_below: float = 0.0
+    large_below: float = 0.0
 
     def key(self) -> dict:
-        """The nonzero thresholds, for cache keys (empty when both rules are off)."""
+        """The nonzero thresholds, for cache keys (empty when every rule is off)."""
         return {k: float(v) for k, v in (("one_ray_below", self.one_ray_below),
-                                         ("few_rays_below", self.few_rays_below)) if v}
+                                         ("few_rays_below", self.few_rays_below),
+                                         ("refine_below", self.refine_below),
+                                         ("large_below", self.large_below)) if v}
 
 
 #: Columns sampled (spread over the scene) to pick the one-ray threshold.
@@ -80,17 +92,26 @@ def default_one_ray_tol(eps: float, relative: bool) -> float:
 #: 0.58% from the every-ray F in the Frobenius norm (0.30% by the one-ray rule alone).
 FEW_RAYS_FACTOR = 4.0
 
+#: Pairs that together hold REFINE_FACTOR times the one-ray rule's share of ||F||_F get no second
+#: visibility round, and those holding LARGE_FACTOR times it 64 rays there instead of 256
+#: (benchmarks/README.md, "Form-factor accuracy and its cost", records what they save and cost).
+REFINE_FACTOR = 8.0
+LARGE_FACTOR = 16.0
+
 
 def ray_budget(scene, one_ray_tol: float, *, few_rays_factor: float = FEW_RAYS_FACTOR,
+               refine_factor: float = REFINE_FACTOR, large_factor: float = LARGE_FACTOR,
                geometry: PatchGeometry | None = None) -> RayBudget:
     """The :class:`RayBudget` for a Frobenius share ``one_ray_tol`` of ``||F||_F``.
 
-    ``one_ray_below = one_ray_threshold(scene, one_ray_tol)``; ``few_rays_below``
-    is the same rule for ``few_rays_factor * one_ray_tol``. Both 0 when
-    ``one_ray_tol`` is 0.
+    ``one_ray_below = one_ray_threshold(scene, one_ray_tol)``; ``few_rays_below``,
+    ``refine_below`` and ``large_below`` are the same rule for ``few_rays_factor``,
+    ``refine_factor`` and ``large_factor`` times ``one_ray_tol`` (a factor of 0 turns
+    its rule off). All 0 when ``one_ray_tol`` is 0.
     """
-    one, few = _thresholds(scene, (one_ray_tol, few_rays_factor * one_ray_tol), geometry, THRESHOLD_SAMPLE_COLUMNS)
-    return RayBudget(one, few)
+    factors = (1.0, few_rays_factor, refine_factor, large_factor)
+    thresholds = _thresholds(scene, tuple(f * one_ray_tol for f in factors), geometry, THRESHOLD_SAMPLE_COLUMNS)
+    return RayBudget(*thresholds)
 
 
 def one_ray_threshold(scene, tol: float, *, geometry: PatchGeometry | None = None,
@@ -136,5 +157,11 @@ def _thresholds(scene, tols, geometry, sample_columns: int) -> list[float]:
     out = []
     for tol in tols:
         k = int(np.searchsorted(cum, tol * tol * total, side="right"))
-        out.append(0.0 if tol <= 0 else float(a[order[k]]) if k < len(a) else float(a.max()))
+        out.append(0.0 if tol <= 0 else float(a[order[k]]) * _BELOW if k < len(a) else float(a.max()))
     return out
+
+
+#: A threshold is set a little below the sampled pair's A_i F_ij it falls on: A_i F_ij and A_j F_ji
+#: agree only to rounding, and a threshold equal to one of them would decide (i, j) and (j, i)
+#: apart (V_ij != V_ji; seen with the second-round rules on a 700-patch Cornell box).
+_BELOW = 1 - 1e-6

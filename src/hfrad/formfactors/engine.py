@@ -42,7 +42,8 @@ class FormFactorEngine:
         relative tolerance).
     ray_budget : RayBudget, optional
         Fewer rays for weak pairs (one, or ``samples`` instead of 16 where probes
-        disagree; see :func:`hfrad.formfactors.budget.ray_budget`); default: off.
+        disagree, no second round or 64 rays in it instead of 256; see
+        :func:`hfrad.formfactors.budget.ray_budget`); default: off.
     cluster_size : int, optional
         Patches per cluster for visibility decided once per cluster pair where it is
         all or nothing (:mod:`hfrad.formfactors.clustervis`); 0 = off; default

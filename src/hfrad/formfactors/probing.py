@@ -219,7 +219,7 @@ def _probe(vis, R: np.ndarray, Cc: np.ndarray, state: np.ndarray) -> None:
             where = np.empty(cap, np.int64)
         m = _gather_probes(state, R, Cc, r0, r1, vis.probe_points, buf[0], buf[1], buf[2], where)
         if m:
-            hit = vis.cast_segments(buf[0][:m], buf[1][:m], buf[2][:m])
+            hit = vis.cast_segments(buf[0][:m], buf[1][:m], buf[2][:m], "probe")
             _store_probes(state, where, hit, m)
             vis.rays_probe += m
             vis.rays_cast += m

@@ -22,13 +22,14 @@ class RayJob:
     ``buf`` and ``pool``: the buffers (o, d, t, w are views of them) and the pool to hand them back to.
     """
 
-    __slots__ = ("pairs", "first", "o", "d", "t", "w", "buf", "pool", "r_idx", "c_idx", "final")
+    __slots__ = ("pairs", "first", "o", "d", "t", "w", "buf", "pool", "r_idx", "c_idx", "final", "round")
 
-    def __init__(self, pairs, first, o, d, t, w, buf, pool, r_idx, c_idx, final) -> None:
+    def __init__(self, pairs, first, o, d, t, w, buf, pool, r_idx, c_idx, final, round="") -> None:
         self.pairs, self.first, self.o, self.d, self.t, self.w = pairs, first, o, d, t, w
         self.buf, self.pool = buf, pool
         self.final = final  # no second round: its fraction is the pair's V
         self.r_idx, self.c_idx = r_idx, c_idx  # patch indices of each pair
+        self.round = round  # the visibility round's name, for its counters (Visibility.rounds)
 
 
 class RayBuffers:

@@ -23,10 +23,14 @@ Rounds (probing on, the default; probing.py):
    and no round 3 if the pair is too weak to matter at the factorization's error
    budget (``RayBudget.few_rays_below``; off unless a budget is given);
 3. where those disagree (a partly visible pair) or the patches are close
-   (centroid distance below REFINE_NEAR (D_i + D_j)), and the pair matters
+   (centroid distance below REFINE_NEAR (D_i + D_j): such a pair skips round 2,
+   whose rays could not change this), and the pair matters
    (F_ij or F_ji above ``refine_above``, 1e-4), ``REFINE_SAMPLES`` = 64 segments
    (8 x 8 split), ``REFINE_LARGE_SAMPLES`` = 256 (16 x 16) when F_ij or F_ji
-   exceeds REFINE_LARGE_ABOVE, replace the estimate.
+   exceeds REFINE_LARGE_ABOVE, replace the estimate. With a ray budget, pairs too weak to
+   matter at the factorization's error budget skip this round (``RayBudget.refine_below``)
+   or get 64 segments instead of 256 (``RayBudget.large_below``). On Sponza at 3K the
+   256-segment round of bent pairs was 41% of all rays (benchmarks/README.md).
 
 With probing off every pair that needs rays gets ``samples`` segments, then round 3.
 
@@ -83,7 +87,7 @@ import numpy as np
 from numba import njit, prange
 
 from ..errors import InputError
-from .budget import RayBudget
+from .budget import FEW_RAYS_FACTOR, LARGE_FACTOR, REFINE_FACTOR, RayBudget
 from .clustervis import (MIXED, ClusterVisibility, costly_pairs,
                          full_ray_pairs_clustered)
 from .kernel import points_on_triangles, split_centroids
@@ -133,11 +137,13 @@ _OFFSET = 1e-5  # end point offset, times the scene size
 
 
 def settings() -> dict:
-    """The second-round visibility parameters, as recorded with results (.hfr files)."""
+    """The second-round visibility parameters, as recorded with results (.hfr files), and the ray
+    budget's factors (budget.py: a checkpoint made with other rules is not resumed)."""
     return {"boundary_samples": BOUNDARY_SAMPLES, "refine_samples": REFINE_SAMPLES,
             "refine_large_samples": REFINE_LARGE_SAMPLES, "refine_large_above": REFINE_LARGE_ABOVE,
             "refine_above": REFINE_ABOVE, "refine_near": REFINE_NEAR, "weighted": True,
-            "probe_neighbours": NEIGHBOURS, "probe_below": PROBE_BELOW, "probe_near": PROBE_NEAR}
+            "probe_neighbours": NEIGHBOURS, "probe_below": PROBE_BELOW, "probe_near": PROBE_NEAR,
+            "budget_factors": {"few_rays": FEW_RAYS_FACTOR, "refine": REFINE_FACTOR, "large": LARGE_FACTOR}}
 
 
 def check_samples(samples: int) -> int:
@@ -252,6 +258,9 @@ class Visibility:
         self.budget = ray_budget if ray_budget is not None else RayBudget()
         self.rays_cast = 0
         self.embree_seconds = 0.0
+        #: per round ("probe", "4", "16", "64", "256"; " bent" for pairs with a bent patch): pairs,
+        #: rays and Embree seconds (the cost of each round, benchmarks/bench_visibility_rounds.py)
+        self.rounds: dict[str, list] = {}
         # ray buffers reused from block to block (fresh pages cost page faults: ~10% of the time)
         self.buffers = RayBuffers()
         # one probe ray per pair first, every ray only where neighbouring pairs disagree (probing.py)
@@ -423,7 +432,25 @@ class Visibility:
         if few.any():
             yield from self._jobs(F, rows, cols, flat[few], self.points, self.partner, pool, final=True)
             flat = flat[~few]
+        if self.refine_samples:   # close pairs get the second round whatever their first rays say: only it
+            flat = yield from self._close_jobs(F, rows, cols, flat, pool)
         yield from self._jobs(F, rows, cols, flat, self.boundary_points, self.boundary_partner, pool)
+
+    def _close_jobs(self, F, rows, cols, flat, pool):
+        """Second-round jobs for the pairs of ``flat`` (flat indices into F) that :meth:`finish` would
+        send there for being close, whatever their first rays said (the same F, without those rays);
+        returns the others."""
+        nc = len(cols)
+        r_idx, c_idx = rows[flat // nc], cols[flat % nc]
+        level = np.empty(len(flat), np.int8)
+        _close_level(F.reshape(-1), flat, r_idx, c_idx, self.areas, self.centroids, self.diameters, self.refine_near,
+                     self.refine_above, self.refine_large_above, self.budget.refine_below, self.budget.large_below,
+                     level)
+        for lv, samples in ((1, self.refine_samples), (2, self.refine_large_samples)):
+            sel = level == lv
+            if sel.any():
+                yield from self._refine_jobs(flat[sel], r_idx[sel], c_idx[sel], samples, pool)
+        return flat[level == 0]
 
     def _jobs(self, F, rows, cols, flat, P, partner, pool, final=False):
         s = partner.shape[0]
@@ -452,17 +479,25 @@ class Visibility:
             buf = pool.get(r)
             o, d, t, w = buf[0][:r], buf[1][:r], buf[2][:r], buf[3][:r]
             fill_rays(P, self.plane, partner, r_idx, c_idx, valid, first, o, d, t, w)
-            yield RayJob(pairs, first, o, d, t, w, buf, pool, r_idx, c_idx, final)
+            yield RayJob(pairs, first, o, d, t, w, buf, pool, r_idx, c_idx, final, str(s))
 
     def cast(self, job: "RayJob") -> np.ndarray:
         """(r,) bool: blocked segments of a job (Embree, in packets of 16; holds no GIL)."""
-        return self.cast_segments(job.o, job.d, job.t)
+        return self.cast_segments(job.o, job.d, job.t, job.round, len(job.pairs))
 
-    def cast_segments(self, o: np.ndarray, d: np.ndarray, t: np.ndarray) -> np.ndarray:
-        """(r,) bool: which segments (origins, unit directions, lengths; float32) are blocked."""
+    def cast_segments(self, o: np.ndarray, d: np.ndarray, t: np.ndarray, round: str = "",
+                      pairs: int | None = None) -> np.ndarray:
+        """(r,) bool: which segments (origins, unit directions, lengths; float32) are blocked.
+        ``round`` and ``pairs`` (default: one a segment) go to the counters of :attr:`rounds`."""
         t0 = time.perf_counter()
         hit = self.caster.occluded(o, d, t)
-        self.embree_seconds += time.perf_counter() - t0
+        seconds = time.perf_counter() - t0
+        self.embree_seconds += seconds
+        if round:
+            count = self.rounds.setdefault(round, [0, 0, 0.0])
+            count[0] += len(t) if pairs is None else pairs
+            count[1] += len(t)
+            count[2] += seconds
         return hit
 
     def finish(self, F: np.ndarray, job: "RayJob", hit: np.ndarray) -> list:
@@ -486,7 +521,7 @@ class Visibility:
         if self.refine_samples:
             _partial_and_large(flat, job.pairs, job.first, hit, job.r_idx, job.c_idx, self.areas,
                                self.centroids, self.diameters, self.refine_near, self.refine_above,
-                               self.refine_large_above, again)
+                               self.refine_large_above, self.budget.refine_below, self.budget.large_below, again)
         _scale_by_visibility(flat, job.pairs, job.first, hit, job.w, again != 0)
         job.pool.put(job.buf)
         more = []
@@ -527,7 +562,7 @@ class Visibility:
             o, d, t, w = buf[0][:r], buf[1][:r], buf[2][:r], buf[3][:r]
             fill_rays(P, plane, partner, ri, ci, valid, first, o, d, t, w)
             self.rays_refined += r
-            out.append(RayJob(pairs[sl], first, o, d, t, w, buf, pool, r_idx[sl], c_idx[sl], True))
+            out.append(RayJob(pairs[sl], first, o, d, t, w, buf, pool, r_idx[sl], c_idx[sl], True, str(s)))
         return out
 
     def _bent_points(self, m: int, patches: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -568,7 +603,7 @@ class Visibility:
             buf = pool.get(r)
             o, d, t, w = buf[0][:r], buf[1][:r], buf[2][:r], buf[3][:r]
             fill_rays_on_triangles(P, N, plane, ka, kb, ri, ci, valid, first, flat_pair, o, d, t, w)
-            yield RayJob(pairs[sl], first, o, d, t, w, buf, pool, r_idx[sl], c_idx[sl], final)
+            yield RayJob(pairs[sl], first, o, d, t, w, buf, pool, r_idx[sl], c_idx[sl], final, f"{s} bent")
 
     def close(self) -> None:
         self.caster.close()
@@ -712,9 +747,11 @@ def _needs_rays_words(F, rows, cols, front, back, below, above, cull, need):
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def _partial_and_large(F, pairs, first, hit, r_idx, c_idx, areas, C, D, near, above, large, out):
+def _partial_and_large(F, pairs, first, hit, r_idx, c_idx, areas, C, D, near, above, large, refine_below,
+                       large_below, out):
     """out[p]: 1 if the rays of pair p disagree, or the patches are close, and max(F_ij, F_ji) > above;
-    2 if moreover max(F_ij, F_ji) > large; else 0.
+    2 if moreover max(F_ij, F_ji) > large; else 0. The ray budget's thresholds on A_i F_ij lower
+    that: 0 below ``refine_below``, at most 1 below ``large_below`` (RayBudget; 0 = off).
 
     Close: centroid distance below near * (D_i + D_j); rays between near
     patches can all agree and still be wrong. Every test is symmetric in (i, j).
@@ -730,18 +767,45 @@ def _partial_and_large(F, pairs, first, hit, r_idx, c_idx, areas, C, D, near, ab
         total = first[p + 1] - first[p]
         i = r_idx[p]
         j = c_idx[p]
-        dx = C[i, 0] - C[j, 0]
-        dy = C[i, 1] - C[j, 1]
-        dz = C[i, 2] - C[j, 2]
-        close = dx * dx + dy * dy + dz * dz < (near * (D[i] + D[j])) ** 2
         out[p] = 0
-        if (0 < blocked < total) or close:
-            a = F[pairs[p]] * areas[i]
-            m = min(areas[i], areas[j])
-            if a > large * m:
-                out[p] = 2
-            elif a > above * m:
-                out[p] = 1
+        if (0 < blocked < total) or _close(C, D, near, i, j):
+            out[p] = _refine_level(F[pairs[p]] * areas[i], min(areas[i], areas[j]), above, large, refine_below,
+                                   large_below)
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def _close_level(F, pairs, r_idx, c_idx, areas, C, D, near, above, large, refine_below, large_below, out):
+    """out[p]: the second round :func:`_partial_and_large` gives pair p whatever its first rays say
+    (its patches are close), else 0."""
+    for p in prange(pairs.shape[0]):
+        i = r_idx[p]
+        j = c_idx[p]
+        out[p] = 0
+        if _close(C, D, near, i, j):
+            out[p] = _refine_level(F[pairs[p]] * areas[i], min(areas[i], areas[j]), above, large, refine_below,
+                                   large_below)
+
+
+@njit(cache=True, inline="always")
+def _close(C, D, near, i, j):
+    """Centroid distance below near * (D_i + D_j) (symmetric)."""
+    dx = C[i, 0] - C[j, 0]
+    dy = C[i, 1] - C[j, 1]
+    dz = C[i, 2] - C[j, 2]
+    return dx * dx + dy * dy + dz * dz < (near * (D[i] + D[j])) ** 2
+
+
+@njit(cache=True, inline="always")
+def _refine_level(a, m, above, large, refine_below, large_below):
+    """0, 1 or 2 (no second round, REFINE_SAMPLES, REFINE_LARGE_SAMPLES) for a pair that asks for one,
+    from a = A_i F_ij and m = min(A_i, A_j): see :func:`_partial_and_large`."""
+    if a < refine_below:
+        return 0
+    if a > large * m and a >= large_below:
+        return 2
+    if a > above * m:
+        return 1
+    return 0
 
 
 @njit(parallel=True, cache=True, nogil=True)

@@ -125,9 +125,11 @@ class PrecomputeOptions:
     one_ray_tol : float or None
         Pairs that together hold at most this share of ``||F||_F`` get one visibility
         ray instead of several, and flagged pairs (probes disagree) holding
-        ``FEW_RAYS_FACTOR`` (4) times this share get 4 rays instead of 16
+        ``FEW_RAYS_FACTOR`` (4) times this share get 4 rays instead of 16, pairs holding
+        ``REFINE_FACTOR`` (8) times it no second visibility round and ``LARGE_FACTOR`` (16)
+        times it 64 rays there instead of 256
         (:func:`hfrad.formfactors.budget.ray_budget`); None: ``eps / 4`` for a
-        relative eps, 0 (both rules off) for an absolute one.
+        relative eps, 0 (every rule off) for an absolute one.
     far : FarFieldOptions, optional
         The sampled far field's knobs (admissibility ``eta``, its share of eps, sample
         sizes; :class:`hfrad.formfactors.farfield.FarFieldOptions`); used with
