@@ -221,22 +221,27 @@ def _recorded(F, areas, rho, block=64) -> SampledRows:
 
 
 def test_first_bounce_norms_and_reflection_gain_are_exact_and_above_the_truth(small_box):
-    """The pass records ``||R F e_p||_A^2`` of every patch exactly; the gain bound is above the exact
-    ``||(I - R F)^{-1} R F||`` in the area and dual norms."""
+    """The pass records ``||R F e_p||_A^2`` of every patch and the adjoint's ``sum_i A_i F_ip^2`` exactly; its
+    power step ``max_i rho_i (F x)_i / x_i`` (Collatz-Wielandt) is at least the spectral radius of R F; the
+    gain bound, with and without it, is above the exact ``||(I - R F)^{-1} R F||`` in the area and dual norms."""
     from hfrad.solve.bounds import reflection_gain_bound
 
     scene, F = small_box
     areas, rho = np.asarray(scene.areas), np.asarray(scene.reflectance)
     rows = _recorded(F, areas, rho)
-    exact = np.einsum("i,ic,ip->pc", areas, rho ** 2, F.astype(np.float32).astype(np.float64) ** 2)
-    np.testing.assert_allclose(rows.bounce, exact, rtol=1e-9)
-    gain = reflection_gain_bound(rho, F.sum(axis=1))
+    F32 = F.astype(np.float32).astype(np.float64)
+    np.testing.assert_allclose(rows.bounce, np.einsum("i,ic,ip->pc", areas, rho ** 2, F32 ** 2), rtol=1e-9)
+    np.testing.assert_allclose(rows.dual_bounce, np.einsum("i,ip->p", areas, F32 ** 2), rtol=1e-9)
+    row_sums = F.sum(axis=1)
+    kappa = rows.spectral_bound(rho, row_sums)
+    assert (kappa >= [np.abs(np.linalg.eigvals(rho[:, c:c + 1] * F)).max() for c in range(3)]).all()
     root = np.sqrt(areas)
-    for c in range(3):
-        M = rho[:, c:c + 1] * F
-        X = np.linalg.solve(np.eye(F.shape[0]) - M, M)
-        for scaled in (root[:, None] * X / root[None, :], X.T / root[:, None] * root[None, :]):
-            assert np.linalg.norm(scaled, 2) <= gain[c]
+    for gain in (reflection_gain_bound(rho, row_sums), reflection_gain_bound(rho, row_sums, spectral=kappa)):
+        for c in range(3):
+            M = rho[:, c:c + 1] * F
+            X = np.linalg.solve(np.eye(F.shape[0]) - M, M)
+            for scaled in (root[:, None] * X / root[None, :], X.T / root[:, None] * root[None, :]):
+                assert np.linalg.norm(scaled, 2) <= gain[c]
 
 
 def test_a_lost_emission_gets_a_finite_figure_above_the_truth(small_box):
@@ -442,27 +447,3 @@ def test_old_files_load_and_their_adjoint_figure_has_no_stated_probability(small
     assert "no stated failure probability" in solution_line(one) and "probability 0.023" not in solution_line(one)
     now = rows.figure(E3, B3, rho, gain, adjoint=True)
     assert now.kind == "sampled" and now.failure_probability == forward.failure_probability
-
-
-def test_power_step_bounds_the_spectral_radius_and_the_gain(small_box):
-    """``max_i rho_i (F x)_i / x_i`` from the pass (Collatz-Wielandt) is at least the spectral radius of
-    R F and, as the gain bound's kappa, keeps the gain above the exact ``||(I - R F)^{-1} R F||`` in the
-    area and dual norms; the adjoint's first-bounce norms are exact."""
-    from hfrad.solve.bounds import reflection_gain_bound
-
-    scene, F = small_box
-    areas, rho = np.asarray(scene.areas), np.asarray(scene.reflectance)
-    rows = _recorded(F, areas, rho)
-    F32 = F.astype(np.float32).astype(np.float64)
-    np.testing.assert_allclose(rows.dual_bounce, np.einsum("i,ip->p", areas, F32 ** 2), rtol=1e-9)
-    row_sums = F.sum(axis=1)
-    kappa = rows.spectral_bound(rho, row_sums)
-    radius = [np.abs(np.linalg.eigvals(rho[:, c:c + 1] * F)).max() for c in range(3)]
-    assert (kappa >= radius).all()
-    gain = reflection_gain_bound(rho, row_sums, spectral=kappa)
-    root = np.sqrt(areas)
-    for c in range(3):
-        M = rho[:, c:c + 1] * F
-        X = np.linalg.solve(np.eye(F.shape[0]) - M, M)
-        for scaled in (root[:, None] * X / root[None, :], X.T / root[:, None] * root[None, :]):
-            assert np.linalg.norm(scaled, 2) <= gain[c]

@@ -16,7 +16,10 @@ are exact:
 - **smoothed rows**: for a second, smaller sample (8 patches), rows ``F[s, :]`` and
   ``(F R_c F)[s, :]`` per channel (``(R F r)_s`` exactly). The latter comes from the
   same pass by reciprocity, ``A_j F_jk = A_k F_kj``: ``(F R_c F)[s, k] = A_k (F y)_k``
-  with ``y_j = F_sj rho_jc / A_j``, one small product per column block.
+  with ``y_j = F_sj rho_jc / A_j``, one small product per column block;
+- **adjoint rows**: rows ``F[s, :]`` of a third sample drawn with probability proportional
+  to ``1 / A`` (the dual norm's weights: an adjoint's residual piles up on small patches,
+  which rows drawn by area rarely see).
 
 Each sum gets an upper confidence figure (the estimate plus ``Z_SAMPLING`` standard
 errors from successive differences, the standard variance estimate of a systematic
@@ -133,10 +136,10 @@ class SolutionError:
         ``||B~ - E||_A`` of the solution.
     kind : {"exact-rows", "sampled", "sampled-estimate"}
         "exact-rows": every row of F was kept (a bound); "sampled": from a sample of rows, with a stated
-        failure probability; "sampled-estimate": the same for an adjoint solve, with none stated (its
-        dual norm weighs small patches by 1/A, which a sample drawn by area sees rarely: on the clustered
-        conference room, 3K patches, 20% of redrawn samples gave a figure below the true error; 0% on
-        the Cornell box and the office; benchmarks/README.md).
+        failure probability (an adjoint solve: from its own rows, drawn by 1/A); "sampled-estimate": an
+        adjoint solve from a file written before those rows, with none stated (its dual norm weighs small
+        patches by 1/A, which the rows drawn by area see rarely: on the clustered conference room, 3K
+        patches, 20% of redrawn samples gave a figure below the true error; benchmarks/README.md).
     failure_probability : float or None
         Stated chance that the figure is below the error ("sampled" only; None otherwise).
     rows : int
