@@ -447,3 +447,20 @@ def test_old_files_load_and_their_adjoint_figure_has_no_stated_probability(small
     assert "no stated failure probability" in solution_line(one) and "probability 0.023" not in solution_line(one)
     now = rows.figure(E3, B3, rho, gain, adjoint=True)
     assert now.kind == "sampled" and now.failure_probability == forward.failure_probability
+
+
+def test_power_step_reads_blocks_in_pieces_as_dense_ones():
+    """The sampled far field hands the pass blocks in pieces (dense rows, and W X for the rest): the power
+    step's weighted column sums ``sum_i A_i F_ip`` of them equal those of the dense block."""
+    from hfrad.formfactors.pieces import BlockPieces
+    from hfrad.solve.samples import _weighted_column_sums
+
+    rng = np.random.default_rng(0)
+    n, b, s = 50, 8, 3
+    rows = np.sort(rng.choice(n, 20, replace=False))
+    pieces = BlockPieces(n, rows, rng.random((20, b)).astype(np.float32), np.setdiff1d(np.arange(n), rows),
+                         rng.random((n - 20, s)).astype(np.float32), rng.random((s, b)))
+    w = rng.random(n) + 0.1
+    dense = pieces.to_dense().astype(np.float64)          # float32 W X: rounding of 1e-7
+    np.testing.assert_allclose(_weighted_column_sums(pieces, w), w @ dense, rtol=1e-6)
+    np.testing.assert_allclose(_weighted_column_sums(dense, w), w @ dense, rtol=1e-12)
