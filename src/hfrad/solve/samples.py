@@ -13,7 +13,7 @@ are exact:
 
 - **residual rows**: rows ``F[s, :]`` of a systematic sample of patches drawn with
   probability proportional to area along the Z-order (``r_s`` exactly);
-- **smoothed rows**: for a second, smaller sample (8 patches), rows ``F[s, :]`` and
+- **smoothed rows**: for a second, smaller sample (16 patches), rows ``F[s, :]`` and
   ``(F R_c F)[s, :]`` per channel (``(R F r)_s`` exactly). The latter comes from the
   same pass by reciprocity, ``A_j F_jk = A_k F_kj``: ``(F R_c F)[s, k] = A_k (F y)_k``
   with ``y_j = F_sj rho_jc / A_j``, one small product per column block;
@@ -50,10 +50,13 @@ __all__ = ["SampledRows", "SolutionError", "SAMPLE_SEED", "ROUGH_SAFETY", "Z_SAM
 SAMPLE_SEED = 20162
 #: Most residual rows recorded during the pass.
 RESIDUAL_ROWS = 128
-#: Smoothed rows: R F r is smooth, so a few estimate its norm as well as many (Cornell box, 1,508
-#: patches, 60 draws x 20 emissions: figure / true error 1.2-16 with 32 rows, 1.2-16 with 8), and
-#: each costs 3 n^2 multiply-adds in the pass (the (F R_c F) rows: 24 columns against the 20 probes).
-SMOOTH_ROWS = 8
+#: Smoothed rows: R F r is smooth, so a few estimate its norm as well as many away from a few-patch
+#: emission (Cornell box, 1,508 patches, 60 draws x 20 emissions: figure / true error 1.2-16 with 32
+#: rows, 1.2-16 with 8), but beside one a single row can hold most of the sum: the conference room's
+#: near-field solver, 20 emitting patches, the stored draw: 10.6x the truth with 8 rows, 5.9x with 16
+#: (5 redrawn samples: at most 7.9x and 7.4x). Each costs 3 n^2 multiply-adds in the pass (the
+#: (F R_c F) rows: 48 columns beside the 20 probes; benchmarks/README.md, "fourth stop", for its time).
+SMOOTH_ROWS = 16
 #: The fewest residual rows a pass records however large n (16 x n float32: 64 MB at a million patches).
 PASS_MIN_ROWS = 16
 #: The fewest residual rows kept when the storage budget would leave fewer: the stated failure
@@ -283,19 +286,24 @@ class SampledRows:
             b = stop - start
             # in F's dtype (a float64 copy of an n x b block would cost 8 n b bytes), summed in float64
             self.products += product(F_block, Y.reshape(b, -1)).reshape(self.products.shape)
-        if self.bounce is not None:
-            self.bounce[start:stop] = self._column_bounce(F_block)
-        if self.dual_bounce is not None:
-            self.dual_bounce[start:stop] = column_squares(F_block, self.weights[:, None])[:, 0]
+        if self.bounce is not None or self.dual_bounce is not None:
+            self._column_bounce(start, stop, F_block)
         if self.gain_vector is not None:
             x = _weighted_column_sums(F_block, self.weights) / self.weights[start:stop]
             self.gain_vector[start:stop] = x
             self.gain_product += product(F_block, x[:, None].astype(np.float64))[:, 0]
 
-    def _column_bounce(self, F_block) -> np.ndarray:
-        """(b, 3) ``sum_i w_i rho_ic^2 F_ip^2`` of a column block, in float64."""
-        scale = self.reflectance ** 2 * (1.0 if self.weights is None else self.weights[:, None])   # (n, 3)
-        return column_squares(F_block, scale)
+    def _column_bounce(self, start: int, stop: int, F_block) -> None:
+        """``bounce`` (``sum_i w_i rho_ic^2 F_ip^2``) and ``dual_bounce`` (``sum_i w_i F_ip^2``) of a column
+        block, in float64, from one pass of squares over it."""
+        w = np.ones(self.rows.shape[1]) if self.weights is None else self.weights
+        scales = ([] if self.bounce is None else [self.reflectance ** 2 * w[:, None]]) + \
+            ([] if self.dual_bounce is None else [w[:, None]])
+        squares = column_squares(F_block, np.concatenate(scales, axis=1))          # (b, 3 or 4 or 1)
+        if self.bounce is not None:
+            self.bounce[start:stop] = squares[:, :3]
+        if self.dual_bounce is not None:
+            self.dual_bounce[start:stop] = squares[:, -1]
 
     # -- state (checkpoints, .hfr files, Dask parts) ----------------------------
     def state(self) -> dict:
@@ -373,7 +381,7 @@ class SampledRows:
         The smoothed rows are all kept (``SMOOTH_ROWS``, 5 n words each): ``R F r`` is smooth away from
         a few-patch emission but not beside it, where one row can hold hundreds of times the whole sum
         (the conference room's near-field solver, 20 emitting patches: one of 4 smoothed rows at 314x,
-        the figure 16-22x the truth), and the mean of 8 rows halves that row's weight.
+        the figure 16-22x the truth), and the mean of more rows lowers that row's weight.
         """
         out, j = self, 0
         m1, m2 = self.index.size, self.smooth_index.size
