@@ -193,7 +193,8 @@ def run_case(name: str, patches: int, eps: float, count: int, cache: Path | None
             "ratio_min": ratios.min(), "ratio_median": float(np.median(ratios)), "ratio_max": ratios.max(),
             "true_min": trues.min(), "true_max": trues.max(),
             "solve_ms": solve.best * 1e3, "figure_ms": figure.best * 1e3,
-            "rows": f"{samples.index.size}+{samples.smooth_index.size}", "rows_bytes": samples.nbytes,
+            "rows": f"{samples.index.size}+{samples.smooth_index.size}+{samples.dual_index.size}",
+            "rows_bytes": samples.nbytes,
             "rows_share_of_factors": samples.nbytes / factor_bytes, "rows_share_of_hfr": samples.nbytes / size,
             "hfr_bytes": size, "redraws": redraws, "redrawn": redrawn, "by_emission": rows}
 
