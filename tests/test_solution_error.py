@@ -76,7 +76,7 @@ def cornell_scene_path():
 
 def test_figure_is_above_the_true_error_and_within_ten_times_it(cornell_scene_path):
     """20 emissions of five kinds on the built-in box, and 6 adjoint solves: 1 <= figure / true error <= 10
-    (observed 1.5-4.3)."""
+    (observed 1.6-4.7)."""
     scene, F, fac = cornell_scene_path
     rho, areas = np.asarray(fac.reflectance), np.asarray(scene.areas)
     results = _true_errors(F, rho, areas, fac, _emissions(scene, 20))
@@ -429,7 +429,8 @@ def test_adjoint_figure_holds_where_the_area_drawn_rows_miss_small_patches(small
 def test_old_files_load_and_their_adjoint_figure_has_no_stated_probability(small_box):
     """A file written before the adjoint's own rows loads; its adjoint figure is an estimate (kind
     "sampled-estimate", no failure probability: see SolutionError.kind), and its line in words says so
-    rather than quoting 0.023; with the rows it is "sampled" with the forward figures' probability."""
+    rather than quoting 0.023; its forward figure uses the area-drawn rows alone; with the adjoint's rows
+    both figures use both samples and the adjoint's is "sampled" with the forward figures' probability."""
     from hfrad.solve.bounds import reflection_gain_bound, solution_line
 
     scene, F = small_box
@@ -444,7 +445,7 @@ def test_old_files_load_and_their_adjoint_figure_has_no_stated_probability(small
     B3 = B3 * 1.01                                               # a solution 1% off
     forward, adjoint = old.figure(E3, B3, rho, gain), old.figure(E3, B3, rho, gain, adjoint=True)
     assert forward.kind == "sampled" and forward.failure_probability > 0
-    np.testing.assert_allclose(forward.bound, rows.figure(E3, B3, rho, gain).bound, rtol=1e-12)
+    assert forward.rows == rows.index.size and rows.figure(E3, B3, rho, gain).rows == 2 * rows.index.size
     assert adjoint.kind == "sampled-estimate" and adjoint.failure_probability is None
     one = dataclasses.replace(adjoint, bound=adjoint.bound[:, 0], absolute=adjoint.absolute[:, 0],
                               reflected=adjoint.reflected[:, 0])
