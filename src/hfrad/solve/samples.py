@@ -24,7 +24,9 @@ are exact:
 Each sum gets an upper confidence figure (the estimate plus ``Z_SAMPLING`` standard
 errors from successive differences, the standard variance estimate of a systematic
 sample), and the rough term a further ``ROUGH_SAFETY`` factor: a sample of rows can
-miss the few patches next to a small light where the residual concentrates. With at
+miss the few patches next to a small light where the residual concentrates. The residual's sum
+comes from the area-drawn and the 1/A-drawn rows together (one sample from their mixture:
+:meth:`SampledRows._rough_of_both`), in either norm. With at
 most ``len(index)`` patches the rows are all of F's and the figure is a bound.
 
 Relative to the reflected light ``||B - E||``, bounded from below by the largest of
