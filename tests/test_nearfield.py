@@ -155,6 +155,25 @@ def test_near_field_auto_where_it_pays():
     assert near_field_pays_from(0.5) == 2000                   # never below the floor
     assert near_field_pays_from(1e-3, relative=False) == 2000  # absolute eps: no rank to judge by
     assert near_field_pays_from(0.01) > near_field_pays_from(0.02)   # tighter eps: later
+    # a clustered real mesh: from the floor (Sponza, the conference room and Sibenik at ~3,100 patches,
+    # eps 0.02: rank 1,961 / 1,949 / 2,153 without the split, 748 / 236 / 423 with it)
+    assert near_field_pays_from(0.02, clustered=True) == 2000
+    assert near_entries("auto", 2_500, 0.02, clustered=True) > 0 and near_entries("auto", 1_999, 0.02, clustered=True) == 0
+    assert near_entries("auto", 2_500, 0.02) == 0
+
+
+def test_plan_reads_whether_the_scene_is_clustered(monkeypatch):
+    """plan_precompute passes the scene's clustering to the "auto" policy (floor lowered to this size)."""
+    from hfrad.precompute import options as opts
+    from hfrad.scene.cluster import cluster
+    from hfrad.scene.load import load_scene
+
+    clustered = cluster(load_scene("cornell", patches=1200), patches=300)
+    plain = load_scene("cornell", patches=clustered.n_patches)
+    assert clustered.is_clustered and not plain.is_clustered
+    monkeypatch.setattr(opts, "NEAR_FIELD_MIN_PATCHES", 100)
+    plan = (lambda scene: opts.plan_precompute(scene, 0.02, near_field="auto"))
+    assert plan(clustered).near_entries > 0 and plan(plain).near_entries == 0
 
 
 def test_panel_solver_equals_superlu():

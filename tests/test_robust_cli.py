@@ -507,3 +507,10 @@ def test_demo_prints_each_solutions_figure_without_a_second_pass(tmp_path, monke
     assert lines[1].startswith("error of this solution: at most ") and "every row of F is stored" in lines[1], lines
     assert "a-priori bound on the relative radiosity error" in lines[2], result.output
     assert any(line.startswith("relit blue: error of this solution: at most ") for line in lines), result.output
+
+
+def test_bad_near_field_refused_before_meshing(tmp_path, no_meshing):
+    """`--near-field none` was refused only after the scene was read, cleaned and clustered."""
+    one_clear_line(run("precompute", "cornell", "--patches", "300", "--near-field", "none", "-o", tmp_path / "x.hfr"),
+                   "--near-field", "'none'")
+    assert not (tmp_path / "x.hfr").exists()

@@ -243,3 +243,41 @@ def test_thin_products_match_numpy(dtype):
             assert got.dtype == dtype and got.shape == ref.shape
             assert np.abs(got - ref).max() <= tol * np.abs(ref).max(), (r, np.abs(got - ref).max())
     np.testing.assert_array_equal(thin.tmatmul(A, np.zeros((1000, 3))), 0.0)
+
+
+def _machine(monkeypatch, others_per_second: float, cores: int = 4):
+    """A ``cores``-core machine whose other processes use ``others_per_second`` cores (fake /proc)."""
+    from hfrad import resources
+
+    clock = {"t": 0.0}
+    monkeypatch.setattr(resources.os, "sched_getaffinity", lambda pid: set(range(cores)))
+    monkeypatch.setattr(resources.os, "sysconf", lambda name: 100)                  # 100 ticks a second
+    monkeypatch.setattr(resources.time, "perf_counter", lambda: clock["t"])
+    monkeypatch.setattr(resources, "_machine_jiffies", lambda: (int(100 * others_per_second * clock["t"]), 0))
+    monkeypatch.setattr(resources, "_jiffies", lambda pids: 0)
+    monkeypatch.setattr(resources, "_quick", {"t": None, "busy": 0, "mine": 0, "spare": None})
+    return resources, clock
+
+
+@pytest.mark.parametrize("others, expected", [(0.0, 4), (0.4, 4), (1.6, 2), (3.5, 1), (9.0, 1)])
+def test_a_solve_uses_the_cores_other_processes_leave(monkeypatch, others, expected):
+    resources, clock = _machine(monkeypatch, others)
+    assert resources.spare_cores_now() == 4            # no reading yet: every core
+    clock["t"] = 2.0
+    assert resources.spare_cores_now() == expected     # measured over the 2 s since
+    clock["t"] = 2.5
+    assert resources.spare_cores_now() == expected     # reused within a second
+    clock["t"] = 100.0
+    assert resources.spare_cores_now() == 4            # a stale reading says nothing of now
+
+
+def test_solve_threads_lower_numba_inside_only(monkeypatch):
+    import numba
+
+    resources, clock = _machine(monkeypatch, 9.0, cores=numba.config.NUMBA_NUM_THREADS)
+    resources.spare_cores_now()
+    clock["t"] = 2.0
+    before = numba.get_num_threads()
+    with resources.solve_threads():
+        inside = numba.get_num_threads()
+    assert inside == 1 and numba.get_num_threads() == before

@@ -62,7 +62,7 @@ def factorize(scene: Scene, eps: float = 0.02, *, relative: bool = True, dtype="
         "auto" (default): ``DEFAULT_NEAR_ENTRIES`` (120) facing neighbours per row where
         the split pays, off below (:func:`~hfrad.precompute.options.near_field_pays_from`: from 20,000 patches at
         eps 0.02, ``20,000 (0.02 / eps)^1.5`` patches at other relative eps (5,060 at 0.05), never below
-        2,000); None or 0: off (plain Woodbury). The split lowers the rank HF needs (the near pairs hold F's
+        2,000; a clustered scene from 2,000 on); None or 0: off (plain Woodbury). The split lowers the rank HF needs (the near pairs hold F's
         high-rank part) and, at equal eps, the radiosity error; it costs a sparse LU
         of ``I - D_c N`` (about 12 bytes per entry, ``n * near_field`` entries).
     backend : LocalBackend or DaskBackend, optional
@@ -95,7 +95,8 @@ def factorize(scene: Scene, eps: float = 0.02, *, relative: bool = True, dtype="
         sample (added to ``fac.error_estimate()``). "auto" (default): the faster of the two
         for the scene, which is "exact" at every size measured so far (up to 163,000
         patches: the sampled field evaluates 4-5 times fewer pairs but costs more wall time
-        per block). This process only (a ``DaskBackend`` takes "exact" or "auto").
+        per block). Both backends: a ``DaskBackend``'s leaves run the same block producer
+        (the same factorization, certificate and counters as this process's).
     progress : callable (done, total), optional
         Column blocks done.
     status : callable (dict), optional
@@ -151,11 +152,6 @@ def factorize(scene: Scene, eps: float = 0.02, *, relative: bool = True, dtype="
     elif not isinstance(backend, (LocalBackend, DaskBackend)):
         raise InputError(f"backend must be an hfrad.LocalBackend or hfrad.DaskBackend; got {type(backend).__name__}")
     checkpoint = as_checkpoint(checkpoint)
-    if isinstance(backend, DaskBackend):
-        if far_field == "sampled":
-            raise InputError("far_field='sampled' runs in this process for now: use a LocalBackend, or "
-                             "far_field='exact' on Dask")
-        far_field = "exact"
     plan = plan_precompute(scene, eps, relative=relative, dtype=dtype, order="zorder" if order is None else order,
                            near_field=near_field, options=options, reciprocity=backend.reciprocity,
                            far_field=far_field)

@@ -30,8 +30,8 @@ def register(app: typer.Typer) -> None:
         samples: Optional[int] = typer.Option(None, "--samples", help="Visibility rays per patch pair: 1, 4, 9, ... up to 1,024 (time grows in proportion); 0: no visibility (every pair sees each other)."),
         order: str = typer.Option("zorder", "--order", help="Internal patch order: zorder, hilbert, random, input."),
         processes: Optional[int] = typer.Option(None, "--processes", help="Form-factor worker processes, each with its own Embree scene. Default: one per core from 4,000 patches on (below, their start-up costs more than it saves), else this process; the result does not depend on it."),
-        near_field: str = typer.Option("auto", "--near-field", help="Near-field split: pairs within the radius holding ~this many facing neighbours (nonzeros of a row of N) go into a sparse N, HF factors the smooth rest, the solver is Woodbury around I - D_c N (Neumann series per solve, sparse LU in the set-up). 'auto' (default): 120 where the split pays, from 20,000 (0.02 / eps)^1.5 patches on (20,000 at --eps 0.02, 5,060 at 0.05; 2,000 at least), off below; the split lowers the rank HF needs and, at equal --eps, the radiosity error; 'off' or 0: plain Woodbury."),
-        far_field: str = typer.Option("auto", "--far-field", help="How the form factors of well-separated pairs are found: 'exact' (every pair), 'sampled' (each column block's near rows exactly, its far rows from a few sampled rows and skeleton columns, checked on held-out rows; a separate sample of exact rows certifies the error), 'auto' (default): the faster one, which is 'exact' at every size measured so far (to 163,000 patches the sampled field evaluates 4-5x fewer pairs but costs more wall time). This process only (Dask: exact)."),
+        near_field: str = typer.Option("auto", "--near-field", help="Near-field split: pairs within the radius holding ~this many facing neighbours (nonzeros of a row of N) go into a sparse N, HF factors the smooth rest, the solver is Woodbury around I - D_c N (Neumann series per solve, sparse LU in the set-up). 'auto' (default): 120 where the split pays, from 20,000 (0.02 / eps)^1.5 patches on (20,000 at --eps 0.02, 5,060 at 0.05; 2,000 at least; a clustered mesh from 2,000 on), off below; the split lowers the rank HF needs and, at equal --eps, the radiosity error; 'off' or 0: plain Woodbury."),
+        far_field: str = typer.Option("auto", "--far-field", help="How the form factors of well-separated pairs are found: 'exact' (every pair), 'sampled' (each column block's near rows exactly, its far rows from a few sampled rows and skeleton columns, checked on held-out rows; a separate sample of exact rows certifies the error), 'auto' (default): the faster one, which is 'exact' at every size measured so far (to 163,000 patches the sampled field evaluates 4-5x fewer pairs but costs more wall time). On Dask too (the same leaves)."),
         scheduler: Optional[str] = typer.Option(
             None, "--scheduler", help="Run on a Dask cluster: tcp://HOST:PORT of a running `dask scheduler` "
             "(docs/cluster.md)."),
@@ -80,6 +80,7 @@ def register(app: typer.Typer) -> None:
             _check_options(processes=processes, samples=samples, refine=refine, scheduler=scheduler,
                            workers=workers)
             options = PrecomputeOptions(block_size=block, samples=samples)
+            near = _near_field(near_field)      # a bad value is refused before the scene is read
             common.check_output(output)
             common.check_output(output.with_name(output.name + ".partial"))
 
@@ -118,16 +119,13 @@ def register(app: typer.Typer) -> None:
                 if processes not in (None, 1):
                     raise InputError("--processes is for the in-process path; with --scheduler or --workers "
                                      "the Dask workers compute the blocks")
-                if far_field == "sampled":
-                    raise InputError("--far-field sampled runs in this process for now; drop --scheduler/--workers "
-                                     "or use --far-field exact")
                 t_load = time.perf_counter() - t0
                 clock("checks")
                 clock.stop()
                 parts = output.with_name(output.name + ".partial.d")   # finished subtrees: a rerun skips them
                 clock("factorize on Dask")
                 fac = _on_cluster(s, scheduler, workers, quiet, eps=eps, dtype=dtype, order=order,
-                                  near_field=_near_field(near_field), options=options,
+                                  near_field=near, options=options, far_field=far_field,
                                   checkpoint=Checkpoint(parts, keep=True))
                 clock("save")
                 common.check_space_for_hfr(output, fac)
@@ -151,7 +149,7 @@ def register(app: typer.Typer) -> None:
                         bar.note(f"rank {info['rank']:,}")
 
                 t_fac = time.perf_counter()
-                fac = factorize(s, eps, dtype=dtype, order=order, near_field=_near_field(near_field),
+                fac = factorize(s, eps, dtype=dtype, order=order, near_field=near,
                                 backend=LocalBackend(processes=processes), checkpoint=Checkpoint(checkpoint, keep=True),
                                 options=options, far_field=far_field, progress=bar, status=status)
                 common.add_factorize_stages(clock, fac, time.perf_counter() - t_fac)

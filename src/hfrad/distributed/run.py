@@ -26,12 +26,14 @@ import numpy as np
 from distributed.scheduler import KilledWorker
 
 from ..errors import MemoryLimitError
+from ..formfactors.farfield import FarFieldCertificate, FarFieldStats
 from ..lowrank.factors import LowRank
 from ..lowrank.hf import counter_tree
 from ..memory import human
 from ..progress import ProgressCallback, report
 from ..precompute.assemble import PrecomputePlan, add_statistics, assemble, concat_near
 from ..precompute.backends import DaskBackend
+from ..precompute.local import far_field_report
 from ..solve.stats import PassStatistics
 from ..solve.woodbury import HFactorization
 from . import panels, sizing, store
@@ -463,8 +465,8 @@ def tile_plan(cluster: Cluster, options: PrecomputePlan, group=None, band=None, 
     The tile budget per worker: ``budget_bytes``, else ``TILE_SHARE`` of the smallest worker memory
     limit, else of this machine's available memory (workers without a limit: assumed alike).
     """
-    if not options.reciprocity or options.n_blocks < 2:
-        return None
+    if not options.reciprocity or options.n_blocks < 2 or options.far_field == "sampled":
+        return None       # the sampled far field copies nothing: its leaves evaluate what they need
     if budget_bytes is None:
         limits = [x for x in cluster.worker_memory_limits() if x > 0]
         if limits:
@@ -548,6 +550,8 @@ def _run(cluster: Cluster, scene, options: PrecomputePlan, task_threads, checkpo
     del job_future
     lowrank.info.update(_info(records, tracker.task_records, m, options, cluster, time_scatter, time_gather, wall,
                               tracker.executions, len(resumed), panel_leaves, bounds.size - 1, plan))
+    if options.far_field == "sampled":
+        lowrank.info["far_field"] = _far_field_info(records, stats_state, options)
     if records_out is not None:
         records_out.extend(records + tracker.task_records)
     stats = PassStatistics.from_state({**stats_state, "weights": job.weights})
@@ -596,6 +600,22 @@ def _gather_panelled(client, root: _Panelled, n: int, options, tails=None) -> tu
     lowrank = LowRank(Q=Q, V=V, achieved_error=error, norm=math.sqrt(meta["norm2"]), eps=options.eps,
                       relative=options.relative, method="hf", info={})
     return lowrank, records + meta.get("records", []), stats, near
+
+
+def _far_field_info(records, stats_state: dict, options: PrecomputePlan) -> dict:
+    """``info["far_field"]`` of a sampled run, as the local path reports it: the leaves' counters
+    added up, the certificate and the held-out check from the summed statistics."""
+    tallies = FarFieldStats()
+    for r in records:
+        if r["kind"] == "leaf":
+            tallies = tallies + FarFieldStats.from_state(r["far_field"])
+    n, far = options.n, options.far_options
+    certificate = FarFieldCertificate.from_state(stats_state, n)
+    holdout = None
+    if "far_holdout_q" in stats_state:
+        holdout = FarFieldCertificate.design(n, far.holdout_rows, far.seed, 2)
+        holdout.q = np.asarray(stats_state["far_holdout_q"], np.float64)
+    return far_field_report(tallies, certificate, holdout, n)
 
 
 def _info(records, task_records, m, options, cluster, time_scatter, time_gather, wall, executions, resumed,

@@ -35,6 +35,8 @@ _STATE = ("row_sums", "col_sums", "sketch", "probes", "seed")
 _SAMPLE_STATE = ("sample_index", "smooth_index", "sample_rows", "sample_span", "sample_reflectance",
                  "sample_exact", "sample_seed", "smooth_products", "sample_bounce", "sample_dual_index",
                  "sample_dual_bounce", "sample_gain_vector", "sample_gain_product")
+#: The sampled far field's certificate and held-out check (far_field="sampled").
+_FAR_STATE = ("far_index", "far_q", "far_holdout_q")
 _NEAR = ("near_rows", "near_cols", "near_values")
 
 
@@ -122,7 +124,7 @@ def save_part(folder: str | os.PathLike, node_id: int, part) -> None:
               "scalars": np.array([node.level, node.norm2, node.discarded2, node.slack2], np.float64),
               "records": np.array(json.dumps(part.records))}
     if part.stats is not None:
-        arrays.update({f"stats_{k}": np.asarray(part.stats[k]) for k in _STATE + _SAMPLE_STATE
+        arrays.update({f"stats_{k}": np.asarray(part.stats[k]) for k in _STATE + _SAMPLE_STATE + _FAR_STATE
                        if k in part.stats})
     if part.near is not None:
         arrays.update({k: part.near[k] for k in _NEAR})
@@ -150,7 +152,7 @@ def load_part(folder: str | os.PathLike, node_id: int):
                 raise ValueError("it holds another node or run")
             level, norm2, discarded2, slack2 = (float(x) for x in f["scalars"])
             node = _Node(int(level), f["U"], f["s"], f["V"], norm2, discarded2, slack2)
-            stats = {k: f[f"stats_{k}"] for k in _STATE + _SAMPLE_STATE if f"stats_{k}" in f} \
+            stats = {k: f[f"stats_{k}"] for k in _STATE + _SAMPLE_STATE + _FAR_STATE if f"stats_{k}" in f} \
                 if "stats_sketch" in f else None
             if stats is not None:
                 stats["probes"], stats["seed"] = int(stats["probes"]), int(stats["seed"])

@@ -15,16 +15,19 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import threading
 import time
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..lowrank.hf import ErrorBudget, compress_leaf, merge_nodes, root_lowrank
+from ..formfactors.pieces import BlockPieces
+from ..lowrank.hf import ErrorBudget, compress_leaf, compress_leaf_pieces, merge_nodes, root_lowrank
 from ..lowrank.nearsplit import NearFieldSplit
 from ..formfactors.parallel import column_block
 from ..formfactors.budget import RayBudget
 from ..precompute.assemble import add_statistics, concat_near, far_block, statistics_state
+from ..precompute.local import sampled_far_field
 from ..solve.stats import PassStatistics
 from . import panels, store
 
@@ -167,6 +170,32 @@ def _saved(job: Job, node_id: int, part: Part, children=()) -> Part:
     return part
 
 
+#: One sampled far field (engines, cluster pairs) per worker process and run; the lock keeps its
+#: tallies one leaf's at a time where a worker runs tasks in several threads.
+_FAR: dict = {}
+_FAR_LOCK = threading.Lock()
+
+
+def _sampled_block(job: Job, j: int):
+    """Column block ``j`` from the run's sampled far field, the local path's producer (made once a
+    worker process): its pieces in the factors' dtype, the exact rows the per-solve samples want,
+    and this block's tallies (counters, certificate, held-out check) for the client to add up."""
+    with _FAR_LOCK:
+        producer = _FAR.get(job.token)
+        if producer is None:
+            for old in _FAR.values():
+                old.close()
+            _FAR.clear()
+            n = job.perm.size
+            design = PassStatistics(n, job.weights, reflectance=job.scene.reflectance[job.perm])
+            ff_kwargs = {"samples": job.samples, **({"ray_budget": job.ray_budget} if job.samples else {})}
+            producer = _FAR[job.token] = sampled_far_field(job.scene, job.options, design, ff_kwargs)
+        producer.fresh_tallies()
+        with _threads(job.task_threads):
+            pieces, exact = producer.block(j)
+        return pieces.astype(job.options.dtype), exact, (producer.stats, producer.certificate, producer.holdout)
+
+
 def leaf_task(job: Job, j: int) -> Part:
     """Leaf ``j``: column block ``G[:, cols_j]`` of ``G = diag(rho_max) F``, as the local path treats it.
 
@@ -178,6 +207,11 @@ def leaf_task(job: Job, j: int) -> Part:
     copies and the SVD's workspace, about 25 n b bytes with float32 factors.
     """
     t0, cpu0 = time.perf_counter(), time.process_time()
+    if job.options.far_field == "sampled":
+        F, exact, tallies = _sampled_block(job, j)
+        t1, cpu1 = time.perf_counter(), time.process_time()
+        return leaf_from_block(job, j, F, t0, cpu0, t1, cpu1, pairs=int(tallies[0].pairs),
+                               extra={"far_field": tallies[0].state()}, exact_rows=exact, far=tallies[1:])
     b = job.options.block_size
     cols = job.perm[j * b:(j + 1) * b]
     with _threads(job.task_threads):
@@ -187,25 +221,34 @@ def leaf_task(job: Job, j: int) -> Part:
     return leaf_from_block(job, j, F, t0, cpu0, t1, cpu1, pairs=int(F.size))
 
 
-def leaf_from_block(job: Job, j: int, F: np.ndarray, t0: float, cpu0: float, t1: float, cpu1: float,
-                    pairs: int, extra: dict | None = None) -> Part:
+def leaf_from_block(job: Job, j: int, F, t0: float, cpu0: float, t1: float, cpu1: float,
+                    pairs: int, extra: dict | None = None, exact_rows: np.ndarray | None = None,
+                    far: tuple | None = None) -> Part:
     """The leaf of column block ``j`` from its n x b block ``F`` (what :func:`leaf_task` does once F is made).
 
     ``t0``/``cpu0``: wall and CPU clock when the leaf's form factors started, ``t1``/``cpu1``
     when they were done; ``pairs``: form factors computed for this block (copies excluded);
-    ``extra``: more fields for the leaf's record.
+    ``extra``: more fields for the leaf's record. From the sampled far field, ``F`` is in
+    pieces (:class:`~hfrad.formfactors.pieces.BlockPieces`), ``exact_rows`` are the exact rows
+    at the per-solve samples' patches, and ``far`` the block's (certificate, held-out check).
     """
     b = job.options.block_size
     start = j * b
     n = job.perm.size
     rho = None if job.scene is None else job.scene.reflectance[job.options.perm]   # the smoothed rows' R_c
     block_stats = PassStatistics(n, job.weights, reflectance=rho)
+    if far is not None:
+        block_stats.far_field = far[0]
     split = _splitter(job) if job.options.near_entries else None
-    G, norm2, block_norm2 = far_block(block_stats, start, start + F.shape[1], F, job.rows_rho, split)
+    G, norm2, block_norm2 = far_block(block_stats, start, start + F.shape[1], F, job.rows_rho, split,
+                                      exact_rows=exact_rows)
     del F
     stats = statistics_state(block_stats)
+    if far is not None and far[1] is not None:
+        stats["far_holdout_q"] = far[1].q
     near = None if split is None else split.state()
-    node = compress_leaf(G, job.budget, j, norm2, block_norm2)
+    leaf = compress_leaf_pieces if isinstance(G, BlockPieces) else compress_leaf
+    node = leaf(G, job.budget, j, norm2, block_norm2)
     columns = int(G.shape[1])
     del G
     t2 = time.perf_counter()

@@ -27,7 +27,7 @@ sample (:class:`FarFieldCertificate`): the error figure of the operator without 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Iterator
 
 import numpy as np
@@ -130,6 +130,22 @@ class FarFieldStats:
     piece_blocks: int = 0          # blocks handed on in pieces (dense rows + W X), not dense
     dense_rows: int = 0            # rows held densely in those blocks, summed
     skeleton: list = field(default_factory=list)   # skeleton columns of each group (0: exact)
+
+    def __add__(self, other: "FarFieldStats") -> "FarFieldStats":
+        """The tallies of two sets of blocks together (the Dask leaves', summed on the client)."""
+        out = FarFieldStats(**{f.name: getattr(self, f.name) + getattr(other, f.name)
+                               for f in fields(self) if f.name != "skeleton"})
+        out.skeleton = list(self.skeleton) + list(other.skeleton)
+        return out
+
+    def state(self) -> dict:
+        """JSON-ready counters (a Dask leaf's record); :meth:`from_state` reads them back."""
+        return {f.name: (list(map(int, self.skeleton)) if f.name == "skeleton" else int(getattr(self, f.name)))
+                for f in fields(self)}
+
+    @classmethod
+    def from_state(cls, state: dict) -> "FarFieldStats":
+        return cls(**{f.name: state[f.name] for f in fields(cls) if f.name in state})
 
     def as_dict(self, n: int) -> dict:
         sk = np.asarray(self.skeleton or [0])
@@ -342,6 +358,16 @@ class SampledFarField:
         starts = np.arange(0, self.n, self.block_size)
         self.lo = np.minimum.reduceat(self.patch_lo, starts, axis=0)
         self.hi = np.maximum.reduceat(self.patch_hi, starts, axis=0)
+        self.fresh_tallies()
+        # far rows see a column group wholly or not at all where their cluster pair says so (no
+        # rays): there F is the unoccluded kernel, which the decomposition samples
+        self.kernel_engine = FormFactorEngine(scene, samples=0)
+        vis = getattr(engine, "visibility", None)
+        self.clusters = None if vis is None else vis.cluster_pairs(scene, CLUSTER_SIZE)
+
+    def fresh_tallies(self) -> None:
+        """Start the certificate, the held-out check and the counters from zero: a Dask worker's
+        producer makes one leaf's share at a time, and the client adds the shares up."""
         rows = self.options.certify_rows
         if rows is None:
             rows = max(256, int(2 * math.sqrt(self.n)))
@@ -349,11 +375,6 @@ class SampledFarField:
         self.holdout = (FarFieldCertificate.design(self.n, self.options.holdout_rows, self.options.seed, 2)
                         if self.options.holdout_rows else None)
         self.stats = FarFieldStats()
-        # far rows see a column group wholly or not at all where their cluster pair says so (no
-        # rays): there F is the unoccluded kernel, which the decomposition samples
-        self.kernel_engine = FormFactorEngine(scene, samples=0)
-        vis = getattr(engine, "visibility", None)
-        self.clusters = None if vis is None else vis.cluster_pairs(scene, CLUSTER_SIZE)
 
     def close(self) -> None:
         """Release both engines (Embree scenes, threads)."""

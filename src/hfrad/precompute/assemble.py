@@ -189,6 +189,9 @@ def add_statistics(a: dict | None, b: dict | None) -> dict | None:
         return a if b is None else b
     out = {**a, "row_sums": a["row_sums"] + b["row_sums"], "col_sums": a["col_sums"] + b["col_sums"],
            "sketch": a["sketch"] + b["sketch"]}
+    for name in ("far_q", "far_holdout_q"):      # the sampled far field's certificate and held-out check
+        if name in a and name in b:
+            out[name] = a[name] + b[name]
     if "sample_rows" in a and "sample_rows" in b:
         out.update(SampledRows.add_states(a, b))
     else:   # a part saved before the rows were kept: no figure rather than one from missing columns

@@ -21,7 +21,8 @@ import numpy as np
 from ..errors import InputError
 from ..formfactors.blocks import Consumer, iter_column_blocks
 from ..formfactors.engine import FormFactorEngine
-from ..formfactors.farfield import SampledFarField, sampled_column_blocks
+from ..formfactors.farfield import (FarFieldCertificate, FarFieldStats, SampledFarField,
+                                    sampled_column_blocks)
 from ..lowrank.hf import HFStream
 from ..lowrank.nearsplit import NearFieldSplit
 from ..lowrank.streaming import load_checkpoint, save_checkpoint
@@ -163,29 +164,41 @@ def estimate_form_factor_seconds(scene: Scene, plan: PrecomputePlan) -> float:
     return per_pair * pairs * (PASS_OVER_KERNEL if plan.samples != 0 else 1.0)
 
 
-def _sampled_far_field(scene: Scene, plan: PrecomputePlan, stats: PassStatistics, ff_kwargs: dict):
-    """The sampled far field's block producer; its certificate joins the pass statistics (resumed
-    from them after a checkpoint)."""
-    engine = FormFactorEngine(scene, ray_threads=None, **ff_kwargs)   # blocks one at a time: every core casts
+def sampled_far_field(scene: Scene, plan: PrecomputePlan, stats: PassStatistics, ff_kwargs: dict,
+                      ray_threads: int | None = None) -> SampledFarField:
+    """The sampled far field's block producer (both backends'): the plan's engine settings, and the
+    exact rows the pass statistics' per-solve samples want beside each block."""
+    engine = FormFactorEngine(scene, ray_threads=ray_threads, **ff_kwargs)
     rows = stats.samples.row_patches if stats.samples is not None else ()
-    producer = SampledFarField(scene, engine, plan.perm, plan.block_size, plan.rows_rho(scene)[:, 0], plan.eps,
-                               weights=stats.weights, exact_rows=rows, near_radius=plan.near_radius,
-                               options=plan.far_options)
+    return SampledFarField(scene, engine, plan.perm, plan.block_size, plan.rows_rho(scene)[:, 0], plan.eps,
+                           weights=stats.weights, exact_rows=rows, near_radius=plan.near_radius,
+                           options=plan.far_options)
+
+
+def _sampled_far_field(scene: Scene, plan: PrecomputePlan, stats: PassStatistics, ff_kwargs: dict):
+    """The in-process producer (blocks one at a time: every core casts); its certificate joins the
+    pass statistics (resumed from them after a checkpoint)."""
+    producer = sampled_far_field(scene, plan, stats, ff_kwargs)
     if stats.far_field is not None:        # resumed: the certificate so far
         producer.certificate = stats.far_field
     stats.far_field = producer.certificate
     return producer
 
 
-def _far_field_report(producer) -> dict:
+def far_field_report(stats: FarFieldStats, certificate: FarFieldCertificate, holdout: FarFieldCertificate | None,
+                     n: int) -> dict:
     """What the sampled far field did, and its certified error, for ``info["far_field"]``."""
-    estimate, upper = producer.certificate.frobenius()
-    out = {**producer.stats.as_dict(producer.n), "certificate_rows": int(producer.certificate.index.size),
+    estimate, upper = certificate.frobenius()
+    out = {**stats.as_dict(n), "certificate_rows": int(certificate.index.size),
            "error_estimate": estimate, "error_upper": upper}
-    if producer.holdout is not None:
-        out["holdout_rows"] = int(producer.holdout.index.size)
-        out["holdout_estimate"] = producer.holdout.frobenius()[0]
+    if holdout is not None:
+        out["holdout_rows"] = int(holdout.index.size)
+        out["holdout_estimate"] = holdout.frobenius()[0]
     return out
+
+
+def _far_field_report(producer: SampledFarField) -> dict:
+    return far_field_report(producer.stats, producer.certificate, producer.holdout, producer.n)
 
 
 def _open_stats(stream: HFStream, n: int, weights, reflectance) -> PassStatistics:

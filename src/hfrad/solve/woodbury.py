@@ -15,6 +15,7 @@ import scipy.linalg as sla
 
 from ..errors import AccuracyWarning, FactorizationError, InputError
 from ..lowrank.factors import LowRank
+from ..resources import solve_threads
 from ..validation import as_real_array, check_exitance, check_finite, check_reflectance, check_trans
 from .bounds import ErrorEstimate, ResidualEstimate, estimate_errors, power_sigma_max_scaled, residual_estimate
 from . import thin
@@ -511,10 +512,11 @@ class HFactorization:
             E = np.repeat(E[:, None], N_CHANNELS, axis=1)
         batched = E.ndim == 3
         E3 = E if batched else E[:, :, None]
-        out = self._solve(E3, adjoint)
-        if not return_error:
-            return out if batched else out[:, :, 0]
-        error = self._solution_error(E3, out, adjoint, batched)
+        with solve_threads():     # the cores other processes leave free (threads that compete spin-wait)
+            out = self._solve(E3, adjoint)
+            if not return_error:
+                return out if batched else out[:, :, 0]
+            error = self._solution_error(E3, out, adjoint, batched)
         return (out if batched else out[:, :, 0]), error
 
     def solution_error(self, exitance, radiosity, trans: str = "N") -> SolutionError:
