@@ -22,7 +22,8 @@ Not a test: prints tables and writes results/solution-error-CASES.json.
 Run: ``PYTHONPATH=src python3 benchmarks/bench_solution_error.py [--cases cornell,conference,office,
 conference-near] [--patches 3000] [--eps 0.02] [--cache DIR]``; ``conference-near`` forces the near-field
 solver (``near_field=120``) on the conference room (its F is computed once for both). ``--cache DIR`` keeps
-each case's factorization (``CASE-nPATCHES-epsEPS.hfr``) and full-ray F (``SCENE-nPATCHES-F.npy``) there and reuses them on the next run:
+each case's factorization (``CASE-nPATCHES-epsEPS-kKERNEL.hfr``) and full-ray F (``SCENE-nPATCHES-kKERNEL-F.npy``,
+KERNEL the form-factor kernel's version) there and reuses them on the next run:
 the figure is computed at solve time from what the pass stored, so a change to it needs no new pass (the
 precompute time is then the file's load time).
 """
@@ -90,11 +91,19 @@ def norm(weights, X):
     return np.sqrt(np.einsum("i,ic->c", weights, X ** 2))
 
 
+def _kernel() -> int:
+    """The form-factor kernel's version: cached files of another kernel are not reused (a changed kernel
+    changes F, and an old F would give wrong true errors)."""
+    from hfrad.formfactors import KERNEL_VERSION
+
+    return KERNEL_VERSION
+
+
 def _factorization(name: str, scene, patches: int, eps: float, cache: Path | None):
     """The case's factorization and whether it came from ``cache`` (else made, and kept there)."""
     import hfrad
 
-    path = None if cache is None else cache / f"{name}-n{patches}-eps{eps}.hfr"
+    path = None if cache is None else cache / f"{name}-n{patches}-eps{eps}-k{_kernel()}.hfr"
     if path is not None and path.exists():
         return hfrad.load(path), True
     with warnings.catch_warnings():
@@ -109,7 +118,7 @@ def _full_ray_F(name: str, scene, patches: int, cache: Path | None) -> np.ndarra
     """The scene's full-ray F: from ``cache/SCENE-F.npy`` if there, else computed (and kept there)."""
     import hfrad
 
-    path = None if cache is None else cache / f"{NEAR_CASES.get(name, name)}-n{patches}-F.npy"
+    path = None if cache is None else cache / f"{NEAR_CASES.get(name, name)}-n{patches}-k{_kernel()}-F.npy"
     if path is not None and path.exists():
         return np.load(path)
     F = np.asarray(hfrad.form_factor_matrix(scene))
@@ -193,7 +202,8 @@ def run_case(name: str, patches: int, eps: float, count: int, cache: Path | None
             "ratio_min": ratios.min(), "ratio_median": float(np.median(ratios)), "ratio_max": ratios.max(),
             "true_min": trues.min(), "true_max": trues.max(),
             "solve_ms": solve.best * 1e3, "figure_ms": figure.best * 1e3,
-            "rows": f"{samples.index.size}+{samples.smooth_index.size}", "rows_bytes": samples.nbytes,
+            "rows": f"{samples.index.size}+{samples.smooth_index.size}+{samples.dual_index.size}",
+            "rows_bytes": samples.nbytes,
             "rows_share_of_factors": samples.nbytes / factor_bytes, "rows_share_of_hfr": samples.nbytes / size,
             "hfr_bytes": size, "redraws": redraws, "redrawn": redrawn, "by_emission": rows}
 

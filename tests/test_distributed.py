@@ -55,6 +55,10 @@ def _assert_same_factorization(dist, local, scene):
                                                                                          return_error=True)
     assert err.kind == err_local.kind == "sampled" and err.rows == err_local.rows
     assert np.allclose(err.bound, err_local.bound, rtol=1e-3), (err.bound, err_local.bound)
+    # the adjoint's own rows (drawn by 1/A), its first-bounce norms and the gain's power step too
+    (_, err), (_, err_local) = (f.solve(scene.emission, trans="T", return_error=True) for f in (dist, local))
+    assert err.kind == err_local.kind == "sampled" and err.rows == err_local.rows
+    assert np.allclose(err.bound, err_local.bound, rtol=1e-3), (err.bound, err_local.bound)
 
 
 def _job(A, m, b, n):

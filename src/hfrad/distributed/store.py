@@ -33,7 +33,8 @@ KEY_FILE = "key"
 _STATE = ("row_sums", "col_sums", "sketch", "probes", "seed")
 #: The exact sampled rows of the per-solve figure (hfrad.solve.samples), in parts written since 2026-12-06.
 _SAMPLE_STATE = ("sample_index", "smooth_index", "sample_rows", "sample_span", "sample_reflectance",
-                 "sample_exact", "sample_seed", "smooth_products", "sample_bounce")
+                 "sample_exact", "sample_seed", "smooth_products", "sample_bounce", "sample_dual_index",
+                 "sample_dual_bounce", "sample_gain_vector", "sample_gain_product")
 #: The sampled far field's certificate and held-out check (far_field="sampled").
 _FAR_STATE = ("far_index", "far_q", "far_holdout_q")
 _NEAR = ("near_rows", "near_cols", "near_values")

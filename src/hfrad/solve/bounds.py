@@ -162,7 +162,8 @@ def contraction_bound(reflectance, row_sums, col_sums=None, *, weighted: bool = 
     return rho.max(axis=0) * norm_F
 
 
-def reflection_gain_bound(reflectance, row_sums, col_sums=None, *, weighted: bool = True) -> np.ndarray:
+def reflection_gain_bound(reflectance, row_sums, col_sums=None, *, weighted: bool = True,
+                          spectral=None) -> np.ndarray:
     """(3,) upper bound on ``||(I - R_c F)^{-1} R_c F||`` per channel: the most that the
     interreflections can multiply a vector's norm by, beside the vector itself.
 
@@ -173,6 +174,10 @@ def reflection_gain_bound(reflectance, row_sums, col_sums=None, *, weighted: boo
     so its norm is its spectral radius, at most ``kappa_b = max_i rho_i sum_j F_ij`` (not
     ``max rho * max sum``: the brightest patch need not see the most); back to the area
     norm costs ``sqrt(max rho / min rho)``. The smaller of the two, per channel.
+
+    ``spectral`` ((3,), optional): a smaller upper bound on that spectral radius than ``kappa_b``
+    (:meth:`hfrad.solve.samples.SampledRows.spectral_bound`, one power step of Collatz-Wielandt);
+    the smaller of the two is used.
     """
     rho = np.asarray(reflectance, dtype=np.float64).reshape(-1, 3)
     if rho.size == 0:
@@ -180,6 +185,8 @@ def reflection_gain_bound(reflectance, row_sums, col_sums=None, *, weighted: boo
     out = _geometric_tail(contraction_bound(rho, row_sums, col_sums, weighted=weighted))
     if weighted:
         kappa_b = (rho * np.asarray(row_sums, np.float64)[:, None]).max(axis=0)
+        if spectral is not None:
+            kappa_b = np.minimum(kappa_b, np.asarray(spectral, np.float64))
         lo, hi = rho.min(axis=0), rho.max(axis=0)
         with np.errstate(divide="ignore", invalid="ignore"):
             change = np.where(lo > 0, np.sqrt(hi / np.where(lo > 0, lo, 1.0)), np.inf)

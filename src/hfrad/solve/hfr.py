@@ -32,10 +32,14 @@ files carry no checksums, so they are refused)::
                        pass over F recorded, internal order; attrs probes, seed;
                        and (files of 2026-12 on) the exact sampled rows of the
                        per-solve error figure: sample_index (m1,), smooth_index
-                       (m2,), sample_rows (m1 + m2, n) float32, smooth_products
+                       (m2,), sample_rows (m1 + m2 [+ m3], n) float32, smooth_products
                        (n, m2, 3) float32, sample_reflectance (n, 3),
                        sample_bounce (n, 3) (first-bounce norms, files of
-                       2026-12-06 on); attrs sample_exact, sample_seed
+                       2026-12-06 on); since the fourth stop of issue 42
+                       also sample_dual_index (m3,) (the adjoint's rows,
+                       last in sample_rows), sample_dual_bounce (n,),
+                       sample_gain_vector and sample_gain_product (n,);
+                       attrs sample_exact, sample_seed
                        (:mod:`hfrad.solve.samples`); with the sampled far
                        field, far_index (m,) and far_q (m,): its certificate
                        (:mod:`hfrad.formfactors.farfield`)
@@ -210,7 +214,8 @@ def _dataset(g: h5py.Group, name: str, data) -> None:
 #: The exact sampled rows of F (:class:`~hfrad.solve.samples.SampledRows`): arrays, and the dtype they are stored in.
 _SAMPLE_ARRAYS = {"sample_index": np.int64, "smooth_index": np.int64, "sample_rows": np.float32,
                   "sample_reflectance": np.float64, "smooth_products": np.float32,
-                  "sample_bounce": np.float32}
+                  "sample_bounce": np.float32, "sample_dual_index": np.int64, "sample_dual_bounce": np.float32,
+                  "sample_gain_vector": np.float64, "sample_gain_product": np.float64}
 #: The sampled far field's certificate (:class:`~hfrad.formfactors.farfield.FarFieldCertificate`).
 _FAR_ARRAYS = {"far_index": np.int64, "far_q": np.float64}
 

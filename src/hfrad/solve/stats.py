@@ -271,8 +271,13 @@ class PassStatistics:
 
     def reflection_gain(self, reflectance_int: np.ndarray) -> np.ndarray:
         """(3,) upper bound on ``||(I - R_c F)^{-1} R_c F||`` in this norm
-        (:func:`~hfrad.solve.bounds.reflection_gain_bound`)."""
-        return reflection_gain_bound(reflectance_int, self.row_sums, self.col_sums, weighted=self.weights is not None)
+        (:func:`~hfrad.solve.bounds.reflection_gain_bound`; with the sampled rows' power step, the
+        sharper spectral bound of :meth:`~hfrad.solve.samples.SampledRows.spectral_bound`)."""
+        weighted = self.weights is not None
+        spectral = None if (self.samples is None or not weighted) else \
+            self.samples.spectral_bound(reflectance_int, self.row_sums)
+        return reflection_gain_bound(reflectance_int, self.row_sums, self.col_sums, weighted=weighted,
+                                     spectral=spectral)
 
     @property
     def norm(self) -> str:
