@@ -74,7 +74,7 @@ def test_round_trip(saved):
     np.testing.assert_array_equal(s.emission, scene.emission)
     assert s.material_names == ("floor", "lamp") and s.groups == ("floor", "ceiling")
     meta = read_hfr_metadata(path)
-    assert meta["format_version"] == FORMAT_VERSION == 4 and meta["rank"] == fac.rank and meta["has_patches"]
+    assert meta["format_version"] == FORMAT_VERSION == 5 and meta["rank"] == fac.rank and meta["has_patches"]
     with h5py.File(path) as f:
         np.testing.assert_array_equal(f["patches/areas"][()], scene.areas)
 

@@ -83,7 +83,9 @@ from .stats import PassStatistics
 from .woodbury import HFactorization
 
 FORMAT = "hfrad-factorization"
-FORMAT_VERSION = 4
+#: 5: the per-solve samples may hold the adjoint's rows drawn by 1/A after the smoothed rows
+#: (``sample_dual_index``): an older reader would take them for smoothed rows, so it must refuse.
+FORMAT_VERSION = 5
 #: From this format version on, checksums and the attributes' digest are required on read.
 CHECKSUMS_SINCE = 2
 #: Datasets that are recomputed, exactly, when absent (older files lack them): no damage when missing.
