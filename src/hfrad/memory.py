@@ -67,12 +67,14 @@ def factors_bytes(n: int, k: int, itemsize: int = 4) -> int:
 
 
 def precompute_bytes(n: int, block_size: int, rank_guess_: int | None = None, itemsize: int = 4) -> int:
-    """Rough peak memory of ``factorize``, bytes: ``24 n b + (2 n k + 3 k^2) s + 4 n k s``.
+    """Rough peak memory of ``factorize``, bytes: ``40 n b + (2 n k + 3 k^2) s + 4 n k s``.
 
-    Three float64 n x b column blocks (b = ``block_size``), the factors
+    Five float64 n x b column blocks (b = ``block_size``: the one being factorized, the next one
+    handed over, and in the form-factor pipeline the one whose last rays are cast, the one whose
+    rays are queued and the kernel of the one after), the factors
     (:func:`factors_bytes`, s = ``itemsize``) and a merge, which holds about
     twice the rank transiently (4 n k values). The rank k is not known before
     the run: :func:`rank_guess` (:data:`RANK_ASSUMPTION`) unless given.
     """
     k = rank_guess(n) if rank_guess_ is None else rank_guess_
-    return 3 * 8 * n * block_size + factors_bytes(n, k, itemsize) + 4 * n * k * itemsize
+    return 5 * 8 * n * block_size + factors_bytes(n, k, itemsize) + 4 * n * k * itemsize

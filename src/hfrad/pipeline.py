@@ -122,7 +122,7 @@ def factorize(scene: Scene, eps: float = 0.02, *, relative: bool = True, dtype="
     Notes
     -----
     Memory, b = ``options.block_size``, k = rank, s = the dtype's itemsize: about
-    ``24 n b + (2 n k + 3 k^2) s + 4 n k s`` bytes (three float64 column
+    ``40 n b + (2 n k + 3 k^2) s + 4 n k s`` bytes (five float64 column
     blocks, the factors, a merge: :func:`hfrad.memory.precompute_bytes`), plus
     the reciprocity tiles (at most ``n^2 s / 4``:
     :func:`hfrad.formfactors.mirror.mirror_bytes`) and, with the near field of

@@ -16,7 +16,7 @@ import os
 import time
 
 __all__ = ["cores", "blas_threads", "blas_threads_now", "other_processes_cores", "spare_blas_threads",
-           "spare_threads", "spare_cores_now", "solve_threads"]
+           "spare_threads", "spare_cores_now", "solve_threads", "numba_loops_at_once"]
 
 
 def cores() -> int:
@@ -204,3 +204,20 @@ def solve_threads():
             yield
     finally:
         numba.set_num_threads(before)
+
+
+def numba_loops_at_once() -> bool:
+    """Whether two threads of this process may run numba's parallel loops at the same time.
+
+    numba's OpenMP and TBB threading layers allow it; its fallback, the workqueue layer
+    (a machine with neither libgomp nor tbb), terminates the process when it sees it, so a
+    caller then keeps its parallel loops on one thread. False as well before any parallel
+    loop has run in this process (numba picks its layer then; compiling a loop only to ask
+    would cost a second).
+    """
+    import numba
+
+    try:
+        return numba.threading_layer() in ("omp", "tbb")
+    except ValueError:
+        return False

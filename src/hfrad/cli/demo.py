@@ -25,7 +25,7 @@ def register(app: typer.Typer) -> None:
         Writes DIR/cornell.hfr, DIR/cornell.png, DIR/cornell.glb and
         DIR/cornell-blue.png (the same scene re-lit with a blue light, solved
         from the factorization in O(n k)). Memory: as `hfrad precompute`
-        (hfrad.memory.precompute_bytes: 24 n b + (2 n k + 3 k^2) 4 + 16 n k
+        (hfrad.memory.precompute_bytes: 40 n b + (2 n k + 3 k^2) 4 + 16 n k
         bytes, b = 256), checked before cutting. Prints the error figure of each
         solution first (relative to the reflected light, from exact rows of F kept
         from the pass), then the factorization's a-priori bound for any light and

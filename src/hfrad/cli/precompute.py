@@ -42,7 +42,7 @@ def register(app: typer.Typer) -> None:
         """Precompute a scene once: form factors with visibility, HF, Woodbury factors.
 
         Memory, n patches, b = --block, k = rank, s = 4 bytes (float32) or 8
-        (float64): 24 n b (three float64 column blocks) + (2 n k + 3 k^2) s (Q, V
+        (float64): 40 n b (five float64 column blocks) + (2 n k + 3 k^2) s (Q, V
         and three k x k inverses) + 4 n k s (a merge), hfrad.memory.precompute_bytes;
         k is unknown before the run, so the check assumes k = min(n, 3000) and
         refuses a run above 80% of the available memory. The n x n matrix is
