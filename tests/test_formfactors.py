@@ -259,3 +259,31 @@ def test_single_triangle_kernel_equals_the_general_one():
                       general, row_chunks(len(rows)))
     assert (fast > 0).mean() > 0.3 and (fast == 0).any()
     np.testing.assert_array_equal(fast, general)
+
+
+@pytest.mark.parametrize("kept", [1, 2])
+def test_a_triangle_across_the_tangent_plane_counts_its_front_part(kept):
+    """eq. (1)'s clip: a triangle with one or two corners above the plane of dA sends dA what its
+    part above the plane sends, that part cut by hand and summed as triangles wholly in front."""
+    from hfrad.formfactors.kernel import point_to_patch
+
+    heights = [0.8, -0.5, -0.3] if kept == 1 else [0.8, 0.6, -0.4]
+    rel = np.array([[0.3, 0.2, heights[0]], [1.4, -0.1, heights[1]], [0.5, 1.3, heights[2]]])  # dA at 0
+    if np.cross(rel[1] - rel[0], rel[2] - rel[0]) @ -rel[0] < 0:   # its front towards dA
+        rel = rel[::-1].copy()
+    up = np.array([0.0, 0.0, 1.0])
+    # the tangent plane of dA: normal ``up`` through the origin; corners' heights over it
+    h = rel @ up
+    assert ((h > 0).sum() == kept) and (h < 0).any()
+    cut = []                          # the polygon above the plane, in the triangle's order
+    for k in range(3):
+        a, b = rel[k], rel[(k + 1) % 3]
+        if h[k] >= 0:
+            cut.append(a)
+        if (h[k] >= 0) != (h[(k + 1) % 3] >= 0):
+            cut.append(a + h[k] / (h[k] - h[(k + 1) % 3]) * (b - a))
+    fan = [(cut[0], cut[k], cut[k + 1]) for k in range(1, len(cut) - 1)]
+    by_hand = sum(point_to_patch(np.zeros((1, 3)), up, np.array(t))[0] for t in fan)
+    clipped = point_to_patch(np.zeros((1, 3)), up, rel)[0]
+    assert by_hand > 0.01
+    assert clipped == pytest.approx(by_hand, rel=1e-12)
