@@ -448,6 +448,8 @@ class SampledFarField:
         self.lo = np.minimum.reduceat(self.patch_lo, starts, axis=0)
         self.hi = np.maximum.reduceat(self.patch_hi, starts, axis=0)
         self.fresh_tallies()
+        #: Keep the last block's groups as ``last_parts`` (benchmarks/bench_far_field.py redraws the certificate)
+        self.keep_parts = False
         # far rows see a column group wholly or not at all where their cluster pair says so (no
         # rays): there F is the unoccluded kernel, which the decomposition samples
         self.kernel_engine = FormFactorEngine(scene, samples=0)
@@ -502,7 +504,8 @@ class SampledFarField:
         if not pieces.is_dense:
             self.stats.piece_blocks += 1
             self.stats.dense_rows += pieces.rows.size
-        self.last_parts = parts
+        if self.keep_parts:     # a benchmark redraws the certificate on them (they hold n x s per group)
+            self.last_parts = parts
         # the exact rows the certificate draws from the groups (never seen by the decomposition)
         for c in (self.certificate, self.holdout):
             if c is not None:
