@@ -55,7 +55,7 @@ PROBES = 6
 #: The values of ``far_field`` (``hfrad.factorize``, ``hfrad precompute --far-field``).
 FAR_FIELD_CHOICES = ("exact", "sampled", "auto")
 #: The certificate's stated failure probability: its upper figure is below ``||G - G~||`` about
-#: this often (benchmarks/README.md, "The sampled far field", counts redraws).
+#: this often (benchmarks/README.md, "A dependable certificate", counts redraws).
 CERTIFICATE_FAILURE = 0.025
 #: Share of a certification draw spread evenly over a group's clean rows (the rest follows the
 #: predictor): a defensive mixture, so that ``e / pi`` is at most ``N / DEFENSIVE`` times a row's
@@ -290,10 +290,11 @@ class FarFieldCertificate:
     the group's other ("clean") rows carry the decomposition's error. Each of the ``m`` slots draws,
     in every group of every block, one clean row ``i`` with probability
 
-        pi_i = DEFENSIVE / N_g + (1 - DEFENSIVE) p_i / sum p,   p_i = rho_i^2 A_i ||F[i, S]||^2
+        pi_i = DEFENSIVE / N_g + (1 - DEFENSIVE) p_i / sum p,   p_i = rho_i sqrt(A_i) ||F[i, S]||
 
-    (the row's weight on the skeleton columns: close rows hold both the form factor and the
-    errors; the uniform share bounds ``e / pi`` where the predictor misses), and adds
+    (``p_i`` PROBED_WEIGHT times more where probe rays decided the row's visibility: the errors
+    sit there and grow with the row's weight on the skeleton columns; the uniform share bounds
+    ``e / pi`` where the predictor misses, :func:`_draw_probabilities`), and adds
     ``e_ig / pi_i`` (Horvitz-Thompson): each slot's total ``y_k`` is an unbiased estimate of
     ``||G - G~||^2``, independent of the other slots, and a sum over every group of every block
     (a new draw each), so a row that is bad in many blocks is not missed in all of them at once.
@@ -303,7 +304,7 @@ class FarFieldCertificate:
     Attributes
     ----------
     index : (m,) int
-        The slots (files written before 2026-12-06 15:00: the systematic sample's patches).
+        The slots (in files of the systematic certificate, before issue 43's fifth stop: its patches).
     q : (m,) float
         ``y_k / n``: then ``n mean(q)`` estimates ``||G - G~||^2`` both for these slots and for a
         systematic sample's per-row sums of files written before.
@@ -320,7 +321,7 @@ class FarFieldCertificate:
 
     @classmethod
     def design(cls, n: int, m: int, seed: int, stream: int = 1) -> "FarFieldCertificate":
-        m = max(min(int(m), n), 2) if n >= 2 else n
+        m = max(min(int(m), n), 2)       # slots, not patches: two at least, for a variance
         return cls(np.arange(m, dtype=np.int64), np.zeros(m), n, int(seed), int(stream))
 
     def draw(self, block: int, parts: list, row_scale: np.ndarray) -> list:
@@ -379,7 +380,7 @@ def _draw_probabilities(p: "_GroupPart", row_scale: np.ndarray) -> np.ndarray:
     """(len(p.clean),) the certification draw's probabilities over a group's clean rows: a share
     DEFENSIVE uniform, the rest proportional to the square root of the row's weight on the
     skeleton columns, PROBED_WEIGHT times more where probes decided its visibility (benchmarks/README.md,
-    "The sampled far field": the errors grow about as that root, and sit mostly in probed rows)."""
+    "A dependable certificate": the errors grow about as that root, and sit mostly in probed rows)."""
     N = p.clean.size
     pred = np.sqrt(np.einsum("ij,ij->i", p.F_S, p.F_S) * row_scale[p.clean])
     if p.probed is not None:
@@ -397,9 +398,9 @@ def _upper_margin(y: np.ndarray, failure: float) -> float:
 
     Not the normal quantile: the errors sit in few rows, so the slots are skewed (skewness ~7 on
     6 blocks of the 40K Cornell box) and a sample that misses the heavy rows also understates the
-    variance; Student's t, Johnson's skewness correction, Hall's transformation and the bootstrap-t
-    all put the upper figure below the measured error in 18-20% of 50 redraws at a stated 2.5%,
-    this bound in none (benchmarks/README.md, "The sampled far field")."""
+    variance; Student's t with Johnson's skewness term, Hall's transformation and the bootstrap-t
+    put the upper figure below the measured error in 18-20% of 50 redraws at a stated 2.5%, this
+    bound in none (benchmarks/README.md, "A dependable certificate")."""
     m = y.size
     if m < 2:
         return math.inf
