@@ -249,7 +249,7 @@ def _report(fac, output: Path, clock) -> None:
             f"computed exactly, {far['refined_groups']:,} refined, {far.get('split_groups', 0):,} halved; "
             f"{far.get('piece_blocks', 0):,} blocks reached HF in pieces ({far.get('dense_row_share', 0.0):.1%} of "
             f"their rows dense); its error ||G - G~||_F about "
-            f"{far['error_estimate']:.3g}, upper figure {far['error_upper']:.3g} (below it but with probability "
+            f"{far['error_estimate']:.3g}, upper figure {far['error_upper']:.3g} (the error above it with probability "
             f"~{CERTIFICATE_FAILURE:.1%}; {far['certificate_rows']:,} exact rows drawn in each column group: "
             "docs/method.md section 4b)", highlight=False)
 
