@@ -5,7 +5,11 @@ of an n-patch scene, each computed exactly (every row, in this process, rays on 
 no reciprocity copy) and by the sampled far field, one after the other: seconds per block,
 the share of the block's pairs evaluated (all, with rays, kernel only, probe rays), the
 sampled block's error against the exact one (``||G - G~||_F / ||G||_F`` over the blocks) and
-the certificate's estimate of it. This is what scales to a million patches here.
+the certificate's estimate of it. This is what scales to a million patches here. With
+``--redraws R`` the certificate is drawn again with R seeds on the same blocks (from their exact
+values: no more rays), beside the systematic sample of before (estimate + 2 standard errors, and
+the same sample with this certificate's multiplier): how often each upper figure falls below the
+measured error, and the range of estimate / measured.
 **End to end** (``--end-to-end``): ``hfrad.factorize(scene, eps, far_field=...)`` runs with ``"exact"`` (every
 pair; half copied by reciprocity) and ``"sampled"`` (near rows exactly, far rows from a checked
 interpolative decomposition, visibility of far pairs from cluster tests and probe rays), on
@@ -21,7 +25,7 @@ and HF's leaf, handed on in pieces (exact rows + W X) and made dense, side by si
 
 Not a test: prints tables and writes results/far-field-{blocks,end-to-end,downstream}-SCENE-SIZES.json.
 Run: ``PYTHONPATH=src python3 benchmarks/bench_far_field.py [--patches 40000,163000] [--blocks 6]
-[--eps 0.02] [--scene cornell]`` or ``... --end-to-end [--modes exact,sampled]`` or ``... --downstream``.
+[--eps 0.02] [--scene cornell] [--redraws 50]`` or ``... --end-to-end [--modes exact,sampled]`` or ``... --downstream``.
 """
 
 from __future__ import annotations
@@ -33,7 +37,7 @@ import numpy as np
 
 import common
 import hfrad
-from hfrad.formfactors.farfield import FarFieldOptions
+from hfrad.formfactors.farfield import CERTIFICATE_FAILURE, FarFieldOptions
 
 
 def reflected_difference(B, B_ref, E, areas) -> list[float]:
@@ -66,8 +70,53 @@ def run(scene, mode: str, eps: float) -> dict:
     return row
 
 
-def per_block(scene, blocks: int, eps: float, block_size: int = 256) -> dict:
-    """Seconds, pairs and errors of ``blocks`` column blocks, exact and sampled (see the module docstring)."""
+def systematic_figure(q: np.ndarray, n: int, z: float = 2.0) -> tuple[float, float]:
+    """The certificate before 2026-12-06 15:00 (for the redraws' "before"): a systematic sample's
+    per-row sums ``q``, estimate and estimate + z standard errors from successive differences."""
+    m = q.size
+    total = n * float(q.mean())
+    var = n ** 2 * float((np.diff(q) ** 2).sum()) / (2.0 * m * max(m - 1, 1))
+    return float(np.sqrt(total)), float(np.sqrt(total + z * np.sqrt(var)))
+
+
+class Redraws:
+    """The certificate redrawn with ``count`` seeds on the measured blocks, from their exact values
+    (no rays): this design and the systematic sample of before, side by side."""
+
+    def __init__(self, n: int, rows: int, count: int) -> None:
+        from hfrad.formfactors.farfield import FarFieldCertificate, _spread
+        self.n = n
+        self.new = [FarFieldCertificate.design(n, rows, 1000 + r) for r in range(count)]
+        self.old_index = [np.unique(_spread(np.arange(n), rows, np.random.default_rng([1000 + r, 1])))
+                          for r in range(count)]
+        self.old_q = [np.zeros(i.size) for i in self.old_index]
+
+    def add(self, j: int, start: int, parts: list, exact: np.ndarray, d2: np.ndarray, rho, w) -> None:
+        """``exact``: the block's exact F (n x b); ``d2``: its weighted squared errors, row sums (n,)."""
+        for c in self.new:
+            c.add_block(j, start, parts, lambda rows, a, b: exact[rows, a:b], rho, w)
+        for index, q in zip(self.old_index, self.old_q):
+            q += d2[index]
+
+    def summary(self, measured: float) -> dict:
+        new = np.array([c.frobenius() for c in self.new]) / measured
+        old = np.array([systematic_figure(q, self.n) for q in self.old_q]) / measured
+        # the systematic sample with this design's multiplier: what the design itself brings
+        z = np.sqrt(1.0 / CERTIFICATE_FAILURE - 1.0)
+        wide = np.array([systematic_figure(q, self.n, z) for q in self.old_q]) / measured
+        out = {"redraws": len(self.new)}
+        for name, r in (("", new), ("systematic_", old), ("systematic_wide_", wide)):
+            out.update({f"{name}estimate_ratio_min": float(r[:, 0].min()),
+                        f"{name}estimate_ratio_max": float(r[:, 0].max()),
+                        f"{name}upper_ratio_min": float(r[:, 1].min()),
+                        f"{name}upper_ratio_median": float(np.median(r[:, 1])),
+                        f"{name}upper_below": int((r[:, 1] < 1.0).sum())})
+        return out
+
+
+def per_block(scene, blocks: int, eps: float, block_size: int = 256, redraws: int = 0) -> dict:
+    """Seconds, pairs and errors of ``blocks`` column blocks, exact and sampled (see the module docstring);
+    with ``redraws``, the certificate redrawn that many times on the same blocks (:class:`Redraws`)."""
     from hfrad.formfactors.budget import ray_budget
     from hfrad.formfactors.engine import FormFactorEngine
     from hfrad.formfactors.farfield import SampledFarField
@@ -87,6 +136,8 @@ def per_block(scene, blocks: int, eps: float, block_size: int = 256) -> dict:
         c.q[:] = 0.0
     m = -(-n // block_size)
     t_exact = t_sampled = err2 = norm2 = werr2 = 0.0
+    draws = Redraws(n, producer.certificate.q.size, redraws) if redraws else None
+    producer.keep_parts = draws is not None
     for j in np.linspace(1, m - 1, blocks).astype(int):
         cols = perm[j * block_size:(j + 1) * block_size]
         t0 = time.perf_counter()
@@ -99,7 +150,10 @@ def per_block(scene, blocks: int, eps: float, block_size: int = 256) -> dict:
         d = (exact - sampled) * rho[:, None]
         err2 += float(np.square(d).sum())
         # the certificate's norm: A^1/2 (G - G~) A^-1/2
-        werr2 += float(np.square(d * np.sqrt(w[:, None] / w[None, j * block_size:(j + 1) * block_size])).sum())
+        d2 = np.square(d * np.sqrt(w[:, None] / w[None, j * block_size:(j + 1) * block_size])).sum(axis=1)
+        werr2 += float(d2.sum())
+        if draws is not None:
+            draws.add(j, j * block_size, producer.last_parts, exact, d2, rho, w)
         norm2 += float(np.square(exact * rho[:, None]).sum())
     far = producer.stats.as_dict(n)
     pairs = n * block_size * blocks
@@ -116,7 +170,8 @@ def per_block(scene, blocks: int, eps: float, block_size: int = 256) -> dict:
             "probe_rays_per_pair": far["probe_rays"] / pairs, "relative_error": float(np.sqrt(err2 / norm2)),
             "weighted_error": float(np.sqrt(werr2)), "certificate": cert, "certificate_upper": upper,
             "holdout": held, "certificate_ratio": cert / max(np.sqrt(werr2), 1e-300),
-            "target": FarFieldOptions().share * eps, "far_field": far}
+            "target": FarFieldOptions().share * eps, "certificate_rows": int(producer.certificate.q.size),
+            **(draws.summary(float(np.sqrt(werr2))) if draws is not None else {}), "far_field": far}
 
 
 def downstream(scene, blocks: int, eps: float, block_size: int = 256) -> dict:
@@ -168,6 +223,8 @@ def main() -> None:
     p.add_argument("--modes", default="exact,sampled")
     p.add_argument("--scene", default="cornell")
     p.add_argument("--blocks", type=int, default=6)
+    p.add_argument("--redraws", type=int, default=0,
+                   help="per block: redraw the certificate this many times (and the systematic one of before)")
     p.add_argument("--end-to-end", action="store_true")
     p.add_argument("--downstream", action="store_true",
                    help="what a block costs after the form factors, in pieces and dense")
@@ -185,14 +242,17 @@ def main() -> None:
         print(f"wrote {path}")
         return
     if not args.end_to_end:
-        rows = [per_block(common.load_bench_scene(args.scene, size), args.blocks, args.eps)
+        rows = [per_block(common.load_bench_scene(args.scene, size), args.blocks, args.eps, redraws=args.redraws)
                 for size in common.parse_sizes(args.patches)]
         common.print_table(f"{args.scene}, eps {args.eps}: {args.blocks} column blocks, exact and sampled", rows,
                            ["n", "exact_s_per_block", "sampled_s_per_block", "speedup",
                             "pairs_share", "traced_share", "kernel_share",
                             "near_share", "mixed_share", "probe_rays_per_pair",
                             "relative_error", "target", "weighted_error", "certificate", "certificate_upper",
-                            "holdout"])
+                            "holdout"] + (["upper_below", "upper_ratio_min", "estimate_ratio_min",
+                                           "estimate_ratio_max", "systematic_upper_below",
+                                           "systematic_upper_ratio_min", "systematic_estimate_ratio_min",
+                                           "systematic_wide_upper_below"] if args.redraws else []))
         path = common.write_json(f"far-field-blocks-{args.scene}-" + "-".join(str(r["n"]) for r in rows),
                                  {"machine": m, "eps": args.eps, "rows": rows})
         print(f"wrote {path}")

@@ -1,7 +1,7 @@
 """The sampled far field (issue 43): column blocks of F from a small share of the pairs.
 
 Checked against the exact form factors of the same engine: the certificate's estimate of
-``||G - G~||`` within 2x of the measured error on three scenes, rows with a shadow edge
+``||G - G~||`` within 2x of the measured error on three scenes and its upper figure above it, rows with a shadow edge
 across a column group computed exactly, and ``hfrad.factorize(far_field="sampled")`` end to
 end against the exact pass (radiosity, the operator figure, the .hfr round trip). The
 admissibility is made tighter than the default (``eta``, small blocks) so that scenes of a
@@ -68,13 +68,16 @@ def test_certificate_within_2x_of_the_measured_error(name, patches):
     true, (estimate, upper), producer, _ = _sampled_against_exact(load_scene(name, patches=patches))
     stats = producer.stats.as_dict(producer.n)
     assert stats["skeleton_mean"] > 0 and stats["pairs_share"] < 0.95     # the far field was sampled
-    # observed: furnace 0.97, perpendicular (printed by the assertion when it fails)
+    # observed: furnace 0.98, perpendicular 1.07
     assert 0.5 * true <= estimate <= 2.0 * true, (true, estimate)
+    # the upper figure (stated to fail in 2.5% of draws) above the error, not far: observed 1.12, 1.35
+    assert true <= upper <= 2.0 * true, (true, upper)
 
 
 def test_certificate_within_2x_on_the_cornell_box(cornell_run):
     true, (estimate, upper), producer, _ = cornell_run
-    assert 0.5 * true <= estimate <= 2.0 * true, (true, estimate)   # observed 0.94
+    assert 0.5 * true <= estimate <= 2.0 * true, (true, estimate)   # observed 1.01
+    assert true <= upper <= 2.0 * true, (true, upper)               # observed 1.17
 
 
 def test_shadow_edges_are_computed_exactly(cornell_run):

@@ -242,14 +242,16 @@ def _report(fac, output: Path, clock) -> None:
         f"solver {fac.solver}, time: {clock.summary()}{dask}", highlight=False)
     far = info.get("far_field")
     if far:
+        from ..formfactors.farfield import CERTIFICATE_FAILURE
         common.console.print(
             f"far field sampled: {far['pairs_share']:.2%} of the n^2 form factors evaluated "
             f"({far['traced_share']:.2%} with rays), {far['exact_groups']:,} of {far['groups']:,} column groups "
             f"computed exactly, {far['refined_groups']:,} refined, {far.get('split_groups', 0):,} halved; "
             f"{far.get('piece_blocks', 0):,} blocks reached HF in pieces ({far.get('dense_row_share', 0.0):.1%} of "
             f"their rows dense); its error ||G - G~||_F about "
-            f"{far['error_estimate']:.3g}, upper figure {far['error_upper']:.3g} (from {far['certificate_rows']:,} "
-            "exact rows: an estimate, not a guarantee; docs/method.md section 4b)", highlight=False)
+            f"{far['error_estimate']:.3g}, upper figure {far['error_upper']:.3g} (the error above it with probability "
+            f"~{CERTIFICATE_FAILURE:.1%}; {far['certificate_rows']:,} exact rows drawn in each column group: "
+            "docs/method.md section 4b)", highlight=False)
 
 
 def _scratch_estimate(n: int, block_size: int, itemsize: int, memory_band_bytes: int) -> int:

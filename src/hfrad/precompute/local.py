@@ -179,8 +179,8 @@ def _sampled_far_field(scene: Scene, plan: PrecomputePlan, stats: PassStatistics
     """The in-process producer (blocks one at a time: every core casts); its certificate joins the
     pass statistics (resumed from them after a checkpoint)."""
     producer = sampled_far_field(scene, plan, stats, ff_kwargs)
-    if stats.far_field is not None:        # resumed: the certificate so far
-        producer.certificate = stats.far_field
+    if stats.far_field is not None:        # resumed: the certificate's sums so far (its draws: the design's seed)
+        producer.certificate.q = np.array(stats.far_field.q, np.float64)
     stats.far_field = producer.certificate
     return producer
 
