@@ -61,10 +61,13 @@ class FormFactorEngine:
 
     Notes
     -----
-    :meth:`iter_blocks` overlaps the two halves of the work: Embree casts the
-    rays of one batch in a worker thread (packets from numba, no GIL held: see
-    :mod:`hfrad.formfactors.raycast`) while the numba kernel computes the next
-    block, so the ray casting is mostly hidden behind the kernel.
+    :meth:`iter_blocks` keeps both halves of the work going at once: Embree casts
+    the queued ray batches in a thread (packets from numba, no GIL held: see
+    :mod:`hfrad.formfactors.raycast`) while the pipeline computes kernel columns
+    of the next block (a chunk at a time, on the cores Embree leaves), and once
+    no kernel is left a second Embree thread takes batches too (``_Pipeline``).
+    Where numba allows it the pipeline runs one block ahead of the caller in its
+    own thread, so HF's work on a block overlaps the next blocks' form factors.
     """
 
     def __init__(self, scene, *, samples: int = DEFAULT_SAMPLES, near: float = NEAR,
