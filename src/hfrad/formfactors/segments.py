@@ -197,3 +197,141 @@ def fill_rays_on_triangles(P, N, plane, ka, kb, r_idx, c_idx, valid, first, flat
             else:
                 _put_segment(P, a, i, b, j, N[a, i], N[b, j], o, d, t, w, row)
             row += 1
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _candidate_weight(P, N, plane, a, i, b, j, mode):
+    """The kernel weight of candidate segment (point i of patch a, point j of b): cos_a cos_b / L^2
+    with the triangles' normals ``N`` (mode 0), the patch planes' (mode 1), or 1 (mode 2)."""
+    if mode == 2:
+        return 1.0
+    dx = P[b, j, 0] - P[a, i, 0]
+    dy = P[b, j, 1] - P[a, i, 1]
+    dz = P[b, j, 2] - P[a, i, 2]
+    L2 = dx * dx + dy * dy + dz * dz
+    if not L2 > 0.0:
+        return 0.0
+    if mode == 0:
+        ca = N[a, i, 0] * dx + N[a, i, 1] * dy + N[a, i, 2] * dz
+        cb = -(N[b, j, 0] * dx + N[b, j, 1] * dy + N[b, j, 2] * dz)
+    else:
+        ca = plane[a, 0] * dx + plane[a, 1] * dy + plane[a, 2] * dz
+        cb = -(plane[b, 0] * dx + plane[b, 1] * dy + plane[b, 2] * dz)
+    if ca <= 0.0 or cb <= 0.0:
+        return 0.0
+    return ca * cb / (L2 * L2)  # (ca / L) (cb / L) / L^2
+
+
+#: The second coordinate of pick k is frac(1/2 + k / golden ratio): with (k + 1/2) / m as the first,
+#: the m picks form a Fibonacci-like lattice in the unit square, even in both directions.
+_GOLDEN = 0.6180339887498949
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def importance_picks(P, N, plane, r_idx, c_idx, picks, counts, modes):
+    """Segments of each pair picked in proportion to their kernel weight, deterministically.
+
+    The candidates are all s x s segments from point i of the lower patch a to point j of the
+    other b (``P`` (patches, s, 3)). Pick k (of m = ``picks.shape[1]``) takes the point i where the
+    cumulative weight of a's points (each summed over b's) first exceeds (k + 1/2) / m of the total,
+    then the point j where the cumulative weight along i's row first exceeds frac(1/2 + k / golden
+    ratio) of that row's: a two-dimensional low-discrepancy set pushed through the weight's
+    marginal and conditional distributions, so the picks spread over both patches in proportion to
+    the kernel. No random numbers, and a and b in canonical order: the picks of (i, j) and (j, i)
+    are the same. The share of picks whose segment is free estimates the kernel-weighted visibility
+    of the whole candidate set; each pick counts alike, so a few short heavy segments no longer
+    carry the estimate alone (the fixed pairing's weakness on close pairs).
+
+    Weights are cos cos / L^2 with the normals of the points' triangles ``N`` (``modes[p]`` = 0);
+    where no candidate leaves the front of both triangles, the patch planes' normals (1); where
+    none faces that way either, every candidate alike (2).
+
+    Parameters
+    ----------
+    P, N : (patches, s, 3) float64
+        Points (frame units) and the unit normals of the triangles they lie on.
+    plane : (patches, 4) float64
+        Patch planes (unit normal, offset).
+    r_idx, c_idx : (k,) int64
+        The two patches of each pair (indices into ``P``; either order).
+    picks : (k, m) int64, out
+        Candidate index i * s + j of each pick, sorted along a row.
+    counts : (k,) int64, out
+        Distinct candidates picked (the rays the pair needs).
+    modes : (k,) int8, out
+        The weights used (0, 1, 2 above).
+    """
+    s = P.shape[1]
+    m = picks.shape[1]
+    for p in prange(r_idx.shape[0]):
+        a = min(r_idx[p], c_idx[p])
+        b = max(r_idx[p], c_idx[p])
+        W = np.empty((s, s))
+        rows = np.empty(s)
+        mode = 0
+        total = 0.0
+        while True:
+            total = 0.0
+            for i in range(s):
+                row = 0.0
+                for j in range(s):
+                    W[i, j] = _candidate_weight(P, N, plane, a, i, b, j, mode)
+                    row += W[i, j]
+                rows[i] = row
+                total += row
+            if total > 0.0 or mode == 2:
+                break
+            mode += 1
+        modes[p] = mode
+        i = 0
+        cum = rows[0]
+        for k in range(m):
+            target = (k + 0.5) / m * total
+            while cum <= target and i < s - 1:  # the targets grow with k: one sweep over the rows
+                i += 1
+                cum += rows[i]
+            while rows[i] <= 0.0 and i > 0:  # rounding ran past the last row with weight
+                i -= 1
+            u = (0.5 + k * _GOLDEN) % 1.0 * rows[i]
+            j = 0
+            cj = W[i, 0]
+            while cj <= u and j < s - 1:
+                j += 1
+                cj += W[i, j]
+            while W[i, j] <= 0.0 and j > 0:
+                j -= 1
+            picks[p, k] = i * s + j
+        picks[p] = np.sort(picks[p])
+        distinct = 1
+        for k in range(1, m):
+            if picks[p, k] != picks[p, k - 1]:
+                distinct += 1
+        counts[p] = distinct
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def fill_picked(P, N, plane, r_idx, c_idx, picks, modes, first, o, d, t, w):
+    """The distinct picked segments of each pair (:func:`importance_picks`), lower patch first, into
+    rows first[p]:first[p + 1] of o, d, t; ``w`` the number of picks each stands for, so that the
+    weighted free share of :func:`~hfrad.formfactors.visibility._scale_by_visibility` is the share
+    of free picks."""
+    s = P.shape[1]
+    m = picks.shape[1]
+    for p in prange(r_idx.shape[0]):
+        a = min(r_idx[p], c_idx[p])
+        b = max(r_idx[p], c_idx[p])
+        row = first[p] - 1
+        last = -1
+        for k in range(m):
+            c = picks[p, k]
+            if c == last:
+                w[row] += 1.0
+                continue
+            last = c
+            row += 1
+            i, j = c // s, c % s
+            if modes[p] == 0:
+                _put_segment(P, a, i, b, j, N[a, i], N[b, j], o, d, t, w, row)
+            else:
+                _put_segment(P, a, i, b, j, plane[a], plane[b], o, d, t, w, row)
+            w[row] = 1.0

@@ -94,8 +94,8 @@ from .kernel import points_on_triangles, split_centroids
 from .probing import (NEIGHBOURS, PROBE_BELOW, PROBE_NEAR, cuttable, cuttable_one_word, full_ray_pairs,
                       nearest_patches, one_word_bits)
 from .raycast import RayCaster
-from .segments import (RAY_BATCH, RayBuffers, RayJob, fill_rays, fill_rays_on_triangles, probe_segments,
-                       valid_rays, valid_rays_on_triangles)
+from .segments import (RAY_BATCH, RayBuffers, RayJob, fill_picked, fill_rays, fill_rays_on_triangles,
+                       importance_picks, probe_segments, valid_rays, valid_rays_on_triangles)
 
 #: Rays per patch pair by default (a 2 x 2 split of each triangle) with probing off; with
 #: probing on (the default) the flagged pairs get max(samples, BOUNDARY_SAMPLES).
@@ -110,6 +110,14 @@ BOUNDARY_SAMPLES = 16
 REFINE_SAMPLES = 64
 REFINE_LARGE_SAMPLES = 256
 REFINE_LARGE_ABOVE = 3e-3
+
+#: The second round's estimator: True, segments picked in proportion to their kernel weight among
+#: all IMPORTANCE_DESIGN^2 x IMPORTANCE_DESIGN^2 pairs of points of the two patches (systematic
+#: sampling, :func:`~hfrad.formfactors.segments.importance_picks`), IMPORTANCE_PICKS[s] of them where
+#: the fixed pairing would cast s; False, the fixed pairing of ``s`` weighted segments.
+IMPORTANCE = True
+IMPORTANCE_DESIGN = 8
+IMPORTANCE_PICKS = {64: 64, 256: 256}
 
 #: Pairs whose first rays disagree, or closer than REFINE_NEAR * (D_i + D_j) (centroid
 #: distance, longest edges), get the second round if F_ij or F_ji exceeds REFINE_ABOVE.
@@ -217,7 +225,8 @@ class Visibility:
     def __init__(self, scene, *, samples: int = DEFAULT_SAMPLES, cull: bool = True,
                  refine_samples: int = REFINE_SAMPLES, refine_above: float = REFINE_ABOVE,
                  probe: bool = True, ray_budget: RayBudget | None = None,
-                 cluster_size: int | None = None, pair_test: bool | None = None, ray_threads: int | None = 1) -> None:
+                 cluster_size: int | None = None, pair_test: bool | None = None, ray_threads: int | None = 1,
+                 importance: bool | None = None) -> None:
         m = check_samples(samples)
         self.samples = int(samples)
         # everything below is in the scene's frame: centred, in units of its size (module docstring);
@@ -246,6 +255,7 @@ class Visibility:
         self.refine_large_samples = REFINE_LARGE_SAMPLES if self.refine_samples else 0
         self.refine_large_above = REFINE_LARGE_ABOVE
         self.rays_refined = 0
+        self.importance = bool(IMPORTANCE if importance is None else importance)
         self.refine_near = REFINE_NEAR
         self.probe_near = PROBE_NEAR
         self.centroids = np.ascontiguousarray(self._frame(scene.centroids))
@@ -533,8 +543,16 @@ class Visibility:
 
     def _refine_jobs(self, pairs: np.ndarray, r_idx: np.ndarray, c_idx: np.ndarray, s: int,
                      pool: "RayBuffers") -> list:
-        """Second-round jobs of ``s`` rays for ``pairs`` (flat indices into F), in buffers from ``pool``."""
+        """Second-round jobs of ``s`` rays for ``pairs`` (flat indices into F), in buffers from ``pool``;
+        with :attr:`importance`, the picked segments of :meth:`_importance_jobs` instead."""
         out = []
+        if self.importance:
+            bent = self.bent[r_idx] | self.bent[c_idx] if self.bent is not None else np.zeros(len(pairs), np.bool_)
+            for sel, is_bent in ((bent, True), (~bent, False)):
+                if sel.any():
+                    out.extend(self._importance_jobs(pairs[sel], r_idx[sel], c_idx[sel], s, pool, is_bent))
+            self.rays_refined += sum(len(job.t) for job in out)
+            return out
         if self.bent is not None:
             bent = self.bent[r_idx] | self.bent[c_idx]
             if bent.any():
@@ -564,6 +582,38 @@ class Visibility:
             self.rays_refined += r
             out.append(RayJob(pairs[sl], first, o, d, t, w, buf, pool, r_idx[sl], c_idx[sl], True, str(s)))
         return out
+
+    def _importance_jobs(self, pairs, r_idx, c_idx, s: int, pool: "RayBuffers", bent: bool):
+        """Second-round jobs standing for ``s`` fixed segments: ``IMPORTANCE_PICKS[s]`` picks among
+        the segments between the IMPORTANCE_DESIGN^2 points of each patch (bent pairs: :func:`bent_points`
+        and their triangles' normals; flat ones: :func:`sample_points` and the patch planes), in
+        proportion to their kernel weight (segments.importance_picks); V = share of free picks."""
+        md = IMPORTANCE_DESIGN
+        m = IMPORTANCE_PICKS[s]
+        per = max(1, RAY_BATCH // m)
+        name = f"{m} picked" + (" bent" if bent else "")
+        for start in range(0, len(pairs), per):
+            sl = slice(start, start + per)
+            patches, inverse = np.unique(np.concatenate([r_idx[sl], c_idx[sl]]), return_inverse=True)
+            k = len(r_idx[sl])
+            ri, ci = inverse[:k].astype(np.int64), inverse[k:].astype(np.int64)
+            plane = np.ascontiguousarray(self.plane[patches])
+            if bent:
+                P, N = self._bent_points(md, patches)
+            else:
+                P = self._points(md, patches)
+                N = np.ascontiguousarray(np.repeat(plane[:, None, :3], md * md, axis=1))
+            picks = np.empty((k, m), np.int64)
+            counts = np.empty(k, np.int64)
+            modes = np.empty(k, np.int8)
+            importance_picks(P, N, plane, ri, ci, picks, counts, modes)
+            first = np.zeros(k + 1, np.int64)
+            np.cumsum(counts, out=first[1:])
+            r = int(first[-1])
+            buf = pool.get(r)
+            o, d, t, w = buf[0][:r], buf[1][:r], buf[2][:r], buf[3][:r]
+            fill_picked(P, N, plane, ri, ci, picks, modes, first, o, d, t, w)
+            yield RayJob(pairs[sl], first, o, d, t, w, buf, pool, r_idx[sl], c_idx[sl], True, name)
 
     def _bent_points(self, m: int, patches: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Points of the m x m bent design (:func:`bent_points`) of ``patches``, offset off their
