@@ -2,7 +2,10 @@
 kernel weights, and the reusable buffers that hold them.
 
 Shared by the visibility rounds (visibility.py) and the probes (probing.py), which need the
-same segments: one module below both, so neither imports the other.
+same segments: one module below both, so neither imports the other. The second round's segments
+are picked in proportion to their kernel weight among all pairs of two point designs
+(:func:`importance_picks`, :func:`fill_picked`): each ray then stands for one or more equal picks
+instead of carrying its own weight.
 """
 
 from __future__ import annotations
@@ -222,6 +225,34 @@ def _candidate_weight(P, N, plane, a, i, b, j, mode):
     return ca * cb / (L2 * L2)  # (ca / L) (cb / L) / L^2
 
 
+@njit(cache=True, nogil=True)
+def _triangle_weights(Pa, Na, Pb, Nb, W, rows):
+    """W[i, j] = the kernel weight of :func:`_candidate_weight` (mode 0) from point i of ``Pa``
+    (s, 3) to point j of ``Pb`` (3, s: coordinates first, so that the inner loop vectorises), with
+    the normals ``Na`` (s, 3) and ``Nb`` (3, s), then each row's cumulative sum; rows[i] the row's
+    sum. Returns the total. No fastmath: the sums in order, the same bits on every machine."""
+    s = Pa.shape[0]
+    total = 0.0
+    for i in range(s):
+        ax, ay, az = Pa[i, 0], Pa[i, 1], Pa[i, 2]
+        nx, ny, nz = Na[i, 0], Na[i, 1], Na[i, 2]
+        for j in range(s):
+            dx = Pb[0, j] - ax
+            dy = Pb[1, j] - ay
+            dz = Pb[2, j] - az
+            L2 = dx * dx + dy * dy + dz * dz
+            ca = max(nx * dx + ny * dy + nz * dz, 0.0)
+            cb = max(-(Nb[0, j] * dx + Nb[1, j] * dy + Nb[2, j] * dz), 0.0)
+            W[i, j] = ca * cb / max(L2 * L2, 1e-300)  # ca cb = 0 where L2 = 0
+        row = 0.0
+        for j in range(s):  # each row becomes its cumulative sum (the picks search it)
+            row += W[i, j]
+            W[i, j] = row
+        rows[i] = row
+        total += row
+    return total
+
+
 #: The second coordinate of pick k is frac(1/2 + k / golden ratio): with (k + 1/2) / m as the first,
 #: the m picks form a Fibonacci-like lattice in the unit square, even in both directions.
 _GOLDEN = 0.6180339887498949
@@ -262,51 +293,82 @@ def importance_picks(P, N, plane, r_idx, c_idx, picks, counts, modes):
         The weights used (0, 1, 2 above).
     """
     s = P.shape[1]
-    m = picks.shape[1]
-    for p in prange(r_idx.shape[0]):
-        a = min(r_idx[p], c_idx[p])
-        b = max(r_idx[p], c_idx[p])
+    n = r_idx.shape[0]
+    chunks = (n + _PICK_CHUNK - 1) // _PICK_CHUNK
+    for c in prange(chunks):  # buffers once a chunk of pairs, not once a pair
         W = np.empty((s, s))
         rows = np.empty(s)
-        mode = 0
-        total = 0.0
-        while True:
-            total = 0.0
-            for i in range(s):
-                row = 0.0
-                for j in range(s):
-                    W[i, j] = _candidate_weight(P, N, plane, a, i, b, j, mode)
-                    row += W[i, j]
-                rows[i] = row
-                total += row
-            if total > 0.0 or mode == 2:
-                break
-            mode += 1
-        modes[p] = mode
-        i = 0
-        cum = rows[0]
-        for k in range(m):
-            target = (k + 0.5) / m * total
-            while cum <= target and i < s - 1:  # the targets grow with k: one sweep over the rows
-                i += 1
-                cum += rows[i]
-            while rows[i] <= 0.0 and i > 0:  # rounding ran past the last row with weight
-                i -= 1
-            u = (0.5 + k * _GOLDEN) % 1.0 * rows[i]
-            j = 0
-            cj = W[i, 0]
-            while cj <= u and j < s - 1:
-                j += 1
-                cj += W[i, j]
-            while W[i, j] <= 0.0 and j > 0:
-                j -= 1
-            picks[p, k] = i * s + j
-        picks[p] = np.sort(picks[p])
-        distinct = 1
-        for k in range(1, m):
-            if picks[p, k] != picks[p, k - 1]:
-                distinct += 1
-        counts[p] = distinct
+        Pb = np.empty((3, s))
+        Nb = np.empty((3, s))
+        for p in range(c * _PICK_CHUNK, min(n, (c + 1) * _PICK_CHUNK)):
+            a = min(r_idx[p], c_idx[p])
+            b = max(r_idx[p], c_idx[p])
+            Pb[:] = P[b].T
+            Nb[:] = N[b].T
+            total = _triangle_weights(P[a], N[a], Pb, Nb, W, rows)
+            mode = 0
+            while not total > 0.0 and mode < 2:  # rare: the general (slower) loop with the next weights
+                mode += 1
+                total = _general_weights(P, N, plane, a, b, mode, W, rows)
+            modes[p] = mode
+            counts[p] = _pick(W, rows, total, picks[p])
+
+
+#: Pairs a thread takes at a time in :func:`importance_picks`.
+_PICK_CHUNK = 64
+
+
+@njit(cache=True, nogil=True)
+def _general_weights(P, N, plane, a, b, mode, W, rows):
+    """:func:`_triangle_weights` for any mode of :func:`_candidate_weight` (a slower loop)."""
+    s = P.shape[1]
+    total = 0.0
+    for i in range(s):
+        row = 0.0
+        for j in range(s):
+            row += _candidate_weight(P, N, plane, a, i, b, j, mode)
+            W[i, j] = row
+        rows[i] = row
+        total += row
+    return total
+
+
+@njit(cache=True, nogil=True)
+def _pick(W, rows, total, out):
+    """The picks of :func:`importance_picks` from the rows' cumulative weights ``W`` (s, s), their
+    sums ``rows`` and ``total``, into ``out`` (m,), sorted; returns how many are distinct."""
+    s = W.shape[0]
+    m = out.shape[0]
+    i = 0
+    cum = rows[0]
+    for k in range(m):
+        target = (k + 0.5) / m * total
+        while cum <= target and i < s - 1:  # the targets grow with k: one sweep over the rows
+            i += 1
+            cum += rows[i]
+        while rows[i] <= 0.0 and i > 0:  # rounding ran past the last row with weight
+            i -= 1
+        u = (0.5 + k * _GOLDEN) % 1.0 * rows[i]
+        lo, hi = 0, s - 1  # the first j with W[i, j] > u (W[i]: the row's cumulative weight)
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if W[i, mid] > u:
+                hi = mid
+            else:
+                lo = mid + 1
+        j = lo
+        while j > 0 and W[i, j] <= W[i, j - 1]:  # rounding ran past the row's last weight
+            j -= 1
+        out[k] = i * s + j
+        q = k  # insertion sort: i never decreases with k, so a pick moves only past its row's
+        while q > 0 and out[q - 1] > out[q]:
+            out[q - 1], out[q] = out[q], out[q - 1]
+            q -= 1
+    distinct = 1
+    for k in range(1, m):
+        if out[k] != out[k - 1]:
+            distinct += 1
+    return distinct
 
 
 @njit(parallel=True, cache=True, nogil=True)
