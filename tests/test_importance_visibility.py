@@ -51,7 +51,7 @@ def _reference(scene: Scene, fence_y: float, height: float, m: int = 48) -> floa
 
 def _second_round(scene: Scene, s: int, importance: bool, pair=(0, 1)) -> tuple[float, int]:
     """V of the pair from the second round that stands for ``s`` fixed segments, and its rays."""
-    vis = Visibility(scene, importance=importance)
+    vis = Visibility(scene, importance=importance, importance_flat=importance)
     F = np.ones((1, 1))
     rays = 0
     for job in vis._refine_jobs(np.array([0]), np.array([pair[0]]), np.array([pair[1]]), s, vis.buffers):
@@ -127,6 +127,7 @@ def test_picks_follow_the_kernel_weight():
 
 def test_fixed_pairing_is_kept_when_importance_is_off(monkeypatch):
     scene = _pair(0.02, 0.15, 0.1)
+    assert Visibility(scene).importance_flat is False  # flat pairs of single triangles: fixed by default
     monkeypatch.setattr(vis_mod, "IMPORTANCE", False)
     assert Visibility(scene).importance is False
     assert _second_round(scene, 64, False)[1] == 64

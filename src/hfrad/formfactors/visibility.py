@@ -38,7 +38,8 @@ Rounds (probing on, the default; probing.py):
    would cast 64 and 64 where it would cast 256, in proportion to their kernel weight (no rays: a
    low-discrepancy set pushed through the weight's distribution,
    :func:`~hfrad.formfactors.segments.importance_picks`), casts each distinct one once, and V is the
-   share of free picks. The fixed pairing's weighted estimate rests on the few short segments that
+   share of free picks (pairs of flat patches: only in clustered scenes, ``IMPORTANCE_FLAT``).
+   The fixed pairing's weighted estimate rests on the few short segments that
    carry most of a close pair's weight; each pick counts alike. On a floor and a wall meeting
    behind a fence (tests/test_importance_visibility.py) the mean error against the closed form
    fell 0.117 -> 0.069 (64 fixed -> 32 picks) and 0.068 -> 0.026 (256 -> 64); 200 rows of each public
@@ -130,7 +131,12 @@ REFINE_LARGE_ABOVE = 3e-3
 #: IMPORTANCE_DESIGN[s]^2 design of each patch (:func:`~hfrad.formfactors.segments.importance_picks`);
 #: False, the fixed pairing of ``s`` weighted segments. The 6 x 6 design of the 64 level costs a third
 #: of the 8 x 8's weights (about 3 ns a candidate) and left Sponza's 200 rows where 8 x 8 did (0.1397).
+#: IMPORTANCE_FLAT: pairs of flat patches too, in clustered scenes only: on the unclustered built-in
+#: Cornell box (1,508 patches) the picks left the worst row sum at 2.8e-3 against 1.8e-3 (2.1e-3 with
+#: as many picks as fixed segments), where on the public scenes' rows they cost nothing
+#: (benchmarks/README.md).
 IMPORTANCE = True
+IMPORTANCE_FLAT = True
 IMPORTANCE_DESIGN = {64: 6, 256: 8}
 IMPORTANCE_PICKS = {64: 32, 256: 64}
 
@@ -167,7 +173,8 @@ def settings() -> dict:
             "refine_above": REFINE_ABOVE, "refine_near": REFINE_NEAR, "weighted": True,
             "probe_neighbours": NEIGHBOURS, "probe_below": PROBE_BELOW, "probe_near": PROBE_NEAR,
             "budget_factors": {"few_rays": FEW_RAYS_FACTOR, "refine": REFINE_FACTOR, "large": LARGE_FACTOR},
-            "importance": IMPORTANCE, "importance_design": {str(k): v for k, v in IMPORTANCE_DESIGN.items()},
+            "importance": IMPORTANCE, "importance_flat": IMPORTANCE_FLAT,
+            "importance_design": {str(k): v for k, v in IMPORTANCE_DESIGN.items()},
             "importance_picks": {str(k): v for k, v in IMPORTANCE_PICKS.items()}}
 
 
@@ -237,16 +244,17 @@ class Visibility:
         Threads casting each batch of rays: 1 (default) where the caller runs Embree in a
         thread of its own beside the kernel (the engine's pipeline); None: every core, for a
         caller that waits for each batch (the sampled far field).
-    importance : bool, optional
-        The second round's segments picked by kernel weight (module docstring); default
-        ``IMPORTANCE``; False: the fixed pairing.
+    importance, importance_flat : bool, optional
+        The second round's segments of pairs with a bent patch, and of pairs of flat patches,
+        picked by kernel weight (module docstring); default ``IMPORTANCE``, and ``IMPORTANCE_FLAT``
+        for a clustered scene (False for one of single triangles); False: the fixed pairing.
     """
 
     def __init__(self, scene, *, samples: int = DEFAULT_SAMPLES, cull: bool = True,
                  refine_samples: int = REFINE_SAMPLES, refine_above: float = REFINE_ABOVE,
                  probe: bool = True, ray_budget: RayBudget | None = None,
                  cluster_size: int | None = None, pair_test: bool | None = None, ray_threads: int | None = 1,
-                 importance: bool | None = None) -> None:
+                 importance: bool | None = None, importance_flat: bool | None = None) -> None:
         m = check_samples(samples)
         self.samples = int(samples)
         # everything below is in the scene's frame: centred, in units of its size (module docstring);
@@ -276,6 +284,8 @@ class Visibility:
         self.refine_large_above = REFINE_LARGE_ABOVE
         self.rays_refined = 0
         self.importance = bool(IMPORTANCE if importance is None else importance)
+        self.importance_flat = bool(IMPORTANCE_FLAT and scene.is_clustered if importance_flat is None
+                                    else importance_flat)
         self.refine_near = REFINE_NEAR
         self.probe_near = PROBE_NEAR
         self.centroids = np.ascontiguousarray(self._frame(scene.centroids))
@@ -566,19 +576,17 @@ class Visibility:
         """Second-round jobs of ``s`` rays for ``pairs`` (flat indices into F), in buffers from ``pool``;
         with :attr:`importance`, the picked segments of :meth:`_importance_jobs` instead."""
         out = []
-        if self.importance:
-            bent = self.bent[r_idx] | self.bent[c_idx] if self.bent is not None else np.zeros(len(pairs), np.bool_)
-            for sel, is_bent in ((bent, True), (~bent, False)):
+        bent = self.bent[r_idx] | self.bent[c_idx] if self.bent is not None else np.zeros(len(pairs), np.bool_)
+        if self.importance:  # pairs with a bent patch, and flat ones with importance_flat
+            picked = bent | self.importance_flat
+            for sel, is_bent in ((picked & bent, True), (picked & ~bent, False)):
                 if sel.any():
                     out.extend(self._importance_jobs(pairs[sel], r_idx[sel], c_idx[sel], s, pool, is_bent))
-            self.rays_refined += sum(len(job.t) for job in out)
-            return out
-        if self.bent is not None:
-            bent = self.bent[r_idx] | self.bent[c_idx]
-            if bent.any():
-                out.extend(self._bent_jobs(pairs[bent], r_idx[bent], c_idx[bent], s, pool, True))
-                self.rays_refined += sum(len(job.t) for job in out)
-                pairs, r_idx, c_idx = pairs[~bent], r_idx[~bent], c_idx[~bent]
+            pairs, r_idx, c_idx, bent = pairs[~picked], r_idx[~picked], c_idx[~picked], bent[~picked]
+        if bent.any():
+            out.extend(self._bent_jobs(pairs[bent], r_idx[bent], c_idx[bent], s, pool, True))
+            pairs, r_idx, c_idx = pairs[~bent], r_idx[~bent], c_idx[~bent]
+        self.rays_refined += sum(len(job.t) for job in out)
         m = check_samples(s)
         partner = pairing(s)
         per = max(1, RAY_BATCH // s)
