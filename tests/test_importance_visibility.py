@@ -131,3 +131,29 @@ def test_fixed_pairing_is_kept_when_importance_is_off(monkeypatch):
     monkeypatch.setattr(vis_mod, "IMPORTANCE", False)
     assert Visibility(scene).importance is False
     assert _second_round(scene, 64, False)[1] == 64
+
+
+def test_bent_pairs_pick_the_same_segments_from_either_side():
+    """Pairs with a bent patch (saw teeth clustered into combs) take the picks, V_ij == V_ji to the bit."""
+    from test_bent_visibility import _sawtooth_room
+
+    from hfrad.scene.cluster import cluster
+
+    room = cluster(_sawtooth_room(), patches=300)
+    vis = Visibility(room)
+    bent = np.flatnonzero(vis.bent)
+    i = np.repeat(bent[:8], 8)
+    j = np.tile(np.arange(room.n_patches)[::37][:8], 8)
+    keep = i != j
+    i, j = i[keep], j[keep]
+    values = []
+    for r, c in ((i, j), (j, i)):
+        F = np.ones(len(r))
+        jobs = vis._refine_jobs(np.arange(len(r)), r, c, 256, vis.buffers)
+        assert jobs and all(job.round.endswith("picked bent") for job in jobs)
+        for job in jobs:
+            vis.finish(F, job, vis.cast(job))
+        values.append(F)
+    vis.close()
+    assert np.array_equal(values[0], values[1])
+    assert 0.0 <= values[0].min() and values[0].max() <= 1.0 and values[0].min() < 1.0
