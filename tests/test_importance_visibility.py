@@ -103,19 +103,29 @@ def test_picks_are_deterministic_and_symmetric():
         assert _second_round(scene, s, True, (1, 0))[0] == v01  # V_ij == V_ji bit for bit
 
 
-def test_picks_follow_the_kernel_weight():
-    """Systematic sampling: point i of the first patch gets within one pick of m times its share of the
-    weight, and each pick is a candidate of positive weight."""
+def _facing_squares(s: int = 16):
+    """Points of two unit squares, z = 0 facing +z and z = 0.5 facing -z; triangle normals, planes."""
     rng = np.random.default_rng(5)
-    s, m = 16, 64
     P = rng.random((2, s, 3))
-    P[0, :, 2] = 0.0  # patch 0 in z = 0 facing +z, patch 1 in z = 0.5 facing -z
+    P[0, :, 2] = 0.0
     P[1, :, 2] = 0.5
     N = np.zeros((2, s, 3))
     N[0, :, 2], N[1, :, 2] = 1.0, -1.0
-    plane = np.array([[0, 0, 1, 0.0], [0, 0, -1, -0.5]])
+    return P, N, np.array([[0, 0, 1, 0.0], [0, 0, -1, -0.5]])
+
+
+def _picks(P, N, plane, m):
     picks, counts, modes = np.empty((1, m), np.int64), np.empty(1, np.int64), np.empty(1, np.int8)
     importance_picks(P, N, plane, np.array([1]), np.array([0]), picks, counts, modes)
+    return picks, counts, modes
+
+
+def test_picks_follow_the_kernel_weight():
+    """Systematic sampling: point i of the first patch gets within one pick of m times its share of the
+    weight, and each pick is a candidate of positive weight."""
+    s, m = 16, 64
+    P, N, plane = _facing_squares(s)
+    picks, counts, modes = _picks(P, N, plane, m)
     d = P[1][None, :, :] - P[0][:, None, :]
     W = d[..., 2] ** 2 / np.square((d ** 2).sum(-1))
     share = m * W.sum(axis=1) / W.sum()
@@ -157,3 +167,17 @@ def test_bent_pairs_pick_the_same_segments_from_either_side():
     vis.close()
     assert np.array_equal(values[0], values[1])
     assert 0.0 <= values[0].min() and values[0].max() <= 1.0 and values[0].min() < 1.0
+
+
+def test_picks_fall_back_to_the_planes_then_to_every_candidate():
+    """No segment leaves the front of both triangles: the patch planes' weights (mode 1), the same picks
+    as with those normals; no segment faces either way: every candidate alike (mode 2)."""
+    s, m = 16, 32
+    P, N, plane = _facing_squares(s)
+    want = _picks(P, N, plane, m)[0]
+    away = N.copy()
+    away[1, :, 2] = 1.0  # patch 1's triangles face away from patch 0
+    picks, _, modes = _picks(P, away, plane, m)
+    assert modes[0] == 1 and np.array_equal(picks, want)
+    picks, counts, modes = _picks(P, away, -plane, m)
+    assert modes[0] == 2 and counts[0] == m  # m picks spread over s * s equal candidates: all distinct

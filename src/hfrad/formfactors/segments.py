@@ -203,31 +203,25 @@ def fill_rays_on_triangles(P, N, plane, ka, kb, r_idx, c_idx, valid, first, flat
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _candidate_weight(P, N, plane, a, i, b, j, mode):
-    """The kernel weight of candidate segment (point i of patch a, point j of b): cos_a cos_b / L^2
-    with the triangles' normals ``N`` (mode 0), the patch planes' (mode 1), or 1 (mode 2)."""
-    if mode == 2:
+def _plane_weight(P, plane, a, i, b, j, uniform):
+    """The kernel weight of candidate segment (point i of patch a, point j of b) with the patch
+    planes' normals: cos_a cos_b / L^2 (0 unless both are positive), or 1 if ``uniform``."""
+    if uniform:
         return 1.0
     dx = P[b, j, 0] - P[a, i, 0]
     dy = P[b, j, 1] - P[a, i, 1]
     dz = P[b, j, 2] - P[a, i, 2]
     L2 = dx * dx + dy * dy + dz * dz
-    if not L2 > 0.0:
-        return 0.0
-    if mode == 0:
-        ca = N[a, i, 0] * dx + N[a, i, 1] * dy + N[a, i, 2] * dz
-        cb = -(N[b, j, 0] * dx + N[b, j, 1] * dy + N[b, j, 2] * dz)
-    else:
-        ca = plane[a, 0] * dx + plane[a, 1] * dy + plane[a, 2] * dz
-        cb = -(plane[b, 0] * dx + plane[b, 1] * dy + plane[b, 2] * dz)
-    if ca <= 0.0 or cb <= 0.0:
+    ca = plane[a, 0] * dx + plane[a, 1] * dy + plane[a, 2] * dz
+    cb = -(plane[b, 0] * dx + plane[b, 1] * dy + plane[b, 2] * dz)
+    if ca <= 0.0 or cb <= 0.0 or not L2 > 0.0:
         return 0.0
     return ca * cb / (L2 * L2)  # (ca / L) (cb / L) / L^2
 
 
 @njit(cache=True, nogil=True)
 def _triangle_weights(Pa, Na, Pb, Nb, W, rows):
-    """W[i, j] = the kernel weight of :func:`_candidate_weight` (mode 0) from point i of ``Pa``
+    """W[i, j] = the kernel weight cos_a cos_b / L^2 (0 unless both are positive) from point i of ``Pa``
     (s, 3) to point j of ``Pb`` (3, s: coordinates first, so that the inner loop vectorises), with
     the normals ``Na`` (s, 3) and ``Nb`` (3, s), then each row's cumulative sum; rows[i] the row's
     sum. Returns the total. No fastmath: the sums in order, the same bits on every machine."""
@@ -309,7 +303,7 @@ def importance_picks(P, N, plane, r_idx, c_idx, picks, counts, modes):
             mode = 0
             while not total > 0.0 and mode < 2:  # rare: the general (slower) loop with the next weights
                 mode += 1
-                total = _general_weights(P, N, plane, a, b, mode, W, rows)
+                total = _plane_weights(P, plane, a, b, mode == 2, W, rows)
             modes[p] = mode
             counts[p] = _pick(W, rows, total, picks[p])
 
@@ -319,14 +313,14 @@ _PICK_CHUNK = 64
 
 
 @njit(cache=True, nogil=True)
-def _general_weights(P, N, plane, a, b, mode, W, rows):
-    """:func:`_triangle_weights` for any mode of :func:`_candidate_weight` (a slower loop)."""
+def _plane_weights(P, plane, a, b, uniform, W, rows):
+    """:func:`_triangle_weights` with the weights of :func:`_plane_weight` (a slower loop)."""
     s = P.shape[1]
     total = 0.0
     for i in range(s):
         row = 0.0
         for j in range(s):
-            row += _candidate_weight(P, N, plane, a, i, b, j, mode)
+            row += _plane_weight(P, plane, a, i, b, j, uniform)
             W[i, j] = row
         rows[i] = row
         total += row
