@@ -4,7 +4,7 @@ the rows of F they give are.
 ``rounds``: the form-factor pass of ``hfrad precompute SCENE --area-light 50,50,50 --patches N``
 (default eps 0.02: its ray budget, block size, order and reciprocity; one process, Embree in its
 thread beside the kernel), the blocks thrown away. Prints per round (probe; 4, 16, 64, 256 segments;
-"bent" for pairs with a bent patch) the pairs, rays and Embree seconds, rays per second, why pairs
+"32 picked", "64 picked" for the second round's importance picks; "bent" for pairs with a bent patch) the pairs, rays and Embree seconds, rays per second, why pairs
 went to the second round (their rays disagree, or only close), and the pass's wall and CPU seconds.
 
 ``rows``: ``--rows`` random rows of F (fixed seed; the precompute's ray budget) against

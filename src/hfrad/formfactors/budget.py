@@ -11,7 +11,7 @@ of the unoccluded kernel, so it is the same in every block and every process
 with their neighbours' 4 rays instead of 16 (:func:`ray_budget`,
 :class:`RayBudget`). Two more, for ``REFINE_FACTOR`` and ``LARGE_FACTOR`` times the share, give
 the pairs whose 16 rays disagree no second round (their 16-ray estimate stands), or 64 rays in it
-instead of 256. By default the one-ray rule
+instead of 256 (with visibility.py's importance picks, the default: 32 picks instead of 64). By default the one-ray rule
 spends ``ONE_RAY_SHARE`` of a relative eps (:func:`default_one_ray_tol`) and is
 off for an absolute eps.
 

@@ -84,13 +84,14 @@ from numba import njit, prange
 from ..errors import InputError
 
 #: Bumped whenever the numbers produced by this module change (cache keys use it).
+#: 10: visibility's second round picks its segments by kernel weight (visibility.IMPORTANCE).
 #: 9: clustered patches (clustered.py): triangles at least POINT_FAR diameters from a quadrature
 #: point take the disk-corrected point rule in eq. (3) there.
 #: 8: visibility's second round from max(F_ij, F_ji) = 1e-4 (was 3e-4): every Cornell row closes.
 #: 7: far pairs where one triangle straddles the other's plane integrate from the other's centroid;
 #: kernel-weighted rays, 16 for the flagged pairs and 64 / 256 in the second round (visibility.py).
 #: 6: probe rays first (probing.py); 5: point-to-point rule beyond FAR; 4: visibility's second round.
-KERNEL_VERSION = 9
+KERNEL_VERSION = 10
 
 #: Triangle pairs closer than NEAR * (D_t + D_u) (centroid distance) leave the centroid rule.
 NEAR = 3.0

@@ -2,7 +2,10 @@
 kernel weights, and the reusable buffers that hold them.
 
 Shared by the visibility rounds (visibility.py) and the probes (probing.py), which need the
-same segments: one module below both, so neither imports the other.
+same segments: one module below both, so neither imports the other. The second round's segments
+are picked in proportion to their kernel weight among all pairs of two point designs
+(:func:`importance_picks`, :func:`fill_picked`): each ray then stands for one or more equal picks
+instead of carrying its own weight.
 """
 
 from __future__ import annotations
@@ -197,3 +200,194 @@ def fill_rays_on_triangles(P, N, plane, ka, kb, r_idx, c_idx, valid, first, flat
             else:
                 _put_segment(P, a, i, b, j, N[a, i], N[b, j], o, d, t, w, row)
             row += 1
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _plane_weight(P, plane, a, i, b, j, uniform):
+    """The kernel weight of candidate segment (point i of patch a, point j of b) with the patch
+    planes' normals: cos_a cos_b / L^2 (0 unless both are positive), or 1 if ``uniform``."""
+    if uniform:
+        return 1.0
+    dx = P[b, j, 0] - P[a, i, 0]
+    dy = P[b, j, 1] - P[a, i, 1]
+    dz = P[b, j, 2] - P[a, i, 2]
+    L2 = dx * dx + dy * dy + dz * dz
+    ca = plane[a, 0] * dx + plane[a, 1] * dy + plane[a, 2] * dz
+    cb = -(plane[b, 0] * dx + plane[b, 1] * dy + plane[b, 2] * dz)
+    if ca <= 0.0 or cb <= 0.0 or not L2 > 0.0:
+        return 0.0
+    return ca * cb / (L2 * L2)  # (ca / L) (cb / L) / L^2
+
+
+@njit(cache=True, nogil=True)
+def _triangle_weights(Pa, Na, Pb, Nb, W, rows):
+    """W[i, j] = the kernel weight cos_a cos_b / L^2 (0 unless both are positive) from point i of ``Pa``
+    (s, 3) to point j of ``Pb`` (3, s: coordinates first, so that the inner loop vectorises), with
+    the normals ``Na`` (s, 3) and ``Nb`` (3, s), then each row's cumulative sum; rows[i] the row's
+    sum. Returns the total. No fastmath: the sums in order, the same bits on every machine."""
+    s = Pa.shape[0]
+    total = 0.0
+    for i in range(s):
+        ax, ay, az = Pa[i, 0], Pa[i, 1], Pa[i, 2]
+        nx, ny, nz = Na[i, 0], Na[i, 1], Na[i, 2]
+        for j in range(s):
+            dx = Pb[0, j] - ax
+            dy = Pb[1, j] - ay
+            dz = Pb[2, j] - az
+            L2 = dx * dx + dy * dy + dz * dz
+            ca = max(nx * dx + ny * dy + nz * dz, 0.0)
+            cb = max(-(Nb[0, j] * dx + Nb[1, j] * dy + Nb[2, j] * dz), 0.0)
+            W[i, j] = ca * cb / max(L2 * L2, 1e-300)  # ca cb = 0 where L2 = 0
+        row = 0.0
+        for j in range(s):  # each row becomes its cumulative sum (the picks search it)
+            row += W[i, j]
+            W[i, j] = row
+        rows[i] = row
+        total += row
+    return total
+
+
+#: The second coordinate of pick k is frac(1/2 + k / golden ratio): with (k + 1/2) / m as the first,
+#: the m picks form a Fibonacci-like lattice in the unit square, even in both directions.
+_GOLDEN = 0.6180339887498949
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def importance_picks(P, N, plane, r_idx, c_idx, picks, counts, modes):
+    """Segments of each pair picked in proportion to their kernel weight, deterministically.
+
+    The candidates are all s x s segments from point i of the lower patch a to point j of the
+    other b (``P`` (patches, s, 3)). Pick k (of m = ``picks.shape[1]``) takes the point i where the
+    cumulative weight of a's points (each summed over b's) first exceeds (k + 1/2) / m of the total,
+    then the point j where the cumulative weight along i's row first exceeds frac(1/2 + k / golden
+    ratio) of that row's: a two-dimensional low-discrepancy set pushed through the weight's
+    marginal and conditional distributions, so the picks spread over both patches in proportion to
+    the kernel. No random numbers, and a and b in canonical order: the picks of (i, j) and (j, i)
+    are the same. The share of picks whose segment is free estimates the kernel-weighted visibility
+    of the whole candidate set; each pick counts alike, so a few short heavy segments no longer
+    carry the estimate alone (the fixed pairing's weakness on close pairs).
+
+    Weights are cos cos / L^2 with the normals of the points' triangles ``N`` (``modes[p]`` = 0);
+    where no candidate leaves the front of both triangles, the patch planes' normals (1); where
+    none faces that way either, every candidate alike (2).
+
+    Parameters
+    ----------
+    P, N : (patches, s, 3) float64
+        Points (frame units) and the unit normals of the triangles they lie on.
+    plane : (patches, 4) float64
+        Patch planes (unit normal, offset).
+    r_idx, c_idx : (k,) int64
+        The two patches of each pair (indices into ``P``; either order).
+    picks : (k, m) int64, out
+        Candidate index i * s + j of each pick, sorted along a row.
+    counts : (k,) int64, out
+        Distinct candidates picked (the rays the pair needs).
+    modes : (k,) int8, out
+        The weights used (0, 1, 2 above).
+    """
+    s = P.shape[1]
+    n = r_idx.shape[0]
+    chunks = (n + _PICK_CHUNK - 1) // _PICK_CHUNK
+    for c in prange(chunks):  # buffers once a chunk of pairs, not once a pair
+        W = np.empty((s, s))
+        rows = np.empty(s)
+        Pb = np.empty((3, s))
+        Nb = np.empty((3, s))
+        for p in range(c * _PICK_CHUNK, min(n, (c + 1) * _PICK_CHUNK)):
+            a = min(r_idx[p], c_idx[p])
+            b = max(r_idx[p], c_idx[p])
+            Pb[:] = P[b].T
+            Nb[:] = N[b].T
+            total = _triangle_weights(P[a], N[a], Pb, Nb, W, rows)
+            mode = 0
+            while not total > 0.0 and mode < 2:  # rare: the general (slower) loop with the next weights
+                mode += 1
+                total = _plane_weights(P, plane, a, b, mode == 2, W, rows)
+            modes[p] = mode
+            counts[p] = _pick(W, rows, total, picks[p])
+
+
+#: Pairs a thread takes at a time in :func:`importance_picks`.
+_PICK_CHUNK = 64
+
+
+@njit(cache=True, nogil=True)
+def _plane_weights(P, plane, a, b, uniform, W, rows):
+    """:func:`_triangle_weights` with the weights of :func:`_plane_weight` (a slower loop)."""
+    s = P.shape[1]
+    total = 0.0
+    for i in range(s):
+        row = 0.0
+        for j in range(s):
+            row += _plane_weight(P, plane, a, i, b, j, uniform)
+            W[i, j] = row
+        rows[i] = row
+        total += row
+    return total
+
+
+@njit(cache=True, nogil=True)
+def _pick(W, rows, total, out):
+    """The picks of :func:`importance_picks` from the rows' cumulative weights ``W`` (s, s), their
+    sums ``rows`` and ``total``, into ``out`` (m,), sorted; returns how many are distinct."""
+    s = W.shape[0]
+    m = out.shape[0]
+    i = 0
+    cum = rows[0]
+    for k in range(m):
+        target = (k + 0.5) / m * total
+        while cum <= target and i < s - 1:  # the targets grow with k: one sweep over the rows
+            i += 1
+            cum += rows[i]
+        while rows[i] <= 0.0 and i > 0:  # rounding ran past the last row with weight
+            i -= 1
+        u = (0.5 + k * _GOLDEN) % 1.0 * rows[i]
+        lo, hi = 0, s - 1  # the first j with W[i, j] > u (W[i]: the row's cumulative weight)
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if W[i, mid] > u:
+                hi = mid
+            else:
+                lo = mid + 1
+        j = lo
+        while j > 0 and W[i, j] <= W[i, j - 1]:  # rounding ran past the row's last weight
+            j -= 1
+        out[k] = i * s + j
+        q = k  # insertion sort: i never decreases with k, so a pick moves only past its row's
+        while q > 0 and out[q - 1] > out[q]:
+            out[q - 1], out[q] = out[q], out[q - 1]
+            q -= 1
+    distinct = 1
+    for k in range(1, m):
+        if out[k] != out[k - 1]:
+            distinct += 1
+    return distinct
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def fill_picked(P, N, plane, r_idx, c_idx, picks, modes, first, o, d, t, w):
+    """The distinct picked segments of each pair (:func:`importance_picks`), lower patch first, into
+    rows first[p]:first[p + 1] of o, d, t; ``w`` the number of picks each stands for, so that the
+    weighted free share of :func:`~hfrad.formfactors.visibility._scale_by_visibility` is the share
+    of free picks."""
+    s = P.shape[1]
+    m = picks.shape[1]
+    for p in prange(r_idx.shape[0]):
+        a = min(r_idx[p], c_idx[p])
+        b = max(r_idx[p], c_idx[p])
+        row = first[p] - 1
+        last = -1
+        for k in range(m):
+            c = picks[p, k]
+            if c == last:
+                w[row] += 1.0
+                continue
+            last = c
+            row += 1
+            i, j = c // s, c % s
+            if modes[p] == 0:
+                _put_segment(P, a, i, b, j, N[a, i], N[b, j], o, d, t, w, row)
+            else:
+                _put_segment(P, a, i, b, j, plane[a], plane[b], o, d, t, w, row)
+            w[row] = 1.0
