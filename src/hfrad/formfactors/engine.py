@@ -220,6 +220,7 @@ class _Pipeline:
     def run(self) -> Iterator[np.ndarray]:
         try:
             while True:
+                self._finish(block=False)     # cast batches free their Embree thread's count at once
                 yield from self._done_blocks()
                 if self.jobs is None and self.kernel.ready:
                     self._start_block()
@@ -228,7 +229,7 @@ class _Pipeline:
                 elif self.kernel.has_work():
                     self.kernel.step(sum(q > 0 for q in self.queued))
                 elif self.inflight:
-                    self._wait()
+                    self._finish(block=True)
                 elif self.jobs is None and not self.kernel.ready:
                     break
             yield from self._done_blocks()
@@ -260,9 +261,12 @@ class _Pipeline:
         entry[1] += 1
         self.inflight.append((F, job, self.pools[k].submit(self.vis.cast, job), entry, k))
 
-    def _wait(self) -> None:
-        """Finish every batch cast so far (waiting for one if none is); second rounds are queued."""
-        wait([item[2] for item in self.inflight], return_when=FIRST_COMPLETED)
+    def _finish(self, block: bool) -> None:
+        """Finish every batch cast so far (``block``: waiting for one if none is); second rounds are queued."""
+        if not self.inflight:
+            return
+        if block:
+            wait([item[2] for item in self.inflight], return_when=FIRST_COMPLETED)
         finished = [item[2].done() for item in self.inflight]
         done = [item for item, f in zip(self.inflight, finished) if f]
         self.inflight = [item for item, f in zip(self.inflight, finished) if not f]
