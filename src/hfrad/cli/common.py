@@ -211,12 +211,13 @@ def add_factorize_stages(clock, fac, wall: float) -> None:
     clock.add("factorize, other", wall - inside)
 
 
-def estimate_line(seconds: float) -> str:
-    """The form-factor estimate said before the pass (``status``'s ``estimate``)."""
+def estimate_line(seconds: float, pass_over_kernel: float | None = None) -> str:
+    """The form-factor estimate said before the pass (``status``'s ``estimate`` and ``pass_over_kernel``)."""
     from ..precompute.local import ESTIMATE_COLUMNS, PASS_OVER_KERNEL
 
+    factor = PASS_OVER_KERNEL if pass_over_kernel is None else pass_over_kernel
     return (f"estimate: form factors about {seconds:,.0f} s on this machine as loaded now (the kernel timed on "
-            f"{ESTIMATE_COLUMNS} columns; the rays and the rest of the pass as {PASS_OVER_KERNEL - 1:g} times the kernel; "
+            f"{ESTIMATE_COLUMNS} columns; the rays and the rest of the pass as {factor - 1:g} times the kernel; "
             "the first run after an install also compiles the ray code, once, which can take minutes)")
 
 

@@ -51,7 +51,7 @@ def register(app: typer.Typer) -> None:
             with common.progress_bar("precompute (form factors + HF)", quiet) as bar:
                 def status(info: dict) -> None:
                     if "estimate" in info and not quiet:
-                        out(common.estimate_line(info["estimate"]), highlight=False)
+                        out(common.estimate_line(info["estimate"], info.get("pass_over_kernel")), highlight=False)
 
                 t_fac = time.perf_counter()
                 fac = factorize(scene, eps=eps, progress=bar, status=status)

@@ -144,7 +144,8 @@ def register(app: typer.Typer) -> None:
                         common.console.print(f"resumed from checkpoint {checkpoint} ({info['resumed']:,} "
                                              "column blocks were done)", highlight=False)
                     if "estimate" in info and not quiet:
-                        common.console.print(common.estimate_line(info["estimate"]), highlight=False)
+                        line = common.estimate_line(info["estimate"], info.get("pass_over_kernel"))
+                        common.console.print(line, highlight=False)
                     if bar is not None and info["blocks"]:
                         bar.note(f"rank {info['rank']:,}")
 

@@ -35,7 +35,8 @@ from ..solve.woodbury import HFactorization
 from .assemble import PrecomputePlan, assemble, far_block
 from .backends import Checkpoint, LocalBackend
 
-__all__ = ["factorize_local", "estimate_form_factor_seconds", "CHECKPOINT_COST_RATIO", "PASS_OVER_KERNEL"]
+__all__ = ["factorize_local", "estimate_form_factor_seconds", "CHECKPOINT_COST_RATIO", "PASS_OVER_KERNEL",
+           "PASS_OVER_KERNEL_CLUSTERED", "pass_over_kernel"]
 
 #: Prefix of the pass statistics among a checkpoint's extra arrays.
 _STATS = "stats_"
@@ -86,7 +87,8 @@ def factorize_local(scene: Scene, plan: PrecomputePlan, backend: LocalBackend | 
         t = time.perf_counter()
         estimate = estimate_form_factor_seconds(scene, plan)
         time_budget += time.perf_counter() - t
-        status({"blocks": 0, "rank": 0, "elapsed": time.perf_counter() - t0, "estimate": estimate})
+        status({"blocks": 0, "rank": 0, "elapsed": time.perf_counter() - t0, "estimate": estimate,
+                "pass_over_kernel": pass_over_kernel(scene)})
     mirror_stats: dict = {}   # what the reciprocity copy did (pairs copied, scratch I/O), kept in info
     # the reciprocity tiles leave free what the rest of the run is estimated to need; those beyond
     # the memory band spill to a scratch file beside the output (its checkpoint), else in TMPDIR;
@@ -134,6 +136,17 @@ def factorize_local(scene: Scene, plan: PrecomputePlan, backend: LocalBackend | 
 #: on the project's shared 2-core machine (load 13-16), eps 0.02: the Cornell box at 2,974 patches
 #: 14.3 s against 3.5 s (4.1), clustered Sponza at 3,129 patches 384 s against 86 s (4.5).
 PASS_OVER_KERNEL = 4.0
+#: The same for clustered patches (real meshes: the kernel is most of the pass since the second
+#: visibility round picks its rays by weight and the pipeline overlaps kernel and rays). Measured on the
+#: idle 2-core machine, eps 0.02, ~3,100 patches: Sponza 14.0 s against 7.3 s (1.9), the conference
+#: room 19.2 s against 11.0 s (1.75), Sibenik 14.3 s against 4.5 s (3.2); the Cornell box at 2,974
+#: patches 1.7-2.1 s against 0.5 s (about 4, as above).
+PASS_OVER_KERNEL_CLUSTERED = 2.5
+
+
+def pass_over_kernel(scene: Scene) -> float:
+    """:data:`PASS_OVER_KERNEL`, or :data:`PASS_OVER_KERNEL_CLUSTERED` for patches that are clusters."""
+    return PASS_OVER_KERNEL_CLUSTERED if getattr(scene, "is_clustered", False) else PASS_OVER_KERNEL
 
 #: Columns of the unoccluded kernel timed for the estimate (spread over the internal order).
 ESTIMATE_COLUMNS = 16
@@ -145,7 +158,7 @@ def estimate_form_factor_seconds(scene: Scene, plan: PrecomputePlan) -> float:
     The unoccluded kernel (clustered or not, as the scene's patches are) is timed on
     ``ESTIMATE_COLUMNS`` columns spread over the scene, with every row, in this process's
     threads; its time per pair times the pairs the pass computes (about n^2 / 2 with the
-    reciprocity copy, n^2 without), times ``PASS_OVER_KERNEL`` for the rays (1 without
+    reciprocity copy, n^2 without), times :func:`pass_over_kernel` for the rays (1 without
     visibility). Costs about ``ESTIMATE_COLUMNS / n`` of the kernel's work.
     """
     from ..formfactors.clustered import kernel_for
@@ -161,7 +174,7 @@ def estimate_form_factor_seconds(scene: Scene, plan: PrecomputePlan) -> float:
     block(geom, rows, cols)
     per_pair = (time.perf_counter() - t) / (n * len(cols))
     pairs = n * (n + 1) / 2 if plan.reciprocity else float(n) * n
-    return per_pair * pairs * (PASS_OVER_KERNEL if plan.samples != 0 else 1.0)
+    return per_pair * pairs * (pass_over_kernel(scene) if plan.samples != 0 else 1.0)
 
 
 def sampled_far_field(scene: Scene, plan: PrecomputePlan, stats: PassStatistics, ff_kwargs: dict,
