@@ -68,7 +68,9 @@ def run_once(tree: Path, scene: str, patches: int, out_dir: Path) -> dict:
     rank = re.search(r"rank ([\d,]+), achieved error", text)
     patches_made = re.search(r"wrote .*?: ([\d,]+) patches", text)
     output.unlink(missing_ok=True)
-    return {"tree": str(tree), "scene": scene, "wall_s": wall, "cpu_s": usage.ru_utime + usage.ru_stime,
+    commit = subprocess.run(["git", "-C", str(tree), "rev-parse", "--short", "HEAD"], capture_output=True,
+                            text=True).stdout.strip()
+    return {"tree": str(tree), "commit": commit, "scene": scene, "wall_s": wall, "cpu_s": usage.ru_utime + usage.ru_stime,
             "peak_rss_gb": usage.ru_maxrss / 1e6, "load_before": load,
             "rank": int(rank.group(1).replace(",", "")) if rank else None,
             "patches": int(patches_made.group(1).replace(",", "")) if patches_made else None,
