@@ -11,6 +11,7 @@ import queue
 import threading
 import time
 from collections import deque
+from dataclasses import dataclass
 from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 from typing import Iterator
 
@@ -211,23 +212,22 @@ class _Pipeline:
         self.n = len(rows)
         self.kernel = _KernelAhead(engine, rows, col_sets)
         self.pools = (engine._executor, engine._tail_executor)
-        self.queued = [0, 0]         # batches queued on each Embree thread
-        self.inflight: list = []     # (F, job, future, entry, pool)
-        self.blocks: deque = deque()  # [F, batches in flight, skip, batches still to come] in block order
+        self.inflight: list = []     # (block, job, future, pool index) of the batches queued or being cast
+        self.blocks: deque = deque()  # _Block of every block whose rays are not all cast, in order
         self.jobs = None             # batch generator of the block whose rays are being queued
-        self.current = None          # its entry
+        self.current = None          # that block
 
     def run(self) -> Iterator[np.ndarray]:
         try:
             while True:
-                self._finish(block=False)     # cast batches free their Embree thread's count at once
+                self._finish(block=False)     # cast batches free their Embree thread at once
                 yield from self._done_blocks()
                 if self.jobs is None and self.kernel.ready:
                     self._start_block()
                 if self.jobs is not None and self._room():
                     self._queue_next()
                 elif self.kernel.has_work():
-                    self.kernel.step(sum(q > 0 for q in self.queued))
+                    self.kernel.step(sum(q > 0 for q in self._queued()))
                 elif self.inflight:
                     self._finish(block=True)
                 elif self.jobs is None and not self.kernel.ready:
@@ -237,29 +237,37 @@ class _Pipeline:
             for item in self.inflight:  # consumer stopped early: let Embree finish before reuse
                 item[2].result()
 
+    def _queued(self) -> list[int]:
+        """Batches queued on (or being cast by) each Embree thread."""
+        counts = [0, 0]
+        for item in self.inflight:
+            counts[item[3]] += 1
+        return counts
+
     def _room(self) -> bool:
+        queued = self._queued()
         helping = not self.kernel.has_work()   # nothing else for this thread: the second Embree thread
-        return self.queued[0] < _IN_FLIGHT or (helping and self.queued[1] < _IN_FLIGHT)
+        return queued[0] < _IN_FLIGHT or (helping and queued[1] < _IN_FLIGHT)
 
     def _start_block(self) -> None:
         F, part, cols, skip = self.kernel.ready.popleft()
-        self.current = [F, 0, skip, True]
+        self.current = _Block(F, skip)
         self.blocks.append(self.current)
         self.jobs = self.vis.jobs(F, part, cols)
 
     def _queue_next(self) -> None:
         job = next(self.jobs, None)
         if job is None:
-            self.current[3] = False
+            self.current.queuing = False
             self.jobs = self.current = None
             return
-        self._submit(self.current[0], job, self.current)
+        self._submit(self.current, job)
 
-    def _submit(self, F, job, entry) -> None:
-        k = 0 if self.queued[0] < _IN_FLIGHT or self.queued[0] <= self.queued[1] else 1
-        self.queued[k] += 1
-        entry[1] += 1
-        self.inflight.append((F, job, self.pools[k].submit(self.vis.cast, job), entry, k))
+    def _submit(self, block: "_Block", job) -> None:
+        queued = self._queued()
+        k = 0 if queued[0] < _IN_FLIGHT or queued[0] <= queued[1] else 1
+        block.in_flight += 1
+        self.inflight.append((block, job, self.pools[k].submit(self.vis.cast, job), k))
 
     def _finish(self, block: bool) -> None:
         """Finish every batch cast so far (``block``: waiting for one if none is); second rounds are queued."""
@@ -270,17 +278,27 @@ class _Pipeline:
         finished = [item[2].done() for item in self.inflight]
         done = [item for item, f in zip(self.inflight, finished) if f]
         self.inflight = [item for item, f in zip(self.inflight, finished) if not f]
-        for F, job, future, entry, k in done:
-            self.queued[k] -= 1
-            for more in self.vis.finish(F, job, future.result()):
-                self._submit(F, more, entry)
-            entry[1] -= 1
+        for owner, job, future, _ in done:
+            for more in self.vis.finish(owner.F, job, future.result()):
+                self._submit(owner, more)
+            owner.in_flight -= 1
 
     def _done_blocks(self) -> Iterator[np.ndarray]:
         """The leading blocks whose rays are all cast, in order."""
-        while self.blocks and not self.blocks[0][3] and self.blocks[0][1] == 0:
-            F, _, skip, _ = self.blocks.popleft()
-            yield full_height(F, skip, self.n)
+        while self.blocks and not self.blocks[0].queuing and self.blocks[0].in_flight == 0:
+            done = self.blocks.popleft()
+            yield full_height(done.F, done.skip, self.n)
+
+
+@dataclass
+class _Block:
+    """A block of the pipeline from its kernel to its last ray: F, the rows left to the caller, its batches
+    queued or being cast, and whether more are still to be queued."""
+
+    F: np.ndarray
+    skip: slice | None
+    in_flight: int = 0
+    queuing: bool = True
 
 
 def _ahead(blocks: Iterator[np.ndarray]) -> Iterator[np.ndarray]:
