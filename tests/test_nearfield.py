@@ -162,6 +162,19 @@ def test_near_field_auto_where_it_pays():
     assert near_entries("auto", 2_500, 0.02) == 0
 
 
+def test_clustered_near_field_grows_with_the_patches():
+    """A clustered mesh's "auto" near field: 120 a row to 4,000 patches, more beyond, 400 at most;
+    a box's (not clustered) stays at 120 (Sponza, eps 0.02, 20,102 patches: rank 4,518 with 120
+    a row, 1,876 with 400)."""
+    sizes = [2_000, 3_129, 4_000, 5_000, 10_000, 20_102, 163_000]
+    grown = [near_entries("auto", n, 0.02, clustered=True) for n in sizes]
+    assert grown[:3] == [120, 120, 120]
+    assert grown[2] < grown[3] < grown[4] < grown[5]
+    assert grown[5:] == [400, 400]
+    assert near_entries("auto", 163_000, 0.02) == 120
+    assert near_entries(64, 20_102, 0.02, clustered=True) == 64        # a number is taken as it is
+
+
 def test_plan_reads_whether_the_scene_is_clustered(monkeypatch):
     """plan_precompute passes the scene's clustering to the "auto" policy (floor lowered to this size)."""
     from hfrad.precompute import options as opts

@@ -62,7 +62,8 @@ def factorize(scene: Scene, eps: float = 0.02, *, relative: bool = True, dtype="
         "auto" (default): ``DEFAULT_NEAR_ENTRIES`` (120) facing neighbours per row where
         the split pays, off below (:func:`~hfrad.precompute.options.near_field_pays_from`: from 20,000 patches at
         eps 0.02, ``20,000 (0.02 / eps)^1.5`` patches at other relative eps (5,060 at 0.05), never below
-        2,000; a clustered scene from 2,000 on); None or 0: off (plain Woodbury). The split lowers the rank HF needs (the near pairs hold F's
+        2,000; a clustered scene from 2,000 on, with more neighbours from 4,000 patches:
+        :func:`~hfrad.precompute.options.clustered_near_entries`, 400 at most); None or 0: off (plain Woodbury). The split lowers the rank HF needs (the near pairs hold F's
         high-rank part) and, at equal eps, the radiosity error; it costs a sparse LU
         of ``I - D_c N`` (about 12 bytes per entry, ``n * near_field`` entries).
     backend : LocalBackend or DaskBackend, optional

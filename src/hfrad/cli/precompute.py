@@ -30,7 +30,7 @@ def register(app: typer.Typer) -> None:
         samples: Optional[int] = typer.Option(None, "--samples", help="Visibility rays per patch pair: 1, 4, 9, ... up to 1,024 (time grows in proportion); 0: no visibility (every pair sees each other)."),
         order: str = typer.Option("zorder", "--order", help="Internal patch order: zorder, hilbert, random, input."),
         processes: Optional[int] = typer.Option(None, "--processes", help="Form-factor worker processes, each with its own Embree scene. Default: one per core from 4,000 patches on (below, their start-up costs more than it saves), else this process; the result does not depend on it."),
-        near_field: str = typer.Option("auto", "--near-field", help="Near-field split: pairs within the radius holding ~this many facing neighbours (nonzeros of a row of N) go into a sparse N, HF factors the smooth rest, the solver is Woodbury around I - D_c N (Neumann series per solve, sparse LU in the set-up). 'auto' (default): 120 where the split pays, from 20,000 (0.02 / eps)^1.5 patches on (20,000 at --eps 0.02, 5,060 at 0.05; 2,000 at least; a clustered mesh from 2,000 on), off below; the split lowers the rank HF needs and, at equal --eps, the radiosity error; 'off' or 0: plain Woodbury."),
+        near_field: str = typer.Option("auto", "--near-field", help="Near-field split: pairs within the radius holding ~this many facing neighbours (nonzeros of a row of N) go into a sparse N, HF factors the smooth rest, the solver is Woodbury around I - D_c N (Neumann series per solve, sparse LU in the set-up). 'auto' (default): 120 where the split pays, from 20,000 (0.02 / eps)^1.5 patches on (20,000 at --eps 0.02, 5,060 at 0.05; 2,000 at least; a clustered mesh from 2,000 on, with 120 (n / 4,000)^0.75 a row from 4,000 patches, at most 400), off below; the split lowers the rank HF needs and, at equal --eps, the radiosity error; 'off' or 0: plain Woodbury."),
         far_field: str = typer.Option("auto", "--far-field", help="How the form factors of well-separated pairs are found: 'exact' (every pair), 'sampled' (each column block's near rows exactly, its far rows from a few sampled rows and skeleton columns, checked on held-out rows; a separate sample of exact rows certifies the error), 'auto' (default): the faster one, which is 'exact' at every size measured so far (to 163,000 patches the sampled field evaluates 4-5x fewer pairs but costs more wall time). On Dask too (the same leaves)."),
         scheduler: Optional[str] = typer.Option(
             None, "--scheduler", help="Run on a Dask cluster: tcp://HOST:PORT of a running `dask scheduler` "
@@ -56,7 +56,7 @@ def register(app: typer.Typer) -> None:
         created (nothing is left after an error or Ctrl-C); damaged tiles are
         detected by checksum and recomputed. Form-factor worker processes (from
         4,000 patches) may hold up to a tenth of the available memory in column
-        blocks (n b s bytes each) computed ahead of HF. With the near field (by default from 20,000 (0.02 / eps)^1.5 patches, c = 120 entries a
+        blocks (n b s bytes each) computed ahead of HF. With the near field (by default from 20,000 (0.02 / eps)^1.5 patches, c = 120 entries a row, up to 400 on clustered meshes of 20,000 patches; c entries a
         row): about 40 n c bytes while N is collected, one n x k Z per distinct
         colour channel (n k s each) and, during the set-up, one channel's sparse
         LU (about 9 times N's entries).

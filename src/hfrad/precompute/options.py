@@ -28,7 +28,7 @@ from ..scene.zorder import patch_order
 from ..validation import check_eps, check_factorize_options, check_permutation
 from .assemble import PrecomputePlan
 
-__all__ = ["PrecomputeOptions", "plan_precompute", "near_entries", "near_field_pays_from",
+__all__ = ["PrecomputeOptions", "plan_precompute", "near_entries", "near_field_pays_from", "clustered_near_entries",
            "NEAR_FIELD_MIN_PATCHES", "NEAR_FIELD_PAYS_FROM", "NEAR_FIELD_REFERENCE_EPS", "NEAR_FIELD_EPS_POWER"]
 
 # -- the near-field policy ---------------------------------------------------------------------------
@@ -44,6 +44,18 @@ NEAR_FIELD_REFERENCE_EPS = 0.02
 #: leaves the far field a lower rank, so the near pairs' high rank is the larger share of
 #: it sooner (eps 0.05: about even at 5K patches, 1.42x faster with the split at 10K).
 NEAR_FIELD_EPS_POWER = 1.5
+#: A clustered scene's "auto" near field holds more neighbours a row as it has more patches:
+#: ``DEFAULT_NEAR_ENTRIES`` up to ``CLUSTERED_NEAR_FROM`` patches, then growing as
+#: ``(n / CLUSTERED_NEAR_FROM) ** CLUSTERED_NEAR_POWER``, to at most ``CLUSTERED_NEAR_MOST``.
+#: At a fixed count the near radius shrinks with the patches, and a real mesh's far part then
+#: keeps a rank that grows faster than n; HF's cost grows as n k^2. Sponza at eps 0.02 with
+#: 120 a row: rank 477 at 3,129 patches, 4,518 at 20,102 (HF 634 of 770 s on the idle 2-core
+#: machine); with 400 a row at 20,102: rank 1,876, and a solve 135 ms instead of 173 ms
+#: (benchmarks/README.md, "Sponza at 20K patches"). The near field's own costs (its
+#: collection, the set-up's sparse LU, each solve's sweeps over N) grow as n c, hence the cap.
+CLUSTERED_NEAR_FROM = 4000
+CLUSTERED_NEAR_POWER = 0.75
+CLUSTERED_NEAR_MOST = 400
 
 
 def near_field_pays_from(eps: float, relative: bool = True, clustered: bool = False) -> int:
@@ -62,15 +74,26 @@ def near_field_pays_from(eps: float, relative: bool = True, clustered: bool = Fa
     return max(NEAR_FIELD_MIN_PATCHES, int(math.ceil(scaled)))
 
 
+def clustered_near_entries(n: int) -> int:
+    """Neighbours a row of a clustered scene's "auto" near field at ``n`` patches (see
+    ``CLUSTERED_NEAR_POWER``): 120 up to 4,000 patches, 239 at 10,000, 400 from about 20,000."""
+    grown = DEFAULT_NEAR_ENTRIES * max(1.0, n / CLUSTERED_NEAR_FROM) ** CLUSTERED_NEAR_POWER
+    return int(min(CLUSTERED_NEAR_MOST, round(grown)))
+
+
 def near_entries(near_field, n: int, eps: float = NEAR_FIELD_REFERENCE_EPS, relative: bool = True,
                  clustered: bool = False) -> int:
     """Neighbours per row of the near field for ``factorize(near_field=...)`` (0 = no split).
 
     "auto": ``DEFAULT_NEAR_ENTRIES`` where the split pays (from
-    :func:`near_field_pays_from` patches on at this ``eps``, for a scene ``clustered`` or not), else 0.
+    :func:`near_field_pays_from` patches on at this ``eps``, for a scene ``clustered`` or not), else 0;
+    a clustered scene's count grows with n from ``CLUSTERED_NEAR_FROM`` patches on
+    (:func:`clustered_near_entries`).
     """
     if near_field == "auto":
-        return DEFAULT_NEAR_ENTRIES if n >= near_field_pays_from(eps, relative, clustered) else 0
+        if n < near_field_pays_from(eps, relative, clustered):
+            return 0
+        return clustered_near_entries(n) if clustered else DEFAULT_NEAR_ENTRIES
     if near_field is None or near_field is False:
         return 0
     if isinstance(near_field, str) or int(near_field) != near_field or near_field < 0:
