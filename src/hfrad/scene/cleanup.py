@@ -181,26 +181,16 @@ def _sorted_pairs(pairs: np.ndarray) -> np.ndarray:
 
 def _coplanar_overlaps(scene: Scene, faces: np.ndarray):
     """Pairs of ``faces`` in one plane whose bounding boxes overlap, with overlap area and orientation sign."""
-    tri = np.asarray(scene.triangles)[faces]
-    nrm = np.asarray(scene.normals)[faces]
+    tri = np.ascontiguousarray(np.asarray(scene.triangles)[faces])
+    nrm = np.ascontiguousarray(np.asarray(scene.normals)[faces])
     centre = 0.5 * (scene.bounds[0] + scene.bounds[1])
-    flip = np.where(nrm @ _CANONICAL < 0, -1.0, 1.0)
-    plane_n = nrm * flip[:, None]  # canonical orientation: both sides of a plane share it
-    offset = np.einsum("pd,pd->p", plane_n, tri.mean(axis=1) - centre)
     size = _size(scene)
-    key = np.column_stack([np.rint(plane_n / PLANE_ANGLE), np.rint(offset / (WELD * size))]).astype(np.int64)
+    flip, plane_n, key = _plane_keys(tri, nrm, centre, _CANONICAL, PLANE_ANGLE, WELD * size)
     plane = row_ids(key)
     # 2D coordinates in each plane: one (u, v) basis per plane, from its first face's normal
     # (per-face bases would differ by up to PLANE_ANGLE and fake overlaps along shared edges)
-    _, first = np.unique(plane, return_index=True)
-    rep = plane_n[first][plane]
-    helper = np.where(np.abs(rep[:, :1]) < 0.9, np.array([[1.0, 0, 0]]), np.array([[0, 1.0, 0]]))
-    u = np.cross(rep, helper)
-    u /= np.linalg.norm(u, axis=1, keepdims=True)
-    v = np.cross(rep, u)
-    rel = tri - centre
-    uv = np.stack([np.einsum("pkd,pd->pk", rel, u), np.einsum("pkd,pd->pk", rel, v)], axis=2)  # (p, 3, 2)
-    lo, hi = uv.min(axis=1), uv.max(axis=1)
+    first = _first_of_each(plane, int(plane.max()) + 1)
+    uv, lo, hi = _plane_coordinates(tri, np.ascontiguousarray(plane_n[first][plane]), centre)
     order = np.lexsort((lo[:, 0], plane))
     i, j, area = _sweep(np.ascontiguousarray(uv[order]), plane[order], lo[order], hi[order], 1e-9 * size)
     i, j = order[i], order[j]
@@ -208,6 +198,73 @@ def _coplanar_overlaps(scene: Scene, faces: np.ndarray):
     pairs = np.column_stack([faces[i], faces[j]])
     pairs.sort(axis=1)
     return pairs.astype(np.int64), area, sign
+
+
+@njit(cache=True)
+def _plane_keys(tri, nrm, centre, canonical, angle_step, offset_step):
+    """Each face's plane: the sign turning its normal to the canonical side, that normal, and
+    the plane's key (the normal's components / PLANE_ANGLE and the offset of the centroid
+    from ``centre`` / ``offset_step``, rounded), (p, 4) int64.
+
+    The sums are in the order of the NumPy calls this replaces (``nrm @ canonical``, OpenBLAS's
+    dgemv; ``np.einsum("pd,pd->p", ...)``, which adds terms 0 and 2 first), so the keys are
+    the same to the bit.
+    """
+    p = tri.shape[0]
+    flip = np.empty(p)
+    plane_n = np.empty((p, 3))
+    key = np.empty((p, 4), np.int64)
+    for f in range(p):
+        flip[f] = -1.0 if _side(nrm[f], np.zeros(3), canonical) < 0 else 1.0
+        m = np.empty(3)
+        for d in range(3):
+            plane_n[f, d] = nrm[f, d] * flip[f]
+            m[d] = (tri[f, 0, d] + tri[f, 1, d] + tri[f, 2, d]) / 3.0 - centre[d]
+            key[f, d] = np.int64(np.rint(plane_n[f, d] / angle_step))
+        offset = (plane_n[f, 0] * m[0] + plane_n[f, 2] * m[2]) + plane_n[f, 1] * m[1]
+        key[f, 3] = np.int64(np.rint(offset / offset_step))
+    return flip, plane_n, key
+
+
+@njit(cache=True)
+def _first_of_each(ids, count):
+    """(count,) int64: the first index where each id 0..count-1 occurs in ``ids``."""
+    first = np.full(count, -1, np.int64)
+    for f in range(ids.shape[0]):
+        if first[ids[f]] < 0:
+            first[ids[f]] = f
+    return first
+
+
+@njit(cache=True)
+def _plane_coordinates(tri, rep, centre):
+    """(u, v) coordinates (p, 3, 2) of each face's corners in a basis of its plane's normal
+    ``rep`` (p, 3), with each face's lowest and highest u and v (p, 2).
+
+    ``u = rep x (1, 0, 0)`` (or ``(0, 1, 0)`` where rep is near the x axis), normalised;
+    ``v = rep x u``; sums in np.linalg.norm's and np.einsum's order (the same bits).
+    """
+    p = tri.shape[0]
+    uv = np.empty((p, 3, 2))
+    lo = np.empty((p, 2))
+    hi = np.empty((p, 2))
+    helper = np.empty(3)
+    for f in range(p):
+        n = rep[f]
+        helper[0], helper[1], helper[2] = (1.0, 0.0, 0.0) if abs(n[0]) < 0.9 else (0.0, 1.0, 0.0)
+        u = _cross(n, helper)
+        length = math.sqrt((u[0] * u[0] + u[1] * u[1]) + u[2] * u[2])
+        for d in range(3):
+            u[d] /= length
+        v = _cross(n, u)
+        for k in range(3):
+            r = tri[f, k] - centre
+            uv[f, k, 0] = (r[0] * u[0] + r[2] * u[2]) + r[1] * u[1]
+            uv[f, k, 1] = (r[0] * v[0] + r[2] * v[2]) + r[1] * v[1]
+        for e in range(2):
+            lo[f, e] = min(uv[f, 0, e], min(uv[f, 1, e], uv[f, 2, e]))
+            hi[f, e] = max(uv[f, 0, e], max(uv[f, 1, e], uv[f, 2, e]))
+    return uv, lo, hi
 
 
 @njit(cache=True)
