@@ -169,7 +169,9 @@ def find_face_problems(scene: Scene) -> FaceReport:
     overlaps = pairs[sign > 0]
     facing = pairs[sign < 0]
     if len(reversed_pairs):  # reversed copies are caught by the sweep too; keep each pair once
-        facing = np.unique(np.vstack([np.sort(facing, axis=1), np.sort(reversed_pairs, axis=1)]), axis=0)
+        both = np.vstack([np.sort(facing, axis=1), np.sort(reversed_pairs, axis=1)])
+        code = np.unique(both[:, 0] * n + both[:, 1])  # one number a pair, in the order of the rows
+        facing = np.column_stack([code // n, code % n])
     return FaceReport(_sorted_pairs(duplicates), _sorted_pairs(overlaps), _sorted_pairs(facing))
 
 
@@ -215,13 +217,15 @@ def _plane_keys(tri, nrm, centre, canonical, angle_step, offset_step):
     plane_n = np.empty((p, 3))
     key = np.empty((p, 4), np.int64)
     for f in range(p):
-        flip[f] = -1.0 if _side(nrm[f], np.zeros(3), canonical) < 0 else 1.0
-        m = np.empty(3)
+        s = _fma(nrm[f, 2], canonical[2], _fma(nrm[f, 0], canonical[0], nrm[f, 1] * canonical[1]))
+        flip[f] = -1.0 if s < 0 else 1.0
         for d in range(3):
             plane_n[f, d] = nrm[f, d] * flip[f]
-            m[d] = (tri[f, 0, d] + tri[f, 1, d] + tri[f, 2, d]) / 3.0 - centre[d]
             key[f, d] = np.int64(np.rint(plane_n[f, d] / angle_step))
-        offset = (plane_n[f, 0] * m[0] + plane_n[f, 2] * m[2]) + plane_n[f, 1] * m[1]
+        m0 = (tri[f, 0, 0] + tri[f, 1, 0] + tri[f, 2, 0]) / 3.0 - centre[0]
+        m1 = (tri[f, 0, 1] + tri[f, 1, 1] + tri[f, 2, 1]) / 3.0 - centre[1]
+        m2 = (tri[f, 0, 2] + tri[f, 1, 2] + tri[f, 2, 2]) / 3.0 - centre[2]
+        offset = (plane_n[f, 0] * m0 + plane_n[f, 2] * m2) + plane_n[f, 1] * m1
         key[f, 3] = np.int64(np.rint(offset / offset_step))
     return flip, plane_n, key
 
@@ -248,19 +252,17 @@ def _plane_coordinates(tri, rep, centre):
     uv = np.empty((p, 3, 2))
     lo = np.empty((p, 2))
     hi = np.empty((p, 2))
-    helper = np.empty(3)
     for f in range(p):
-        n = rep[f]
-        helper[0], helper[1], helper[2] = (1.0, 0.0, 0.0) if abs(n[0]) < 0.9 else (0.0, 1.0, 0.0)
-        u = _cross(n, helper)
-        length = math.sqrt((u[0] * u[0] + u[1] * u[1]) + u[2] * u[2])
-        for d in range(3):
-            u[d] /= length
-        v = _cross(n, u)
+        n0, n1, n2 = rep[f, 0], rep[f, 1], rep[f, 2]
+        h0, h1, h2 = (1.0, 0.0, 0.0) if abs(n0) < 0.9 else (0.0, 1.0, 0.0)
+        u0, u1, u2 = n1 * h2 - n2 * h1, n2 * h0 - n0 * h2, n0 * h1 - n1 * h0
+        length = math.sqrt((u0 * u0 + u1 * u1) + u2 * u2)
+        u0, u1, u2 = u0 / length, u1 / length, u2 / length
+        v0, v1, v2 = n1 * u2 - n2 * u1, n2 * u0 - n0 * u2, n0 * u1 - n1 * u0
         for k in range(3):
-            r = tri[f, k] - centre
-            uv[f, k, 0] = (r[0] * u[0] + r[2] * u[2]) + r[1] * u[1]
-            uv[f, k, 1] = (r[0] * v[0] + r[2] * v[2]) + r[1] * v[1]
+            r0, r1, r2 = tri[f, k, 0] - centre[0], tri[f, k, 1] - centre[1], tri[f, k, 2] - centre[2]
+            uv[f, k, 0] = (r0 * u0 + r2 * u2) + r1 * u1
+            uv[f, k, 1] = (r0 * v0 + r2 * v2) + r1 * v1
         for e in range(2):
             lo[f, e] = min(uv[f, 0, e], min(uv[f, 1, e], uv[f, 2, e]))
             hi[f, e] = max(uv[f, 0, e], max(uv[f, 1, e], uv[f, 2, e]))
@@ -272,13 +274,14 @@ def _sweep(uv, plane, lo, hi, tol):
     """Candidate pairs in one plane with overlapping boxes (sorted by plane, then lo u), and their overlap areas."""
     n = uv.shape[0]
     out_i, out_j, out_a = [], [], []
+    poly, nxt, clip = np.empty((9, 2)), np.empty((9, 2)), np.empty((3, 2))  # reused by every pair
     for a in range(n):
         for b in range(a + 1, n):
             if plane[b] != plane[a] or lo[b, 0] > hi[a, 0] - tol:
                 break
             if lo[b, 1] > hi[a, 1] - tol or lo[a, 1] > hi[b, 1] - tol:
                 continue
-            area = _intersection_area(uv[a], uv[b])
+            area = _intersection_area(uv[a], uv[b], poly, nxt, clip)
             if area > 0.0:
                 out_i.append(a)
                 out_j.append(b)
@@ -301,14 +304,13 @@ def _signed_area(p, m):
 
 
 @njit(cache=True)
-def _intersection_area(t1, t2):
-    """Area of the intersection of two 2D triangles (Sutherland-Hodgman clip of t1 by t2)."""
-    poly = np.empty((9, 2))
-    nxt = np.empty((9, 2))
+def _intersection_area(t1, t2, poly, nxt, clip):
+    """Area of the intersection of two 2D triangles (Sutherland-Hodgman clip of t1 by t2);
+    ``poly``, ``nxt`` (9, 2) and ``clip`` (3, 2) are work space."""
     for k in range(3):
         poly[k, 0], poly[k, 1] = t1[k, 0], t1[k, 1]
     m = 3
-    clip = t2.copy()
+    clip[:] = t2
     if _signed_area(clip, 3) < 0:  # make the clipping triangle counter-clockwise
         clip[1, 0], clip[2, 0] = t2[2, 0], t2[1, 0]
         clip[1, 1], clip[2, 1] = t2[2, 1], t2[1, 1]
