@@ -316,10 +316,37 @@ def _to_roots(label, parent):
 
 
 def _relabel(label: np.ndarray) -> int:
-    """Renumber the labels >= 0 as 0..k-1 in place; returns k."""
-    used, inverse = np.unique(label[label >= 0], return_inverse=True)
-    label[label >= 0] = inverse.reshape(-1)
-    return len(used)
+    """Renumber the labels >= 0 as 0..k-1 in place, keeping their order; returns k."""
+    ok = label >= 0
+    used = np.zeros(int(label.max(initial=-1)) + 1, bool)
+    used[label[ok]] = True
+    label[ok] = (np.cumsum(used) - 1)[label[ok]]  # labels are small integers: a table, not a sort
+    return int(used.sum())
+
+
+@njit(cache=True)
+def _cluster_sums(label, count, key, area, nrm, cent):
+    """Per cluster (labels 0..count-1; -1: none): area (c,), area-weighted normal sum (c, 3),
+    area-weighted centroid sum (c, 3), triangle count (c,) and compatibility class (c,).
+
+    Summed in triangle order, as ``np.bincount`` with these weights sums (the same bits).
+    """
+    c_area = np.zeros(count)
+    c_vec = np.zeros((count, 3))
+    c_sum = np.zeros((count, 3))
+    c_count = np.zeros(count, np.int64)
+    c_key = np.zeros(count, np.int64)
+    for t in range(label.shape[0]):
+        c = label[t]
+        if c < 0:
+            continue
+        c_area[c] += area[t]
+        for k in range(3):
+            c_vec[c, k] += area[t] * nrm[t, k]
+            c_sum[c, k] += area[t] * cent[t, k]
+        c_count[c] += 1
+        c_key[c] = key[t]
+    return c_area, c_vec, c_sum, c_count, c_key
 
 
 class FaceGraph:
@@ -398,15 +425,9 @@ class FaceGraph:
         """
         from scipy.spatial import cKDTree
 
-        ok = label >= 0
-        lab = label[ok]
-        c_area = np.bincount(lab, weights=self.areas[ok], minlength=count)
-        c_cen = np.stack([np.bincount(lab, weights=self.areas[ok] * self.centroids[ok, k], minlength=count)
-                          for k in range(3)], axis=1) / np.maximum(c_area, 1e-300)[:, None]
-        c_key = np.zeros(count, np.int64)
-        c_key[lab] = self.key[ok]
-        c_vec = np.stack([np.bincount(lab, weights=self.areas[ok] * self.normals[ok, k], minlength=count)
-                          for k in range(3)], axis=1)
+        c_area, c_vec, c_sum, _, c_key = _cluster_sums(label, count, self.key, self.areas, self.normals,
+                                                       self.centroids)
+        c_cen = c_sum / np.maximum(c_area, 1e-300)[:, None]
         crumb = c_area < a_tiny
         target = np.arange(count)
         for k in np.unique(c_key[crumb]):
@@ -433,29 +454,23 @@ class FaceGraph:
                         break
         moved = int((target != np.arange(count)).sum())
         if moved:
-            label[ok] = target[lab]
+            ok = label >= 0
+            label[ok] = target[label[ok]]
         return moved
 
     def _nearby(self, label: np.ndarray, count: int, cos_tol: float, a_max: float, r_max: float,
                 max_triangles: int) -> int:
         from scipy.spatial import cKDTree
 
-        ok = label >= 0
-        lab = label[ok]
-        c_area = np.bincount(lab, weights=self.areas[ok], minlength=count)
-        c_vec = np.stack([np.bincount(lab, weights=self.areas[ok] * self.normals[ok, k], minlength=count)
-                          for k in range(3)], axis=1)
-        c_cen = np.stack([np.bincount(lab, weights=self.areas[ok] * self.centroids[ok, k], minlength=count)
-                          for k in range(3)], axis=1) / c_area[:, None]
-        c_key = np.zeros(count, np.int64)
-        c_key[lab] = self.key[ok]
+        c_area, c_vec, c_sum, c_count, c_key = _cluster_sums(label, count, self.key, self.areas, self.normals,
+                                                             self.centroids)
+        c_cen = c_sum / c_area[:, None]
         k = min(NEARBY_CANDIDATES + 1, count)
         if k < 2:
             return 0
         dist, cand = cKDTree(c_cen).query(c_cen, k=k, distance_upper_bound=r_max)
         cand = np.where(np.isfinite(dist), cand, -1)[:, 1:].astype(np.int64)
         cos_pair = math.cos(2 * math.acos(cos_tol))
-        c_count = np.bincount(lab, minlength=count).astype(np.int64)
         s_cen, s_rad = _cluster_spheres(label, count, self.centroids, self.reach, self.areas)
         return _merge_nearby(label, c_area, c_vec, c_key, c_count, s_cen, s_rad, np.ascontiguousarray(cand),
                              NEARBY_BELOW * a_max, CRUMB * a_max, a_max, cos_tol, cos_pair, max_triangles, 2.0 * r_max)
