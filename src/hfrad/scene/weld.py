@@ -10,6 +10,7 @@ corners are the same point. :func:`weld_points` is the one rule they share;
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 
 #: Default welding tolerance, relative to the size of the points' bounding box (its largest side).
 REL_TOL = 1e-9
@@ -121,10 +122,13 @@ def row_ids(table: np.ndarray) -> np.ndarray:
         return np.zeros(0, np.int64)
     packable = table.dtype.kind in "ib" or (table.dtype.kind == "u" and table.dtype.itemsize < 8)
     digits = _packed_digits(table) if packable else list(table.T)
-    # least significant digit first; only the later passes must be stable
-    order = np.argsort(digits[-1])
-    for digit in digits[-2::-1]:
-        order = order[np.argsort(digit[order], kind="stable")]
+    if len(digits) == 2:  # e.g. welding: sort by the major digit, then each run of equal ones by the minor
+        order = np.argsort(digits[0])
+        _sort_runs(order, digits[0], digits[1])
+    else:  # least significant digit first; only the later passes must be stable
+        order = np.argsort(digits[-1])
+        for digit in digits[-2::-1]:
+            order = order[np.argsort(digit[order], kind="stable")]
     new = np.zeros(n, bool)
     new[0] = True
     for digit in digits:
@@ -158,3 +162,30 @@ def _packed_digits(table: np.ndarray) -> list[np.ndarray]:
             digit, capacity = column, span
     digits.append(digit)
     return digits
+
+
+#: Runs of equal major digits up to this long are sorted by insertion, longer ones by np.argsort.
+_SHORT_RUN = 16
+
+
+@njit(cache=True)
+def _sort_runs(order, major, minor):
+    """Sort each run of ``order`` (sorted by ``major``) with equal ``major[order]`` by ``minor``, in place."""
+    n = order.shape[0]
+    a = 0
+    while a < n:
+        b = a + 1
+        while b < n and major[order[b]] == major[order[a]]:
+            b += 1
+        if b - a > _SHORT_RUN:
+            run = order[a:b].copy()
+            order[a:b] = run[np.argsort(minor[run])]
+        else:
+            for q in range(a + 1, b):  # insertion sort: runs are mostly one to a few points
+                x = order[q]
+                r = q - 1
+                while r >= a and minor[order[r]] > minor[x]:
+                    order[r + 1] = order[r]
+                    r -= 1
+                order[r + 1] = x
+        a = b
