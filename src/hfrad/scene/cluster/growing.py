@@ -207,6 +207,7 @@ def _merge_small(label, n_clusters, key, welded, vstart, vtris, nrm, area, cent,
     c_count = start[1:] - start[:-1]
     s_cen, s_rad = _cluster_spheres(label, n_clusters, cent, reach, area)
     parent = np.arange(n_clusters)
+    seen = np.full(n_clusters, -1, np.int64)  # seen[o] == c: neighbour o already judged for c
     order = np.argsort(c_area)
     for c in order:
         if c_area[c] >= a_small:
@@ -224,6 +225,10 @@ def _merge_small(label, n_clusters, key, welded, vstart, vtris, nrm, area, cent,
                     o = label[u]
                     while parent[o] != o:
                         o = parent[o]
+                    # nothing changes while c's neighbours are judged: the first verdict on o stands
+                    if seen[o] == c:
+                        continue
+                    seen[o] = c
                     if o == c or c_area[o] >= best_area or c_area[o] + c_area[c] > 1.5 * a_max:
                         continue
                     if c_count[o] + c_count[c] > (max_triangles if c_area[c] >= a_tiny else CRUMB_CAP * max_triangles):
