@@ -113,8 +113,8 @@ def row_ids(table: np.ndarray) -> np.ndarray:
     sorting on the columns instead of sorting rows as opaque records (faster).
     Integer columns are first packed into as few int64 digits as their ranges
     allow (:func:`_packed_digits`; e.g. the three vertex ids of a face in
-    one), which keeps the lexicographic order and makes most tables a single
-    sort key.
+    one), which keeps the lexicographic order and makes most tables one or
+    two sort keys.
     """
     table = np.asarray(table)
     n = len(table)
@@ -124,11 +124,11 @@ def row_ids(table: np.ndarray) -> np.ndarray:
     digits = _packed_digits(table) if packable else list(table.T)
     if len(digits) == 2:  # e.g. welding: sort by the major digit, then each run of equal ones by the minor
         order = np.argsort(digits[0])
-        _sort_runs(order, digits[0], digits[1])
-    else:  # least significant digit first; only the later passes must be stable
-        order = np.argsort(digits[-1])
-        for digit in digits[-2::-1]:
-            order = order[np.argsort(digit[order], kind="stable")]
+        return _ids_of_runs(order, digits[0][order], digits[1])
+    # least significant digit first; only the later passes must be stable
+    order = np.argsort(digits[-1])
+    for digit in digits[-2::-1]:
+        order = order[np.argsort(digit[order], kind="stable")]
     new = np.zeros(n, bool)
     new[0] = True
     for digit in digits:
@@ -147,21 +147,44 @@ def _packed_digits(table: np.ndarray) -> list[np.ndarray]:
     mixed-radix number: comparing digits compares the rows lexicographically.
     A column whose range does not fit int64 is a digit as it is.
     """
-    table = table.astype(np.int64, copy=False)
-    lo, hi = table.min(axis=0), table.max(axis=0)
-    digits, digit, capacity = [], None, 1
-    for q in range(table.shape[1]):
-        span = int(hi[q]) - int(lo[q]) + 1
-        column = table[:, q] - lo[q] if span < 2 ** 63 else table[:, q]
-        if digit is not None and capacity * span < 2 ** 63:
-            digit = digit * span + column
-            capacity *= span
-        else:
-            if digit is not None:
-                digits.append(digit)
-            digit, capacity = column, span
-    digits.append(digit)
+    table = np.ascontiguousarray(table, dtype=np.int64)
+    lo, hi = _column_ranges(table)
+    spans = [int(h) - int(l) + 1 for l, h in zip(lo, hi)]
+    digits, first, capacity = [], 0, spans[0]
+    for q in range(1, len(spans) + 1):
+        if q < len(spans) and capacity * spans[q] < 2 ** 63:
+            capacity *= spans[q]
+            continue
+        if spans[first] >= 2 ** 63:  # alone in its digit (the product test above fails for it)
+            lo[first] = 0
+        digits.append(_pack(table, lo, np.array(spans[first:q] if q - first > 1 else [0], np.int64), first))
+        if q < len(spans):
+            first, capacity = q, spans[q]
     return digits
+
+
+@njit(cache=True)
+def _column_ranges(table):
+    """Smallest and largest value of each column of the (n, k) ``table``, in one pass."""
+    lo = table[0].copy()
+    hi = table[0].copy()
+    for r in range(table.shape[0]):
+        for q in range(table.shape[1]):
+            lo[q] = min(lo[q], table[r, q])
+            hi[q] = max(hi[q], table[r, q])
+    return lo, hi
+
+
+@njit(cache=True)
+def _pack(table, lo, spans, first):
+    """Columns first..first+len(spans)-1 of ``table`` as one mixed-radix digit (see :func:`_packed_digits`)."""
+    out = np.empty(table.shape[0], np.int64)
+    for r in range(table.shape[0]):
+        d = table[r, first] - lo[first]
+        for q in range(1, spans.shape[0]):
+            d = d * spans[q] + (table[r, first + q] - lo[first + q])
+        out[r] = d
+    return out
 
 
 #: Runs of equal major digits up to this long are sorted by insertion, longer ones by np.argsort.
@@ -169,13 +192,16 @@ _SHORT_RUN = 16
 
 
 @njit(cache=True)
-def _sort_runs(order, major, minor):
-    """Sort each run of ``order`` (sorted by ``major``) with equal ``major[order]`` by ``minor``, in place."""
+def _ids_of_runs(order, major_sorted, minor):
+    """Row ids from ``order`` (rows sorted by their major digit, ``major_sorted``): each run of
+    equal major digits is sorted by ``minor`` in place, and the ids counted along."""
     n = order.shape[0]
+    ids = np.empty(n, np.int64)
+    current = -1
     a = 0
     while a < n:
         b = a + 1
-        while b < n and major[order[b]] == major[order[a]]:
+        while b < n and major_sorted[b] == major_sorted[a]:
             b += 1
         if b - a > _SHORT_RUN:
             run = order[a:b].copy()
@@ -188,4 +214,9 @@ def _sort_runs(order, major, minor):
                     order[r + 1] = order[r]
                     r -= 1
                 order[r + 1] = x
+        for q in range(a, b):
+            if q == a or minor[order[q]] != minor[order[q - 1]]:
+                current += 1
+            ids[order[q]] = current
         a = b
+    return ids
