@@ -42,7 +42,7 @@ from numba.core import cgutils
 from numba.extending import intrinsic
 
 from .scene import Scene
-from .weld import row_ids, weld
+from .weld import first_index, row_ids, weld
 
 #: Corners closer than this times the scene size are one vertex when comparing faces.
 WELD = 1e-6
@@ -191,7 +191,7 @@ def _coplanar_overlaps(scene: Scene, faces: np.ndarray):
     plane = row_ids(key)
     # 2D coordinates in each plane: one (u, v) basis per plane, from its first face's normal
     # (per-face bases would differ by up to PLANE_ANGLE and fake overlaps along shared edges)
-    first = _first_of_each(plane, int(plane.max()) + 1)
+    first = first_index(plane, int(plane.max()) + 1)
     uv, lo, hi = _plane_coordinates(tri, np.ascontiguousarray(plane_n[first][plane]), centre)
     order = np.lexsort((lo[:, 0], plane))
     i, j, area = _sweep(np.ascontiguousarray(uv[order]), plane[order], lo[order], hi[order], 1e-9 * size)
@@ -228,16 +228,6 @@ def _plane_keys(tri, nrm, centre, canonical, angle_step, offset_step):
         offset = (plane_n[f, 0] * m0 + plane_n[f, 2] * m2) + plane_n[f, 1] * m1
         key[f, 3] = np.int64(np.rint(offset / offset_step))
     return flip, plane_n, key
-
-
-@njit(cache=True)
-def _first_of_each(ids, count):
-    """(count,) int64: the first index where each id 0..count-1 occurs in ``ids``."""
-    first = np.full(count, -1, np.int64)
-    for f in range(ids.shape[0]):
-        if first[ids[f]] < 0:
-            first[ids[f]] = f
-    return first
 
 
 @njit(cache=True)

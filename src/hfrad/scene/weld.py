@@ -139,6 +139,16 @@ def row_ids(table: np.ndarray) -> np.ndarray:
     return ids
 
 
+@njit(cache=True)
+def first_index(ids: np.ndarray, count: int) -> np.ndarray:
+    """(count,) int64: the first index at which each id 0..count-1 occurs in the (n,) ``ids`` (-1: never)."""
+    first = np.full(count, -1, np.int64)
+    for f in range(ids.shape[0]):
+        if first[ids[f]] < 0:
+            first[ids[f]] = f
+    return first
+
+
 def _packed_digits(table: np.ndarray) -> list[np.ndarray]:
     """The integer (n, k) ``table`` as a few (n,) int64 digits, most significant first.
 

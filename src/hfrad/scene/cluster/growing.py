@@ -18,7 +18,7 @@ from numba import njit
 
 from ..patches import longest_edges
 from ..scene import Scene
-from ..weld import row_ids, weld
+from ..weld import first_index, row_ids, weld
 from ..zorder import zorder_permutation
 
 #: A cluster may reach this far from its seed, in units of sqrt(target area).
@@ -50,20 +50,49 @@ NEARBY_ROUNDS = 4
 def compatibility_classes(scene: Scene) -> np.ndarray:
     """(n,) int: patches that may share a cluster have equal values.
 
-    Same material, group, reflectance and emission (a patch has one of each).
+    Same material, group, reflectance and emission (a patch has one of each):
+    the ids of the rows (material, group, reflectance, emission) in
+    lexicographic order (:func:`~hfrad.scene.weld.row_ids`).
     """
-    table = np.column_stack([scene.material, scene.group, scene.reflectance, scene.emission])
-    return row_ids(table)
+    ids = row_ids(np.column_stack([scene.material, scene.group]))
+    first = first_index(ids, int(ids.max(initial=-1)) + 1)
+    values = np.column_stack([scene.reflectance, scene.emission])
+    if np.array_equal(values, values[first[ids]]):
+        # colours follow (material, group), as they do unless set per patch: the same ids
+        # and order as of the whole rows, from two integer columns instead of eight floats
+        return ids
+    return row_ids(np.column_stack([scene.material, scene.group, values]))
 
 
 def _vertex_stars(welded: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
-    """CSR vertex -> triangles touching it: (start (v + 1,), triangles)."""
-    corner_tri = np.repeat(np.arange(len(welded)), 3)
-    v = welded.reshape(-1)
-    order = np.argsort(v, kind="stable")
+    """CSR vertex -> triangles touching it: (start (v + 1,), triangles in increasing order)."""
     start = np.zeros(n_vertices + 1, np.int64)
-    np.cumsum(np.bincount(v, minlength=n_vertices), out=start[1:])
-    return start, corner_tri[order].astype(np.int64)
+    np.cumsum(np.bincount(welded.reshape(-1), minlength=n_vertices), out=start[1:])
+    return start, _star_members(welded, start)
+
+
+@njit(cache=True)
+def _star_members(welded, start):
+    """The triangles around each vertex, a counting sort of the corners by vertex (stable)."""
+    fill = start[:-1].copy()
+    out = np.empty(start[-1], np.int64)
+    for t in range(welded.shape[0]):
+        for k in range(welded.shape[1]):
+            v = welded[t, k]
+            out[fill[v]] = t
+            fill[v] += 1
+    return out
+
+
+@njit(cache=True)
+def _reach(tri, cent):
+    """(t,) float: each triangle's largest corner distance from its centroid (as np.linalg.norm sums)."""
+    out = np.zeros(tri.shape[0])
+    for t in range(tri.shape[0]):
+        for k in range(3):
+            dx, dy, dz = tri[t, k, 0] - cent[t, 0], tri[t, k, 1] - cent[t, 1], tri[t, k, 2] - cent[t, 2]
+            out[t] = max(out[t], math.sqrt((dx * dx + dy * dy) + dz * dz))
+    return out
 
 
 @njit(cache=True)
@@ -369,7 +398,7 @@ class FaceGraph:
         self.centroids = np.ascontiguousarray(scene.centroids)
         self.normals = np.ascontiguousarray(scene.normals)
         self.areas = np.ascontiguousarray(scene.areas)
-        self.reach = np.linalg.norm(tri - self.centroids[:, None], axis=2).max(axis=1) if len(tri) else np.zeros(0)
+        self.reach = _reach(np.ascontiguousarray(tri), self.centroids)
         self.longest = longest_edges(tri)
         self.key = compatibility_classes(scene)
         self.seeds = zorder_permutation(self.centroids)
