@@ -502,8 +502,12 @@ class FaceGraph:
         k = min(NEARBY_CANDIDATES + 1, count)
         if k < 2:
             return 0
-        dist, cand = cKDTree(c_cen).query(c_cen, k=k, distance_upper_bound=r_max)
-        cand = np.where(np.isfinite(dist), cand, -1)[:, 1:].astype(np.int64)
+        # only clusters small now look for partners (a cluster's area only grows in the merging),
+        # so only they are queried: each query is answered alike in any batch
+        small = np.flatnonzero(c_area < NEARBY_BELOW * a_max)
+        dist, near = cKDTree(c_cen).query(c_cen[small], k=k, distance_upper_bound=r_max)
+        cand = np.full((count, k - 1), -1, np.int64)
+        cand[small] = np.where(np.isfinite(dist), near, -1)[:, 1:]
         cos_pair = math.cos(2 * math.acos(cos_tol))
         s_cen, s_rad = _cluster_spheres(label, count, self.centroids, self.reach, self.areas)
         return _merge_nearby(label, c_area, c_vec, c_key, c_count, s_cen, s_rad, np.ascontiguousarray(cand),
