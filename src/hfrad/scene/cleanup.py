@@ -42,7 +42,7 @@ from numba.core import cgutils
 from numba.extending import intrinsic
 
 from .scene import Scene
-from .weld import first_index, row_ids, weld
+from .weld import first_index, grouped_order, row_ids, weld
 
 #: Corners closer than this times the scene size are one vertex when comparing faces.
 WELD = 1e-6
@@ -150,7 +150,7 @@ def find_face_problems(scene: Scene) -> FaceReport:
     normals = np.asarray(scene.normals)
     corners = np.sort(weld(scene.vertices, scene.faces, rel_tol=WELD, bounds=scene.bounds), axis=1)
     group = row_ids(corners)
-    order = np.lexsort((np.arange(n), group))
+    order = grouped_order(group, int(group.max()) + 1)
     g = group[order]
     starts = np.r_[0, np.flatnonzero(g[1:] != g[:-1]) + 1]  # first position of each corner set
     later = np.flatnonzero(g[1:] == g[:-1]) + 1  # positions repeating the corner set before them
@@ -193,7 +193,7 @@ def _coplanar_overlaps(scene: Scene, faces: np.ndarray):
     # (per-face bases would differ by up to PLANE_ANGLE and fake overlaps along shared edges)
     first = first_index(plane, int(plane.max()) + 1)
     uv, lo, hi = _plane_coordinates(tri, np.ascontiguousarray(plane_n[first][plane]), centre)
-    order = np.lexsort((lo[:, 0], plane))
+    order = _by_plane_then_u(plane, int(plane.max()) + 1, np.ascontiguousarray(lo[:, 0]))
     i, j, area = _sweep(np.ascontiguousarray(uv[order]), plane[order], lo[order], hi[order], 1e-9 * size)
     i, j = order[i], order[j]
     sign = flip[i] * flip[j]
@@ -257,6 +257,31 @@ def _plane_coordinates(tri, rep, centre):
             lo[f, e] = min(uv[f, 0, e], min(uv[f, 1, e], uv[f, 2, e]))
             hi[f, e] = max(uv[f, 0, e], max(uv[f, 1, e], uv[f, 2, e]))
     return uv, lo, hi
+
+
+@njit(cache=True)
+def _by_plane_then_u(plane, n_planes, u):
+    """``np.lexsort((u, plane))``: faces by plane, then by lowest u, ties in index order; most
+    planes hold a few faces, so a counting sort by plane and a stable sort of each plane's run."""
+    order = grouped_order(plane, n_planes)
+    a = 0
+    while a < order.shape[0]:
+        b = a + 1
+        while b < order.shape[0] and plane[order[b]] == plane[order[a]]:
+            b += 1
+        if b - a > 16:
+            run = order[a:b].copy()
+            order[a:b] = run[np.argsort(u[run], kind="mergesort")]
+        else:
+            for q in range(a + 1, b):  # insertion sort, stable
+                x = order[q]
+                r = q - 1
+                while r >= a and u[order[r]] > u[x]:
+                    order[r + 1] = order[r]
+                    r -= 1
+                order[r + 1] = x
+        a = b
+    return order
 
 
 @njit(cache=True)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import heapq
 import math
+from functools import cached_property
 
 import numpy as np
 from numba import njit
@@ -391,7 +392,7 @@ class FaceGraph:
     """
 
     def __init__(self, scene: Scene) -> None:
-        tri = scene.triangles
+        tri = self._triangles = scene.triangles
         self.welded = weld(scene.vertices, scene.faces)
         n_vertices = int(self.welded.max(initial=-1)) + 1
         self.vstart, self.vtris = _vertex_stars(self.welded, n_vertices)
@@ -399,9 +400,13 @@ class FaceGraph:
         self.normals = np.ascontiguousarray(scene.normals)
         self.areas = np.ascontiguousarray(scene.areas)
         self.reach = _reach(np.ascontiguousarray(tri), self.centroids)
-        self.longest = longest_edges(tri)
         self.key = compatibility_classes(scene)
         self.seeds = zorder_permutation(self.centroids)
+
+    @cached_property
+    def longest(self) -> np.ndarray:
+        """(t,) metres: each face's longest edge (only ``max_edge`` clustering asks)."""
+        return longest_edges(self._triangles)
 
     def grow(self, eligible: np.ndarray, cos_tol: float, a_max: float, r_max: float,
              merge: bool, max_triangles: int = 0) -> tuple[np.ndarray, int]:
