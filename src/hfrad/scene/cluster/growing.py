@@ -17,6 +17,7 @@ from functools import cached_property
 import numpy as np
 from numba import njit
 
+from ...resources import cores
 from ..patches import longest_edges
 from ..scene import Scene
 from ..weld import first_index, row_ids, weld
@@ -510,7 +511,7 @@ class FaceGraph:
         # only clusters small now look for partners (a cluster's area only grows in the merging),
         # so only they are queried: each query is answered alike in any batch
         small = np.flatnonzero(c_area < NEARBY_BELOW * a_max)
-        dist, near = cKDTree(c_cen).query(c_cen[small], k=k, distance_upper_bound=r_max)
+        dist, near = cKDTree(c_cen).query(c_cen[small], k=k, distance_upper_bound=r_max, workers=cores())
         cand = np.full((count, k - 1), -1, np.int64)
         cand[small] = np.where(np.isfinite(dist), near, -1)[:, 1:]
         cos_pair = math.cos(2 * math.acos(cos_tol))
