@@ -25,7 +25,7 @@ from numba import njit, types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
-from .weld import grouped_order
+from .weld import grouped_order, sort_run
 
 
 @intrinsic
@@ -53,9 +53,11 @@ def _dot(a, b):
 
 
 @njit(cache=True)
-def _cross(a, b):
-    """``a x b`` of 3-vectors."""
-    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+def _edge_cross(p, q, r):
+    """``(q - p) x (r - p)`` of 3-vectors, as a tuple."""
+    a0, a1, a2 = q[0] - p[0], q[1] - p[1], q[2] - p[2]
+    b0, b1, b2 = r[0] - p[0], r[1] - p[1], r[2] - p[2]
+    return a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
 
 
 @njit(cache=True)
@@ -118,24 +120,14 @@ def plane_coordinates(tri, rep, centre):
 @njit(cache=True)
 def by_plane_then_u(plane, n_planes, u):
     """``np.lexsort((u, plane))``: faces by plane, then by lowest u, ties in index order; most
-    planes hold a few faces, so a counting sort by plane and a stable sort of each plane's run."""
+    planes hold a few faces, so a counting sort by plane, then each plane's run sorted."""
     order = grouped_order(plane, n_planes)
     a = 0
     while a < order.shape[0]:
         b = a + 1
         while b < order.shape[0] and plane[order[b]] == plane[order[a]]:
             b += 1
-        if b - a > 16:
-            run = order[a:b].copy()
-            order[a:b] = run[np.argsort(u[run], kind="mergesort")]
-        else:
-            for q in range(a + 1, b):  # insertion sort, stable
-                x = order[q]
-                r = q - 1
-                while r >= a and u[order[r]] > u[x]:
-                    order[r + 1] = order[r]
-                    r -= 1
-                order[r + 1] = x
+        sort_run(order, a, b, u)
         a = b
     return order
 
@@ -181,7 +173,8 @@ def _intersection_area(t1, t2, poly, nxt, clip):
     for k in range(3):
         poly[k, 0], poly[k, 1] = t1[k, 0], t1[k, 1]
     m = 3
-    clip[:] = t2
+    for k in range(3):
+        clip[k, 0], clip[k, 1] = t2[k, 0], t2[k, 1]
     if _signed_area(clip, 3) < 0:  # make the clipping triangle counter-clockwise
         clip[1, 0], clip[2, 0] = t2[2, 0], t2[1, 0]
         clip[1, 1], clip[2, 1] = t2[2, 1], t2[1, 1]
@@ -227,7 +220,8 @@ def _clip(poly, a, inward, keep_inside):
         k1 = (k + 1) % m
         sp, sq = side[k], side[k1]
         if sp >= 0.0:
-            out[c] = poly[k]
+            for d in range(3):
+                out[c, d] = poly[k, d]
             c += 1
         if (sp >= 0.0) != (sq >= 0.0):
             t = sp / (sp - sq)
@@ -244,7 +238,8 @@ def _minus(polys, tri, n):
     out = []
     inward = np.empty((3, 3))  # n x (b - a) of each edge a -> b
     for e in range(3):
-        inward[e] = _cross(n, tri[(e + 1) % 3] - tri[e])
+        b0, b1, b2 = tri[(e + 1) % 3, 0] - tri[e, 0], tri[(e + 1) % 3, 1] - tri[e, 1], tri[(e + 1) % 3, 2] - tri[e, 2]
+        inward[e, 0], inward[e, 1], inward[e, 2] = n[1] * b2 - n[2] * b1, n[2] * b0 - n[0] * b2, n[0] * b1 - n[1] * b0
     for poly in polys:
         inside = poly
         for e in range(3):
@@ -262,7 +257,7 @@ def _polygon_area(poly):
     """Area of a convex polygon ((k, 3) points), from its fan of triangles."""
     total = 0.0
     for k in range(1, poly.shape[0] - 1):
-        c = _cross(poly[k] - poly[0], poly[k + 1] - poly[0])
+        c = _edge_cross(poly[0], poly[k], poly[k + 1])
         total += math.sqrt(c[0] * c[0] + (c[1] * c[1] + c[2] * c[2]))
     return 0.5 * total
 
@@ -273,9 +268,13 @@ def _cut_face(tri, normals, j, below, keep_area):
     n = normals[j]
     polys = [tri[j].copy()]
     for i in below:
-        t = tri[i] if _dot(_cross(tri[i, 1] - tri[i, 0], tri[i, 2] - tri[i, 0]), n) > 0 else tri[i, ::-1].copy()
+        t = tri[i] if _dot(_edge_cross(tri[i, 0], tri[i, 1], tri[i, 2]), n) > 0 else tri[i, ::-1].copy()
         polys = _minus(polys, t, n)
-    return [p for p in polys if _polygon_area(p) > keep_area]
+    kept = []
+    for p in polys:
+        if _polygon_area(p) > keep_area:
+            kept.append(p)
+    return kept
 
 
 @njit(cache=True)
@@ -302,7 +301,7 @@ def cut_faces(tri, normals, areas, faces, start, below, gone, min_overlap, slive
         n = normals[j]
         for poly in polys:
             for k in range(1, poly.shape[0] - 1):  # convex: a fan keeps the orientation of j
-                c = _cross(poly[k] - poly[0], poly[k + 1] - poly[0])
+                c = _edge_cross(poly[0], poly[k], poly[k + 1])
                 length = math.sqrt(_dot(c, c))
                 # no slivers of rounding (their normals are noise): a real piece has area and j's normal
                 if _dot(c, n) > 0.99 * length and 0.5 * length > max(sliver * areas[j], tiny):
@@ -313,8 +312,10 @@ def cut_faces(tri, normals, areas, faces, start, below, gone, min_overlap, slive
     out_points = np.empty((n_points, 3))
     k = 0
     for poly in points:
-        out_points[k:k + poly.shape[0]] = poly
-        k += poly.shape[0]
+        for r in range(poly.shape[0]):
+            for d in range(3):
+                out_points[k, d] = poly[r, d]
+            k += 1
     out_faces = np.empty((len(corners), 3), np.int64)
     for f in range(len(corners)):
         out_faces[f, 0], out_faces[f, 1], out_faces[f, 2] = corners[f]

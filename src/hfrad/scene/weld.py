@@ -213,10 +213,6 @@ def _pack(table, lo, spans, first):
     return out
 
 
-#: Runs of equal major digits up to this long are sorted by insertion, longer ones by np.argsort.
-_SHORT_RUN = 16
-
-
 @njit(cache=True)
 def _ids_of_runs(order, major_sorted, minor):
     """Row ids from ``order`` (rows sorted by their major digit, ``major_sorted``): each run of
@@ -229,20 +225,57 @@ def _ids_of_runs(order, major_sorted, minor):
         b = a + 1
         while b < n and major_sorted[b] == major_sorted[a]:
             b += 1
-        if b - a > _SHORT_RUN:
-            run = order[a:b].copy()
-            order[a:b] = run[np.argsort(minor[run])]
-        else:
-            for q in range(a + 1, b):  # insertion sort: runs are mostly one to a few points
-                x = order[q]
-                r = q - 1
-                while r >= a and minor[order[r]] > minor[x]:
-                    order[r + 1] = order[r]
-                    r -= 1
-                order[r + 1] = x
+        sort_run(order, a, b, minor)
         for q in range(a, b):
             if q == a or minor[order[q]] != minor[order[q - 1]]:
                 current += 1
             ids[order[q]] = current
         a = b
     return ids
+
+
+#: Runs up to this long are sorted by insertion (most are one to a few points), longer ones by heapsort.
+_SHORT_RUN = 16
+
+
+@njit(cache=True)
+def sort_run(order: np.ndarray, a: int, b: int, key: np.ndarray) -> None:
+    """Sort ``order[a:b]`` in place by ``(key[x], x)``: by key, equal keys in index order (what a
+    stable sort gives a run in index order). Written out, not ``np.argsort``, whose compiled
+    version takes seconds to build."""
+    if b - a <= _SHORT_RUN:
+        for q in range(a + 1, b):
+            x = order[q]
+            r = q - 1
+            while r >= a and _after(key, order[r], x):
+                order[r + 1] = order[r]
+                r -= 1
+            order[r + 1] = x
+        return
+    n = b - a
+    for root in range(n // 2 - 1, -1, -1):
+        _sift_down(order, a, root, n, key)
+    for end in range(n - 1, 0, -1):
+        order[a], order[a + end] = order[a + end], order[a]
+        _sift_down(order, a, 0, end, key)
+
+
+@njit(cache=True)
+def _after(key, x, y):
+    """``(key[x], x) > (key[y], y)``."""
+    return key[x] > key[y] or (key[x] == key[y] and x > y)
+
+
+@njit(cache=True)
+def _sift_down(order, a, root, n, key):
+    """Restore the max-heap ``order[a:a + n]`` below ``root``."""
+    while True:
+        child = 2 * root + 1
+        if child >= n:
+            return
+        if child + 1 < n and _after(key, order[a + child + 1], order[a + child]):
+            child += 1
+        if not _after(key, order[a + child], order[a + root]):
+            return
+        order[a + root], order[a + child] = order[a + child], order[a + root]
+        root = child
