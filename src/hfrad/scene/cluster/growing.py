@@ -161,7 +161,10 @@ def _grow(seeds, eligible, key, welded, vstart, vtris, cent, nrm, area, reach, c
                     dx = cent[u, 0] - cent[s, 0]
                     dy = cent[u, 1] - cent[s, 1]
                     dz = cent[u, 2] - cent[s, 2]
-                    heapq.heappush(heap, (math.sqrt(dx * dx + dy * dy + dz * dz), u))
+                    d = math.sqrt(dx * dx + dy * dy + dz * dz)
+                    if d + reach[u] > r_max:
+                        continue  # out of reach: it would be popped and refused (stamped all the same)
+                    heapq.heappush(heap, (d, u))
     return n_clusters
 
 
