@@ -124,7 +124,7 @@ def row_ids(table: np.ndarray) -> np.ndarray:
     digits = _packed_digits(table) if packable else list(table.T)
     if len(digits) == 2:  # e.g. welding: sort by the major digit, then each run of equal ones by the minor
         order = np.argsort(digits[0])
-        return _ids_of_runs(order, digits[0][order], digits[1])
+        return _ids_of_runs(order, digits[0][order], digits[1][order], digits[1])
     # least significant digit first; only the later passes must be stable
     order = np.argsort(digits[-1])
     for digit in digits[-2::-1]:
@@ -214,9 +214,11 @@ def _pack(table, lo, spans, first):
 
 
 @njit(cache=True)
-def _ids_of_runs(order, major_sorted, minor):
-    """Row ids from ``order`` (rows sorted by their major digit, ``major_sorted``): each run of
-    equal major digits is sorted by ``minor`` in place, and the ids counted along."""
+def _ids_of_runs(order, major_sorted, minor_sorted, minor):
+    """Row ids from ``order`` (rows sorted by their major digit, ``major_sorted``; their minor
+    digits ``minor_sorted``): each run of equal major digits is sorted by the minor one in
+    place, and the ids counted along. Short runs (most: a point and its few copies) are
+    sorted on the contiguous ``minor_sorted``, long ones through ``minor``."""
     n = order.shape[0]
     ids = np.empty(n, np.int64)
     current = -1
@@ -225,9 +227,20 @@ def _ids_of_runs(order, major_sorted, minor):
         b = a + 1
         while b < n and major_sorted[b] == major_sorted[a]:
             b += 1
-        sort_run(order, a, b, minor)
+        if b - a > _SHORT_RUN:
+            sort_run(order, a, b, minor)
+            for q in range(a, b):
+                minor_sorted[q] = minor[order[q]]
+        else:
+            for q in range(a + 1, b):  # insertion sort of the pairs (minor digit, row)
+                x, m = order[q], minor_sorted[q]
+                r = q - 1
+                while r >= a and (minor_sorted[r] > m or (minor_sorted[r] == m and order[r] > x)):
+                    order[r + 1], minor_sorted[r + 1] = order[r], minor_sorted[r]
+                    r -= 1
+                order[r + 1], minor_sorted[r + 1] = x, m
         for q in range(a, b):
-            if q == a or minor[order[q]] != minor[order[q - 1]]:
+            if q == a or minor_sorted[q] != minor_sorted[q - 1]:
                 current += 1
             ids[order[q]] = current
         a = b
