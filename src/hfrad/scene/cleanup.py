@@ -229,7 +229,7 @@ def resolve_overlaps(scene: Scene, overlaps: np.ndarray, *, drop=()) -> tuple[Sc
     -----
     Compiled (:func:`hfrad.scene.coplanar.cut_faces`): the conference room's ~5,000 cut
     faces take ~66,000 clips of a polygon by a line, ~10 us each as NumPy calls, well under
-    1 us compiled (the cut 1.5 s -> 0.1 s).
+    1 us compiled (the two cuts ~1.5 s -> ~0.15 s under cProfile).
     """
     tri = np.ascontiguousarray(scene.triangles, np.float64)
     normals = np.ascontiguousarray(scene.normals, np.float64)
