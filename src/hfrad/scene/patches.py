@@ -17,7 +17,7 @@ import numpy as np
 from ..errors import InputError, SceneError
 from .conform import conforming_subdivide
 from .scene import Scene
-from .weld import weld_points
+from .weld import first_index, weld_points
 
 
 #: Memory budgeted per patch for cutting faces into patches and holding the result, bytes. A cut
@@ -197,7 +197,7 @@ def split_faces(scene: Scene, splits: np.ndarray) -> tuple[Scene, np.ndarray]:
     faces_all = np.concatenate(faces)
     owner_all = np.concatenate(owner)
     ids = weld_points(points_all, bounds=scene.bounds)  # neighbouring patches share their corners
-    _, first = np.unique(ids, return_index=True)
+    first = first_index(ids, int(ids.max(initial=-1)) + 1)  # where each vertex first occurs
     vertices, faces_all = points_all[first], ids[faces_all]
     order = np.argsort(owner_all, kind="stable")  # keep patches of one face together
     faces_all, owner_all = faces_all[order], owner_all[order]

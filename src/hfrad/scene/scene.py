@@ -354,7 +354,9 @@ class Scene:
         """(2, 3) float: min and max corner of the bounding box of the patches."""
         if not len(self.faces):
             return np.zeros((2, 3))
-        used = self.vertices[np.unique(self.faces)]
+        in_use = np.zeros(len(self.vertices), bool)
+        in_use[self.faces] = True  # a mask, not np.unique: no sort of the corners
+        used = self.vertices[in_use]
         return _readonly(np.array([used.min(axis=0), used.max(axis=0)]))
 
     @property
