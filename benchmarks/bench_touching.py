@@ -58,6 +58,12 @@ def _old(I, J, T, N, A, C, D, start, index, eps, tol, out):
         out[k] = kn._pair_area_ff(I[k], J[k], T, N, A, C, D, start, index, kn.NEAR, kn.ADAPTIVE, eps, tol)
 
 
+#: (q3_from, gap, slack, families) under which the touching rule takes kernel.py's choices per triangle
+#: pair (the 6-point rule from ADAPTIVE = 1.5 (D_t + D_u), both rules and the 4-split nearer, no
+#: shared budget): the old rule's count of contour integrals (its values agree to ~1e-15).
+OLD_RULES = (3.0, kn.ADAPTIVE - 2.0 / 3.0, 0.0, 0.0)
+
+
 def old_rule(g: cl.ClusterGeometry, I: np.ndarray, J: np.ndarray) -> np.ndarray:
     """The touching rule before KERNEL_VERSION 11: kernel.py's rules per triangle pair."""
     out = np.empty(len(I))
@@ -124,6 +130,9 @@ def main() -> None:
     row_af = cl.clustered_block(g, rows, np.arange(g.n)).sum(axis=1) * g.areas[rows]
     out = {"scene": args.scene, "patches": g.n, "touching_pairs": len(I), "sample_pairs": len(si),
            "rows": args.rows, "old": errors(old_rule(g, si, sj), ref, si, sj, rows, row_af), "new": []}
+    v, c = cl.touching_pairs(g, si, sj, rules=OLD_RULES, count=True)
+    out["old"]["evaluations_a_pair"] = float(c.mean())
+    out["old"]["agrees_with_old_rules"] = float(np.abs(v - old_rule(g, si, sj)).max() / ref.max())
     for rules in json.loads(args.rules):
         v, c = cl.touching_pairs(g, si, sj, rules=rules, count=True)
         out["new"].append({"rules": rules, "evaluations_a_pair": float(c.mean()),
