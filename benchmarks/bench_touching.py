@@ -9,7 +9,7 @@ EXACT_PAIRS triangle pairs). On the touching pairs of ``--rows`` rows spread ove
   whatever its distance, at tolerance 1e-5 (MAX_DEPTH 8; cached in the temporary folder);
 - the old rule: kernel.py's rules per triangle pair (``_pair_area_ff`` at CLUSTER_TOLERANCE, the
   touching rule until KERNEL_VERSION 11);
-- the touching rule (``clustered.touching_pairs``) with each ``--rules`` (q3_from, gap, slack).
+- the touching rule (``clustered.touching_pairs``) with each ``--rules`` (q3_from, gap, slack, families).
 
 Errors: sum |error| / sum of the reference (the touching pairs' total), signed sum / total, and per
 row the sum of its touching pairs' errors over the row's A_i sum_j F_ij (the clustered kernel's row
@@ -109,7 +109,8 @@ def main() -> None:
     ap.add_argument("--scene", default="conference")
     ap.add_argument("--patches", type=int, default=3000)
     ap.add_argument("--rows", type=int, default=40)
-    ap.add_argument("--rules", default=json.dumps([list(cl.TOUCHING_RULES)]), help="JSON list of (q3_from, gap, slack)")
+    ap.add_argument("--rules", default=json.dumps([list(cl.TOUCHING_RULES)]),
+                    help="JSON list of (q3_from, gap, slack, families)")
     ap.add_argument("--time", action="store_true", help="also time old and new over all touching pairs, one thread")
     ap.add_argument("--repeat", type=int, default=2)
     ap.add_argument("--json", help="also write the results to this file")

@@ -103,9 +103,10 @@ EXACT_NEAR = 0.7
 #: which costs several times the kernel time there for a gain below the other rules' error.
 CLUSTER_TOLERANCE = 3e-2
 
-#: The touching rule's (q3_from, gap, slack) (see :func:`_touching_area_ff`): the 3-point rule for
-#: triangle pairs from 1 (D_t + D_u) apart, the 6-point rule for those surely apart (gap 0), and a
-#: tenth of the patch pair's tolerance shared among its contact triangle pairs.
+#: The touching rule's (q3_from, gap, slack, families) (see :func:`_touching_area_ff`): the 3-point
+#: rule for triangle pairs from 1 (D_t + D_u) apart, the 6-point rule for those surely apart (gap 0),
+#: a tenth of the patch pair's tolerance shared among its contact triangle pairs, and splits settled
+#: as families (1: on). Chosen on the conference room, Sponza and Sibenik (benchmarks/README.md).
 TOUCHING_RULES = (1.0, 0.0, 0.1, 1.0)
 
 #: Most triangles of a patch that eq. (3) sums over (the largest; see the module docstring).
@@ -137,6 +138,8 @@ class ClusterGeometry:
     ``memo`` (default True): keep A_P F_PQ of the pairs closer than FAR / 2 (D_P + D_Q) once
     computed (``memo_start``, ``memo_cols``, ``memo_values``, :func:`memo_table`; see the
     module docstring); False computes every pair each time it is asked for (the same numbers).
+    ``touching_rules``: the touching rule's (q3_from, gap, slack, families), default
+    :data:`TOUCHING_RULES` (for measurements of other choices, as in benchmarks/bench_touching.py).
     """
 
     clustered = True
@@ -399,7 +402,7 @@ def _points_area_ff(xi, yi, zi, Si, xj, yj, zj, Sj):
 def _touching_area_ff(i, j, T, N, A, C, D, start, eps, tol, rules, count):
     """A_i F_ij of touching clusters: eq. (2) of kernel.py over every triangle pair, in canonical order.
 
-    ``rules`` = (q3_from, gap, slack) (:data:`TOUCHING_RULES`). Triangle pairs at least kernel.py's
+    ``rules`` = (q3_from, gap, slack, families) (:data:`TOUCHING_RULES`). Triangle pairs at least kernel.py's
     NEAR (D_t + D_u) apart take its centroid rules; back-to-back pairs give 0; the others put their
     points on p (kernel.py's choice) and take, by their centroid distance d:
 
@@ -411,7 +414,8 @@ def _touching_area_ff(i, j, T, N, A, C, D, start, eps, tol, rules, count):
       refinement where they differ by more than max(tol max(|Q6|, FLOOR A_p), slack S / k), S
       the patch pair's estimate from these first rules and k the number of such triangle pairs:
       a triangle pair holding a small part of A_i F_ij shares the pair's budget instead of
-      refining to its own tolerance.
+      refining to its own tolerance; with ``families`` non-zero, a split is settled at once when
+      its four children's Q6 sum agrees with its own Q6 (kernel.py's ``_refine``).
 
     ``count[0]`` (when ``count`` is not empty) gains the evaluations of eq. (1) (those of the
     centroid rules beyond NEAR, at most 2 a triangle pair, not counted).
@@ -493,8 +497,8 @@ def touching_pairs(geom: "ClusterGeometry", i: np.ndarray, j: np.ndarray, *, rul
     ----------
     geom : ClusterGeometry
     i, j : (m,) int, patch pairs
-    rules : (3,) float, optional
-        (q3_from, gap, slack) of :func:`_touching_area_ff`; default ``geom.touching_rules``.
+    rules : (4,) float, optional
+        (q3_from, gap, slack, families) of :func:`_touching_area_ff`; default ``geom.touching_rules``.
     count : bool
         Also return the evaluations of eq. (1) of each pair.
 

@@ -326,6 +326,8 @@ def _rules(x0, y0, z0, x1, y1, z1, x2, y2, z2, nx, ny, nz, T, N, u, eps, groups=
     ``groups`` = 2: Q6 alone (the same number), Q3 returned as 0: the middle
     distance's one degree-4 rule, which used to evaluate and discard Q3's three
     points (a third of its work; clustered Sponza's touching pairs: ~38 such triangle pairs each).
+    ``first`` = 2 (with ``groups`` = 3): Q3 alone, Q6 returned as 0 (the clustered touching
+    rule's triangle pairs at least 1 (D_t + D_u) apart).
     Corners come as scalars: the adaptive path calls this once per sub-triangle,
     and small arrays there cost a heap allocation each.
     """
