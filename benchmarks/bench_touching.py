@@ -9,7 +9,8 @@ EXACT_PAIRS triangle pairs). On the touching pairs of ``--rows`` rows spread ove
   whatever its distance, at tolerance 1e-5 (MAX_DEPTH 8; cached in the temporary folder);
 - the old rule: kernel.py's rules per triangle pair (``_pair_area_ff`` at CLUSTER_TOLERANCE, the
   touching rule until KERNEL_VERSION 11);
-- the touching rule (``clustered.touching_pairs``) with each ``--rules`` (q3_from, gap, slack, families).
+- the touching rule (``clustered.touching_pairs``) with each ``--rules`` (c1_from, q3_from, gap, slack,
+  families).
 
 Errors: sum |error| / sum of the reference (the touching pairs' total), signed sum / total, and per
 row the sum of its touching pairs' errors over the row's A_i sum_j F_ij (the clustered kernel's row
@@ -58,10 +59,10 @@ def _old(I, J, T, N, A, C, D, start, index, eps, tol, out):
         out[k] = kn._pair_area_ff(I[k], J[k], T, N, A, C, D, start, index, kn.NEAR, kn.ADAPTIVE, eps, tol)
 
 
-#: (q3_from, gap, slack, families) under which the touching rule takes kernel.py's choices per triangle
-#: pair (the 6-point rule from ADAPTIVE = 1.5 (D_t + D_u), both rules and the 4-split nearer, no
+#: (c1_from, q3_from, gap, slack, families) under which the touching rule takes kernel.py's choices per
+#: triangle pair (the 6-point rule from ADAPTIVE = 1.5 (D_t + D_u), both rules and the 4-split nearer, no
 #: shared budget): the old rule's count of contour integrals (its values agree to ~1e-15).
-OLD_RULES = (3.0, kn.ADAPTIVE - 2.0 / 3.0, 0.0, 0.0)
+OLD_RULES = (kn.NEAR, kn.NEAR, kn.ADAPTIVE - 2.0 / 3.0, 0.0, 0.0)
 
 
 def old_rule(g: cl.ClusterGeometry, I: np.ndarray, J: np.ndarray) -> np.ndarray:
@@ -110,7 +111,7 @@ def main() -> None:
     ap.add_argument("--patches", type=int, default=3000)
     ap.add_argument("--rows", type=int, default=40)
     ap.add_argument("--rules", default=json.dumps([list(cl.TOUCHING_RULES)]),
-                    help="JSON list of (q3_from, gap, slack, families)")
+                    help="JSON list of (c1_from, q3_from, gap, slack, families)")
     ap.add_argument("--time", action="store_true", help="also time old and new over all touching pairs, one thread")
     ap.add_argument("--repeat", type=int, default=2)
     ap.add_argument("--json", help="also write the results to this file")

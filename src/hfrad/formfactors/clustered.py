@@ -27,7 +27,7 @@ eq. 2), with a rule chosen by the centroid distance d:
 - *touching*, d < EXACT_NEAR (D_P + D_Q) and |P| |Q| <= EXACT_PAIRS:
   eq. (2) of kernel.py summed over every triangle pair (:func:`_touching_area_ff`):
   kernel.py's centroid rules beyond its NEAR, otherwise by the pair's centroid
-  distance the 3-point rule (from 1 (D_t + D_u)), Dunavant's 6-point rule (pairs
+  distance one point (from 2 (D_t + D_u)), the 3-point rule (from 1), Dunavant's 6-point rule (pairs
   surely apart), or, for pairs in contact, both and kernel.py's 4-split
   refinement to CLUSTER_TOLERANCE, with a tenth of the patch pair's tolerance
   shared among those pairs and a split settled as a family when its children's
@@ -35,9 +35,9 @@ eq. 2), with a rule chosen by the centroid distance d:
   below errs most (its points miss the integrand's peak along the shared
   edge); the sum costs |P| |Q| triangle pairs, hence the EXACT_PAIRS cap.
   Against the adaptive rule at 1e-5 on every triangle pair (3K patches; conference
-  room, Sponza, Sibenik) it errs by 0.15%, 0.06%, 0.11% of the touching pairs'
-  total with about half the contour integrals of kernel.py's rules per triangle
-  pair (0.10%, 0.05%, 0.12%; benchmarks/README.md, "The touching rule");
+  room, Sponza, Sibenik) it errs by 0.16%, 0.07%, 0.13% of the touching pairs'
+  total with 0.44, 0.46, 0.40 times the contour integrals of kernel.py's rules per
+  triangle pair (0.10%, 0.05%, 0.12%; benchmarks/README.md, "The touching rule");
 - *near*, otherwise: up to 32 weighted quadrature points spread over each patch's
   triangles (a triangle gets the centroids of an m x m split, m ~ sqrt(16
   A_t / A_P), or, for patches of more than 16 triangles, 16 triangles are
@@ -103,11 +103,12 @@ EXACT_NEAR = 0.7
 #: which costs several times the kernel time there for a gain below the other rules' error.
 CLUSTER_TOLERANCE = 3e-2
 
-#: The touching rule's (q3_from, gap, slack, families) (see :func:`_touching_area_ff`): the 3-point
-#: rule for triangle pairs from 1 (D_t + D_u) apart, the 6-point rule for those surely apart (gap 0),
-#: a tenth of the patch pair's tolerance shared among its contact triangle pairs, and splits settled
-#: as families (1: on). Chosen on the conference room, Sponza and Sibenik (benchmarks/README.md).
-TOUCHING_RULES = (1.0, 0.0, 0.1, 1.0)
+#: The touching rule's (c1_from, q3_from, gap, slack, families) (see :func:`_touching_area_ff`): the
+#: centroid of the point side for triangle pairs from 2 (D_t + D_u) apart, the 3-point rule from 1,
+#: the 6-point rule for those surely apart (gap 0), a tenth of the patch pair's tolerance shared
+#: among its contact triangle pairs, and splits settled as families (1: on). Chosen on the
+#: conference room, Sponza and Sibenik (benchmarks/README.md, "The touching rule").
+TOUCHING_RULES = (2.0, 1.0, 0.0, 0.1, 1.0)
 
 #: Most triangles of a patch that eq. (3) sums over (the largest; see the module docstring).
 KERNEL_TRIANGLES = 256
@@ -138,7 +139,7 @@ class ClusterGeometry:
     ``memo`` (default True): keep A_P F_PQ of the pairs closer than FAR / 2 (D_P + D_Q) once
     computed (``memo_start``, ``memo_cols``, ``memo_values``, :func:`memo_table`; see the
     module docstring); False computes every pair each time it is asked for (the same numbers).
-    ``touching_rules``: the touching rule's (q3_from, gap, slack, families), default
+    ``touching_rules``: the touching rule's (c1_from, q3_from, gap, slack, families), default
     :data:`TOUCHING_RULES` (for measurements of other choices, as in benchmarks/bench_touching.py).
     """
 
@@ -402,10 +403,11 @@ def _points_area_ff(xi, yi, zi, Si, xj, yj, zj, Sj):
 def _touching_area_ff(i, j, T, N, A, C, D, start, eps, tol, rules, count):
     """A_i F_ij of touching clusters: eq. (2) of kernel.py over every triangle pair, in canonical order.
 
-    ``rules`` = (q3_from, gap, slack, families) (:data:`TOUCHING_RULES`). Triangle pairs at least kernel.py's
-    NEAR (D_t + D_u) apart take its centroid rules; back-to-back pairs give 0; the others put their
-    points on p (kernel.py's choice) and take, by their centroid distance d:
+    ``rules`` = (c1_from, q3_from, gap, slack, families) (:data:`TOUCHING_RULES`). Triangle pairs
+    at least kernel.py's NEAR (D_t + D_u) apart take its centroid rules; back-to-back pairs give 0;
+    the others put their points on p (kernel.py's choice) and take, by their centroid distance d:
 
+    - d >= c1_from (D_t + D_u): p's centroid, A_p F_{c_p -> q} (one evaluation of eq. (1));
     - d >= q3_from (D_t + D_u): the 3-point rule (degree 2);
     - apart, d - 2/3 (D_t + D_u) > gap (D_t + D_u) (every point of a triangle is within 2/3 of its
       diameter from its centroid, so the two are at least that far apart and eq. (1) is smooth
@@ -420,10 +422,11 @@ def _touching_area_ff(i, j, T, N, A, C, D, start, eps, tol, rules, count):
     ``count[0]`` (when ``count`` is not empty) gains the evaluations of eq. (1) (those of the
     centroid rules beyond NEAR, at most 2 a triangle pair, not counted).
     """
-    q3_from = rules[0]
-    gap_min = rules[1]
-    slack = rules[2]
-    families = rules[3] != 0.0
+    c1_from = rules[0]
+    q3_from = rules[1]
+    gap_min = rules[2]
+    slack = rules[3]
+    families = rules[4] != 0.0
     a = min(i, j)  # canonical order: the same sum for (i, j) and (j, i), reciprocity to the bit
     b = max(i, j)
     m = (start[a + 1] - start[a]) * (start[b + 1] - start[b])
@@ -450,6 +453,11 @@ def _touching_area_ff(i, j, T, N, A, C, D, start, eps, tol, rules, count):
             x0, y0, z0 = T[p, 0, 0], T[p, 0, 1], T[p, 0, 2]
             x1, y1, z1 = T[p, 1, 0], T[p, 1, 1], T[p, 1, 2]
             x2, y2, z2 = T[p, 2, 0], T[p, 2, 1], T[p, 2, 2]
+            if d2 >= c1_from * c1_from * s * s:
+                total += A[p] * _point_to_patch(C[p, 0], C[p, 1], C[p, 2], N[p, 0], N[p, 1], N[p, 2], T, N, q, eps)
+                if counting:
+                    count[0] += 1
+                continue
             if d2 >= q3_from * q3_from * s * s:
                 total += _rules(x0, y0, z0, x1, y1, z1, x2, y2, z2, N[p, 0], N[p, 1], N[p, 2], T, N, q, eps,
                                 3, 2)[1]
@@ -497,8 +505,9 @@ def touching_pairs(geom: "ClusterGeometry", i: np.ndarray, j: np.ndarray, *, rul
     ----------
     geom : ClusterGeometry
     i, j : (m,) int, patch pairs
-    rules : (4,) float, optional
-        (q3_from, gap, slack, families) of :func:`_touching_area_ff`; default ``geom.touching_rules``.
+    rules : (5,) float, optional
+        (c1_from, q3_from, gap, slack, families) of :func:`_touching_area_ff`; default
+        ``geom.touching_rules``.
     count : bool
         Also return the evaluations of eq. (1) of each pair.
 
