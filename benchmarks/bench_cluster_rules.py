@@ -51,11 +51,11 @@ RULES = ("far", "quadrants", "middle", "near", "touching")
 
 @njit
 def _pairs(T, N, start, K, A, S, C, D, M, MN, MS, MW, Q, QN, W, pi, pj, far, near, eps, TA, TC, TD,
-           TI, tol, exact, exact_near, far2):
+           TR, tol, exact, exact_near, far2):
     total = 0.0
     for k in range(pi.shape[0]):
         total += cl._cluster_pair_area_ff(pi[k], pj[k], T, N, start, K, A, S, C, D, M, MN, MS, MW, Q, QN, W, far,
-                                          near, eps, TA, TC, TD, TI, tol, exact, exact_near, far2)
+                                          near, eps, TA, TC, TD, TR, tol, exact, exact_near, far2)
     return total
 
 
@@ -65,7 +65,7 @@ def pairs_seconds(g: cl.ClusterGeometry, pi: np.ndarray, pj: np.ndarray) -> floa
         return _pairs(g.triangles, g.tri_normals, g.start, g.scale_kept, g.areas, g.area_vectors, g.centroids,
                       g.diameters, g.mid_points, g.mid_normals, g.mid_vectors, g.mid_weights, g.points,
                       g.point_normals, g.weights, a, b, g.far, g.near, g.eps, g.tri_areas, g.tri_centroids,
-                      g.tri_diameters, g.tri_index, g.tolerance, g.exact_pairs, g.exact_near, g.point_far ** 2)
+                      g.tri_diameters, g.touching_rules, g.tolerance, g.exact_pairs, g.exact_near, g.point_far ** 2)
     run(pi[:1], pj[:1])
     best = np.inf
     for _ in range(2):

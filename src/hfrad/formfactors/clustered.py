@@ -25,12 +25,19 @@ eq. 2), with a rule chosen by the centroid distance d:
   centroids (with their mean normals; a one-triangle patch: its centroid
   alone), at most 4 (|P| + |Q|) contour integrals;
 - *touching*, d < EXACT_NEAR (D_P + D_Q) and |P| |Q| <= EXACT_PAIRS:
-  kernel.py's rules summed over every triangle pair (eq. 2 there: centroid,
-  degree-4 and adaptive rules, the adaptive one to CLUSTER_TOLERANCE), as
-  for unclustered patches. Touching clusters are where the 32-point rule
+  eq. (2) of kernel.py summed over every triangle pair (:func:`_touching_area_ff`):
+  kernel.py's centroid rules beyond its NEAR, otherwise by the pair's centroid
+  distance one point (from 2 (D_t + D_u)), the 3-point rule (from 1), Dunavant's 6-point rule (pairs
+  surely apart), or, for pairs in contact, both and kernel.py's 4-split
+  refinement to CLUSTER_TOLERANCE, with a tenth of the patch pair's tolerance
+  shared among those pairs and a split settled as a family when its children's
+  sum agrees with the parent. Touching clusters are where the 32-point rule
   below errs most (its points miss the integrand's peak along the shared
-  edge); the exact sum costs |P| |Q| pairs of kernel.py's work, hence the
-  EXACT_PAIRS cap;
+  edge); the sum costs |P| |Q| triangle pairs, hence the EXACT_PAIRS cap.
+  Against the adaptive rule at 1e-5 on every triangle pair (3K patches; conference
+  room, Sponza, Sibenik) it errs by 0.16%, 0.07%, 0.13% of the touching pairs'
+  total with 0.44, 0.46, 0.40 times the contour integrals of kernel.py's rules per
+  triangle pair (0.10%, 0.05%, 0.12%; benchmarks/README.md, "The touching rule");
 - *near*, otherwise: up to 32 weighted quadrature points spread over each patch's
   triangles (a triangle gets the centroids of an m x m split, m ~ sqrt(16
   A_t / A_P), or, for patches of more than 16 triangles, 16 triangles are
@@ -75,8 +82,8 @@ import numpy as np
 from numba import njit, prange
 
 from ..scene.cluster import patch_diameters
-from .kernel import (ADAPTIVE, NEAR as KERNEL_NEAR, PatchGeometry, _pair_area_ff, _point_to_patch,
-                     row_chunks, split_centroids, unoccluded_block)
+from .kernel import (ADAPTIVE, FLOOR, NEAR as KERNEL_NEAR, PatchGeometry, _behind, _point_side, _point_to_patch,
+                     _refine, _rules, _triangle_pair_area_ff, row_chunks, split_centroids, unoccluded_block)
 
 #: Clustered pairs farther than FAR * (D_P + D_Q) are treated as two points.
 FAR = 3.0
@@ -95,6 +102,13 @@ EXACT_NEAR = 0.7
 #: Relative tolerance of kernel.py's adaptive rule on those pairs: looser than kernel.py's 1e-3,
 #: which costs several times the kernel time there for a gain below the other rules' error.
 CLUSTER_TOLERANCE = 3e-2
+
+#: The touching rule's (c1_from, q3_from, gap, slack, families) (see :func:`_touching_area_ff`): the
+#: centroid of the point side for triangle pairs from 2 (D_t + D_u) apart, the 3-point rule from 1,
+#: the 6-point rule for those surely apart (gap 0), a tenth of the patch pair's tolerance shared
+#: among its contact triangle pairs, and splits settled as families (1: on). Chosen on the
+#: conference room, Sponza and Sibenik (benchmarks/README.md, "The touching rule").
+TOUCHING_RULES = (2.0, 1.0, 0.0, 0.1, 1.0)
 
 #: Most triangles of a patch that eq. (3) sums over (the largest; see the module docstring).
 KERNEL_TRIANGLES = 256
@@ -125,13 +139,15 @@ class ClusterGeometry:
     ``memo`` (default True): keep A_P F_PQ of the pairs closer than FAR / 2 (D_P + D_Q) once
     computed (``memo_start``, ``memo_cols``, ``memo_values``, :func:`memo_table`; see the
     module docstring); False computes every pair each time it is asked for (the same numbers).
+    ``touching_rules``: the touching rule's (c1_from, q3_from, gap, slack, families), default
+    :data:`TOUCHING_RULES` (for measurements of other choices, as in benchmarks/bench_touching.py).
     """
 
     clustered = True
 
     def __init__(self, scene, *, far: float = FAR, near: float = NEAR, tolerance: float = CLUSTER_TOLERANCE,
                  exact_pairs: int = EXACT_PAIRS, exact_near: float = EXACT_NEAR,
-                 point_far: float = POINT_FAR, memo: bool = True) -> None:
+                 point_far: float = POINT_FAR, memo: bool = True, touching_rules=None) -> None:
         start, index = scene.patch_triangles
         self.centre = 0.5 * (scene.bounds[0] + scene.bounds[1]) if scene.n_triangles else np.zeros(3)
         tri = np.ascontiguousarray(scene.triangles[index] - self.centre)
@@ -163,7 +179,7 @@ class ClusterGeometry:
         edges = self.triangles - np.roll(self.triangles, 1, axis=1)
         self.tri_diameters = np.ascontiguousarray(np.linalg.norm(edges, axis=2).max(axis=1) if len(edges)
                                                   else np.zeros(0))
-        self.tri_index = np.arange(len(self.triangles), dtype=np.int64)
+        self.touching_rules = np.array(TOUCHING_RULES if touching_rules is None else touching_rules, np.float64)
         self.tolerance = float(tolerance)
         self.exact_pairs = int(exact_pairs)
         self.exact_near = float(exact_near)
@@ -383,9 +399,136 @@ def _points_area_ff(xi, yi, zi, Si, xj, yj, zj, Sj):
     return ci * cj * _INV_PI / (d2 * d2)
 
 
+@njit(cache=True, fastmath=False)
+def _touching_area_ff(i, j, T, N, A, C, D, start, eps, tol, rules, count):
+    """A_i F_ij of touching clusters: eq. (2) of kernel.py over every triangle pair, in canonical order.
+
+    ``rules`` = (c1_from, q3_from, gap, slack, families) (:data:`TOUCHING_RULES`). Triangle pairs
+    at least kernel.py's NEAR (D_t + D_u) apart take its centroid rules; back-to-back pairs give 0;
+    the others put their points on p (kernel.py's choice) and take, by their centroid distance d:
+
+    - d >= c1_from (D_t + D_u): p's centroid, A_p F_{c_p -> q} (one evaluation of eq. (1));
+    - d >= q3_from (D_t + D_u): the 3-point rule (degree 2);
+    - apart, d - 2/3 (D_t + D_u) > gap (D_t + D_u) (every point of a triangle is within 2/3 of its
+      diameter from its centroid, so the two are at least that far apart and eq. (1) is smooth
+      over p): Dunavant's 6-point rule (degree 4);
+    - else (sharing an edge or a corner, or close to): both rules, then kernel.py's 4-split
+      refinement where they differ by more than max(tol max(|Q6|, FLOOR A_p), slack S / k), S
+      the patch pair's estimate from these first rules and k the number of such triangle pairs:
+      a triangle pair holding a small part of A_i F_ij shares the pair's budget instead of
+      refining to its own tolerance; with ``families`` non-zero, a split is settled at once when
+      its four children's Q6 sum agrees with its own Q6 (kernel.py's ``_refine``).
+
+    ``count[0]`` (when ``count`` is not empty) gains the evaluations of eq. (1) (those of the
+    centroid rules beyond NEAR, at most 2 a triangle pair, not counted).
+    """
+    c1_from = rules[0]
+    q3_from = rules[1]
+    gap_min = rules[2]
+    slack = rules[3]
+    families = rules[4] != 0.0
+    a = min(i, j)  # canonical order: the same sum for (i, j) and (j, i), reciprocity to the bit
+    b = max(i, j)
+    m = (start[a + 1] - start[a]) * (start[b + 1] - start[b])
+    P = np.empty(m, np.int64)     # the contact pairs: points on P, eq. (1) over Q, their first rules
+    Q = np.empty(m, np.int64)
+    q6s = np.empty(m)
+    q3s = np.empty(m)
+    counting = count.shape[0] > 0
+    total = 0.0
+    k = 0
+    for t in range(start[a], start[a + 1]):
+        for u in range(start[b], start[b + 1]):
+            dx = C[t, 0] - C[u, 0]
+            dy = C[t, 1] - C[u, 1]
+            dz = C[t, 2] - C[u, 2]
+            d2 = dx * dx + dy * dy + dz * dz
+            s = D[t] + D[u]
+            if d2 >= KERNEL_NEAR * KERNEL_NEAR * s * s:
+                total += _triangle_pair_area_ff(t, u, T, N, A, C, D, KERNEL_NEAR, ADAPTIVE, eps, tol)
+                continue
+            if A[t] <= 0.0 or A[u] <= 0.0 or _behind(t, u, T, N, eps) or _behind(u, t, T, N, eps):
+                continue
+            p, q = _point_side(t, u, T, N, A, eps, False)
+            x0, y0, z0 = T[p, 0, 0], T[p, 0, 1], T[p, 0, 2]
+            x1, y1, z1 = T[p, 1, 0], T[p, 1, 1], T[p, 1, 2]
+            x2, y2, z2 = T[p, 2, 0], T[p, 2, 1], T[p, 2, 2]
+            if d2 >= c1_from * c1_from * s * s:
+                total += A[p] * _point_to_patch(C[p, 0], C[p, 1], C[p, 2], N[p, 0], N[p, 1], N[p, 2], T, N, q, eps)
+                if counting:
+                    count[0] += 1
+                continue
+            if d2 >= q3_from * q3_from * s * s:
+                total += _rules(x0, y0, z0, x1, y1, z1, x2, y2, z2, N[p, 0], N[p, 1], N[p, 2], T, N, q, eps,
+                                3, 2)[1]
+                if counting:
+                    count[0] += 3
+                continue
+            if math.sqrt(d2) - (2.0 / 3.0) * s > gap_min * s:
+                total += _rules(x0, y0, z0, x1, y1, z1, x2, y2, z2, N[p, 0], N[p, 1], N[p, 2], T, N, q, eps,
+                                2)[0]
+                if counting:
+                    count[0] += 6
+                continue
+            q6, q3 = _rules(x0, y0, z0, x1, y1, z1, x2, y2, z2, N[p, 0], N[p, 1], N[p, 2], T, N, q, eps)
+            if counting:
+                count[0] += 9
+            P[k] = p
+            Q[k] = q
+            q6s[k] = q6
+            q3s[k] = q3
+            k += 1
+            total += q6
+    share = slack * total / max(k, 1)
+    for r in range(k):
+        budget = max(tol * max(abs(q6s[r]), FLOOR * A[P[r]]), share)
+        if abs(q6s[r] - q3s[r]) > budget:   # refine: the 4-split's sum replaces the first Q6
+            total += _refine(P[r], Q[r], T, N, eps, q6s[r], q3s[r], budget, count, families) - q6s[r]
+    return total
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def _touching_pairs(I, J, T, N, A, C, D, start, eps, tol, rules, out, counts):
+    """out[k] (and counts[k], when ``counts`` is not empty) of :func:`_touching_area_ff` for (I[k], J[k])."""
+    for k in prange(I.shape[0]):
+        c = np.zeros(1 if counts.shape[0] else 0, np.int64)
+        out[k] = _touching_area_ff(I[k], J[k], T, N, A, C, D, start, eps, tol, rules, c)
+        if counts.shape[0]:
+            counts[k] = c[0]
+
+
+def touching_pairs(geom: "ClusterGeometry", i: np.ndarray, j: np.ndarray, *, rules=None,
+                   count: bool = False):
+    """The touching rule's sum over every triangle pair of patches (i[k], j[k]), whatever their distance.
+
+    Parameters
+    ----------
+    geom : ClusterGeometry
+    i, j : (m,) int, patch pairs
+    rules : (5,) float, optional
+        (c1_from, q3_from, gap, slack, families) of :func:`_touching_area_ff`; default
+        ``geom.touching_rules``.
+    count : bool
+        Also return the evaluations of eq. (1) of each pair.
+
+    Returns
+    -------
+    (m,) float64, A_i F_ij in m^2 without visibility and without the KERNEL_TRIANGLES scaling;
+    with ``count``, also (m,) int64.
+    """
+    i = np.ascontiguousarray(i, np.int64)
+    j = np.ascontiguousarray(j, np.int64)
+    rules = geom.touching_rules if rules is None else np.ascontiguousarray(rules, np.float64)
+    out = np.empty(len(i))
+    counts = np.zeros(len(i) if count else 0, np.int64)
+    _touching_pairs(i, j, geom.triangles, geom.tri_normals, geom.tri_areas, geom.tri_centroids,
+                    geom.tri_diameters, geom.start, geom.eps, geom.tolerance, rules, out, counts)
+    return (out, counts) if count else out
+
+
 @njit(cache=True, fastmath=False, inline="always")
 def _cluster_pair_area_ff(i, j, T, N, start, K, A, S, C, D, M, MN, MS, MW, Q, QN, W, far, near, eps,
-                          TA, TC, TD, TI, tol, exact, exact_near, far2):
+                          TA, TC, TD, TR, tol, exact, exact_near, far2):
     """A_i F_ij (unoccluded) between two patches, symmetric in (i, j)."""
     if i == j or A[i] <= 0.0 or A[j] <= 0.0:
         return 0.0
@@ -414,7 +557,8 @@ def _cluster_pair_area_ff(i, j, T, N, start, K, A, S, C, D, M, MN, MS, MW, Q, QN
         return 0.5 * (A[i] * g_ij + A[j] * g_ji)
     if (start[i + 1] - start[i]) * (start[j + 1] - start[j]) <= exact and d2 < (exact_near * reach) ** 2:
         # few triangle pairs: kernel.py's per-pair rules, canonical order (reciprocity to the bit)
-        return K[i] * K[j] * _pair_area_ff(i, j, T, N, TA, TC, TD, start, TI, KERNEL_NEAR, ADAPTIVE, eps, tol)
+        return K[i] * K[j] * _touching_area_ff(i, j, T, N, TA, TC, TD, start, eps, tol, TR,
+                                               np.empty(0, np.int64))
     g_ij = K[j] * _points_to_cluster(Q, QN, W, i, T, N, TA, TC, TD, start[j], start[j + 1], eps, far2)
     g_ji = K[i] * _points_to_cluster(Q, QN, W, j, T, N, TA, TC, TD, start[i], start[i + 1], eps, far2)
     # the points of the smaller patch resolve the interaction (as in kernel.py)
@@ -425,7 +569,7 @@ def _cluster_pair_area_ff(i, j, T, N, start, K, A, S, C, D, M, MN, MS, MW, Q, QN
 
 @njit(parallel=True, cache=True, fastmath=False, nogil=True)
 def _clustered_block(T, N, start, K, A, S, C, D, M, MN, MS, MW, Q, QN, W, rows, cols, far, near, eps, TA, TC, TD,
-                     TI, tol, exact, exact_near, far2, MA, MC, MV, out, chunks):
+                     TR, tol, exact, exact_near, far2, MA, MC, MV, out, chunks):
     # rows dealt out in turn (row r to part r % chunks), not in contiguous runs: the costly near
     # pairs of a block sit in the rows next to its columns (Z-order), which a split into
     # contiguous runs gave to one thread (Sponza, 3,129 patches: 99% of a block's time on one core)
@@ -447,7 +591,7 @@ def _clustered_block(T, N, start, K, A, S, C, D, M, MN, MS, MW, Q, QN, W, rows, 
                     af = MV[slot]
                 else:
                     af = _cluster_pair_area_ff(i, j, T, N, start, K, A, S, C, D, M, MN, MS, MW, Q, QN, W, far,
-                                               near, eps, TA, TC, TD, TI, tol, exact, exact_near, far2)
+                                               near, eps, TA, TC, TD, TR, tol, exact, exact_near, far2)
                     if slot >= 0:
                         # two threads meeting (i, j) and (j, i) at once both store the same bits:
                         # an aligned 8-byte store, no torn value
@@ -464,7 +608,7 @@ def clustered_block(geom: ClusterGeometry, rows: np.ndarray, cols: np.ndarray) -
         _clustered_block(geom.triangles, geom.tri_normals, geom.start, geom.scale_kept, geom.areas, geom.area_vectors,
                          geom.centroids, geom.diameters, geom.mid_points, geom.mid_normals, geom.mid_vectors, geom.mid_weights,
                          geom.points, geom.point_normals, geom.weights, rows, cols, geom.far, geom.near,
-                         geom.eps, geom.tri_areas, geom.tri_centroids, geom.tri_diameters, geom.tri_index,
+                         geom.eps, geom.tri_areas, geom.tri_centroids, geom.tri_diameters, geom.touching_rules,
                          geom.tolerance, geom.exact_pairs, geom.exact_near, geom.point_far ** 2,
                          geom.memo_start, geom.memo_cols, geom.memo_values, out, row_chunks(len(rows)))
     return out

@@ -84,6 +84,8 @@ from numba import njit, prange
 from ..errors import InputError
 
 #: Bumped whenever the numbers produced by this module change (cache keys use it).
+#: 11: clustered touching pairs (clustered.py, ``_touching_area_ff``): the 3-point and 6-point
+#: rules by distance, a budget shared per patch pair, and families of sub-triangles settled at once.
 #: 10: visibility's second round picks its segments by kernel weight (visibility.IMPORTANCE).
 #: 9: clustered patches (clustered.py): triangles at least POINT_FAR diameters from a quadrature
 #: point take the disk-corrected point rule in eq. (3) there.
@@ -91,7 +93,7 @@ from ..errors import InputError
 #: 7: far pairs where one triangle straddles the other's plane integrate from the other's centroid;
 #: kernel-weighted rays, 16 for the flagged pairs and 64 / 256 in the second round (visibility.py).
 #: 6: probe rays first (probing.py); 5: point-to-point rule beyond FAR; 4: visibility's second round.
-KERNEL_VERSION = 10
+KERNEL_VERSION = 11
 
 #: Triangle pairs closer than NEAR * (D_t + D_u) (centroid distance) leave the centroid rule.
 NEAR = 3.0
@@ -315,7 +317,7 @@ _RULE_W = (0.223381589678011, 0.109951743655322)
 
 
 @njit(cache=True, fastmath=False)
-def _rules(x0, y0, z0, x1, y1, z1, x2, y2, z2, nx, ny, nz, T, N, u, eps, groups=3):
+def _rules(x0, y0, z0, x1, y1, z1, x2, y2, z2, nx, ny, nz, T, N, u, eps, groups=3, first=0):
     """area(S) x quadratures of F_{dx->u} over the triangle S with corners (x_k, y_k, z_k).
 
     Returns (Q6, Q3): Dunavant's 6-point rule (exact to degree 4) and the
@@ -324,6 +326,8 @@ def _rules(x0, y0, z0, x1, y1, z1, x2, y2, z2, nx, ny, nz, T, N, u, eps, groups=
     ``groups`` = 2: Q6 alone (the same number), Q3 returned as 0: the middle
     distance's one degree-4 rule, which used to evaluate and discard Q3's three
     points (a third of its work; clustered Sponza's touching pairs: ~38 such triangle pairs each).
+    ``first`` = 2 (with ``groups`` = 3): Q3 alone, Q6 returned as 0 (the clustered touching
+    rule's triangle pairs at least 1 (D_t + D_u) apart).
     Corners come as scalars: the adaptive path calls this once per sub-triangle,
     and small arrays there cost a heap allocation each.
     """
@@ -335,7 +339,7 @@ def _rules(x0, y0, z0, x1, y1, z1, x2, y2, z2, nx, ny, nz, T, N, u, eps, groups=
     area = 0.5 * math.sqrt(cx * cx + cy * cy + cz * cz)
     q6 = 0.0
     q3 = 0.0
-    for g in range(groups):
+    for g in range(first, groups):
         a = _RULE_A[2 * g]  # two corners get weight a, the third b = 1 - 2a
         b = _RULE_A[2 * g + 1]
         acc = 0.0
@@ -357,41 +361,79 @@ def _rules(x0, y0, z0, x1, y1, z1, x2, y2, z2, nx, ny, nz, T, N, u, eps, groups=
 @njit(cache=True, fastmath=False)
 def _adaptive_area_ff(p, u, T, N, A, eps, tol):
     """A_p F_pu: adaptive 4-split of triangle p against the exact polygon integral over u."""
+    q6, q3 = _rules(T[p, 0, 0], T[p, 0, 1], T[p, 0, 2], T[p, 1, 0], T[p, 1, 1], T[p, 1, 2],
+                    T[p, 2, 0], T[p, 2, 1], T[p, 2, 2], N[p, 0], N[p, 1], N[p, 2], T, N, u, eps)
+    # tolerance x max(|A_p F_pu|, FLOOR A_p), from the first estimate
+    # (an empty counter: counts nothing; cheaper than the stack the old loop allocated for every pair)
+    return _refine(p, u, T, N, eps, q6, q3, tol * max(abs(q6), FLOOR * A[p]), np.empty(0, np.int64))
+
+
+@njit(cache=True, fastmath=False)
+def _refine(p, u, T, N, eps, q6, q3, budget, count, families=False):
+    """A_p F_pu from the whole triangle p's two rules (q6, q3): q6 if they agree within ``budget``,
+    else the sum over p's 4-split, each sub-triangle (area 4^-level of p's) accepted with its
+    Q6 when its rules agree within its area's share of ``budget``, split again otherwise
+    (MAX_DEPTH levels at most). ``count[0]`` (when given) gains the evaluations of eq. (1).
+
+    ``families``: a sub-triangle that splits is also replaced by its four children's Q6 at once
+    when their sum agrees with its own Q6 within its share of the budget. Q6's own error is far
+    below |Q6 - Q3| (Q3's error), so the difference between a Q6 and the sum of its children's
+    is the sharper estimate; without it, a child whose two rules differ splits again although
+    the family as a whole is settled. (Off: the same numbers as the split alone.)
+    """
+    if abs(q6 - q3) <= budget or MAX_DEPTH <= 1:
+        return q6
     nx, ny, nz = N[p, 0], N[p, 1], N[p, 2]
-    size = 3 * MAX_DEPTH + 8  # depth-first stack of sub-triangles (9 coordinates) and their depths
-    stack = np.empty((size, 9))
+    size = 3 * MAX_DEPTH + 8  # depth-first stack of sub-triangles: 9 coordinates, Q6, Q3; their depths
+    stack = np.empty((size, 11))
     depth = np.empty(size, np.int64)
-    for k in range(3):
-        for d in range(3):
-            stack[0, 3 * k + d] = T[p, k, d]
+    _put(stack[0], T[p, 0, 0], T[p, 0, 1], T[p, 0, 2], T[p, 1, 0], T[p, 1, 1], T[p, 1, 2],
+         T[p, 2, 0], T[p, 2, 1], T[p, 2, 2])
+    stack[0, 9] = q6
+    stack[0, 10] = q3
     depth[0] = 0
     top = 1
-    budget = -1.0  # tolerance x max(|A_p F_pu|, FLOOR A_p), set from the first estimate
     total = 0.0
     while top > 0:
         top -= 1
         lvl = depth[top]
         s = stack[top]
         x0, y0, z0, x1, y1, z1, x2, y2, z2 = s[0], s[1], s[2], s[3], s[4], s[5], s[6], s[7], s[8]
-        q6, q3 = _rules(x0, y0, z0, x1, y1, z1, x2, y2, z2, nx, ny, nz, T, N, u, eps)
-        if budget < 0.0:
-            budget = tol * max(abs(q6), FLOOR * A[p])
+        q6 = s[9]
+        share = budget * 0.25 ** lvl
         # accept when the two rules agree within this sub-triangle's share (area 4^-lvl) of the budget
-        if abs(q6 - q3) <= budget * 0.25 ** lvl or lvl + 1 >= MAX_DEPTH:
+        if lvl > 0 and (abs(q6 - s[10]) <= share or lvl + 1 >= MAX_DEPTH):
             total += q6
             continue
-        # the four midpoint children: (c0, m01, m20), (m01, c1, m12), (m20, m12, c2), (m12, m20, m01)
-        ax, ay, az = 0.5 * (x0 + x1), 0.5 * (y0 + y1), 0.5 * (z0 + z1)    # m01
-        bx, by, bz = 0.5 * (x1 + x2), 0.5 * (y1 + y2), 0.5 * (z1 + z2)    # m12
-        cx, cy, cz = 0.5 * (x2 + x0), 0.5 * (y2 + y0), 0.5 * (z2 + z0)    # m20
-        _put(stack[top], x0, y0, z0, ax, ay, az, cx, cy, cz)
-        _put(stack[top + 1], ax, ay, az, x1, y1, z1, bx, by, bz)
-        _put(stack[top + 2], cx, cy, cz, bx, by, bz, x2, y2, z2)
-        _put(stack[top + 3], bx, by, bz, cx, cy, cz, ax, ay, az)
-        for k in range(4):
-            depth[top + k] = lvl + 1
+        _split(stack, depth, top, lvl, x0, y0, z0, x1, y1, z1, x2, y2, z2)
+        children = 0.0
+        for k in range(top, top + 4):
+            c = stack[k]
+            stack[k, 9], stack[k, 10] = _rules(c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7], c[8],
+                                               nx, ny, nz, T, N, u, eps)
+            children += stack[k, 9]
+        if count.shape[0] > 0:
+            count[0] += 36
+        if families and abs(children - q6) <= share:
+            total += children
+            continue
         top += 4
     return total
+
+
+@njit(cache=True, fastmath=False, inline="always")
+def _split(stack, depth, top, lvl, x0, y0, z0, x1, y1, z1, x2, y2, z2):
+    """Push the four midpoint children of a level-``lvl`` sub-triangle onto the stack at ``top``:
+    (c0, m01, m20), (m01, c1, m12), (m20, m12, c2), (m12, m20, m01)."""
+    ax, ay, az = 0.5 * (x0 + x1), 0.5 * (y0 + y1), 0.5 * (z0 + z1)    # m01
+    bx, by, bz = 0.5 * (x1 + x2), 0.5 * (y1 + y2), 0.5 * (z1 + z2)    # m12
+    cx, cy, cz = 0.5 * (x2 + x0), 0.5 * (y2 + y0), 0.5 * (z2 + z0)    # m20
+    _put(stack[top], x0, y0, z0, ax, ay, az, cx, cy, cz)
+    _put(stack[top + 1], ax, ay, az, x1, y1, z1, bx, by, bz)
+    _put(stack[top + 2], cx, cy, cz, bx, by, bz, x2, y2, z2)
+    _put(stack[top + 3], bx, by, bz, cx, cy, cz, ax, ay, az)
+    for k in range(4):
+        depth[top + k] = lvl + 1
 
 
 @njit(cache=True, fastmath=False, inline="always")
@@ -487,19 +529,26 @@ def _triangle_pair_area_ff(t, u, T, N, A, C, D, near, adaptive, eps, tol):
         g_tu = _point_to_patch(C[t, 0], C[t, 1], C[t, 2], N[t, 0], N[t, 1], N[t, 2], T, N, u, eps)
         g_ut = _point_to_patch(C[u, 0], C[u, 1], C[u, 2], N[u, 0], N[u, 1], N[u, 2], T, N, t, eps)
         return 0.5 * (A[t] * g_tu + A[u] * g_ut)
-    # points on the smaller triangle (ties: the lower index), but never on a triangle that
-    # straddles the other's plane when the other does not (its quadrature points could all
-    # fall behind and miss the part in front): a choice symmetric in (t, u)
+    p, q = _point_side(t, u, T, N, A, eps, straddle)
+    if d2 >= adaptive * adaptive * s2:  # middle distance (or both straddle): one degree-4 rule
+        return _rules(T[p, 0, 0], T[p, 0, 1], T[p, 0, 2], T[p, 1, 0], T[p, 1, 1], T[p, 1, 2],
+                      T[p, 2, 0], T[p, 2, 1], T[p, 2, 2], N[p, 0], N[p, 1], N[p, 2], T, N, q, eps, 2)[0]
+    return _adaptive_area_ff(p, q, T, N, A, eps, tol)
+
+
+@njit(cache=True, fastmath=False, inline="always")
+def _point_side(t, u, T, N, A, eps, straddle):
+    """(p, q): the quadrature points go on p, eq. (1) integrates over q. The smaller triangle
+    (ties: the lower index), but never one that straddles the other's plane when the other
+    does not (its quadrature points could all fall behind and miss the part in front; not
+    checked when ``straddle``, both do): a choice symmetric in (t, u)."""
     p, q = (t, u) if (A[t] < A[u] or (A[t] == A[u] and t < u)) else (u, t)
     if not straddle:
         back_t = _sides(t, u, T, N, eps)[1]
         back_u = _sides(u, t, T, N, eps)[1]
         if back_t != back_u:
             p, q = (u, t) if back_t else (t, u)
-    if d2 >= adaptive * adaptive * s2:  # middle distance (or both straddle): one degree-4 rule
-        return _rules(T[p, 0, 0], T[p, 0, 1], T[p, 0, 2], T[p, 1, 0], T[p, 1, 1], T[p, 1, 2],
-                      T[p, 2, 0], T[p, 2, 1], T[p, 2, 2], N[p, 0], N[p, 1], N[p, 2], T, N, q, eps, 2)[0]
-    return _adaptive_area_ff(p, q, T, N, A, eps, tol)
+    return p, q
 
 
 @njit(cache=True, fastmath=False, inline="always")
