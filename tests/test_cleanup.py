@@ -196,3 +196,21 @@ def test_energy_warning_names_the_cause_left_after_cleaning():
     sums[3] = 1.2
     (message,) = energy_problems(clustered, sums)
     assert "curved cluster" in message and f"{clustered.non_flatness.max():.2f} from flat" in message
+
+
+def test_is_closed_counts_every_edge_twice():
+    """A mesh is closed when every edge has exactly two faces: a box and a sphere are, a cut box
+    (a hole), a box with a face repeated (an edge of three faces) or two coincident boxes are not;
+    two separate boxes are."""
+    import trimesh
+    from types import SimpleNamespace
+
+    from hfrad.formfactors.energy import is_closed
+
+    box = np.asarray(trimesh.creation.box().faces)
+    sphere = np.asarray(trimesh.creation.icosphere(2).faces)
+    cut = np.asarray(trimesh.creation.box().slice_plane([0, 0, 0], [0, 0, 1]).faces)
+    closed = [box, sphere, np.vstack([box, box + 8])]
+    open_ = [cut, np.vstack([box, box[:1]]), np.vstack([box, box]), np.zeros((0, 3), int)]
+    assert [is_closed(SimpleNamespace(occluder_faces=f)) for f in closed] == [True] * 3
+    assert [is_closed(SimpleNamespace(occluder_faces=f)) for f in open_] == [False] * 4
