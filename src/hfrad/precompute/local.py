@@ -98,16 +98,15 @@ def factorize_local(scene: Scene, plan: PrecomputePlan, backend: LocalBackend | 
     # the reciprocity tiles leave free what the rest of the run is estimated to need; those beyond
     # the memory band spill to a scratch file beside the output (its checkpoint), else in TMPDIR;
     # blocks are lent (no copy): _stream_blocks is done with each before it asks for the next
-    # (and the blocks worker processes may compute ahead of HF: AHEAD_SHARE)
-    blocks_left = (n_blocks - stream.blocks_done) * n * block_size * dt.itemsize
-    ahead = min(int(AHEAD_SHARE * available_bytes()), blocks_left) if backend.processes != 1 else 0
-    consumer = Consumer(reserved_bytes=precompute_bytes(n, block_size, itemsize=dt.itemsize) + ahead, lend=True)
+    consumer = Consumer(reserved_bytes=precompute_bytes(n, block_size, itemsize=dt.itemsize), lend=True)
     rows_rho = plan.rows_rho(scene)
     producer = engine = None
     if plan.far_field == "sampled":
         producer = _sampled_far_field(scene, plan, stats, ff_kwargs)
         blocks = sampled_column_blocks(producer, dt, first_block=stream.blocks_done)
     else:
+        blocks_left = (n_blocks - stream.blocks_done) * n * block_size * dt.itemsize
+        ahead = min(int(AHEAD_SHARE * available_bytes()), blocks_left)
         engine = make_engine(scene, processes=backend.processes, block_size=block_size, dtype=dt,
                              ahead_bytes=ahead, **ff_kwargs)
         blocks = iter_column_blocks(scene, block_size, order=perm, first_block=stream.blocks_done,
