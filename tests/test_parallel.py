@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import time
 
 import numpy as np
 import pytest
@@ -60,34 +59,6 @@ def test_process_engine_counts_rays_and_pairs(scene):
     assert np.shares_memory(first, second)       # the first is gone once the next is asked for
     lent.close()
     np.testing.assert_array_equal(second, blocks[1])   # still readable after the pass ended
-
-
-def test_workers_run_ahead_of_a_slow_caller_and_then_say_they_are_idle(scene):
-    """With ahead_bytes the workers fill more slots than they need to stay busy (a caller slower than
-    them, HF at a high rank, finds the pass done early), say when they wait, and give the same blocks."""
-    order = zorder_permutation(scene.centroids)
-    cols = [order[a:a + 64] for a in range(0, 640, 64)]            # 10 blocks
-    plain = make_engine(scene, processes=2, block_size=64)
-    expected = list(plain.iter_blocks(order, cols))
-    engine = make_engine(scene, processes=2, block_size=64, ahead_bytes=10 * scene.n_patches * 64 * 8)
-    assert not engine.busy()                                        # no pass yet
-    stream = engine.iter_blocks(order, cols)
-    got = [next(stream)]
-    assert len(engine._pending) == 9                                # every other block handed out at once
-    deadline = time.monotonic() + 120
-    while engine.busy() and time.monotonic() < deadline:            # the caller is slow: the workers finish
-        time.sleep(0.05)
-    assert not engine.busy()
-    assert all(fut.done() for _, _, fut in engine._pending)
-    got += list(stream)
-    assert not engine._pending and not engine.busy()
-    for a, b in zip(got, expected, strict=True):
-        np.testing.assert_array_equal(a, b)
-    # without ahead_bytes: workers + 1 blocks handed out (one of them now taken), as before
-    stream = plain.iter_blocks(order, cols)
-    next(stream)
-    assert len(plain._pending) == 2
-    stream.close()
 
 
 def test_one_ray_rule_stays_within_its_share(scene):

@@ -126,9 +126,7 @@ def factorize(scene: Scene, eps: float = 0.02, *, relative: bool = True, dtype="
     ``40 n b + (2 n k + 3 k^2) s + 4 n k s`` bytes (five float64 column
     blocks, the factors, a merge: :func:`hfrad.memory.precompute_bytes`), plus
     the reciprocity tiles (at most ``n^2 s / 4``:
-    :func:`hfrad.formfactors.mirror.mirror_bytes`), up to a tenth of the available
-    memory of blocks computed ahead by worker processes (``AHEAD_SHARE`` in
-    :mod:`hfrad.precompute.local`) and, with the near field of
+    :func:`hfrad.formfactors.mirror.mirror_bytes`) and, with the near field of
     c entries a row, O(n c). Time: for a scene, dominated by the form factors. docs/method.md
     explains the method; Aguerre & Fernández 2016.
 

@@ -54,9 +54,7 @@ def register(app: typer.Typer) -> None:
         space; with less room, blocks compute the rows that do not fit and a warning
         gives the share of pairs copied. The file is unlinked as soon as it is
         created (nothing is left after an error or Ctrl-C); damaged tiles are
-        detected by checksum and recomputed. Form-factor worker processes (from
-        4,000 patches) may hold up to a tenth of the available memory in column
-        blocks (n b s bytes each) computed ahead of HF. With the near field (by default from 20,000 (0.02 / eps)^1.5 patches, c = 120 entries a row, up to 400 on clustered meshes of 20,000 patches; c entries a
+        detected by checksum and recomputed. With the near field (by default from 20,000 (0.02 / eps)^1.5 patches, c = 120 entries a row, up to 400 on clustered meshes of 20,000 patches; c entries a
         row): about 40 n c bytes while N is collected, one n x k Z per distinct
         colour channel (n k s each) and, during the set-up, one channel's sparse
         LU (about 9 times N's entries).

@@ -336,14 +336,11 @@ def _mirror_report(m: ReciprocityMirror) -> dict:
 
 
 def make_engine(scene, *, samples: int = DEFAULT_SAMPLES, processes: int | None = 1,
-                ray_budget: RayBudget | None = None, block_size: int = DEFAULT_BLOCK_SIZE, dtype=np.float64,
-                ahead_bytes: int = 0):
+                ray_budget: RayBudget | None = None, block_size: int = DEFAULT_BLOCK_SIZE, dtype=np.float64):
     """A FormFactorEngine (this process), or a ProcessEngine when ``processes`` > 1.
 
     ``processes=None`` picks one per core for scenes of at least
-    ``MIN_PARALLEL_PATCHES`` patches and this process otherwise. ``ahead_bytes``:
-    memory the worker processes may fill with blocks not asked for yet
-    (:class:`~hfrad.formfactors.parallel.ProcessEngine`).
+    ``MIN_PARALLEL_PATCHES`` patches and this process otherwise.
     """
     if processes is None:
         processes = cores() if scene.n_patches >= MIN_PARALLEL_PATCHES else 1
@@ -351,7 +348,7 @@ def make_engine(scene, *, samples: int = DEFAULT_SAMPLES, processes: int | None 
         raise InputError(f"processes must be a positive integer (or None for one per core), got {processes}")
     if int(processes) > 1:
         return ProcessEngine(scene, workers=int(processes), samples=samples, ray_budget=ray_budget,
-                             block_size=block_size, dtype=dtype, ahead_bytes=ahead_bytes)
+                             block_size=block_size, dtype=dtype)
     return FormFactorEngine(scene, samples=samples, ray_budget=ray_budget)
 
 

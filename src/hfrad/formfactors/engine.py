@@ -83,13 +83,6 @@ class FormFactorEngine:
         self.pairs = 0
         self._executor = None
         self._tail_executor = None
-        self._passes = 0          # iter_blocks generators running
-
-    def busy(self) -> bool:
-        """Whether a pass of :meth:`iter_blocks` is running: its pipeline keeps at most one block
-        ahead of the caller, so it is taken to be computing until it ends (the interface of
-        :meth:`~hfrad.formfactors.parallel.ProcessEngine.busy`)."""
-        return self._passes > 0
 
     @property
     def rays(self) -> int:
@@ -125,13 +118,6 @@ class FormFactorEngine:
         its own and has the next block ready (one more n x b block in memory) while
         the caller works on this one; ``col_sets`` is then read from that thread.
         """
-        self._passes += 1
-        try:
-            yield from self._blocks(rows, col_sets, ahead)
-        finally:
-            self._passes -= 1
-
-    def _blocks(self, rows: np.ndarray, col_sets, ahead: bool) -> Iterator[np.ndarray]:
         if self.visibility is None:
             for item in col_sets:
                 cols, skip = block_request(item)

@@ -281,38 +281,16 @@ class ProcessEngine:
         Widest column block that will be asked for (sizes the shared slots).
     dtype : numpy dtype
         Of the blocks handed back (float32 halves the shared memory).
-    ahead_bytes : int
-        Shared memory the workers may fill with blocks the caller has not asked for
-        yet (at most half of the free space of ``/dev/shm``): a caller slower than the
-        workers (HF at a high rank) then finds the pass done early and the cores free.
-        Default 0: ``workers + 1`` blocks in flight, as many as keep the workers busy.
     """
 
     def __init__(self, scene, *, workers: int, samples: int = DEFAULT_SAMPLES, ray_budget: RayBudget | None = None,
-                 block_size: int = 256, dtype=np.float64, ahead_bytes: int = 0) -> None:
+                 block_size: int = 256, dtype=np.float64) -> None:
         self.scene, self.workers = scene, max(1, int(workers))
         self.samples, self.ray_budget = int(samples), ray_budget
         self.block_size, self.dtype = int(block_size), np.dtype(dtype)
-        self.ahead_bytes = max(0, int(ahead_bytes))
         self.kernel_seconds = self.embree_seconds = 0.0
         self.pairs = self.rays = 0
         self.worker_seconds = 0.0
-        self._pending: list = []   # (slot, width, future) of the blocks in flight, while iter_blocks runs
-
-    def busy(self) -> bool:
-        """Whether a worker is computing a block now (False once the blocks in flight are all done:
-        the workers then wait for the caller, or the pass has ended)."""
-        return any(not fut.done() for _, _, fut in self._pending)
-
-    def _slots(self, n: int) -> int:
-        """Shared slots: one per block in flight, one being read, and those ``ahead_bytes`` allows."""
-        slot_bytes = max(1, n * self.block_size * self.dtype.itemsize)
-        try:
-            shm = os.statvfs("/dev/shm")
-            room = shm.f_bavail * shm.f_frsize // 2
-        except OSError:          # no /dev/shm (not Linux): the segment lives elsewhere
-            room = self.ahead_bytes
-        return self.workers + 2 + min(self.ahead_bytes, room) // slot_bytes
 
     def iter_blocks(self, rows: np.ndarray, col_sets, *, lend: bool = False) -> Iterator[np.ndarray]:
         """F[rows][:, cols] for each ``cols`` (or ``(cols, skip)``, as for
@@ -325,7 +303,7 @@ class ProcessEngine:
         """
 
         n = len(rows)
-        slots = self._slots(n)
+        slots = self.workers + 2
         shape = (slots, n, self.block_size)
         remove_stale_segments()
         # The scene reaches the workers through shared memory, not the spawn pipe: a worker that
@@ -360,13 +338,12 @@ class ProcessEngine:
         free = list(range(slots))
         lent = None  # with lend: the one array every block is copied into
         pending: list = []  # (slot, width, future) in block order
-        self._pending = pending
         col_iter = iter(col_sets)
         finished = False
         try:
             exhausted = False
             while True:
-                while not exhausted and len(pending) < slots - 1 and free:
+                while not exhausted and len(pending) < self.workers + 1 and free:
                     item = next(col_iter, None)
                     if item is None:
                         exhausted = True
@@ -396,7 +373,6 @@ class ProcessEngine:
                 yield block
             finished = True
         finally:
-            self._pending = []
             for _, _, fut in pending:
                 fut.cancel()
             if not finished:

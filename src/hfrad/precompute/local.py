@@ -19,14 +19,14 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..formfactors.blocks import Consumer, iter_column_blocks, make_engine
+from ..formfactors.blocks import Consumer, iter_column_blocks
 from ..formfactors.engine import FormFactorEngine
 from ..formfactors.farfield import (FarFieldCertificate, FarFieldStats, SampledFarField,
                                     sampled_column_blocks)
 from ..lowrank.hf import HFStream
 from ..lowrank.nearsplit import NearFieldSplit
 from ..lowrank.streaming import load_checkpoint, save_checkpoint
-from ..memory import available_bytes, precompute_bytes
+from ..memory import precompute_bytes
 from ..progress import ProgressCallback, report
 from ..resources import blas_threads, cores
 from ..scene.scene import Scene
@@ -47,11 +47,6 @@ _STATS = "stats_"
 CHECKPOINT_COST_RATIO = 50.0
 #: A push whose merges form a node of at least this share of all column blocks gets every BLAS thread.
 _LARGE_MERGE_SHARE = 0.25
-#: Share of the available memory that form-factor worker processes may fill with column blocks HF
-#: has not taken yet. Where HF is the slower half (a high rank: Sponza at 20K patches, rank ~4,500,
-#: HF ~10x the form factors' time), the pass then ends early and every later push has every core,
-#: instead of one BLAS thread beside workers that wait for it.
-AHEAD_SHARE = 0.1
 
 
 def factorize_local(scene: Scene, plan: PrecomputePlan, backend: LocalBackend | None = None,
@@ -100,31 +95,22 @@ def factorize_local(scene: Scene, plan: PrecomputePlan, backend: LocalBackend | 
     # blocks are lent (no copy): _stream_blocks is done with each before it asks for the next
     consumer = Consumer(reserved_bytes=precompute_bytes(n, block_size, itemsize=dt.itemsize), lend=True)
     rows_rho = plan.rows_rho(scene)
-    producer = engine = None
+    producer = None
     if plan.far_field == "sampled":
         producer = _sampled_far_field(scene, plan, stats, ff_kwargs)
         blocks = sampled_column_blocks(producer, dt, first_block=stream.blocks_done)
     else:
-        blocks_left = (n_blocks - stream.blocks_done) * n * block_size * dt.itemsize
-        ahead = min(int(AHEAD_SHARE * available_bytes()), blocks_left)
-        engine = make_engine(scene, processes=backend.processes, block_size=block_size, dtype=dt,
-                             ahead_bytes=ahead, **ff_kwargs)
         blocks = iter_column_blocks(scene, block_size, order=perm, first_block=stream.blocks_done,
                                     processes=backend.processes, dtype=dt, reciprocity=plan.reciprocity,
                                     scratch=None if path is None else Path(path).parent,
-                                    mirror_stats=mirror_stats, consumer=consumer, engine=engine, **ff_kwargs)
+                                    mirror_stats=mirror_stats, consumer=consumer, **ff_kwargs)
     split = None
     if plan.near_entries:
         split = NearFieldSplit(scene.centroids[perm], plan.near_radius)
         if stream.blocks_done:
             split.restore(stream.extra)
-    try:
-        with blas_threads(backend.blas_threads):
-            times = _stream_blocks(blocks, stream, stats, rows_rho, checkpoint, key, progress, status, t0, split,
-                                   engine)
-    finally:
-        if engine is not None:
-            engine.close()
+    with blas_threads(backend.blas_threads):
+        times = _stream_blocks(blocks, stream, stats, rows_rho, checkpoint, key, progress, status, t0, split)
     # the last merges (the largest: up to the root) once the form-factor engine has stopped,
     # with every BLAS thread
     t_finish = time.perf_counter()
@@ -260,27 +246,14 @@ def _every_blas_thread_for_a_large_merge(blocks_done: int, n_blocks: int):
     return blas_threads(cores())   # the cores this process may use
 
 
-def _threads_for_push(engine, blocks_done: int, n_blocks: int):
-    """Every BLAS thread for a push while no form-factor worker computes (they wait for HF, or the
-    pass is done), else as :func:`_every_blas_thread_for_a_large_merge` says.
-
-    Worker processes cannot start a block during a push (the next one is handed out when HF asks
-    for a block), so a push that starts with every worker idle has the cores to itself.
-    """
-    if engine is not None and not engine.busy():
-        return blas_threads(cores())
-    return _every_blas_thread_for_a_large_merge(blocks_done, n_blocks)
-
-
 def _stream_blocks(blocks, stream: HFStream, stats: PassStatistics, rows_rho, checkpoint: Checkpoint | None,
-                   key, progress, status, t0, split=None, engine=None):
+                   key, progress, status, t0, split=None):
     """Push every column block into the stream and the statistics (checkpointing both).
 
     Returns the wall seconds of each part of the loop (``time_formfactors``: waiting for the next
     block; ``time_statistics``: the pass statistics and the near-field split of each block;
     ``time_hf``: HF's pushes; ``time_checkpoints``), which add up to the loop's time
-    (``stream.finish()`` is the caller's). ``engine``: the form-factor engine, asked before
-    each push whether it is computing (:func:`_threads_for_push`). With a near-field ``split``, each
+    (``stream.finish()`` is the caller's). With a near-field ``split``, each
     block's near entries are moved out before HF sees it, and the error budget
     stays relative to the block's full norm.
     """
@@ -299,7 +272,7 @@ def _stream_blocks(blocks, stream: HFStream, stats: PassStatistics, rows_rho, ch
         del block
         t_push = time.perf_counter()
         time_stats += t_push - t
-        with _threads_for_push(engine, stream.blocks_done, n_blocks):
+        with _every_blas_thread_for_a_large_merge(stream.blocks_done, n_blocks):
             stream.push(G, norm2=norm2, block_norm2=block_norm2)
         time_hf += time.perf_counter() - t_push
         report(progress, stream.blocks_done, n_blocks)
