@@ -1,0 +1,252 @@
+"""A low-rank factorization of G known only through its products ``G X`` and ``G^T X``.
+
+Where G is an operator (an H-matrix of F: exact near blocks and low-rank far blocks,
+never the n^2 entries), the global factors ``G ~= Q V^T`` that the solver needs come from
+a blocked adaptive randomized range finder (randQB with power iterations: Halko,
+Martinsson & Tropp 2011; Martinsson & Voronin 2016), stopped by the exact identity
+
+    ||G - P P^T G||_F^2 = ||G||_F^2 - ||P^T G||_F^2      (P orthonormal)
+
+with ``||G||_F^2`` known exactly from the operator's blocks.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import warnings
+from typing import Callable
+
+import numpy as np
+import scipy.linalg as sla
+
+from ..errors import AccuracyWarning, FactorizationError, InputError
+from ..progress import ProgressCallback, report
+from ..validation import check_dtype, check_tolerance
+from .factors import LowRank, sign_fix, truncation_rank
+
+__all__ = ["operator_factorization", "RANGE_SHARE"]
+
+#: The range finder stops once its error is within this share of the squared target, leaving
+#: the rest for the truncation of B's SVD: the smaller, the closer the kept rank to the optimal
+#: one (the truncation finds it in a better basis) and the more blocks the range finder takes.
+RANGE_SHARE = 0.5
+#: A new direction is kept when at least this much of its length survives the second projection
+#: against the basis ("twice is enough": what falls below it lies in the basis already).
+KEEP = 0.5
+
+Product = Callable[[np.ndarray], np.ndarray]
+
+
+def operator_factorization(matmat: Product, rmatmat: Product, n: int, norm2: float, *, eps: float,
+                           relative: bool = True, dtype=np.float32, rng=None, block: int = 64,
+                           power: int = 1, max_rank: int | None = None,
+                           progress: ProgressCallback = None) -> LowRank:
+    """``G ~= Q V^T`` within ``eps`` from products with G and G^T only.
+
+    An orthonormal basis P of G's range grows ``block`` columns at a time: each new block
+    is ``G Omega`` (Gaussian ``Omega``), refined by ``power`` passes of power iteration
+    (``G G^T``, re-orthonormalised at each step), projected off P twice and
+    orthonormalised; then ``B_i = P_i^T G`` (one product with G^T) joins ``B = P^T G``. With
+    ``E = ||G||_F^2 - ||B||_F^2 = ||G - P B||_F^2`` it stops once
+    ``E <= RANGE_SHARE * target^2`` (``target = eps ||G||_F``, or ``eps`` when not
+    ``relative``), then keeps the smallest rank k of the SVD ``B = U S W^T`` whose discarded
+    part fits the rest: ``E + sum(s[k:]^2) <= target^2``. ``Q = P U_k S_k``, ``V = W_k``.
+
+    Parameters
+    ----------
+    matmat : callable
+        ``matmat(X)``, X (n, l) of ``dtype``, returns ``G @ X`` (n, l).
+    rmatmat : callable
+        ``rmatmat(X)`` returns ``G.T @ X`` (n, l).
+    n : int
+        G is n x n.
+    norm2 : float
+        ``||G||_F^2``, exactly (an H-matrix knows it from its blocks).
+    eps : float >= 0
+        Tolerance on ``||G - Q V^T||_F``, relative to ``sqrt(norm2)`` when ``relative``.
+    relative : bool
+    dtype : float32 or float64
+        Of the products' inputs and of the factors.
+    rng : None, int or numpy.random.Generator
+        Pass an int for reproducible results.
+    block : int
+        Columns added to the basis at a time (each costs ``2 + 2 power`` products of that width).
+    power : int
+        Power-iteration passes per block (0: none); slowly decaying spectra need them.
+    max_rank : int or None
+        At most this many basis columns (None: n). Where the target is not reached by then, the
+        result keeps every column, ``info["converged"]`` is False and an AccuracyWarning says so.
+    progress : callable or None
+        ``progress(basis columns, max_rank or n)`` after each block.
+
+    Returns
+    -------
+    LowRank
+        ``method="operator"``, ``Q = U diag(s)`` (n, k), V (n, k) orthonormal.
+        ``achieved_error = sqrt(norm2 - ||B||_F^2 + sum(s[k:]^2))``: computed, not estimated;
+        in exact arithmetic it is ``||G - Q V^T||_F`` given an exact ``norm2`` (the basis is
+        kept orthonormal to working precision by the double projection).
+        ``info``: ``products`` (calls of matmat and rmatmat), ``vectors`` (their columns in
+        all), ``basis`` (columns of P), ``rank_trace`` (list of ``(basis columns, range error)``
+        after each block), ``converged``, ``time_total`` (s).
+
+    Raises
+    ------
+    InputError
+        Bad arguments, or a product of the wrong shape or with non-finite values.
+    FactorizationError
+        The SVD of B did not converge.
+
+    Notes
+    -----
+    Memory, with l the final basis size: P, n x l, plus its new block, n x ``block``, and
+    B, l x n, during the loop: ``(2 l + block) n`` numbers of ``dtype``; the SVD of B adds its
+    l x n right factor and the result's two n x k factors. Products dominate the time:
+    ``(l / block) (2 + 2 power)`` calls of width ``block``; the rest is O(n l^2).
+
+    References
+    ----------
+    .. [1] N. Halko, P. G. Martinsson, J. A. Tropp, "Finding structure with randomness",
+       SIAM Review 53(2), 2011, Alg. 4.2 and 4.4.
+    .. [2] P. G. Martinsson, S. Voronin, "A randomized blocked algorithm for efficiently
+       computing rank-revealing factorizations of matrices", SIAM J. Sci. Comput. 38(5), 2016.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> rng = np.random.default_rng(0)
+    >>> G = rng.standard_normal((300, 20)) @ rng.standard_normal((20, 300))
+    >>> lr = operator_factorization(lambda X: G @ X, lambda X: G.T @ X, 300, float((G ** 2).sum()),
+    ...                             eps=1e-3, dtype=np.float64, rng=0)
+    >>> lr.rank, bool(np.isclose(np.linalg.norm(G - lr.Q @ lr.V.T), lr.achieved_error, atol=1e-6))
+    (20, True)
+    """
+    eps, dtype, limit = _check(n, norm2, eps, dtype, block, power, max_rank)
+    t0 = time.perf_counter()
+    run = _RangeFinder(matmat, rmatmat, n, dtype, np.random.default_rng(rng))
+    target2 = eps * eps * norm2 if relative else eps * eps
+    E, trace = float(norm2), []
+    spanned = False
+    while E > RANGE_SHARE * target2 and run.size < limit:
+        if not run.grow(min(block, limit - run.size), power):
+            spanned = True    # no direction left outside the basis: G's range is spanned
+            break
+        E = max(float(norm2) - run.kept2, 0.0)    # rounding (or an inexact norm2) can go below 0
+        trace.append((run.size, math.sqrt(E)))
+        report(progress, run.size, limit)
+    # a basis of all of R^n (or of G's whole range) leaves only rounding in E
+    converged = E <= target2 or spanned or run.size == n
+    if not converged:
+        warnings.warn(f"operator factorization: the range error {math.sqrt(E):.3g} exceeds the target "
+                      f"{math.sqrt(target2):.3g} at max_rank={limit}; every basis column is kept",
+                      AccuracyWarning, stacklevel=2)
+    Q, V, discarded2 = run.factors(max(target2 - E, 0.0))
+    info = {"products": run.products, "vectors": run.vectors, "basis": run.size, "rank_trace": trace,
+            "converged": bool(converged), "time_total": time.perf_counter() - t0}
+    return LowRank(Q=Q, V=V, achieved_error=math.sqrt(E + discarded2), norm=math.sqrt(norm2), eps=eps,
+                   relative=relative, method="operator", info=info)
+
+
+def _check(n, norm2, eps, dtype, block, power, max_rank) -> tuple[float, np.dtype, int]:
+    """Validated (eps, dtype, the basis limit)."""
+    eps = check_tolerance(eps)
+    dtype = check_dtype(dtype)
+    if int(n) != n or n < 0:
+        raise InputError(f"n must be an integer >= 0; got {n!r}")
+    if not (norm2 >= 0 and math.isfinite(norm2)):
+        raise InputError(f"norm2 (||G||_F^2) must be a finite number >= 0; got {norm2!r}")
+    if int(block) != block or block < 1:
+        raise InputError(f"block must be an integer >= 1; got {block!r}")
+    if int(power) != power or power < 0:
+        raise InputError(f"power must be an integer >= 0; got {power!r}")
+    if max_rank is not None and (int(max_rank) != max_rank or max_rank < 0):
+        raise InputError(f"max_rank must be None or an integer >= 0; got {max_rank!r}")
+    return eps, dtype, int(n) if max_rank is None else min(int(max_rank), int(n))
+
+
+class _RangeFinder:
+    """The growing basis P (blocks of columns) of G's range and ``B = P^T G`` (blocks of rows)."""
+
+    def __init__(self, matmat: Product, rmatmat: Product, n: int, dtype: np.dtype, rng) -> None:
+        self.matmat, self.rmatmat, self.n, self.dtype, self.rng = matmat, rmatmat, n, dtype, rng
+        self.P: list[np.ndarray] = []       # (n, b_i) orthonormal blocks
+        self.B: list[np.ndarray] = []       # (b_i, n) rows of P^T G
+        self.size, self.kept2 = 0, 0.0      # columns of P, ||B||_F^2 (float64)
+        self.products = self.vectors = 0
+
+    def _apply(self, product: Product, X: np.ndarray, name: str) -> np.ndarray:
+        """One product, checked (the caller's operator is the only thing here not trusted)."""
+        Y = np.asarray(product(X))
+        if Y.shape != X.shape:
+            raise InputError(f"{name}(X) must return an array of shape {X.shape}; got {Y.shape}")
+        if not np.isfinite(Y).all():
+            raise InputError(f"{name}(X) returned non-finite values")
+        self.products += 1
+        self.vectors += X.shape[1]
+        return Y.astype(self.dtype, copy=False)
+
+    def _project(self, Y: np.ndarray) -> np.ndarray:
+        """``Y - P P^T Y``, block by block (classical Gram-Schmidt on blocks); Y is not changed."""
+        Y = Y.copy()
+        C = [Pi.T @ Y for Pi in self.P]
+        for Pi, Ci in zip(self.P, C):
+            Y -= Pi @ Ci
+        return Y
+
+    def _new_directions(self, Y: np.ndarray) -> np.ndarray:
+        """Orthonormal columns spanning the part of ``Y`` outside P, orthogonal to P.
+
+        Projected twice: the first projection and QR make the block orthonormal; what of it
+        still lies in P (from rounding, when Y was mostly in P's span) goes in the second,
+        whose SVD keeps only the directions with at least ``KEEP`` of their length left.
+        """
+        Y = sla.qr(self._project(Y), mode="economic", check_finite=False)[0]
+        U, s, _ = sla.svd(self._project(Y), full_matrices=False, check_finite=False)
+        return np.ascontiguousarray(U[:, s >= KEEP])
+
+    def _orth(self, Y: np.ndarray) -> np.ndarray:
+        return sla.qr(Y, mode="economic", check_finite=False)[0]
+
+    def grow(self, width: int, power: int) -> bool:
+        """Add up to ``width`` columns to P (and their rows to B); False when none was new."""
+        Omega = self.rng.standard_normal((self.n, width)).astype(self.dtype)
+        Y = self._apply(self.matmat, Omega, "matmat")
+        for _ in range(power):
+            # G^T P_i needs no projection: P_i is orthogonal to P, so it is the residual's transpose
+            W = self._orth(self._apply(self.rmatmat, self._orth(self._project(Y)), "rmatmat"))
+            Y = self._apply(self.matmat, W, "matmat")
+        Pi = self._new_directions(Y)
+        if Pi.shape[1] == 0:
+            return False
+        Bi = self._apply(self.rmatmat, Pi, "rmatmat").T
+        self.P.append(Pi)
+        self.B.append(np.ascontiguousarray(Bi))
+        self.size += Pi.shape[1]
+        self.kept2 += float(np.square(Bi, dtype=np.float64).sum())
+        return True
+
+    def factors(self, budget2: float) -> tuple[np.ndarray, np.ndarray, float]:
+        """``(Q (n, k), V (n, k), discarded^2)``: B's SVD truncated within ``budget2``."""
+        if self.size == 0:     # a zero G (or n = 0): rank 0
+            return np.zeros((self.n, 0), self.dtype), np.zeros((self.n, 0), self.dtype), 0.0
+        B = np.empty((self.size, self.n), self.dtype)
+        row = 0
+        while self.B:    # fill B and drop each block at once: no second copy of B
+            Bi = self.B.pop(0)
+            B[row:row + Bi.shape[0]] = Bi
+            row += Bi.shape[0]
+        try:
+            U, s, Wt = sla.svd(B, full_matrices=False, lapack_driver="gesdd", check_finite=False)
+        except np.linalg.LinAlgError as exc:
+            raise FactorizationError(f"SVD of the {B.shape[0]} x {self.n} projection B did not converge") from exc
+        del B
+        k, discarded2 = truncation_rank(s, budget2)
+        Q = np.zeros((self.n, k), self.dtype)
+        row = 0
+        for Pi in self.P:    # P U_k, block by block: P is never stacked
+            Q += Pi @ U[row:row + Pi.shape[1], :k]
+            row += Pi.shape[1]
+        Wt = Wt[:k].copy()
+        sign_fix(Q, Wt)
+        return Q * s[:k].astype(self.dtype), np.ascontiguousarray(Wt.T), discarded2

@@ -1,0 +1,138 @@
+"""operator_factorization: G ~= Q V^T from products G X and G^T X only, against LAPACK's SVD."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hfrad.errors import AccuracyWarning, InputError
+from hfrad.lowrank.baselines import svd_factorization
+from hfrad.lowrank.operator import operator_factorization
+from hfrad.resources import blas_threads
+
+
+@pytest.fixture(autouse=True)
+def one_blas_thread():
+    """The matrices are small: OpenBLAS's threads only spin against other processes (10x slower
+    on a loaded two-core machine)."""
+    with blas_threads(1):
+        yield
+
+
+def spectrum_matrix(n: int, s: np.ndarray, seed: int = 0) -> np.ndarray:
+    """An (n, n) matrix with singular values ``s`` (random orthogonal factors)."""
+    rng = np.random.default_rng(seed)
+    U = np.linalg.qr(rng.standard_normal((n, n)))[0]
+    W = np.linalg.qr(rng.standard_normal((n, n)))[0]
+    return (U * s) @ W.T
+
+
+def factor(G: np.ndarray, dtype=np.float64, **kw):
+    Gd = G.astype(dtype)
+    calls = {"matmat": 0, "rmatmat": 0}
+
+    def matmat(X):
+        calls["matmat"] += 1
+        return Gd @ X
+
+    def rmatmat(X):
+        calls["rmatmat"] += 1
+        return Gd.T @ X
+
+    lr = operator_factorization(matmat, rmatmat, G.shape[0], float(np.square(G).sum()), dtype=dtype, rng=0, **kw)
+    return lr, calls
+
+
+def true_error(G, lr) -> float:
+    return float(np.linalg.norm(G - lr.Q.astype(np.float64) @ lr.V.T.astype(np.float64)))
+
+
+@pytest.fixture(scope="module")
+def cornell_G():
+    from hfrad import load_scene
+    from hfrad.formfactors.blocks import form_factor_matrix
+    scene = load_scene("cornell", patches=600)
+    rho_max = np.asarray(scene.reflectance).max(axis=1)
+    return rho_max[:, None] * form_factor_matrix(scene)
+
+
+@pytest.mark.parametrize("decay", [0.9, 0.98])
+@pytest.mark.parametrize("eps", [0.05, 0.01])
+def test_decaying_spectrum_meets_eps_near_the_optimal_rank(decay, eps):
+    n = 400
+    G = spectrum_matrix(n, decay ** np.arange(n))
+    lr, calls = factor(G, eps=eps, block=32)
+    optimal = svd_factorization(G, eps=eps, dtype=np.float64).rank
+    assert lr.relative_error <= eps
+    assert true_error(G, lr) <= eps * np.linalg.norm(G) * (1 + 1e-9)
+    assert optimal <= lr.rank <= optimal + 2
+    # computed, not estimated: the achieved error is the true one to rounding
+    assert abs(lr.achieved_error / true_error(G, lr) - 1) < 1e-6
+    # V orthonormal, Q = U S with U orthonormal
+    np.testing.assert_allclose(lr.V.T @ lr.V, np.eye(lr.rank), atol=1e-10)
+    s = np.linalg.norm(lr.Q, axis=0)
+    np.testing.assert_allclose((lr.Q / s).T @ (lr.Q / s), np.eye(lr.rank), atol=1e-10)
+    # the products counted are the calls made: one matmat and (power=1) one rmatmat per pass, plus B's
+    assert lr.info["products"] == calls["matmat"] + calls["rmatmat"]
+    assert calls["matmat"] == calls["rmatmat"] == 2 * len(lr.info["rank_trace"])
+    assert lr.method == "operator" and lr.info["converged"]
+
+
+def test_float32_factors_and_their_error_figure():
+    n = 400
+    G = spectrum_matrix(n, 0.95 ** np.arange(n), seed=3)
+    lr, _ = factor(G, dtype=np.float32, eps=0.02, block=32)
+    assert lr.Q.dtype == lr.V.dtype == np.float32
+    optimal = svd_factorization(G, eps=0.02, dtype=np.float64).rank
+    assert optimal <= lr.rank <= optimal + 2
+    err = true_error(G, lr)
+    assert err <= 0.02 * np.linalg.norm(G) * (1 + 1e-4)
+    # in float32, ||G||^2 - ||B||^2 carries a few units of rounding of ||G||^2 (observed ~3)
+    assert abs(lr.achieved_error ** 2 - err ** 2) <= 30 * np.finfo(np.float32).eps * np.square(G).sum()
+
+
+def test_exact_low_rank_and_seed_determinism():
+    rng = np.random.default_rng(5)
+    G = rng.standard_normal((300, 12)) @ rng.standard_normal((12, 300))
+    a, _ = factor(G, eps=1e-6, block=8, power=0)
+    b, _ = factor(G, eps=1e-6, block=8, power=0)
+    assert a.rank == 12 and a.relative_error <= 1e-6
+    np.testing.assert_array_equal(a.Q, b.Q)
+    np.testing.assert_array_equal(a.V, b.V)
+
+
+def test_cornell_box_G(cornell_G):
+    G = cornell_G
+    for eps in (0.05, 0.02):
+        lr, _ = factor(G, eps=eps)
+        optimal = svd_factorization(G, eps=eps, dtype=np.float64).rank
+        assert lr.relative_error <= eps
+        assert true_error(G, lr) <= eps * np.linalg.norm(G) * (1 + 1e-9)
+        assert optimal <= lr.rank <= optimal + 3, (eps, lr.rank, optimal)
+        assert abs(lr.achieved_error / true_error(G, lr) - 1) < 1e-6
+
+
+def test_zero_matrix_has_rank_zero():
+    G = np.zeros((50, 50))
+    lr, calls = factor(G, eps=0.05)
+    assert lr.rank == 0 and lr.Q.shape == (50, 0) and lr.achieved_error == 0.0
+    assert calls == {"matmat": 0, "rmatmat": 0}
+
+
+def test_max_rank_caps_the_basis_and_warns():
+    n = 200
+    G = spectrum_matrix(n, 0.99 ** np.arange(n), seed=1)
+    with pytest.warns(AccuracyWarning, match="max_rank=20"):
+        lr, _ = factor(G, eps=0.01, block=16, max_rank=20)
+    assert lr.rank == 20 and not lr.info["converged"]
+    assert abs(lr.achieved_error / true_error(G, lr) - 1) < 1e-6     # still the true error
+
+
+def test_bad_arguments_and_products():
+    G = np.eye(10)
+    with pytest.raises(InputError, match="block"):
+        factor(G, eps=0.1, block=0)
+    with pytest.raises(InputError, match="norm2"):
+        operator_factorization(lambda X: X, lambda X: X, 10, -1.0, eps=0.1)
+    with pytest.raises(InputError, match=r"matmat\(X\) must return an array of shape \(10, 4\)"):
+        operator_factorization(lambda X: X[:5], lambda X: X, 10, 10.0, eps=0.1, block=4)
