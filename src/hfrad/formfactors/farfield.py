@@ -36,6 +36,7 @@ import scipy.linalg as sla
 from ..errors import InputError
 from ..progress import ProgressCallback, report
 from ..resources import blas_threads
+from .certify import upper_margin as _upper_margin
 from .clustervis import BLOCKED, CLUSTER_SIZE, MIXED, VISIBLE
 from .engine import FormFactorEngine
 from .pieces import BlockPieces
@@ -389,22 +390,6 @@ def _draw_probabilities(p: "_GroupPart", row_scale: np.ndarray) -> np.ndarray:
     if not (total > 0 and math.isfinite(total)):
         return np.full(N, 1.0 / N)
     return DEFENSIVE / N + (1.0 - DEFENSIVE) * pred / total
-
-
-def _upper_margin(y: np.ndarray, failure: float) -> float:
-    """What to add to the mean of the iid slots ``y`` so that their expectation lies above it but
-    with probability ``failure``: ``sqrt(1 / failure - 1)`` standard errors (Cantelli's one-sided
-    inequality, which holds for any distribution of the mean; here with the slots' sample variance).
-
-    Not the normal quantile: the errors sit in few rows, so the slots are skewed (skewness ~7 on
-    6 blocks of the 40K Cornell box) and a sample that misses the heavy rows also understates the
-    variance; Student's t with Johnson's skewness term, Hall's transformation and the bootstrap-t
-    put the upper figure below the measured error in 18-20% of 50 redraws at a stated 2.5%, this
-    bound in none (benchmarks/README.md, "A dependable certificate")."""
-    m = y.size
-    if m < 2:
-        return math.inf
-    return math.sqrt((1.0 / failure - 1.0) * float(y.var(ddof=1)) / m)
 
 
 # -- The block producer -------------------------------------------------------------------------

@@ -26,7 +26,7 @@ class LowRank:
     relative : bool
         Whether ``eps`` is relative to ``||A||_F`` or absolute.
     method : str
-        Which factorizer produced it ("hf", "svd", "rsvd", "sketch").
+        Which factorizer produced it ("hf", "svd", "rsvd", "sketch", "operator").
     info : dict
         Timings (seconds) and rank statistics, method specific.
     """

@@ -86,7 +86,9 @@ def operator_factorization(matmat: Product, rmatmat: Product, n: int, norm2: flo
         ``method="operator"``, ``Q = U diag(s)`` (n, k), V (n, k) orthonormal.
         ``achieved_error = sqrt(norm2 - ||B||_F^2 + sum(s[k:]^2))``: computed, not estimated;
         in exact arithmetic it is ``||G - Q V^T||_F`` given an exact ``norm2`` (the basis is
-        kept orthonormal to working precision by the double projection).
+        kept orthonormal to working precision by the double projection). In floating point its
+        square is off by a few units of rounding of ``norm2``: to ~1e-12 relative in float64,
+        ~1e-3 relative at eps = 0.01 in float32 (tests/test_operator_factorization.py).
         ``info``: ``products`` (calls of matmat and rmatmat), ``vectors`` (their columns in
         all), ``basis`` (columns of P), ``rank_trace`` (list of ``(basis columns, range error)``
         after each block), ``converged``, ``time_total`` (s).
