@@ -122,9 +122,11 @@ def test_zero_matrix_has_rank_zero():
 def test_max_rank_caps_the_basis_and_warns():
     n = 200
     G = spectrum_matrix(n, 0.99 ** np.arange(n), seed=1)
+    seen = []
     with pytest.warns(AccuracyWarning, match="max_rank=20"):
-        lr, _ = factor(G, eps=0.01, block=16, max_rank=20)
+        lr, _ = factor(G, eps=0.01, block=16, max_rank=20, progress=lambda done, total: seen.append((done, total)))
     assert lr.rank == 20 and not lr.info["converged"]
+    assert seen == [(16, 20), (20, 20)]
     assert abs(lr.achieved_error / true_error(G, lr) - 1) < 1e-6     # still the true error
 
 
