@@ -1,0 +1,603 @@
+"""The form-factor matrix as an H-matrix: near blocks exact, far blocks low rank, never all n² pairs.
+
+The patches are ordered along a *cluster tree* (:func:`cluster_tree`): each node is a
+contiguous range of that order whose patches lie in a compact box, halved at the median
+of its longest side down to ``leaf_size`` patches. Pairs of nodes are then taken from the
+root down (:func:`block_partition`):
+
+- a pair of nodes R, C is **far** (admissible) when the gap between their boxes is at least
+  ``eta`` times the larger box's diagonal: seen from anywhere in R the unoccluded kernel
+  varies smoothly over C, so ``F[R, C]`` has a low rank *if* visibility is all or nothing;
+- two leaves that are not far are **near**: every pair computed, with visibility, as in the
+  exact pass.
+
+A far pair's visibility is decided without rays by the conservative cluster-pair test of
+:mod:`hfrad.formfactors.clustervis` on the two nodes' boxes: VISIBLE (``F`` is the unoccluded
+kernel: adaptive cross approximation from a few of its rows and columns,
+:mod:`hfrad.formfactors.aca`), BLOCKED (``F = 0``: nothing stored) or MIXED (a shadow edge, a
+contact: the larger node is halved and its halves tried again; two leaves still MIXED are
+computed exactly with rays). A VISIBLE block whose cross approximation does not converge
+within ``max_rank`` is halved the same way.
+
+At n patches this evaluates O(n log n) pairs instead of n² (``pairs_evaluated``), and
+holds ``storage`` floats (dense entries plus ``r (m + b)`` a far block). G = diag(rho) F is
+then applied to blocks of vectors (:meth:`FormFactorHMatrix.matmat`, ``rmatmat``): the
+global low-rank factors come from products only (:mod:`hfrad.lowrank.operator`).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from numba import njit, prange
+
+from ..progress import ProgressCallback, report
+from .clustervis import BLOCKED, CLUSTER_SIZE, MIXED, VISIBLE, _cluster_pair_states
+from .engine import FormFactorEngine
+
+__all__ = ["ClusterTree", "cluster_tree", "block_partition", "FormFactorHMatrix", "build_hmatrix",
+           "HMatrixOptions"]
+
+#: Patches in a leaf of the cluster tree.
+LEAF_SIZE = 32
+#: Admissibility: far when gap >= ETA x the larger diagonal.
+ETA = 0.5
+#: Rank at which a far block's cross approximation gives up (the block is computed exactly).
+MAX_RANK = 24
+#: Mixed far pairs are halved until both nodes have at most this many patches, then probed row by row.
+PROBE_SIZE = 256
+#: Rays from a row patch to patches spread over a mixed column node.
+PROBES = 6
+
+
+@dataclass(frozen=True)
+class HMatrixOptions:
+    """How the H-matrix of F is built (defaults for a first run).
+
+    Attributes
+    ----------
+    leaf_size : int
+        Patches in a leaf of the cluster tree (near blocks are at most leaf x leaf).
+    eta : float
+        A pair of clusters is far when the gap between their boxes is at least ``eta`` times
+        the larger box's diagonal.
+    tolerance : float
+        Relative Frobenius error allowed in each far block's cross approximation.
+    max_rank : int
+        A far block needing more is computed exactly.
+    probe_size : int
+        Mixed far pairs are halved until both clusters have at most this many patches; then
+        each row patch casts ``PROBES`` rays to the column cluster.
+    """
+
+    leaf_size: int = LEAF_SIZE
+    eta: float = ETA
+    tolerance: float = 0.01
+    max_rank: int = MAX_RANK
+    probe_size: int = PROBE_SIZE
+
+
+# -- The cluster tree -----------------------------------------------------------------------------
+
+@dataclass
+class ClusterTree:
+    """A binary tree of patch ranges: node t holds ``perm[start[t]:stop[t]]``.
+
+    Attributes
+    ----------
+    perm : (n,) int64
+        Tree order: position p holds patch ``perm[p]``; every node is a range of it.
+    start, stop : (K,) int64
+    left, right : (K,) int64
+        Children (-1 for a leaf). Node 0 is the root.
+    lo, hi : (K, 3) float64
+        Each node's box (of its patches' boxes).
+    """
+
+    perm: np.ndarray
+    start: np.ndarray
+    stop: np.ndarray
+    left: np.ndarray
+    right: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+
+    @property
+    def size(self) -> np.ndarray:
+        return self.stop - self.start
+
+    def is_leaf(self, t) -> np.ndarray:
+        return self.left[t] < 0
+
+
+def cluster_tree(centroids: np.ndarray, lo: np.ndarray, hi: np.ndarray, leaf_size: int = LEAF_SIZE) -> ClusterTree:
+    """Halve the patches at the median centroid along the longest side of their box, recursively.
+
+    Parameters
+    ----------
+    centroids, lo, hi : (n, 3) float
+        Patch centroids and boxes (any frame).
+    leaf_size : int
+        Nodes of at most this many patches are leaves.
+    """
+    n = len(centroids)
+    perm = np.arange(n, dtype=np.int64)
+    cap = 4 * max(1, -(-n // max(1, leaf_size))) + 1   # leaves hold more than leaf_size / 2 patches
+    start = np.zeros(cap, np.int64)
+    stop = np.zeros(cap, np.int64)
+    left = np.full(cap, -1, np.int64)
+    right = np.full(cap, -1, np.int64)
+    c = np.asarray(centroids, np.float64)
+    start[0], stop[0] = 0, n
+    count, todo = 1, [0]
+    while todo:
+        t = todo.pop()
+        a, b = start[t], stop[t]
+        if b - a <= leaf_size:
+            continue
+        idx = perm[a:b]
+        pts = c[idx]
+        axis = int(np.argmax(pts.max(axis=0) - pts.min(axis=0)))
+        m = (b - a) // 2
+        order = np.argpartition(pts[:, axis], m)
+        perm[a:b] = idx[order]
+        for child, (s, e) in enumerate(((a, a + m), (a + m, b))):
+            start[count], stop[count] = s, e
+            (left if child == 0 else right)[t] = count
+            todo.append(count)
+            count += 1
+    start, stop, left, right = start[:count], stop[:count], left[:count], right[:count]
+    node_lo, node_hi = _node_boxes(np.asarray(lo, np.float64)[perm], np.asarray(hi, np.float64)[perm], start, stop)
+    return ClusterTree(perm, start, stop, left, right, node_lo, node_hi)
+
+
+def _node_boxes(lo: np.ndarray, hi: np.ndarray, start: np.ndarray, stop: np.ndarray):
+    """(K, 3) boxes of the ranges ``[start, stop)`` of boxes in tree order."""
+    return (np.ascontiguousarray(np.minimum.reduceat(lo, start, axis=0)) if len(start) else np.zeros((0, 3)),
+            np.ascontiguousarray(_max_ranges(hi, start, stop)))
+
+
+def _max_ranges(x: np.ndarray, start: np.ndarray, stop: np.ndarray) -> np.ndarray:
+    out = np.empty((len(start), x.shape[1]))
+    for t in range(len(start)):     # reduceat needs increasing starts; nested ranges are not
+        out[t] = x[start[t]:stop[t]].max(axis=0)
+    return out
+
+
+# -- The block partition --------------------------------------------------------------------------
+
+@njit(cache=True, inline="always")
+def _far(lo, hi, r, c, eta):
+    gap2 = 0.0
+    dr2 = 0.0
+    dc2 = 0.0
+    for d in range(3):
+        g = max(lo[r, d] - hi[c, d], lo[c, d] - hi[r, d], 0.0)
+        gap2 += g * g
+        dr2 += (hi[r, d] - lo[r, d]) ** 2
+        dc2 += (hi[c, d] - lo[c, d]) ** 2
+    return gap2 >= eta * eta * max(dr2, dc2)
+
+
+@njit(cache=True)
+def _partition(lo, hi, left, right, eta, r0, c0):
+    """Far pairs and near leaf pairs below the node pairs (r0[k], c0[k]) (a stack walk)."""
+    far_r, far_c, near_r, near_c = [0], [0], [0], [0]
+    far_r.pop(); far_c.pop(); near_r.pop(); near_c.pop()
+    stack_r = list(r0)
+    stack_c = list(c0)
+    while stack_r:
+        r = stack_r.pop()
+        c = stack_c.pop()
+        if _far(lo, hi, r, c, eta):
+            far_r.append(r)
+            far_c.append(c)
+            continue
+        r_leaf = left[r] < 0
+        c_leaf = left[c] < 0
+        if r_leaf and c_leaf:
+            near_r.append(r)
+            near_c.append(c)
+            continue
+        dr = 0.0
+        dc = 0.0
+        for d in range(3):
+            dr += (hi[r, d] - lo[r, d]) ** 2
+            dc += (hi[c, d] - lo[c, d]) ** 2
+        if c_leaf or (not r_leaf and dr >= dc):
+            stack_r.append(left[r]); stack_c.append(c)
+            stack_r.append(right[r]); stack_c.append(c)
+        else:
+            stack_r.append(r); stack_c.append(left[c])
+            stack_r.append(r); stack_c.append(right[c])
+    return (np.array(far_r, np.int64), np.array(far_c, np.int64),
+            np.array(near_r, np.int64), np.array(near_c, np.int64))
+
+
+def block_partition(tree: ClusterTree, eta: float = ETA, r0=None, c0=None):
+    """(far_r, far_c, near_r, near_c): node pairs that are far, and leaf pairs that are near.
+
+    Every pair of patches lies in exactly one of them. ``r0, c0`` (arrays of nodes): start
+    below these node pairs instead of the root's.
+    """
+    r0 = np.zeros(1, np.int64) if r0 is None else np.asarray(r0, np.int64)
+    c0 = np.zeros(1, np.int64) if c0 is None else np.asarray(c0, np.int64)
+    if len(r0) == 0:
+        z = np.zeros(0, np.int64)
+        return z, z, z, z
+    return _partition(tree.lo, tree.hi, tree.left, tree.right, float(eta), r0, c0)
+
+
+def _split_pairs(tree: ClusterTree, r: np.ndarray, c: np.ndarray):
+    """Halve the larger node of each pair (the only node that is not a leaf if one is)."""
+    size = tree.hi - tree.lo
+    dr = (size[r] ** 2).sum(axis=1)
+    dc = (size[c] ** 2).sum(axis=1)
+    r_leaf, c_leaf = tree.left[r] < 0, tree.left[c] < 0
+    split_r = ~r_leaf & (c_leaf | (dr >= dc))
+    rr = np.concatenate([tree.left[r[split_r]], tree.right[r[split_r]], r[~split_r], r[~split_r]])
+    cc = np.concatenate([c[split_r], c[split_r], tree.left[c[~split_r]], tree.right[c[~split_r]]])
+    return rr, cc
+
+
+# -- The H-matrix ---------------------------------------------------------------------------------
+
+@dataclass
+class BlockList:
+    """Blocks ``F[rows_t][:, c0_t : c0_t + b_t]`` in tree positions: the rows of block t are
+    ``row_index[row_ptr[t]:row_ptr[t + 1]]`` (any subset), its columns a range.
+
+    Dense blocks hold their values row-major at ``values[off[t]:]``; low-rank ones ``U_t`` (m, r)
+    at ``U[u_off[t]:]`` and ``V_t`` (b, r) at ``V[v_off[t]:]`` with the block ~= U_t V_t^T.
+    """
+
+    row_index: np.ndarray
+    row_ptr: np.ndarray
+    c0: np.ndarray
+    b: np.ndarray
+    rank: np.ndarray            # -1 for a dense block
+    u_off: np.ndarray           # dense: offset of the values in U
+    v_off: np.ndarray
+    U: np.ndarray
+    V: np.ndarray
+
+    @property
+    def count(self) -> int:
+        return len(self.c0)
+
+    @property
+    def m(self) -> np.ndarray:
+        return np.diff(self.row_ptr)
+
+
+@dataclass
+class FormFactorHMatrix:
+    """F in tree order as dense and low-rank blocks (see the module docstring).
+
+    Attributes
+    ----------
+    perm : (n,) int64
+        Tree order: position p holds patch ``perm[p]`` (the scene's order).
+    blocks : BlockList
+    info : dict
+        Counters: pairs evaluated (with rays, kernel only), blocks by kind, storage, seconds.
+    """
+
+    perm: np.ndarray
+    blocks: BlockList
+    info: dict = field(default_factory=dict)
+
+    @property
+    def n(self) -> int:
+        return len(self.perm)
+
+    @property
+    def storage(self) -> int:
+        """Floats held (dense entries and low-rank factors)."""
+        return int(self.blocks.U.size + self.blocks.V.size)
+
+    def frobenius2(self) -> float:
+        """||F||_F^2 of the H-matrix (exact for what it holds; float64 sums)."""
+        k = self.blocks
+        return float(_frobenius2(k.row_ptr, k.b, k.rank, k.u_off, k.v_off, k.U, k.V))
+
+    def matmat(self, X: np.ndarray) -> np.ndarray:
+        """F @ X in tree order: X (n,) or (n, l) -> the same shape, float64."""
+        return self._apply(X, False)
+
+    def rmatmat(self, X: np.ndarray) -> np.ndarray:
+        """F.T @ X in tree order: X (n,) or (n, l) -> the same shape, float64."""
+        return self._apply(X, True)
+
+    def _apply(self, X: np.ndarray, transpose: bool) -> np.ndarray:
+        X = np.asarray(X, np.float64)
+        Xt = np.ascontiguousarray(X.reshape(self.n, -1).T)
+        Yt = np.zeros_like(Xt)
+        k = self.blocks
+        _apply(Xt, Yt, k.row_index, k.row_ptr, k.c0, k.b, k.rank, k.u_off, k.v_off, k.U, k.V, transpose)
+        return Yt.T.reshape(X.shape)
+
+    def to_dense(self) -> np.ndarray:
+        """(n, n) F in tree order (small scenes: tests)."""
+        return self.matmat(np.eye(self.n))
+
+
+@njit(cache=True, parallel=True, nogil=True)
+def _frobenius2(row_ptr, b_, rank, u_off, v_off, U, V):
+    total = 0.0
+    for t in prange(b_.shape[0]):
+        m, b, r = row_ptr[t + 1] - row_ptr[t], b_[t], rank[t]
+        if r < 0:
+            for q in range(m * b):
+                total += np.float64(U[u_off[t] + q]) ** 2
+        elif r > 0:
+            Ut = U[u_off[t]:u_off[t] + m * r].reshape(m, r).astype(np.float64)
+            Vt = V[v_off[t]:v_off[t] + b * r].reshape(b, r).astype(np.float64)
+            total += np.sum((Ut.T @ Ut) * (Vt.T @ Vt))
+    return total
+
+
+@njit(cache=True, parallel=True, nogil=True, fastmath={"reassoc", "contract"})
+def _apply(Xt, Yt, rows, row_ptr, c0, b_, rank, u_off, v_off, U, V, transpose):
+    """Yt[v] += F Xt[v] (or F^T with ``transpose``) for each vector v (a row of Xt). Parallel over the
+    vectors: each thread writes its own rows of Yt, so no two threads the same entries."""
+    for v in prange(Xt.shape[0]):
+        x = Xt[v]
+        y = Yt[v]
+        for t in range(c0.shape[0]):
+            p, m, b, c, r = row_ptr[t], row_ptr[t + 1] - row_ptr[t], b_[t], c0[t], rank[t]
+            if r < 0:                                 # dense, (m, b) row-major at u_off
+                o = u_off[t]
+                for i in range(m):
+                    if transpose:
+                        xi = x[rows[p + i]]
+                        if xi != 0.0:
+                            for j in range(b):
+                                y[c + j] += U[o + i * b + j] * xi
+                    else:
+                        s = 0.0
+                        for j in range(b):
+                            s += U[o + i * b + j] * x[c + j]
+                        y[rows[p + i]] += s
+                continue
+            if r == 0:
+                continue
+            uo, vo = u_off[t], v_off[t]
+            z = np.zeros(r)
+            if transpose:                             # y[c:c+b] += V (U^T x[rows])
+                for i in range(m):
+                    xi = x[rows[p + i]]
+                    for k in range(r):
+                        z[k] += U[uo + i * r + k] * xi
+                for j in range(b):
+                    s = 0.0
+                    for k in range(r):
+                        s += V[vo + j * r + k] * z[k]
+                    y[c + j] += s
+            else:                                     # y[rows] += U (V^T x[c:c+b])
+                for j in range(b):
+                    xj = x[c + j]
+                    for k in range(r):
+                        z[k] += V[vo + j * r + k] * xj
+                for i in range(m):
+                    s = 0.0
+                    for k in range(r):
+                        s += U[uo + i * r + k] * z[k]
+                    y[rows[p + i]] += s
+
+
+# -- Building it ----------------------------------------------------------------------------------
+
+class _Collector:
+    """Blocks as they are decided: dense (exact values) and low rank (U, V)."""
+
+    def __init__(self) -> None:
+        self.rows, self.c0, self.b, self.rank, self.U, self.V = [], [], [], [], [], []
+
+    def add_dense(self, rows: np.ndarray, c0: int, values: np.ndarray) -> None:
+        self.rows.append(rows); self.c0.append(c0); self.b.append(values.shape[1]); self.rank.append(-1)
+        self.U.append(np.asarray(values, np.float32).ravel()); self.V.append(np.zeros(0, np.float32))
+
+    def add_lowrank(self, rows, c0, b, res, keep) -> None:
+        """The converged blocks ``keep`` (bool) of an ACA result over blocks (rows[t], c0[t], b[t])."""
+        for t in np.flatnonzero(keep):
+            U, V = res.factors(t)
+            self.rows.append(rows[t]); self.c0.append(int(c0[t])); self.b.append(int(b[t]))
+            self.rank.append(U.shape[1]); self.U.append(U.ravel()); self.V.append(V.ravel())
+
+    def blocks(self) -> BlockList:
+        row_ptr = np.zeros(len(self.rows) + 1, np.int64)
+        np.cumsum([len(r) for r in self.rows], out=row_ptr[1:])
+        u_off = np.zeros(len(self.U) + 1, np.int64)
+        v_off = np.zeros(len(self.V) + 1, np.int64)
+        np.cumsum([u.size for u in self.U], out=u_off[1:])
+        np.cumsum([v.size for v in self.V], out=v_off[1:])
+        cat = (lambda xs, dt: np.concatenate(xs).astype(dt) if xs else np.zeros(0, dt))
+        return BlockList(cat(self.rows, np.int64), row_ptr, np.asarray(self.c0, np.int64),
+                         np.asarray(self.b, np.int64), np.asarray(self.rank, np.int64), u_off[:-1], v_off[:-1],
+                         cat(self.U, np.float32), cat(self.V, np.float32))
+
+
+def build_hmatrix(scene, engine: FormFactorEngine, options: HMatrixOptions | None = None,
+                  progress: ProgressCallback = None) -> FormFactorHMatrix:
+    """The H-matrix of ``scene``'s F (see the module docstring).
+
+    Parameters
+    ----------
+    scene : Scene
+    engine : FormFactorEngine
+        Computes the exact blocks (with its visibility settings) and holds the kernel geometry.
+    options : HMatrixOptions, optional
+    progress : callable, optional
+        ``progress(done, total)`` over the exact blocks' groups.
+    """
+    from .farfield import patch_boxes
+
+    options = HMatrixOptions() if options is None else options
+    t0 = time.perf_counter()
+    lo, hi = patch_boxes(scene)
+    tree = cluster_tree(scene.centroids, lo, hi, options.leaf_size)
+    far_r, far_c, near_r, near_c = block_partition(tree, options.eta)
+    builder = _Builder(scene, engine, tree, options)
+    builder.info["time_tree"] = time.perf_counter() - t0
+    builder.far(far_r, far_c)
+    for r, c in zip(near_r, near_c):
+        builder.exact_rows(builder.node_rows(r), c)
+    builder.flush_exact(progress)
+    hm = FormFactorHMatrix(tree.perm, builder.out.blocks(), builder.info)
+    n = scene.n_patches
+    info = builder.info
+    info.update({"n": n, "leaf_size": options.leaf_size, "eta": options.eta, "tolerance": options.tolerance,
+                 "tree_nodes": int(len(tree.start)), "near_blocks": int(len(near_r)), "blocks": hm.blocks.count,
+                 "pairs_evaluated": info["exact_pairs"] + info["kernel_pairs"],
+                 "pairs_share": (info["exact_pairs"] + info["kernel_pairs"]) / max(1, n * n),
+                 "storage_floats": hm.storage, "time_total": time.perf_counter() - t0})
+    ranks = hm.blocks.rank[hm.blocks.rank >= 0]
+    info["mean_rank"] = float(ranks.mean()) if len(ranks) else 0.0
+    return hm
+
+
+class _Builder:
+    """The far pairs' decisions (visibility, probes, cross approximation) and the exact rows."""
+
+    def __init__(self, scene, engine: FormFactorEngine, tree: ClusterTree, options: HMatrixOptions) -> None:
+        self.engine, self.tree, self.options = engine, tree, options
+        self.boxes = _visibility_boxes(scene, engine, tree)
+        self.out = _Collector()
+        self.pending: dict[int, list] = {}        # column node -> row positions wanted exactly
+        self.info = {"far_blocks": 0, "visible_blocks": 0, "blocked_blocks": 0, "mixed_blocks": 0,
+                     "probed_blocks": 0, "aca_failed": 0, "kernel_pairs": 0, "exact_pairs": 0,
+                     "blocked_pairs": 0, "probe_rays": 0, "time_visibility": 0.0, "time_probes": 0.0,
+                     "time_aca": 0.0, "time_exact": 0.0}
+
+    def node_rows(self, t: int) -> np.ndarray:
+        return np.arange(self.tree.start[t], self.tree.stop[t], dtype=np.int64)
+
+    def far(self, r: np.ndarray, c: np.ndarray) -> None:
+        """Decide every far node pair: VISIBLE ones by cross approximation, BLOCKED ones zero,
+        MIXED ones halved down to ``probe_size`` and then probed row by row."""
+        tree, info = self.tree, self.info
+        info["far_blocks"] += len(r)
+        while len(r):
+            t = time.perf_counter()
+            states = _states(self.engine, self.boxes, r, c)
+            info["time_visibility"] += time.perf_counter() - t
+            blocked = states == BLOCKED
+            info["blocked_blocks"] += int(blocked.sum())
+            info["blocked_pairs"] += int((tree.size[r[blocked]] * tree.size[c[blocked]]).sum())
+            visible = states == VISIBLE
+            info["visible_blocks"] += int(visible.sum())
+            self.lowrank([self.node_rows(q) for q in r[visible]], c[visible])
+            mixed = states == MIXED
+            info["mixed_blocks"] += int(mixed.sum())
+            small = mixed & (np.maximum(tree.size[r], tree.size[c]) <= self.options.probe_size)
+            small |= mixed & (tree.left[r] < 0) & (tree.left[c] < 0)
+            self.probe(r[small], c[small])
+            split = mixed & ~small
+            r, c = _split_pairs(tree, r[split], c[split])
+
+    def lowrank(self, rows: list, c: np.ndarray) -> None:
+        """Cross approximations of the unoccluded blocks F[rows[k]][:, node c[k]]; those that do not
+        converge are computed exactly."""
+        from .aca import aca_blocks
+
+        if not len(c):
+            return
+        tree, perm = self.tree, self.tree.perm
+        t = time.perf_counter()
+        row_ptr = np.zeros(len(rows) + 1, np.int64)
+        np.cumsum([len(x) for x in rows], out=row_ptr[1:])
+        cols, col_ptr = _concat_ranges(perm, tree.start[c], tree.stop[c])
+        res = aca_blocks(self.engine.geometry, perm[np.concatenate(rows)], row_ptr, cols, col_ptr,
+                         self.options.tolerance, self.options.max_rank)
+        self.info["time_aca"] += time.perf_counter() - t
+        self.info["kernel_pairs"] += int(res.evaluated.sum())
+        self.out.add_lowrank(rows, tree.start[c], tree.size[c], res, res.ok)
+        self.info["aca_failed"] += int((~res.ok).sum())
+        for k in np.flatnonzero(~res.ok):
+            self.exact_rows(rows[k], c[k])
+
+    def probe(self, r: np.ndarray, c: np.ndarray) -> None:
+        """Mixed pairs: PROBES rays from each row patch to patches spread over the column node; rows
+        whose facing rays all agree are visible (cross approximation) or blocked (zero), the others exact."""
+        if not len(r):
+            return
+        tree, perm, k = self.tree, self.tree.perm, PROBES
+        t = time.perf_counter()
+        rows, row_ptr = _concat_ranges(np.arange(self.tree.perm.size), tree.start[r], tree.stop[r])
+        owner = np.repeat(np.arange(len(r)), np.diff(row_ptr))
+        size = tree.size[c][owner]
+        targets = tree.start[c][owner][:, None] + (size[:, None] * (2 * np.arange(k) + 1)) // (2 * k)
+        facing, blocked = self.engine.visibility.segments_blocked(np.repeat(perm[rows], k), perm[targets.ravel()])
+        facing, blocked = facing.reshape(-1, k), (blocked & facing).reshape(-1, k)
+        self.info["probe_rays"] += int(facing.sum())
+        n_blocked, n_facing = blocked.sum(axis=1), facing.sum(axis=1)
+        state = np.full(len(rows), MIXED, np.int8)
+        state[n_blocked == 0] = VISIBLE
+        state[(n_blocked == n_facing) & (n_facing > 0)] = BLOCKED
+        self.info["time_probes"] += time.perf_counter() - t
+        self.info["probed_blocks"] += len(r)
+        vis_rows, vis_c = [], []
+        for q in range(len(r)):
+            s = state[row_ptr[q]:row_ptr[q + 1]]
+            rq = rows[row_ptr[q]:row_ptr[q + 1]]
+            if (s == VISIBLE).any():
+                vis_rows.append(rq[s == VISIBLE]); vis_c.append(c[q])
+            if (s == MIXED).any():
+                self.exact_rows(rq[s == MIXED], c[q])
+            self.info["blocked_pairs"] += int((s == BLOCKED).sum()) * int(tree.size[c[q]])
+        self.lowrank(vis_rows, np.asarray(vis_c, np.int64))
+
+    def exact_rows(self, rows: np.ndarray, c: int) -> None:
+        """Ask for F[rows][:, node c] with visibility (computed by :meth:`flush_exact`, a column node at a time)."""
+        self.pending.setdefault(int(c), []).append(np.asarray(rows, np.int64))
+
+    def flush_exact(self, progress) -> None:
+        """The exact blocks asked for, one engine call per column node (its rows stacked)."""
+        tree, perm = self.tree, self.tree.perm
+        t = time.perf_counter()
+        pairs0 = self.engine.pairs
+        items = sorted(self.pending.items())
+        for g, (c, parts) in enumerate(items):
+            rows = np.concatenate(parts)
+            F = self.engine.block(perm[rows], perm[tree.start[c]:tree.stop[c]])
+            at = 0
+            for part in parts:
+                self.out.add_dense(part, int(tree.start[c]), F[at:at + len(part)])
+                at += len(part)
+            report(progress, g + 1, len(items))
+        self.pending.clear()
+        self.info["exact_pairs"] += int(self.engine.pairs - pairs0)
+        self.info["time_exact"] += time.perf_counter() - t
+
+
+def _visibility_boxes(scene, engine: FormFactorEngine, tree: ClusterTree):
+    """Node boxes in the visibility frame (padded patch boxes), or None without occluders."""
+    vis = engine.visibility
+    if vis is None or vis.cluster_pairs(scene, CLUSTER_SIZE) is None:
+        return None
+    return _node_boxes(vis.patch_lo[tree.perm], vis.patch_hi[tree.perm], tree.start, tree.stop)
+
+
+def _states(engine: FormFactorEngine, boxes, r: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """Cluster-pair visibility of node pairs (clustervis.py's test on the nodes' boxes)."""
+    out = np.full(len(r), VISIBLE, np.int8)
+    if boxes is None or len(r) == 0:
+        return out
+    cv = engine.visibility.clusters
+    a, b = np.minimum(r, c), np.maximum(r, c)     # the test is made for the canonical pair
+    _cluster_pair_states(a, b, boxes[0], boxes[1], cv.tri, cv.normal, cv.d0, cv.tlo, cv.thi, cv.glo, cv.cell,
+                         cv.g, cv.cstart, cv.clist, cv.tol, cv.margin, out)
+    return out
+
+
+def _concat_ranges(perm: np.ndarray, start: np.ndarray, stop: np.ndarray):
+    """``perm[start[k]:stop[k]]`` for every k, concatenated, and the offsets of each."""
+    size = stop - start
+    ptr = np.zeros(len(size) + 1, np.int64)
+    np.cumsum(size, out=ptr[1:])
+    idx = np.repeat(start - ptr[:-1], size) + np.arange(ptr[-1], dtype=np.int64)
+    return perm[idx], ptr
