@@ -1,0 +1,506 @@
+"""Adaptive cross approximation (ACA) of far blocks of the unoccluded form-factor matrix.
+
+A block of F between two well-separated patch clusters R (rows) and C (columns)
+is numerically low rank in the unoccluded kernel. ACA with partial pivoting
+(Bebendorf 2000; Rjasanow & Steinbach 2007, Alg. 3.9) builds
+
+    F[R][:, C] ~= S_k = sum_{l<k} u_l v_l^T                                   (1)
+
+from k rows and k columns of the block only: at step k it evaluates the
+residual of one row i_k, takes its largest entry (column j_k) as the pivot,
+v_k = residual row / pivot, u_k = residual column j_k, and moves to the row
+where |u_k| is largest among the rows not yet used. It stops when
+
+    ||u_k|| ||v_k|| <= tol ||S_k||_F                                          (2)
+
+on :data:`CONFIRM` steps in a row (one step alone can stop early: a small
+term does not prove a small residual), with ||S_k||_F^2 updated in O(k (m + b)) a step (||S_{k-1}||^2 + 2 sum_l
+(u_l . u_k)(v_l . v_k) + ||u_k||^2 ||v_k||^2). A residual row that is zero is
+no proof that the block is done (a block may be zero in some rows only): up to
+:data:`ZERO_ROWS` further rows, spread over the block, are tried before
+stopping, so an exactly zero block (patches of one plane: F = 0) costs
+ZERO_ROWS rows and comes out rank 0.
+
+ACA overestimates the rank; the factors are recompressed (Bebendorf 2008,
+sec. 2.6): U = Q_u R_u, V = Q_v R_v, R_u R_v^T = W s Z^T, truncated to the
+smallest rank whose discarded singular values hold at most RECOMPRESS x tol of
+the Frobenius norm; O((m + b) k^2 + k^3) a block, the order of ACA's own updates.
+
+Entries are evaluated inside numba by the same pair functions as
+:func:`hfrad.formfactors.clustered.kernel_for`'s block functions
+(kernel.py's ``_triangle_pair_area_ff`` / ``_pair_area_ff``, clustered.py's
+``_cluster_pair_area_ff``), so :func:`pair_values` equals the block functions
+to the bit. The clustered kernel's memo is neither read nor written (far
+blocks hold no memo pairs; the numbers are the same either way).
+
+References
+----------
+M. Bebendorf, "Approximation of boundary element matrices", Numer. Math. 86 (2000) 565-589.
+S. Rjasanow, O. Steinbach, "The Fast Solution of Boundary Integral Equations", Springer 2007, ch. 3.
+M. Bebendorf, "Hierarchical Matrices", Springer 2008, sec. 2.6 (recompression), 3.4 (ACA).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+from numba import njit, prange
+
+from ..errors import InputError
+from ..resources import blas_threads
+from .clustered import ClusterGeometry, _cluster_pair_area_ff
+from .kernel import PatchGeometry, _pair_area_ff, _triangle_pair_area_ff
+
+#: Rows with a zero residual tried in a row before a block counts as done (see the module docstring).
+ZERO_ROWS = 3
+
+#: Steps in a row that must pass the stopping test (2). One step alone stopped early on blocks
+#: between walls at right angles (Cornell box, 4K patches, tol 1e-2: 6.7 tol against the dense
+#: block from row 0; two steps: 2.0 tol, at one more step's cost).
+CONFIRM = 2
+
+#: The recompression may discard singular values holding up to this fraction of tol x ||S_k||_F.
+RECOMPRESS = 0.5
+
+# which pair function an entry goes through (see _evaluate)
+_TRIANGLES, _CSR, _CLUSTERS = 0, 1, 2
+
+
+# ---------------------------------------------------------------------------
+# the geometry as two tuples of arrays: one compiled signature serves every kind (cache=True),
+# the tuple of the kinds not in use is filled with empty arrays of the same types
+
+
+def _f(x, ndim):
+    return np.ascontiguousarray(x, np.float64).reshape((-1,) + (3,) * (ndim - 1)) if ndim > 1 else \
+        np.ascontiguousarray(x, np.float64).ravel()
+
+
+def _patch_tuple(g: PatchGeometry | None) -> tuple:
+    if g is None:
+        e1, e2, e3, ei = np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0, np.int64)
+        return (e3, e2, e1, e2, e1, ei, ei, e1, 0.0, 0.0, 0.0, 0.0)
+    return (_f(g.triangles, 3), _f(g.normals, 2), _f(g.areas, 1), _f(g.centroids, 2), _f(g.diameters, 1),
+            np.ascontiguousarray(g.start, np.int64), np.ascontiguousarray(g.index, np.int64),
+            _f(g.patch_areas, 1), float(g.near), float(g.adaptive), float(g.eps), float(g.tolerance))
+
+
+def _cluster_tuple(g: ClusterGeometry | None) -> tuple:
+    if g is None:
+        e1, e2, e3, ei = np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0, np.int64)
+        w = np.zeros((0, 4))
+        return (e3, e2, ei, e1, e1, e2, e2, e1, np.zeros((0, 4, 3)), np.zeros((0, 4, 3)), np.zeros((0, 4, 3)), w,
+                np.zeros((0, 4, 3)), np.zeros((0, 4, 3)), w, 0.0, 0.0, 0.0, e1, e2, e1, e1, 0.0, 0, 0.0, 0.0)
+    m = g.mid_points.shape[1]
+    q = g.points.shape[1]
+
+    def pts(x, k):
+        return np.ascontiguousarray(x, np.float64).reshape(-1, k, 3)
+
+    def wts(x, k):
+        return np.ascontiguousarray(x, np.float64).reshape(-1, k)
+    return (_f(g.triangles, 3), _f(g.tri_normals, 2), np.ascontiguousarray(g.start, np.int64), _f(g.scale_kept, 1),
+            _f(g.areas, 1), _f(g.area_vectors, 2), _f(g.centroids, 2), _f(g.diameters, 1),
+            pts(g.mid_points, m), pts(g.mid_normals, m), pts(g.mid_vectors, m), wts(g.mid_weights, m),
+            pts(g.points, q), pts(g.point_normals, q), wts(g.weights, q), float(g.far), float(g.near), float(g.eps),
+            _f(g.tri_areas, 1), _f(g.tri_centroids, 2), _f(g.tri_diameters, 1), _f(g.touching_rules, 1),
+            float(g.tolerance), int(g.exact_pairs), float(g.exact_near), float(g.point_far) ** 2)
+
+
+def _kernel_args(geometry) -> tuple[int, tuple, tuple]:
+    """(kind, patch tuple, cluster tuple) of a PatchGeometry or ClusterGeometry."""
+    if isinstance(geometry, ClusterGeometry):
+        return _CLUSTERS, _patch_tuple(None), _cluster_tuple(geometry)
+    if isinstance(geometry, PatchGeometry):
+        kind = _TRIANGLES if geometry.one_triangle_per_patch else _CSR
+        return kind, _patch_tuple(geometry), _cluster_tuple(None)
+    raise InputError(f"geometry must be a PatchGeometry or ClusterGeometry (kernel_for), got {type(geometry).__name__}")
+
+
+@njit(cache=True, fastmath=False, nogil=True)
+def _evaluate(kind, I, J, G, H, out):
+    """out[k] = F[I[k], J[k]] without visibility, exactly as the block function of ``kind`` computes it.
+
+    The one place where the pair functions are compiled in (numba compiles an inlined kernel
+    again at every call site, tens of seconds each). The tuples are unpacked once, outside the
+    loop: unpacked per pair, their ~40 arrays' reference counts cost ~0.5 us a pair.
+    """
+    T, N, A, C, D, start, index, PA, near, adaptive, eps, tol = G
+    (T2, N2, start2, K, A2, S, C2, D2, M, MN, MS, MW, Q, QN, W, far, near2, eps2, TA, TC, TD, TR, tol2, exact,
+     exact_near, far2) = H
+    for k in range(I.shape[0]):
+        i = I[k]
+        j = J[k]
+        if kind == _CLUSTERS:
+            af = _cluster_pair_area_ff(i, j, T2, N2, start2, K, A2, S, C2, D2, M, MN, MS, MW, Q, QN, W, far, near2,
+                                       eps2, TA, TC, TD, TR, tol2, exact, exact_near, far2)
+            a = A2[i]
+        elif kind == _TRIANGLES:
+            af = _triangle_pair_area_ff(min(i, j), max(i, j), T, N, A, C, D, near, adaptive, eps, tol)
+            a = A[i]
+        else:
+            af = _pair_area_ff(i, j, T, N, A, C, D, start, index, near, adaptive, eps, tol)
+            a = PA[i]
+        out[k] = af / a if af > 0.0 else 0.0
+
+
+@njit(parallel=True, cache=True, fastmath=False, nogil=True)
+def _pairs(kind, I, J, G, H, out, chunks):
+    """:func:`_evaluate` in parallel: pairs in ``chunks`` contiguous runs."""
+    n = I.shape[0]
+    for part in prange(chunks):
+        lo = part * n // chunks
+        hi = (part + 1) * n // chunks
+        _evaluate(kind, I[lo:hi], J[lo:hi], G, H, out[lo:hi])
+
+
+def _patch_indices(x, n: int, name: str) -> np.ndarray:
+    x = np.asarray(x)
+    if x.ndim != 1 or (x.size and not np.issubdtype(x.dtype, np.integer)):
+        raise InputError(f"{name} must be a 1-D array of patch indices, got shape {x.shape}, dtype {x.dtype}")
+    x = np.ascontiguousarray(x, np.int64)
+    if x.size and (x.min() < 0 or x.max() >= n):
+        raise InputError(f"{name} must hold patch indices in [0, {n}), got {x.min()}..{x.max()}")
+    return x
+
+
+def pair_values(geometry, I, J) -> np.ndarray:
+    """(len(I),) float64: the unoccluded F[I[k], J[k]] (F_ij, not A_i F_ij).
+
+    The same numbers, to the bit, as the block function of
+    :func:`hfrad.formfactors.clustered.kernel_for` gives for those pairs; in parallel over pairs.
+
+    Parameters
+    ----------
+    geometry : PatchGeometry or ClusterGeometry
+        The first item of ``kernel_for(scene)``.
+    I, J : (p,) int
+        Row and column patch indices (the scene's order).
+
+    Raises
+    ------
+    InputError
+        I and J of different lengths, or indices out of range.
+    """
+    kind, G, H = _kernel_args(geometry)
+    I = _patch_indices(I, geometry.n, "I")
+    J = _patch_indices(J, geometry.n, "J")
+    if len(I) != len(J):
+        raise InputError(f"I and J must have the same length, got {len(I)} and {len(J)}")
+    out = np.empty(len(I))
+    if len(I):
+        _pairs(kind, I, J, G, H, out, max(1, min(len(I), 8 * numba.get_num_threads())))
+    return out
+
+
+# ---------------------------------------------------------------------------
+# ACA
+
+
+@dataclass(frozen=True)
+class AcaResult:
+    """Low-rank factors of many blocks: block t ~= U_t @ V_t.T.
+
+    Attributes
+    ----------
+    U : (sum_t m_t r_t,) float32
+        U_t = ``U[u_offsets[t]:u_offsets[t + 1]].reshape(m_t, r_t)`` (row-major).
+    V : (sum_t b_t r_t,) float32
+        V_t = ``V[v_offsets[t]:v_offsets[t + 1]].reshape(b_t, r_t)`` (row-major).
+    u_offsets, v_offsets : (blocks + 1,) int64
+    block_rows, block_cols : (blocks,) int64, m_t and b_t
+    ranks : (blocks,) int64, r_t after recompression
+    aca_ranks : (blocks,) int64, ACA's steps k_t before recompression (r_t <= k_t)
+    ok : (blocks,) bool
+        False where ACA reached ``max_rank`` before its stopping test (2): the factors are
+        then not to be trusted, and the caller computes that block another way.
+    evaluated : (blocks,) int64
+        Entries of F evaluated for each block (pair-function calls).
+    """
+
+    U: np.ndarray
+    V: np.ndarray
+    u_offsets: np.ndarray
+    v_offsets: np.ndarray
+    block_rows: np.ndarray
+    block_cols: np.ndarray
+    ranks: np.ndarray
+    aca_ranks: np.ndarray
+    ok: np.ndarray
+    evaluated: np.ndarray
+
+    def factors(self, t: int) -> tuple[np.ndarray, np.ndarray]:
+        """(U_t (m_t, r_t), V_t (b_t, r_t)) float32 views of block t."""
+        r = int(self.ranks[t])
+        U = self.U[self.u_offsets[t]:self.u_offsets[t + 1]].reshape(int(self.block_rows[t]), r)
+        V = self.V[self.v_offsets[t]:self.v_offsets[t + 1]].reshape(int(self.block_cols[t]), r)
+        return U, V
+
+    @property
+    def blocks(self) -> int:
+        """Number of blocks."""
+        return len(self.ranks)
+
+
+@njit(cache=True, fastmath=False, nogil=True)
+def _next_row(i, used, stride):
+    """The next unused row after a zero residual row: a stride through the block, then the first free."""
+    m = used.shape[0]
+    i = (i + stride) % m
+    for _ in range(m):
+        if not used[i]:
+            return i
+        i = (i + 1) % m
+    return -1
+
+
+@njit(cache=True, fastmath=False, nogil=True)
+def _aca(kind, R, C, G, H, tol, cap, U, V):
+    """ACA with partial pivoting of F[R][:, C] into U[:, :k], V[:, :k] (see the module docstring).
+
+    Returns (k, converged, evaluated); ``converged`` is False when k reached ``cap`` without test (2)
+    (unless cap = min(m, b): then every row or column was used and S_k is the block itself).
+    """
+    m = R.shape[0]
+    b = C.shape[0]
+    row = np.empty(b)
+    col = np.empty(m)
+    fixed_row = np.empty(b, np.int64)   # the pair lists of one row and of one column
+    fixed_col = np.empty(m, np.int64)
+    used_row = np.zeros(m, np.bool_)
+    used_col = np.zeros(b, np.bool_)
+    stride = max(1, int(0.618 * m))
+    k = 0
+    norm2 = 0.0
+    evaluated = 0
+    zeros = 0
+    hits = 0
+    i = m // 2      # the middle of the list: the middle of the cluster when the list is in tree order
+    while True:
+        fixed_row[:] = R[i]
+        _evaluate(kind, fixed_row, C, G, H, row)
+        evaluated += b
+        used_row[i] = True
+        for l in range(k):
+            a = U[i, l]
+            for c in range(b):
+                row[c] -= a * V[c, l]
+        j = -1
+        best = 0.0
+        for c in range(b):
+            if not used_col[c] and abs(row[c]) > best:
+                best = abs(row[c])
+                j = c
+        if j < 0 or best <= 1e-14 * math.sqrt(norm2):   # a zero residual row: try others (module docstring)
+            zeros += 1
+            i = _next_row(i, used_row, stride)
+            if zeros > ZERO_ROWS or i < 0:
+                return k, True, evaluated
+            continue
+        zeros = 0
+        used_col[j] = True
+        pivot = row[j]
+        fixed_col[:] = C[j]
+        _evaluate(kind, R, fixed_col, G, H, col)
+        evaluated += m
+        for l in range(k):
+            a = V[j, l]
+            for r in range(m):
+                col[r] -= a * U[r, l]
+        uu = 0.0
+        for r in range(m):
+            U[r, k] = col[r]
+            uu += col[r] * col[r]
+        vv = 0.0
+        for c in range(b):
+            V[c, k] = row[c] / pivot
+            vv += V[c, k] * V[c, k]
+        cross = 0.0      # ||S_k||^2 = ||S_{k-1}||^2 + 2 sum_l (u_l.u_k)(v_l.v_k) + |u_k|^2 |v_k|^2
+        for l in range(k):
+            su = 0.0
+            for r in range(m):
+                su += U[r, l] * U[r, k]
+            sv = 0.0
+            for c in range(b):
+                sv += V[c, l] * V[c, k]
+            cross += su * sv
+        norm2 = max(norm2 + 2.0 * cross + uu * vv, 0.0)
+        k += 1
+        if math.sqrt(uu * vv) <= tol * math.sqrt(norm2):     # eq. (2), on CONFIRM steps in a row
+            hits += 1
+            if hits >= CONFIRM:
+                return k, True, evaluated
+        else:
+            hits = 0
+        if k == cap:
+            return k, cap == min(m, b), evaluated
+        i = -1          # the next row: where |u_k| is largest among the rows not used
+        best = -1.0
+        for r in range(m):
+            if not used_row[r] and abs(col[r]) > best:
+                best = abs(col[r])
+                i = r
+        if i < 0:
+            return k, True, evaluated
+
+
+@njit(cache=True, fastmath=False, nogil=True)
+def _recompress(U, V, k, tol):
+    """(U', V', r): U[:, :k] V[:, :k]^T truncated by a QR of each factor and an SVD of R_u R_v^T."""
+    Qu, Ru = np.linalg.qr(np.ascontiguousarray(U[:, :k]))
+    Qv, Rv = np.linalg.qr(np.ascontiguousarray(V[:, :k]))
+    W, s, Zt = np.linalg.svd(np.dot(Ru, Rv.T))
+    total = 0.0
+    for l in range(s.shape[0]):
+        total += s[l] * s[l]
+    limit = (RECOMPRESS * tol) ** 2 * total
+    r = s.shape[0]
+    tail = 0.0
+    while r > 0 and tail + s[r - 1] * s[r - 1] <= limit:
+        tail += s[r - 1] * s[r - 1]
+        r -= 1
+    for l in range(r):
+        W[:, l] *= s[l]
+    return (np.dot(np.ascontiguousarray(Qu), np.ascontiguousarray(W[:, :r])),
+            np.dot(np.ascontiguousarray(Qv), np.ascontiguousarray(Zt[:r, :].T)), r)
+
+
+@njit(parallel=True, cache=True, fastmath=False, nogil=True)
+def _aca_blocks(kind, G, H, rows, row_ptr, cols, col_ptr, tol, max_rank, u_cap, v_cap, Up, Vp, ranks, aca_ranks,
+                ok, evaluated, chunks):
+    """ACA of every block into capacity slots of Up, Vp (float32); blocks dealt out in turn to ``chunks``
+    parts (block t to part t % chunks: neighbouring blocks are often of similar cost)."""
+    nb = row_ptr.shape[0] - 1
+    for part in prange(chunks):
+        for t in range(part, nb, chunks):
+            R = rows[row_ptr[t]:row_ptr[t + 1]]
+            C = cols[col_ptr[t]:col_ptr[t + 1]]
+            m = R.shape[0]
+            b = C.shape[0]
+            cap = min(max_rank, m, b)
+            if cap == 0:
+                ranks[t] = 0
+                aca_ranks[t] = 0
+                ok[t] = True
+                evaluated[t] = 0
+                continue
+            U = np.empty((m, cap))
+            V = np.empty((b, cap))
+            k, conv, ev = _aca(kind, R, C, G, H, tol, cap, U, V)
+            aca_ranks[t] = k
+            ok[t] = conv
+            evaluated[t] = ev
+            if k >= 2:
+                U2, V2, r = _recompress(U, V, k, tol)
+            else:
+                U2, V2, r = U, V, k
+            ranks[t] = r
+            u0 = u_cap[t]
+            v0 = v_cap[t]
+            for a in range(m):
+                for l in range(r):
+                    Up[u0 + a * r + l] = U2[a, l]
+            for c in range(b):
+                for l in range(r):
+                    Vp[v0 + c * r + l] = V2[c, l]
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def _compact(src, src_start, dst, dst_start):
+    """dst[dst_start[t]:dst_start[t + 1]] = the same length from src[src_start[t]:]."""
+    for t in prange(dst_start.shape[0] - 1):
+        a = src_start[t]
+        for q in range(dst_start[t + 1] - dst_start[t]):
+            dst[dst_start[t] + q] = src[a + q]
+
+
+def _block_lists(x, ptr, n: int, name: str) -> tuple[np.ndarray, np.ndarray]:
+    x = _patch_indices(x, n, name)
+    ptr = np.asarray(ptr)
+    if ptr.ndim != 1 or len(ptr) < 1 or (len(ptr) and not np.issubdtype(ptr.dtype, np.integer)):
+        raise InputError(f"{name}_ptr must be a 1-D integer array of blocks + 1 offsets, got shape {ptr.shape}")
+    ptr = np.ascontiguousarray(ptr, np.int64)
+    if ptr[0] != 0 or ptr[-1] != len(x) or (np.diff(ptr) < 0).any():
+        raise InputError(f"{name}_ptr must rise from 0 to len({name}) = {len(x)}, got {ptr[0]}..{ptr[-1]}")
+    return x, ptr
+
+
+def aca_blocks(geometry, rows, row_ptr, cols, col_ptr, tol: float, max_rank: int) -> AcaResult:
+    """Low-rank factors U_t V_t^T of many blocks of the unoccluded F by ACA, in parallel over blocks.
+
+    Block t is ``F[rows[row_ptr[t]:row_ptr[t + 1]]][:, cols[col_ptr[t]:col_ptr[t + 1]]]`` (patch
+    indices, any order; m_t rows, b_t columns). Each is approximated by ACA with partial
+    pivoting to relative Frobenius tolerance ``tol`` (eq. 2 of the module docstring), then
+    recompressed; only the k_t rows and k_t columns ACA visits are evaluated (about
+    k_t (m_t + b_t) entries, plus up to ZERO_ROWS rows of b_t for a zero block), each by
+    :func:`pair_values`' pair function.
+
+    Parameters
+    ----------
+    geometry : PatchGeometry or ClusterGeometry
+        The first item of ``kernel_for(scene)``.
+    rows, row_ptr : (sum m_t,) int, (blocks + 1,) int
+    cols, col_ptr : (sum b_t,) int, (blocks + 1,) int
+    tol : float in (0, 1)
+        Relative Frobenius tolerance per block.
+    max_rank : int >= 1
+        Most ACA steps per block; a block that needs more is returned with ``ok`` False.
+
+    Returns
+    -------
+    AcaResult
+
+    Raises
+    ------
+    InputError
+        Indices out of range, offsets that do not fit, ``row_ptr`` and ``col_ptr`` of different
+        lengths, tol outside (0, 1) or max_rank < 1.
+
+    Notes
+    -----
+    Memory: the factors are first written into slots sized by c_t = min(max_rank, m_t, b_t),
+    4 sum_t (m_t + b_t) c_t bytes, then copied to the returned pools, 4 sum_t (m_t + b_t) r_t
+    bytes; each thread also holds 8 (m_t + b_t) (c_t + 2) bytes of float64 scratch for the block
+    it works on (plus the recompression's copies, of the same order). Pass the blocks in
+    batches when the first term is too large. Work: O(k_t (m_t + b_t)) entries and O(k_t^2
+    (m_t + b_t)) flops per block.
+    """
+    kind, G, H = _kernel_args(geometry)
+    n = geometry.n
+    rows, row_ptr = _block_lists(rows, row_ptr, n, "rows")
+    cols, col_ptr = _block_lists(cols, col_ptr, n, "cols")
+    if len(row_ptr) != len(col_ptr):
+        raise InputError(f"row_ptr and col_ptr must give the same number of blocks, got {len(row_ptr) - 1} "
+                         f"and {len(col_ptr) - 1}")
+    if not (0.0 < tol < 1.0):
+        raise InputError(f"tol must be in (0, 1), got {tol}")
+    if int(max_rank) != max_rank or max_rank < 1:
+        raise InputError(f"max_rank must be an integer >= 1, got {max_rank}")
+    m = np.diff(row_ptr).astype(np.int64)
+    b = np.diff(col_ptr).astype(np.int64)
+    cap = np.minimum(np.minimum(m, b), int(max_rank))
+    u_cap = np.concatenate([[0], np.cumsum(m * cap)]).astype(np.int64)
+    v_cap = np.concatenate([[0], np.cumsum(b * cap)]).astype(np.int64)
+    nb = len(m)
+    Up = np.empty(u_cap[-1], np.float32)
+    Vp = np.empty(v_cap[-1], np.float32)
+    ranks = np.zeros(nb, np.int64)
+    aca_ranks = np.zeros(nb, np.int64)
+    ok = np.ones(nb, bool)
+    evaluated = np.zeros(nb, np.int64)
+    if nb:
+        chunks = max(1, min(nb, 8 * numba.get_num_threads()))
+        with blas_threads(1):   # the recompression's LAPACK calls run inside numba's threads (8x slower otherwise)
+            _aca_blocks(kind, G, H, rows, row_ptr, cols, col_ptr, float(tol), int(max_rank), u_cap, v_cap, Up, Vp,
+                        ranks, aca_ranks, ok, evaluated, chunks)
+    u_off = np.concatenate([[0], np.cumsum(m * ranks)]).astype(np.int64)
+    v_off = np.concatenate([[0], np.cumsum(b * ranks)]).astype(np.int64)
+    U = np.empty(u_off[-1], np.float32)
+    V = np.empty(v_off[-1], np.float32)
+    if nb:
+        _compact(Up, u_cap, U, u_off)
+        _compact(Vp, v_cap, V, v_off)
+    return AcaResult(U, V, u_off, v_off, m, b, ranks, aca_ranks, ok, evaluated)
