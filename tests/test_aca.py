@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from hfrad.errors import InputError
-from hfrad.formfactors.aca import ZERO_ROWS, aca_blocks, pair_values
+from hfrad.formfactors.aca import PROBES, aca_blocks, pair_values
 from hfrad.formfactors.clustered import kernel_for
 from hfrad.formfactors.kernel import PatchGeometry, unoccluded_block
 from hfrad.scene.builtin import cornell_box
@@ -87,8 +87,9 @@ def test_aca_of_well_separated_blocks_is_within_the_tolerance_from_few_entries(c
         assert error <= 2.5 * tol                            # observed 0.44-1.6 tol
         m, b = dense.shape
         assert 1 <= res.ranks[t] <= res.aca_ranks[t] <= 0.1 * min(m, b)
-        # only the rows and columns ACA visits: k (m + b) entries, a few rows more at most
-        assert res.aca_ranks[t] * (m + b) <= res.evaluated[t] <= (res.aca_ranks[t] + ZERO_ROWS) * (m + b)
+        # only the rows and columns ACA visits, k (m + b) entries, and its probes (one plane a side:
+        # PROBES rows and columns spread over the block)
+        assert res.aca_ranks[t] * (m + b) <= res.evaluated[t] <= (res.aca_ranks[t] + PROBES + 1) * (m + b)
 
 
 def test_aca_on_clustered_patches(clustered):
@@ -107,7 +108,8 @@ def test_a_zero_block_is_rank_zero_at_the_cost_of_a_few_rows(cornell):
     assert not block(geometry, floor, floor).any()           # coplanar patches: F = 0 exactly
     res = _run(geometry, [(floor, floor)], 1e-3, 16)
     assert res.ok[0] and res.ranks[0] == 0 and res.factors(0)[0].shape == (len(floor), 0)
-    assert res.evaluated[0] == (ZERO_ROWS + 1) * len(floor)
+    # the first row, one column for the columns' plane, then PROBES rows and columns spread over the block
+    assert res.evaluated[0] == (2 * PROBES + 2) * len(floor)
 
 
 def test_hitting_max_rank_is_reported(cornell):

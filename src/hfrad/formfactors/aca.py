@@ -54,13 +54,17 @@ from ..resources import blas_threads
 from .clustered import ClusterGeometry, _cluster_pair_area_ff
 from .kernel import PatchGeometry, _pair_area_ff, _triangle_pair_area_ff
 
-#: Rows with a zero residual tried in a row before a block counts as done (see the module docstring).
-ZERO_ROWS = 3
+#: Probes (a row and a column each) spread over the block before it counts as done, after one
+#: of each direction class (see the module docstring) ...
+PROBES = 2
 
-#: Steps in a row that must pass the stopping test (2). One step alone stopped early on blocks
-#: between walls at right angles (Cornell box, 4K patches, tol 1e-2: 6.7 tol against the dense
-#: block from row 0; two steps: 2.0 tol, at one more step's cost).
-CONFIRM = 2
+#: ... and most probes per block in all.
+MAX_PROBES = 2 * 8 + 2
+
+#: Most direction classes of a block's rows (and of its columns), and the cosine within which a
+#: patch's normal joins a class (10 degrees).
+DIRECTIONS = 8
+SAME_DIRECTION = 0.985
 
 #: The recompression may discard singular values holding up to this fraction of tol x ||S_k||_F.
 RECOMPRESS = 0.5
@@ -157,6 +161,15 @@ def _pairs(kind, I, J, G, H, out, chunks):
         _evaluate(kind, I[lo:hi], J[lo:hi], G, H, out[lo:hi])
 
 
+def _patch_normals(geometry) -> np.ndarray:
+    """(n, 3) unit normal of each patch (area-weighted mean of its triangles' for kernel.py's CSR patches)."""
+    if isinstance(geometry, ClusterGeometry) or geometry.one_triangle_per_patch:
+        return np.ascontiguousarray(geometry.normals, np.float64)
+    w = geometry.normals[geometry.index] * geometry.areas[geometry.index][:, None]
+    s = np.add.reduceat(w, geometry.start[:-1], axis=0) if len(w) else np.zeros((0, 3))
+    return np.ascontiguousarray(s / np.maximum(np.linalg.norm(s, axis=1, keepdims=True), 1e-300))
+
+
 def _patch_indices(x, n: int, name: str) -> np.ndarray:
     x = np.asarray(x)
     if x.ndim != 1 or (x.size and not np.issubdtype(x.dtype, np.integer)):
@@ -246,104 +259,201 @@ class AcaResult:
 
 
 @njit(cache=True, fastmath=False, nogil=True)
-def _next_row(i, used, stride):
-    """The next unused row after a zero residual row: a stride through the block, then the first free."""
-    m = used.shape[0]
-    i = (i + stride) % m
+def _directions(P, idx, cls):
+    """cls[k] = the direction class of patch idx[k]: its normal P[idx[k]] within SAME_DIRECTION of the
+    class's first normal (greedy; the DIRECTIONS-th class takes every normal left). Returns the count."""
+    reps = np.empty((DIRECTIONS, 3))
+    count = 0
+    for k in range(idx.shape[0]):
+        p = idx[k]
+        c = -1
+        for q in range(count):
+            if P[p, 0] * reps[q, 0] + P[p, 1] * reps[q, 1] + P[p, 2] * reps[q, 2] >= SAME_DIRECTION:
+                c = q
+                break
+        if c < 0:
+            c = count if count < DIRECTIONS else DIRECTIONS - 1
+            if count < DIRECTIONS:
+                reps[count, 0], reps[count, 1], reps[count, 2] = P[p, 0], P[p, 1], P[p, 2]
+                count += 1
+        cls[k] = c
+    return count
+
+
+@njit(cache=True, fastmath=False, nogil=True)
+def _unseen(q, taken, cls, seen):
+    """A line not ``taken`` whose direction class is not ``seen`` (-1: none), the first in the
+    golden-ratio order from its q-th step."""
+    m = taken.shape[0]
+    x = 0.5 + 0.6180339887498949 * q
+    i = int((x - math.floor(x)) * m) % m
     for _ in range(m):
-        if not used[i]:
+        if not taken[i] and not seen[cls[i]]:
             return i
         i = (i + 1) % m
     return -1
 
 
 @njit(cache=True, fastmath=False, nogil=True)
-def _aca(kind, R, C, G, H, tol, cap, U, V):
+def _spread(q, taken):
+    """The q-th probe of a line list: golden-ratio steps through it, then the next line not ``taken``
+    (-1: all taken). Spread over the block, so that the probes meet each part of a cluster."""
+    m = taken.shape[0]
+    x = 0.5 + 0.6180339887498949 * q
+    i = int((x - math.floor(x)) * m) % m
+    for _ in range(m):
+        if not taken[i]:
+            return i
+        i = (i + 1) % m
+    return -1
+
+
+@njit(cache=True, fastmath=False, nogil=True)
+def _residual_row(kind, R, C, G, H, i, U, V, k, pairs, row):
+    """row = F[R[i], C] - U[i, :k] V[:, :k]^T."""
+    pairs[:] = R[i]
+    _evaluate(kind, pairs, C, G, H, row)
+    for l in range(k):
+        a = U[i, l]
+        for c in range(row.shape[0]):
+            row[c] -= a * V[c, l]
+
+
+@njit(cache=True, fastmath=False, nogil=True)
+def _residual_col(kind, R, C, G, H, j, U, V, k, pairs, col):
+    """col = F[R, C[j]] - U[:, :k] V[j, :k]^T."""
+    pairs[:] = C[j]
+    _evaluate(kind, R, pairs, G, H, col)
+    for l in range(k):
+        a = V[j, l]
+        for r in range(col.shape[0]):
+            col[r] -= a * U[r, l]
+
+
+@njit(cache=True, fastmath=False, nogil=True)
+def _sum_squares(x):
+    s = 0.0
+    for v in x:
+        s += v * v
+    return s
+
+
+@njit(cache=True, fastmath=False, nogil=True)
+def _aca(kind, R, C, G, H, P, tol, cap, U, V):
     """ACA with partial pivoting of F[R][:, C] into U[:, :k], V[:, :k] (see the module docstring).
 
-    Returns (k, converged, evaluated); ``converged`` is False when k reached ``cap`` without test (2)
-    (unless cap = min(m, b): then every row or column was used and S_k is the block itself).
+    Returns (k, converged, evaluated); ``converged`` is False when k reached ``cap`` with the
+    stopping test or a probe still failing (unless cap = min(m, b): then S_k is the block itself).
     """
     m = R.shape[0]
     b = C.shape[0]
     row = np.empty(b)
     col = np.empty(m)
-    fixed_row = np.empty(b, np.int64)   # the pair lists of one row and of one column
-    fixed_col = np.empty(m, np.int64)
+    row_pairs = np.empty(b, np.int64)   # the pair lists of one row and of one column
+    col_pairs = np.empty(m, np.int64)
     used_row = np.zeros(m, np.bool_)
-    used_col = np.zeros(b, np.bool_)
-    stride = max(1, int(0.618 * m))
+    used_col = np.zeros(b, np.bool_)    # pivot columns
+    probed_col = np.zeros(b, np.bool_)
+    row_cls = np.empty(m, np.int64)      # direction classes of the rows' and columns' patches
+    col_cls = np.empty(b, np.int64)
+    row_seen = np.zeros(_directions(P, R, row_cls), np.bool_)
+    col_seen = np.zeros(_directions(P, C, col_cls), np.bool_)
     k = 0
     norm2 = 0.0
     evaluated = 0
-    zeros = 0
-    hits = 0
+    probes = 0
+    spread = 0
     i = m // 2      # the middle of the list: the middle of the cluster when the list is in tree order
+    have_row = False
     while True:
-        fixed_row[:] = R[i]
-        _evaluate(kind, fixed_row, C, G, H, row)
-        evaluated += b
-        used_row[i] = True
-        for l in range(k):
-            a = U[i, l]
-            for c in range(b):
-                row[c] -= a * V[c, l]
+        if k == cap:
+            return k, cap == min(m, b), evaluated
+        if not have_row:
+            _residual_row(kind, R, C, G, H, i, U, V, k, row_pairs, row)
+            evaluated += b
+            used_row[i] = True
+            row_seen[row_cls[i]] = True
+        have_row = False
         j = -1
         best = 0.0
         for c in range(b):
             if not used_col[c] and abs(row[c]) > best:
                 best = abs(row[c])
                 j = c
-        if j < 0 or best <= 1e-14 * math.sqrt(norm2):   # a zero residual row: try others (module docstring)
-            zeros += 1
-            i = _next_row(i, used_row, stride)
-            if zeros > ZERO_ROWS or i < 0:
-                return k, True, evaluated
-            continue
-        zeros = 0
-        used_col[j] = True
-        pivot = row[j]
-        fixed_col[:] = C[j]
-        _evaluate(kind, R, fixed_col, G, H, col)
-        evaluated += m
-        for l in range(k):
-            a = V[j, l]
+        done = j < 0 or best <= 1e-14 * math.sqrt(norm2)      # a zero residual row
+        if not done:
+            used_col[j] = True
+            col_seen[col_cls[j]] = True
+            pivot = row[j]
+            _residual_col(kind, R, C, G, H, j, U, V, k, col_pairs, col)
+            evaluated += m
             for r in range(m):
-                col[r] -= a * U[r, l]
-        uu = 0.0
-        for r in range(m):
-            U[r, k] = col[r]
-            uu += col[r] * col[r]
-        vv = 0.0
-        for c in range(b):
-            V[c, k] = row[c] / pivot
-            vv += V[c, k] * V[c, k]
-        cross = 0.0      # ||S_k||^2 = ||S_{k-1}||^2 + 2 sum_l (u_l.u_k)(v_l.v_k) + |u_k|^2 |v_k|^2
-        for l in range(k):
-            su = 0.0
-            for r in range(m):
-                su += U[r, l] * U[r, k]
-            sv = 0.0
+                U[r, k] = col[r]
             for c in range(b):
-                sv += V[c, l] * V[c, k]
-            cross += su * sv
-        norm2 = max(norm2 + 2.0 * cross + uu * vv, 0.0)
-        k += 1
-        if math.sqrt(uu * vv) <= tol * math.sqrt(norm2):     # eq. (2), on CONFIRM steps in a row
-            hits += 1
-            if hits >= CONFIRM:
+                V[c, k] = row[c] / pivot
+            uu = _sum_squares(U[:, k])
+            vv = _sum_squares(V[:, k])
+            cross = 0.0      # ||S_k||^2 = ||S_{k-1}||^2 + 2 sum_l (u_l.u_k)(v_l.v_k) + |u_k|^2 |v_k|^2
+            for l in range(k):
+                su = 0.0
+                for r in range(m):
+                    su += U[r, l] * U[r, k]
+                sv = 0.0
+                for c in range(b):
+                    sv += V[c, l] * V[c, k]
+                cross += su * sv
+            norm2 = max(norm2 + 2.0 * cross + uu * vv, 0.0)
+            k += 1
+            done = math.sqrt(uu * vv) <= tol * math.sqrt(norm2)     # eq. (2)
+            i = -1          # the next row: where |u_k| is largest among the rows not used
+            best = -1.0
+            for r in range(m):
+                if not used_row[r] and abs(col[r]) > best:
+                    best = abs(col[r])
+                    i = r
+            if i < 0:       # every row used: S_k is the block
                 return k, True, evaluated
-        else:
-            hits = 0
-        if k == cap:
-            return k, cap == min(m, b), evaluated
-        i = -1          # the next row: where |u_k| is largest among the rows not used
-        best = -1.0
-        for r in range(m):
-            if not used_row[r] and abs(col[r]) > best:
-                best = abs(col[r])
-                i = r
-        if i < 0:
+        if not done:
+            continue
+        # eq. (2) holds or the row was zero: probe rows and columns, first one of each direction class
+        # not met yet (a cluster of several planes: F is zero or not by plane pairs, and ACA's pivots
+        # may never leave the first such sub-block), then spread over the block; go on from the first
+        # probe whose residual, were every line like it, would exceed tol ||S_k||_F
+        budget = tol * tol * norm2
+        found = False
+        while probes < MAX_PROBES and not found:
+            probes += 1
+            i = _unseen(probes, used_row, row_cls, row_seen)
+            j = _unseen(probes, probed_col | used_col, col_cls, col_seen)
+            if i < 0 and j < 0:
+                if spread >= PROBES:
+                    break
+                spread += 1
+                i = _spread(probes, used_row)
+                j = _spread(probes, probed_col | used_col)
+            if i >= 0:
+                _residual_row(kind, R, C, G, H, i, U, V, k, row_pairs, row)
+                evaluated += b
+                used_row[i] = True
+                row_seen[row_cls[i]] = True
+                if m * _sum_squares(row) > budget:
+                    have_row = True
+                    found = True
+                    continue
+            if j >= 0:
+                _residual_col(kind, R, C, G, H, j, U, V, k, col_pairs, col)
+                evaluated += m
+                probed_col[j] = True
+                col_seen[col_cls[j]] = True
+                if b * _sum_squares(col) > budget:
+                    i = -1
+                    best = 0.0
+                    for r in range(m):
+                        if not used_row[r] and abs(col[r]) > best:
+                            best = abs(col[r])
+                            i = r
+                    found = i >= 0
+        if not found:
             return k, True, evaluated
 
 
@@ -369,7 +479,7 @@ def _recompress(U, V, k, tol):
 
 
 @njit(parallel=True, cache=True, fastmath=False, nogil=True)
-def _aca_blocks(kind, G, H, rows, row_ptr, cols, col_ptr, tol, max_rank, u_cap, v_cap, Up, Vp, ranks, aca_ranks,
+def _aca_blocks(kind, G, H, P, rows, row_ptr, cols, col_ptr, tol, max_rank, u_cap, v_cap, Up, Vp, ranks, aca_ranks,
                 ok, evaluated, chunks):
     """ACA of every block into capacity slots of Up, Vp (float32); blocks dealt out in turn to ``chunks``
     parts (block t to part t % chunks: neighbouring blocks are often of similar cost)."""
@@ -389,7 +499,7 @@ def _aca_blocks(kind, G, H, rows, row_ptr, cols, col_ptr, tol, max_rank, u_cap, 
                 continue
             U = np.empty((m, cap))
             V = np.empty((b, cap))
-            k, conv, ev = _aca(kind, R, C, G, H, tol, cap, U, V)
+            k, conv, ev = _aca(kind, R, C, G, H, P, tol, cap, U, V)
             aca_ranks[t] = k
             ok[t] = conv
             evaluated[t] = ev
@@ -494,7 +604,7 @@ def aca_blocks(geometry, rows, row_ptr, cols, col_ptr, tol: float, max_rank: int
     if nb:
         chunks = max(1, min(nb, 8 * numba.get_num_threads()))
         with blas_threads(1):   # the recompression's LAPACK calls run inside numba's threads (8x slower otherwise)
-            _aca_blocks(kind, G, H, rows, row_ptr, cols, col_ptr, float(tol), int(max_rank), u_cap, v_cap, Up, Vp,
+            _aca_blocks(kind, G, H, _patch_normals(geometry), rows, row_ptr, cols, col_ptr, float(tol), int(max_rank), u_cap, v_cap, Up, Vp,
                         ranks, aca_ranks, ok, evaluated, chunks)
     u_off = np.concatenate([[0], np.cumsum(m * ranks)]).astype(np.int64)
     v_off = np.concatenate([[0], np.cumsum(b * ranks)]).astype(np.int64)
