@@ -84,7 +84,7 @@ def test_aca_of_well_separated_blocks_is_within_the_tolerance_from_few_entries(c
         dense = block(geometry, rows, cols)
         U, V = res.factors(t)
         error = np.linalg.norm(dense - U.astype(float) @ V.astype(float).T) / np.linalg.norm(dense)
-        assert error <= 2.5 * tol                            # observed 0.44-1.6 tol
+        assert error <= 2.5 * tol                            # observed 0.6-1.8 tol
         m, b = dense.shape
         assert 1 <= res.ranks[t] <= res.aca_ranks[t] <= 0.1 * min(m, b)
         # only the rows and columns ACA visits, k (m + b) entries, and its probes (one plane a side:

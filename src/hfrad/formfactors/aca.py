@@ -13,13 +13,22 @@ where |u_k| is largest among the rows not yet used. It stops when
 
     ||u_k|| ||v_k|| <= tol ||S_k||_F                                          (2)
 
-on :data:`CONFIRM` steps in a row (one step alone can stop early: a small
-term does not prove a small residual), with ||S_k||_F^2 updated in O(k (m + b)) a step (||S_{k-1}||^2 + 2 sum_l
-(u_l . u_k)(v_l . v_k) + ||u_k||^2 ||v_k||^2). A residual row that is zero is
-no proof that the block is done (a block may be zero in some rows only): up to
-:data:`ZERO_ROWS` further rows, spread over the block, are tried before
-stopping, so an exactly zero block (patches of one plane: F = 0) costs
-ZERO_ROWS rows and comes out rank 0.
+with ||S_k||_F^2 updated in O(k (m + b)) a step (||S_{k-1}||^2 + 2 sum_l
+(u_l . u_k)(v_l . v_k) + ||u_k||^2 ||v_k||^2), or when the residual row is zero.
+
+Neither proves the block done. A small term does not prove a small residual, and
+form factors are zero by plane pairs (a patch behind or in the other's plane):
+a cluster spanning several planes (a floor and the foot of a wall) gives a block
+whose non-zero entries fill sub-blocks, and ACA's pivots never leave the first
+sub-block they meet (k-d far blocks of the 5K-patch Cornell box: 44 of 543
+non-zero blocks more than 3 tol off, most of them 100%). So before stopping, ACA
+*probes*: one row and one column of each direction class (normals within 10
+degrees, :data:`DIRECTIONS` at most a side) not yet met, then :data:`PROBES`
+rows and columns spread over the block (golden-ratio steps); a probe whose
+residual, were every line like it, would exceed tol ||S_k||_F (m ||r||^2 >
+tol^2 ||S_k||_F^2 for a row r) restarts ACA from it (with the probes: 0 of 543; at
+most :data:`MAX_PROBES` probes a block). An exactly zero block (coplanar patches)
+costs its probes, a few rows and columns, and comes out rank 0.
 
 ACA overestimates the rank; the factors are recompressed (Bebendorf 2008,
 sec. 2.6): U = Q_u R_u, V = Q_v R_v, R_u R_v^T = W s Z^T, truncated to the
@@ -52,7 +61,7 @@ from numba import njit, prange
 from ..errors import InputError
 from ..resources import blas_threads
 from .clustered import ClusterGeometry, _cluster_pair_area_ff
-from .kernel import PatchGeometry, _pair_area_ff, _triangle_pair_area_ff
+from .kernel import PatchGeometry, _distant_row, _pair_area_ff, _triangle_pair_area_ff
 
 #: Probes (a row and a column each) spread over the block before it counts as done, after one
 #: of each direction class (see the module docstring) ...
@@ -135,20 +144,24 @@ def _evaluate(kind, I, J, G, H, out):
     T, N, A, C, D, start, index, PA, near, adaptive, eps, tol = G
     (T2, N2, start2, K, A2, S, C2, D2, M, MN, MS, MW, Q, QN, W, far, near2, eps2, TA, TC, TD, TR, tol2, exact,
      exact_near, far2) = H
-    for k in range(I.shape[0]):
-        i = I[k]
-        j = J[k]
-        if kind == _CLUSTERS:
-            af = _cluster_pair_area_ff(i, j, T2, N2, start2, K, A2, S, C2, D2, M, MN, MS, MW, Q, QN, W, far, near2,
-                                       eps2, TA, TC, TD, TR, tol2, exact, exact_near, far2)
-            a = A2[i]
-        elif kind == _TRIANGLES:
+    # one loop a kind: one loop over all three pair functions ran the distant pairs at ~100 ns each
+    if kind == _CLUSTERS:
+        for k in range(I.shape[0]):
+            i = I[k]
+            af = _cluster_pair_area_ff(i, J[k], T2, N2, start2, K, A2, S, C2, D2, M, MN, MS, MW, Q, QN, W, far,
+                                       near2, eps2, TA, TC, TD, TR, tol2, exact, exact_near, far2)
+            out[k] = af / A2[i] if af > 0.0 else 0.0
+    elif kind == _TRIANGLES:
+        for k in range(I.shape[0]):
+            i = I[k]
+            j = J[k]
             af = _triangle_pair_area_ff(min(i, j), max(i, j), T, N, A, C, D, near, adaptive, eps, tol)
-            a = A[i]
-        else:
-            af = _pair_area_ff(i, j, T, N, A, C, D, start, index, near, adaptive, eps, tol)
-            a = PA[i]
-        out[k] = af / a if af > 0.0 else 0.0
+            out[k] = af / A[i] if af > 0.0 else 0.0
+    else:
+        for k in range(I.shape[0]):
+            i = I[k]
+            af = _pair_area_ff(i, J[k], T, N, A, C, D, start, index, near, adaptive, eps, tol)
+            out[k] = af / PA[i] if af > 0.0 else 0.0
 
 
 @njit(parallel=True, cache=True, fastmath=False, nogil=True)
@@ -309,14 +322,55 @@ def _spread(q, taken):
 
 
 @njit(cache=True, fastmath=False, nogil=True)
-def _residual_row(kind, R, C, G, H, i, U, V, k, pairs, row):
-    """row = F[R[i], C] - U[i, :k] V[:, :k]^T."""
-    pairs[:] = R[i]
-    _evaluate(kind, pairs, C, G, H, row)
+def _residual_row(kind, R, C, G, H, i, U, V, k, pairs, row, gather, left):
+    """row = F[R[i], C] - U[i, :k] V[:, :k]^T (``gather``, ``left``: see :func:`_row`)."""
+    if kind == _TRIANGLES:
+        _row(R[i], C, G, H, gather, left, pairs, row)
+    else:
+        pairs[:] = R[i]
+        _evaluate(kind, pairs, C, G, H, row)
     for l in range(k):
         a = U[i, l]
         for c in range(row.shape[0]):
             row[c] -= a * V[c, l]
+
+
+@njit(cache=True, fastmath=False, nogil=True)
+def _row(p, C, G, H, gather, left, pairs, out):
+    """out[c] = F[p, C[c]] for one-triangle patches as :func:`kernel.unoccluded_block` computes it:
+    kernel.py's ``_distant_row`` (branch-free, SIMD: ~6 ns a distant pair against ~100 ns one by
+    one) over the columns' data ``gather`` (8, b) (:func:`_gather`), then the pairs it leaves.
+    ``left`` (b,) bool and ``pairs`` (b,) int are scratch."""
+    T, N, A, Cn, D, start, index, PA, near, adaptive, eps, tol = G
+    _distant_row(p, Cn[p, 0], Cn[p, 1], Cn[p, 2], N[p, 0], N[p, 1], N[p, 2], A[p], D[p], C, gather, near, eps,
+                 out, left)
+    q = 0
+    for c in range(C.shape[0]):
+        if left[c]:
+            pairs[q] = C[c]
+            q += 1
+    if q:
+        rest = np.empty(q)
+        _evaluate(_TRIANGLES, np.full(q, p), pairs[:q], G, H, rest)
+        q = 0
+        for c in range(C.shape[0]):
+            if left[c]:
+                out[c] = rest[q]
+                q += 1
+
+
+@njit(cache=True, fastmath=False, nogil=True)
+def _gather(C, G):
+    """(8, b): the centroids, normals, areas and diameters of one-triangle patches C, patch last
+    (the layout of kernel.py's ``_distant_row``)."""
+    T, N, A, Cn, D, start, index, PA, near, adaptive, eps, tol = G
+    out = np.empty((8, C.shape[0]))
+    for c in range(C.shape[0]):
+        j = C[c]
+        out[0, c], out[1, c], out[2, c] = Cn[j, 0], Cn[j, 1], Cn[j, 2]
+        out[3, c], out[4, c], out[5, c] = N[j, 0], N[j, 1], N[j, 2]
+        out[6, c], out[7, c] = A[j], D[j]
+    return out
 
 
 @njit(cache=True, fastmath=False, nogil=True)
@@ -354,6 +408,8 @@ def _aca(kind, R, C, G, H, P, tol, cap, U, V):
     used_row = np.zeros(m, np.bool_)
     used_col = np.zeros(b, np.bool_)    # pivot columns
     probed_col = np.zeros(b, np.bool_)
+    gather = _gather(C, G) if kind == _TRIANGLES else np.empty((8, 0))
+    left = np.empty(b, np.bool_)
     row_cls = np.empty(m, np.int64)      # direction classes of the rows' and columns' patches
     col_cls = np.empty(b, np.int64)
     row_seen = np.zeros(_directions(P, R, row_cls), np.bool_)
@@ -369,7 +425,7 @@ def _aca(kind, R, C, G, H, P, tol, cap, U, V):
         if k == cap:
             return k, cap == min(m, b), evaluated
         if not have_row:
-            _residual_row(kind, R, C, G, H, i, U, V, k, row_pairs, row)
+            _residual_row(kind, R, C, G, H, i, U, V, k, row_pairs, row, gather, left)
             evaluated += b
             used_row[i] = True
             row_seen[row_cls[i]] = True
@@ -432,7 +488,7 @@ def _aca(kind, R, C, G, H, P, tol, cap, U, V):
                 i = _spread(probes, used_row)
                 j = _spread(probes, probed_col | used_col)
             if i >= 0:
-                _residual_row(kind, R, C, G, H, i, U, V, k, row_pairs, row)
+                _residual_row(kind, R, C, G, H, i, U, V, k, row_pairs, row, gather, left)
                 evaluated += b
                 used_row[i] = True
                 row_seen[row_cls[i]] = True
@@ -545,7 +601,7 @@ def aca_blocks(geometry, rows, row_ptr, cols, col_ptr, tol: float, max_rank: int
     indices, any order; m_t rows, b_t columns). Each is approximated by ACA with partial
     pivoting to relative Frobenius tolerance ``tol`` (eq. 2 of the module docstring), then
     recompressed; only the k_t rows and k_t columns ACA visits are evaluated (about
-    k_t (m_t + b_t) entries, plus up to ZERO_ROWS rows of b_t for a zero block), each by
+    k_t (m_t + b_t) entries, plus the probes' rows and columns: a few), each by
     :func:`pair_values`' pair function.
 
     Parameters
