@@ -88,6 +88,7 @@ _TRIANGLES, _CSR, _CLUSTERS = 0, 1, 2
 
 
 def _f(x, ndim):
+    """x as a C-ordered float64 array of ``ndim`` dimensions, (n,), (n, 3) or (n, 3, 3)."""
     return np.ascontiguousarray(x, np.float64).reshape((-1,) + (3,) * (ndim - 1)) if ndim > 1 else \
         np.ascontiguousarray(x, np.float64).ravel()
 
@@ -241,8 +242,9 @@ class AcaResult:
     ranks : (blocks,) int64, r_t after recompression
     aca_ranks : (blocks,) int64, ACA's steps k_t before recompression (r_t <= k_t)
     ok : (blocks,) bool
-        False where ACA reached ``max_rank`` before its stopping test (2): the factors are
-        then not to be trusted, and the caller computes that block another way.
+        False where ACA reached ``max_rank`` with its stopping test (2) or a probe still
+        failing: the factors (rank up to max_rank) are then not to be trusted, and the caller
+        computes that block another way.
     evaluated : (blocks,) int64
         Entries of F evaluated for each block (pair-function calls).
     """
@@ -329,10 +331,16 @@ def _residual_row(kind, R, C, G, H, i, U, V, k, pairs, row, gather, left):
     else:
         pairs[:] = R[i]
         _evaluate(kind, pairs, C, G, H, row)
+    _minus_terms(row, U, i, V, k)
+
+
+@njit(cache=True, fastmath=False, nogil=True)
+def _minus_terms(x, P, i, Q, k):
+    """x -= sum_{l<k} P[i, l] Q[:, l]: the residual of row i (P = U, Q = V) or column i (P = V, Q = U)."""
     for l in range(k):
-        a = U[i, l]
-        for c in range(row.shape[0]):
-            row[c] -= a * V[c, l]
+        a = P[i, l]
+        for c in range(x.shape[0]):
+            x[c] -= a * Q[c, l]
 
 
 @njit(cache=True, fastmath=False, nogil=True)
@@ -378,10 +386,19 @@ def _residual_col(kind, R, C, G, H, j, U, V, k, pairs, col):
     """col = F[R, C[j]] - U[:, :k] V[j, :k]^T."""
     pairs[:] = C[j]
     _evaluate(kind, R, pairs, G, H, col)
-    for l in range(k):
-        a = V[j, l]
-        for r in range(col.shape[0]):
-            col[r] -= a * U[r, l]
+    _minus_terms(col, V, j, U, k)
+
+
+@njit(cache=True, fastmath=False, nogil=True)
+def _largest(x, taken, floor):
+    """(index, |value|) of the largest |x[k]| above ``floor`` among the k not ``taken`` ((-1, floor): none)."""
+    best = floor
+    at = -1
+    for k in range(x.shape[0]):
+        if not taken[k] and abs(x[k]) > best:
+            best = abs(x[k])
+            at = k
+    return at, best
 
 
 @njit(cache=True, fastmath=False, nogil=True)
@@ -430,12 +447,7 @@ def _aca(kind, R, C, G, H, P, tol, cap, U, V):
             used_row[i] = True
             row_seen[row_cls[i]] = True
         have_row = False
-        j = -1
-        best = 0.0
-        for c in range(b):
-            if not used_col[c] and abs(row[c]) > best:
-                best = abs(row[c])
-                j = c
+        j, best = _largest(row, used_col, 0.0)
         done = j < 0 or best <= 1e-14 * math.sqrt(norm2)      # a zero residual row
         if not done:
             used_col[j] = True
@@ -461,12 +473,7 @@ def _aca(kind, R, C, G, H, P, tol, cap, U, V):
             norm2 = max(norm2 + 2.0 * cross + uu * vv, 0.0)
             k += 1
             done = math.sqrt(uu * vv) <= tol * math.sqrt(norm2)     # eq. (2)
-            i = -1          # the next row: where |u_k| is largest among the rows not used
-            best = -1.0
-            for r in range(m):
-                if not used_row[r] and abs(col[r]) > best:
-                    best = abs(col[r])
-                    i = r
+            i = _largest(col, used_row, -1.0)[0]   # the next row: where |u_k| is largest among those not used
             if i < 0:       # every row used: S_k is the block
                 return k, True, evaluated
         if not done:
@@ -502,12 +509,7 @@ def _aca(kind, R, C, G, H, P, tol, cap, U, V):
                 probed_col[j] = True
                 col_seen[col_cls[j]] = True
                 if b * _sum_squares(col) > budget:
-                    i = -1
-                    best = 0.0
-                    for r in range(m):
-                        if not used_row[r] and abs(col[r]) > best:
-                            best = abs(col[r])
-                            i = r
+                    i = _largest(col, used_row, 0.0)[0]
                     found = i >= 0
         if not found:
             return k, True, evaluated
@@ -660,8 +662,8 @@ def aca_blocks(geometry, rows, row_ptr, cols, col_ptr, tol: float, max_rank: int
     if nb:
         chunks = max(1, min(nb, 8 * numba.get_num_threads()))
         with blas_threads(1):   # the recompression's LAPACK calls run inside numba's threads (8x slower otherwise)
-            _aca_blocks(kind, G, H, _patch_normals(geometry), rows, row_ptr, cols, col_ptr, float(tol), int(max_rank), u_cap, v_cap, Up, Vp,
-                        ranks, aca_ranks, ok, evaluated, chunks)
+            _aca_blocks(kind, G, H, _patch_normals(geometry), rows, row_ptr, cols, col_ptr, float(tol),
+                        int(max_rank), u_cap, v_cap, Up, Vp, ranks, aca_ranks, ok, evaluated, chunks)
     u_off = np.concatenate([[0], np.cumsum(m * ranks)]).astype(np.int64)
     v_off = np.concatenate([[0], np.cumsum(b * ranks)]).astype(np.int64)
     U = np.empty(u_off[-1], np.float32)
