@@ -31,6 +31,7 @@ import math
 import time
 from dataclasses import dataclass, field
 
+import numba
 import numpy as np
 from numba import njit, prange
 
@@ -150,21 +151,36 @@ def cluster_tree(centroids: np.ndarray, lo: np.ndarray, hi: np.ndarray, leaf_siz
             todo.append(count)
             count += 1
     start, stop, left, right = start[:count], stop[:count], left[:count], right[:count]
-    node_lo, node_hi = _node_boxes(np.asarray(lo, np.float64)[perm], np.asarray(hi, np.float64)[perm], start, stop)
+    node_lo, node_hi = _node_boxes(np.asarray(lo, np.float64)[perm], np.asarray(hi, np.float64)[perm], start, stop,
+                                   left, right)
     return ClusterTree(perm, start, stop, left, right, node_lo, node_hi)
 
 
-def _node_boxes(lo: np.ndarray, hi: np.ndarray, start: np.ndarray, stop: np.ndarray):
-    """(K, 3) boxes of the ranges ``[start, stop)`` of boxes in tree order."""
-    return (np.ascontiguousarray(np.minimum.reduceat(lo, start, axis=0)) if len(start) else np.zeros((0, 3)),
-            np.ascontiguousarray(_max_ranges(hi, start, stop)))
+def _node_boxes(lo: np.ndarray, hi: np.ndarray, start: np.ndarray, stop: np.ndarray, left: np.ndarray,
+                right: np.ndarray):
+    """(K, 3) boxes of the nodes, from the boxes ``lo, hi`` in tree order: a leaf's over its
+    range, an inner node's over its two children (children are numbered after their parent)."""
+    node_lo = np.empty((len(start), 3))
+    node_hi = np.empty((len(start), 3))
+    _fill_boxes(np.ascontiguousarray(lo, np.float64), np.ascontiguousarray(hi, np.float64), start, stop, left,
+                right, node_lo, node_hi)
+    return node_lo, node_hi
 
 
-def _max_ranges(x: np.ndarray, start: np.ndarray, stop: np.ndarray) -> np.ndarray:
-    out = np.empty((len(start), x.shape[1]))
-    for t in range(len(start)):     # reduceat needs increasing starts; nested ranges are not
-        out[t] = x[start[t]:stop[t]].max(axis=0)
-    return out
+@njit(cache=True)
+def _fill_boxes(lo, hi, start, stop, left, right, node_lo, node_hi):
+    for t in range(start.shape[0] - 1, -1, -1):
+        for d in range(3):
+            if left[t] < 0:
+                a, b = np.inf, -np.inf
+                for p in range(start[t], stop[t]):
+                    a = min(a, lo[p, d])
+                    b = max(b, hi[p, d])
+            else:
+                a = min(node_lo[left[t], d], node_lo[right[t], d])
+                b = max(node_hi[left[t], d], node_hi[right[t], d])
+            node_lo[t, d] = a
+            node_hi[t, d] = b
 
 
 # -- The block partition --------------------------------------------------------------------------
@@ -299,10 +315,14 @@ class FormFactorHMatrix:
         """Floats held (dense entries and low-rank factors)."""
         return int(self.blocks.U.size + self.blocks.V.size)
 
-    def frobenius2(self) -> float:
-        """||F||_F^2 of the H-matrix (exact for what it holds; float64 sums)."""
+    def frobenius2(self, row_scale: np.ndarray | None = None) -> float:
+        """||diag(row_scale) F||_F^2 of the H-matrix (exact for what it holds; float64 sums).
+
+        ``row_scale`` (n,) in tree order, e.g. rho_max for G = diag(rho_max) F; default ones.
+        """
         k = self.blocks
-        return float(_frobenius2(k.row_ptr, k.b, k.rank, k.u_off, k.v_off, k.U, k.V))
+        w = np.ones(self.n) if row_scale is None else np.asarray(row_scale, np.float64).reshape(self.n) ** 2
+        return float(_frobenius2(k.row_index, k.row_ptr, k.b, k.rank, k.u_off, k.v_off, k.U, k.V, w))
 
     def matmat(self, X: np.ndarray) -> np.ndarray:
         """F @ X in tree order: X (n,) or (n, l) -> the same shape, float64."""
@@ -314,11 +334,41 @@ class FormFactorHMatrix:
 
     def _apply(self, X: np.ndarray, transpose: bool) -> np.ndarray:
         X = np.asarray(X, np.float64)
-        Xt = np.ascontiguousarray(X.reshape(self.n, -1).T)
-        Yt = np.zeros_like(Xt)
+        X2 = np.ascontiguousarray(X.reshape(self.n, -1))
         k = self.blocks
-        _apply(Xt, Yt, k.row_index, k.row_ptr, k.c0, k.b, k.rank, k.u_off, k.v_off, k.U, k.V, transpose)
-        return Yt.T.reshape(X.shape)
+        parts = _work_parts(k, numba.get_num_threads())
+        Y = np.zeros((len(parts) - 1,) + X2.shape)
+        _apply(X2, Y, parts, k.row_index, k.row_ptr, k.c0, k.b, k.rank, k.u_off, k.v_off, k.U, k.V, transpose)
+        return Y.sum(axis=0).reshape(X.shape)
+
+    def take_near(self, centroids: np.ndarray, radius: float):
+        """Move the entries of the dense blocks whose patches' centroids are at most ``radius`` apart
+        out of the H-matrix (it then holds F - N) and return N as coordinates in tree order.
+
+        For the near-field split (:mod:`hfrad.lowrank.nearsplit`): N is kept sparse and exact, the rest
+        is factored. Entries of low-rank blocks stay (pairs that close are rare in far blocks).
+
+        Parameters
+        ----------
+        centroids : (n, 3) float, metres, in tree order
+        radius : float, metres
+
+        Returns
+        -------
+        rows, cols : (nnz,) int64
+        values : (nnz,) float64
+        """
+        k = self.blocks
+        c = np.ascontiguousarray(centroids, np.float64)
+        counts = np.zeros(k.count, np.int64)
+        _near_entries(c, float(radius) ** 2, k.row_index, k.row_ptr, k.c0, k.b, k.rank, k.u_off, k.U, counts,
+                      np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), False)
+        ptr = np.zeros(k.count + 1, np.int64)
+        np.cumsum(counts, out=ptr[1:])
+        rows, cols, values = np.empty(ptr[-1], np.int64), np.empty(ptr[-1], np.int64), np.empty(ptr[-1])
+        _near_entries(c, float(radius) ** 2, k.row_index, k.row_ptr, k.c0, k.b, k.rank, k.u_off, k.U, ptr,
+                      rows, cols, values, True)
+        return rows, cols, values
 
     def to_dense(self) -> np.ndarray:
         """(n, n) F in tree order (small scenes: tests)."""
@@ -326,67 +376,104 @@ class FormFactorHMatrix:
 
 
 @njit(cache=True, parallel=True, nogil=True)
-def _frobenius2(row_ptr, b_, rank, u_off, v_off, U, V):
+def _frobenius2(rows, row_ptr, b_, rank, u_off, v_off, U, V, w):
+    """sum_t ||diag(w)^1/2 block_t||_F^2: dense blocks entry by entry, low-rank ones as
+    trace((U^T W U)(V^T V)) (r x r products)."""
     total = 0.0
     for t in prange(b_.shape[0]):
-        m, b, r = row_ptr[t + 1] - row_ptr[t], b_[t], rank[t]
+        p, m, b, r = row_ptr[t], row_ptr[t + 1] - row_ptr[t], b_[t], rank[t]
         if r < 0:
-            for q in range(m * b):
-                total += np.float64(U[u_off[t] + q]) ** 2
+            for i in range(m):
+                s = 0.0
+                for j in range(b):
+                    s += np.float64(U[u_off[t] + i * b + j]) ** 2
+                total += w[rows[p + i]] * s
         elif r > 0:
             Ut = U[u_off[t]:u_off[t] + m * r].reshape(m, r).astype(np.float64)
+            for i in range(m):
+                Ut[i] *= math.sqrt(w[rows[p + i]])
             Vt = V[v_off[t]:v_off[t] + b * r].reshape(b, r).astype(np.float64)
             total += np.sum((Ut.T @ Ut) * (Vt.T @ Vt))
     return total
 
 
+@njit(cache=True, parallel=True, nogil=True)
+def _near_entries(c, r2, rows, row_ptr, c0, b_, rank, u_off, U, at, out_r, out_c, out_v, take):
+    """Count (``take`` False: into ``at``) or move out (``take``: from offsets ``at``) the entries of dense
+    blocks whose centroids are within sqrt(r2)."""
+    for t in prange(c0.shape[0]):
+        if rank[t] >= 0:
+            continue
+        p, m, b, o = row_ptr[t], row_ptr[t + 1] - row_ptr[t], b_[t], u_off[t]
+        q = at[t] if take else 0
+        for i in range(m):
+            ri = rows[p + i]
+            for j in range(b):
+                cj = c0[t] + j
+                d2 = (c[ri, 0] - c[cj, 0]) ** 2 + (c[ri, 1] - c[cj, 1]) ** 2 + (c[ri, 2] - c[cj, 2]) ** 2
+                v = U[o + i * b + j]
+                if d2 <= r2 and v != 0.0:
+                    if take:
+                        out_r[q], out_c[q], out_v[q] = ri, cj, v
+                        U[o + i * b + j] = 0.0
+                    q += 1
+        if not take:
+            at[t] = q
+
+
+def _work_parts(blocks: BlockList, threads: int) -> np.ndarray:
+    """Boundaries of ``threads`` runs of blocks with about equal stored floats (one run a thread)."""
+    work = np.where(blocks.rank < 0, blocks.m * blocks.b, (blocks.m + blocks.b) * np.maximum(blocks.rank, 0)) + 1
+    edges = np.searchsorted(np.cumsum(work), np.linspace(0, work.sum(), threads + 1)[1:-1])
+    return np.unique(np.r_[0, edges, blocks.count]).astype(np.int64)
+
+
 @njit(cache=True, parallel=True, nogil=True, fastmath={"reassoc", "contract"})
-def _apply(Xt, Yt, rows, row_ptr, c0, b_, rank, u_off, v_off, U, V, transpose):
-    """Yt[v] += F Xt[v] (or F^T with ``transpose``) for each vector v (a row of Xt). Parallel over the
-    vectors: each thread writes its own rows of Yt, so no two threads the same entries."""
-    for v in prange(Xt.shape[0]):
-        x = Xt[v]
-        y = Yt[v]
-        for t in range(c0.shape[0]):
+def _apply(X, Y, parts, rows, row_ptr, c0, b_, rank, u_off, v_off, U, V, transpose):
+    """Y[part] += F X (or F^T X with ``transpose``) over the blocks of each part, X (n, l) row-major: every
+    block is read once for all l vectors. Each part writes its own copy of Y (the caller sums them)."""
+    l = X.shape[1]
+    for q in prange(parts.shape[0] - 1):
+        y = Y[q]
+        z = np.zeros((64, l))
+        for t in range(parts[q], parts[q + 1]):
             p, m, b, c, r = row_ptr[t], row_ptr[t + 1] - row_ptr[t], b_[t], c0[t], rank[t]
             if r < 0:                                 # dense, (m, b) row-major at u_off
                 o = u_off[t]
                 for i in range(m):
-                    if transpose:
-                        xi = x[rows[p + i]]
-                        if xi != 0.0:
-                            for j in range(b):
-                                y[c + j] += U[o + i * b + j] * xi
-                    else:
-                        s = 0.0
-                        for j in range(b):
-                            s += U[o + i * b + j] * x[c + j]
-                        y[rows[p + i]] += s
+                    ri = rows[p + i]
+                    for j in range(b):
+                        d = np.float64(U[o + i * b + j])
+                        if d == 0.0:
+                            continue
+                        if transpose:
+                            for v in range(l):
+                                y[c + j, v] += d * X[ri, v]
+                        else:
+                            for v in range(l):
+                                y[ri, v] += d * X[c + j, v]
                 continue
             if r == 0:
                 continue
+            if r > z.shape[0]:
+                z = np.zeros((r, l))
             uo, vo = u_off[t], v_off[t]
-            z = np.zeros(r)
-            if transpose:                             # y[c:c+b] += V (U^T x[rows])
-                for i in range(m):
-                    xi = x[rows[p + i]]
-                    for k in range(r):
-                        z[k] += U[uo + i * r + k] * xi
-                for j in range(b):
-                    s = 0.0
-                    for k in range(r):
-                        s += V[vo + j * r + k] * z[k]
-                    y[c + j] += s
-            else:                                     # y[rows] += U (V^T x[c:c+b])
-                for j in range(b):
-                    xj = x[c + j]
-                    for k in range(r):
-                        z[k] += V[vo + j * r + k] * xj
-                for i in range(m):
-                    s = 0.0
-                    for k in range(r):
-                        s += U[uo + i * r + k] * z[k]
-                    y[rows[p + i]] += s
+            for k in range(r):
+                for v in range(l):
+                    z[k, v] = 0.0
+            # transpose: y[c:c+b] += V (U^T X[rows]); else y[rows] += U (V^T X[c:c+b])
+            for i in range(m if transpose else b):
+                src = rows[p + i] if transpose else c + i
+                for k in range(r):
+                    f = np.float64(U[uo + i * r + k] if transpose else V[vo + i * r + k])
+                    for v in range(l):
+                        z[k, v] += f * X[src, v]
+            for i in range(b if transpose else m):
+                dst = c + i if transpose else rows[p + i]
+                for k in range(r):
+                    f = np.float64(V[vo + i * r + k] if transpose else U[uo + i * r + k])
+                    for v in range(l):
+                        y[dst, v] += f * z[k, v]
 
 
 # -- Building it ----------------------------------------------------------------------------------
@@ -444,9 +531,8 @@ def build_hmatrix(scene, engine: FormFactorEngine, options: HMatrixOptions | Non
     builder = _Builder(scene, engine, tree, options)
     builder.info["time_tree"] = time.perf_counter() - t0
     builder.far(far_r, far_c)
-    for r, c in zip(near_r, near_c):
-        builder.exact_rows(builder.node_rows(r), c)
-    builder.flush_exact(progress)
+    builder.near(near_r, near_c, progress)
+    builder.flush_exact(None)
     hm = FormFactorHMatrix(tree.perm, builder.out.blocks(), builder.info)
     n = scene.n_patches
     info = builder.info
@@ -457,6 +543,8 @@ def build_hmatrix(scene, engine: FormFactorEngine, options: HMatrixOptions | Non
                  "storage_floats": hm.storage, "time_total": time.perf_counter() - t0})
     ranks = hm.blocks.rank[hm.blocks.rank >= 0]
     info["mean_rank"] = float(ranks.mean()) if len(ranks) else 0.0
+    info["lowrank_blocks"] = int(len(ranks))
+    info["dense_blocks"] = int(hm.blocks.count - len(ranks))
     return hm
 
 
@@ -466,6 +554,7 @@ class _Builder:
     def __init__(self, scene, engine: FormFactorEngine, tree: ClusterTree, options: HMatrixOptions) -> None:
         self.engine, self.tree, self.options = engine, tree, options
         self.boxes = _visibility_boxes(scene, engine, tree)
+        self.engine_areas = scene.areas
         self.out = _Collector()
         self.pending: dict[int, list] = {}        # column node -> row positions wanted exactly
         self.info = {"far_blocks": 0, "visible_blocks": 0, "blocked_blocks": 0, "mixed_blocks": 0,
@@ -551,6 +640,35 @@ class _Builder:
             self.info["blocked_pairs"] += int((s == BLOCKED).sum()) * int(tree.size[c[q]])
         self.lowrank(vis_rows, np.asarray(vis_c, np.int64))
 
+    def near(self, r: np.ndarray, c: np.ndarray, progress) -> None:
+        """The near leaf pairs, exactly: one engine call a row leaf for its pairs (r, c) with r <= c;
+        the pair (c, r) is their mirror by reciprocity, ``A_j F_ji = A_i F_ij`` (the engine's visibility
+        is symmetric, ``V_ij == V_ji``), so each pair of patches is computed once."""
+        tree, perm = self.tree, self.tree.perm
+        t = time.perf_counter()
+        pairs0 = self.engine.pairs
+        keep = r <= c
+        r, c = r[keep], c[keep]
+        order = np.lexsort((c, r))
+        r, c = r[order], c[order]
+        bounds = np.flatnonzero(np.diff(np.r_[-1, r, -1]))
+        areas = np.asarray(self.engine_areas, np.float64)
+        for g in range(len(bounds) - 1):
+            a, e = bounds[g], bounds[g + 1]
+            rows = self.node_rows(r[a])
+            cols, ptr = _concat_ranges(np.arange(perm.size), tree.start[c[a:e]], tree.stop[c[a:e]])
+            F = self.engine.block(perm[rows], perm[cols])
+            for q in range(e - a):
+                part = F[:, ptr[q]:ptr[q + 1]]
+                self.out.add_dense(rows, int(tree.start[c[a + q]]), part)
+                if c[a + q] != r[a]:             # the mirror block (c, r): F_ji = F_ij A_i / A_j
+                    mirror = part.T * (areas[perm[rows]][None, :] / areas[perm[cols[ptr[q]:ptr[q + 1]]]][:, None])
+                    self.out.add_dense(cols[ptr[q]:ptr[q + 1]], int(tree.start[r[a]]), mirror)
+            report(progress, g + 1, len(bounds) - 1)
+        self.info["exact_pairs"] += int(self.engine.pairs - pairs0)
+        self.info["near_pairs"] = int(self.engine.pairs - pairs0)
+        self.info["time_near"] = time.perf_counter() - t
+
     def exact_rows(self, rows: np.ndarray, c: int) -> None:
         """Ask for F[rows][:, node c] with visibility (computed by :meth:`flush_exact`, a column node at a time)."""
         self.pending.setdefault(int(c), []).append(np.asarray(rows, np.int64))
@@ -579,7 +697,8 @@ def _visibility_boxes(scene, engine: FormFactorEngine, tree: ClusterTree):
     vis = engine.visibility
     if vis is None or vis.cluster_pairs(scene, CLUSTER_SIZE) is None:
         return None
-    return _node_boxes(vis.patch_lo[tree.perm], vis.patch_hi[tree.perm], tree.start, tree.stop)
+    return _node_boxes(vis.patch_lo[tree.perm], vis.patch_hi[tree.perm], tree.start, tree.stop, tree.left,
+                       tree.right)
 
 
 def _states(engine: FormFactorEngine, boxes, r: np.ndarray, c: np.ndarray) -> np.ndarray:
