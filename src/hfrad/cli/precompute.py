@@ -61,11 +61,12 @@ def register(app: typer.Typer) -> None:
         With --far-field sampled: no reciprocity tiles and no scratch file; besides the
         same column blocks, the certification and sampled rows' exact values (about
         (2 sqrt(n) + 400) b float64 a block) and the cluster-pair visibility table (n^2 / 1024 bytes).
-        With --far-field hierarchical, instead of all of the above: the H-matrix (about 1,000 float32 a
-        patch, 861 measured at 1,500 patches), the operator factorization (5 n k s: its basis, projection
-        and SVD, k as above, plus three float64 n x 64 product buffers) and the statistics (about 2.9 KB
-        a patch): hfrad.memory.hierarchical_bytes, refused above 80% of the available memory; no
-        checkpoint is written.
+        With --far-field hierarchical, instead of all of the above: the H-matrix
+        (about 1,000 float32 a patch; 861 measured at 1,500 patches), the operator
+        factorization (5 n k s: its basis, projection and SVD, k as above, plus
+        three float64 n x 64 product buffers) and the statistics (about 2.9 KB a
+        patch): hfrad.memory.hierarchical_bytes, refused above 80% of the
+        available memory; no checkpoint is written.
         A checkpoint (OUTPUT.partial) is written every 30 s, and at least 50
         times as long as its last write took apart (writes cost at most ~2% of
         the run); rerun the same command to resume after an interruption. With
