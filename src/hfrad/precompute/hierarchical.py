@@ -134,7 +134,7 @@ def _factorize_hmatrix(scene, plan, engine, hm, progress, status, t0) -> HFactor
                          "time_certificate": t_cert - t_stats, "time_precompute": t_cert - t0,
                          "hierarchical": {**hm.info, "factorization": {k: v for k, v in lowrank.info.items()
                                                                        if not k.startswith("time")},
-                                          "certificate": certificate}})
+                                          "certificate": certificate, "exact_row_pairs": int(exact.pairs)}})
     fac = assemble(scene, plan, lowrank, stats, None, backend={"backend": "local"})
     fac.lowrank.info["time_assemble"] = time.perf_counter() - t_cert
     return fac
