@@ -14,17 +14,12 @@ import numpy as np
 import pytest
 
 import hfrad
+from conftest import run_cli as run
 from hfrad.errors import AccuracyWarning, InputError, MemoryLimitError
-
-pytest.importorskip("hfrad.formfactors.aca", reason="the H-matrix's cross approximation (formfactors/aca.py) "
-                    "is not merged yet")
-
-from conftest import run_cli as run  # noqa: E402
-from hfrad.formfactors.hmatrix import build_hmatrix  # noqa: E402
-from hfrad.precompute.hierarchical import (block_squares, engine_for, factorize_hmatrix,  # noqa: E402
-                                           tree_order)
-from hfrad.precompute.options import plan_precompute  # noqa: E402
-from hfrad.solve.stats import PassStatistics  # noqa: E402
+from hfrad.formfactors.hmatrix import build_hmatrix
+from hfrad.precompute.hierarchical import block_squares, engine_for, factorize_hmatrix, tree_order
+from hfrad.precompute.options import plan_precompute
+from hfrad.solve.stats import PassStatistics
 
 PATCHES = 1500
 EPS = 0.05
