@@ -77,7 +77,7 @@ def test_certificate_within_2x_of_the_measured_error(box):
     D = np.sqrt(a)[:, None] * rho[:, None] * (F - hm.to_dense()) / np.sqrt(a)[None, :]
     measured = np.linalg.norm(D)
     estimate, upper = fac.stats.far_field.frobenius()
-    assert 0.5 * measured <= estimate <= 2.0 * measured, (estimate, measured)   # measured ratio 0.89-1.18 over 30 seeds
+    assert 0.5 * measured <= estimate <= 2.0 * measured, (estimate, measured)   # measured 0.89-1.18 over 30 seeds
     assert upper >= measured
     info = fac.lowrank.info["hierarchical"]["certificate"]
     assert (info["error_estimate"], info["error_upper"]) == (estimate, upper)
