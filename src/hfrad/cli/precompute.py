@@ -62,7 +62,7 @@ def register(app: typer.Typer) -> None:
         same column blocks, the certification and sampled rows' exact values (about
         (2 sqrt(n) + 400) b float64 a block) and the cluster-pair visibility table (n^2 / 1024 bytes).
         With --far-field hierarchical, instead of all of the above: the H-matrix
-        (about 1,000 float32 a patch; 861 measured at 1,500 patches), the operator
+        (about 24 sqrt(n) float32 a patch; 2,310 measured at 10,000 patches), the operator
         factorization (5 n k s: its basis, projection and SVD, k as above, plus
         three float64 n x 64 product buffers) and the statistics (about 2.9 KB a
         patch): hfrad.memory.hierarchical_bytes, refused above 80% of the
