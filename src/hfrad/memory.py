@@ -78,3 +78,30 @@ def precompute_bytes(n: int, block_size: int, rank_guess_: int | None = None, it
     """
     k = rank_guess(n) if rank_guess_ is None else rank_guess_
     return 5 * 8 * n * block_size + factors_bytes(n, k, itemsize) + 4 * n * k * itemsize
+
+
+#: Floats an H-matrix of F holds a patch (dense near blocks and low-rank far blocks,
+#: :mod:`hfrad.formfactors.hmatrix`), over sqrt(n): they grow with n (the exact blocks' rows). Measured
+#: on the Cornell box, eps 0.05 (leaf 32, block tolerance 0.01): 359 a patch at 394 patches, 861 at
+#: 1,508, 2,310 at 9,986 (18, 22 and 23 sqrt(n)); taken a little above until measured at scale.
+HMATRIX_FLOATS_PER_SQRT_N = 24
+#: Bytes a patch of what ``far_field="hierarchical"`` holds besides the H-matrix and the factors: the
+#: pass statistics' sampled rows (at most ~300 float32 a patch), their products and sketch, and the
+#: float64 product buffers of 70 vectors (three copies).
+HIERARCHICAL_STATS_BYTES = 4 * 300 + 8 * 3 * 70
+#: Columns the operator factorization adds to its basis at a time (:func:`hfrad.lowrank.operator_factorization`).
+OPERATOR_BLOCK = 64
+
+
+def hierarchical_bytes(n: int, rank_guess_: int | None = None, itemsize: int = 4) -> int:
+    """Rough peak memory of ``factorize(far_field="hierarchical")``, bytes.
+
+    The H-matrix (``HMATRIX_FLOATS_PER_SQRT_N * sqrt(n)`` float32 a patch), the operator factorization at its
+    SVD (basis P and projection B, l x n each, B's right singular vectors, the two n x k factors:
+    ``5 n k s`` with l = k, plus a block of ``OPERATOR_BLOCK`` vectors in float64, three copies in the
+    products) and the pass statistics (``HIERARCHICAL_STATS_BYTES`` a patch). The rank k is
+    :func:`rank_guess` unless given (see :data:`RANK_ASSUMPTION`).
+    """
+    k = rank_guess(n) if rank_guess_ is None else rank_guess_
+    return int(n * (4 * HMATRIX_FLOATS_PER_SQRT_N * n ** 0.5 + 5 * k * itemsize + 3 * 8 * OPERATOR_BLOCK
+                    + HIERARCHICAL_STATS_BYTES))

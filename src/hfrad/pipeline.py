@@ -86,7 +86,7 @@ def factorize(scene: Scene, eps: float = 0.02, *, relative: bool = True, dtype="
         ``samples`` (visibility rays per patch pair), ``leaf_share`` (the leaf SVDs'
         share of the squared error budget, 0.5), ``one_ray_tol`` (the ray budget's
         share of ``||F||_F``; default ``eps / 4`` for a relative eps, off for an absolute one).
-    far_field : {"auto", "exact", "sampled"}
+    far_field : {"auto", "exact", "sampled", "hierarchical"}
         How the form factors of well-separated pairs are found. "exact": every pair is
         computed (half of them copied by reciprocity). "sampled": near rows of each column
         block exactly, far rows from a few sampled rows and skeleton columns, checked on
@@ -98,6 +98,13 @@ def factorize(scene: Scene, eps: float = 0.02, *, relative: bool = True, dtype="
         patches: the sampled field evaluates 4-5 times fewer pairs but costs more wall time
         per block). Both backends: a ``DaskBackend``'s leaves run the same block producer
         (the same factorization, certificate and counters as this process's).
+        "hierarchical": F as an H-matrix (near leaf pairs exact, far cluster pairs of low
+        rank by cross approximation; :mod:`hfrad.formfactors.hmatrix`), the factors from
+        products with it (:func:`hfrad.lowrank.operator_factorization`), its error certified
+        by exact rows drawn by importance (added to ``fac.error_estimate()``); docs/method.md
+        section 4c. In this process only, without checkpoints or the near-field split, the
+        internal order the cluster tree's (``order`` is not used); memory
+        :func:`hfrad.memory.hierarchical_bytes`.
     progress : callable (done, total), optional
         Column blocks done.
     status : callable (dict), optional
@@ -156,6 +163,13 @@ def factorize(scene: Scene, eps: float = 0.02, *, relative: bool = True, dtype="
     plan = plan_precompute(scene, eps, relative=relative, dtype=dtype, order="zorder" if order is None else order,
                            near_field=near_field, options=options, reciprocity=backend.reciprocity,
                            far_field=far_field)
+    if plan.far_field == "hierarchical":
+        if not isinstance(backend, LocalBackend):
+            raise InputError("far_field='hierarchical' runs in this process only; use a LocalBackend "
+                             "(or far_field='sampled' on Dask)")
+        from .precompute.hierarchical import factorize_hierarchical
+
+        return factorize_hierarchical(scene, plan, progress, status, blas_threads=backend.blas_threads)
     if isinstance(backend, LocalBackend):
         return factorize_local(scene, plan, backend, checkpoint, progress, status)
     from .distributed import factorize_distributed, remove_checkpoint

@@ -196,6 +196,7 @@ def stage_clock(quiet: bool = False, start: float | None = None):
 #: The summary's names of the stages inside ``factorize`` (keys of ``fac.lowrank.info``), in order.
 FACTORIZE_STAGES = (("time_setup", "ray budget and estimate"), ("time_formfactors", "form factors"),
                     ("time_statistics", "pass statistics"), ("time_hf", "HF"),
+                    ("time_factorization", "operator factorization"), ("time_certificate", "far-field certificate"),
                     ("time_checkpoints", "checkpoints"), ("time_assemble", "solver set-up (near field, capacitance inverses)"))
 
 
@@ -326,12 +327,23 @@ def check_samples(samples) -> None:
                 why="visibility rays per patch pair; time and memory grow in proportion")
 
 
-def check_memory_for_precompute(n: int, block: int, dtype: str, *, count: str = "") -> None:
+def precompute_estimate(n: int, block: int, dtype: str, far_field: str = "auto") -> int:
+    """Bytes a precompute of n patches is estimated to need (:func:`hfrad.memory.precompute_bytes`, or
+    :func:`hfrad.memory.hierarchical_bytes` with ``far_field="hierarchical"``)."""
+    from ..memory import hierarchical_bytes, precompute_bytes
+
+    itemsize = check_dtype(dtype).itemsize
+    if far_field == "hierarchical":
+        return hierarchical_bytes(n, itemsize=itemsize)
+    return precompute_bytes(n, block, itemsize=itemsize)
+
+
+def check_memory_for_precompute(n: int, block: int, dtype: str, *, count: str = "", far_field: str = "auto") -> None:
     """Refuse a precompute that would not fit in memory (see ``hfrad precompute --help``); ``count``
     qualifies the patch count in the message ("at least" for an estimate before cutting)."""
-    from ..memory import RANK_ASSUMPTION, precompute_bytes, rank_guess, require
+    from ..memory import RANK_ASSUMPTION, rank_guess, require
 
-    require(precompute_bytes(n, block, itemsize=check_dtype(dtype).itemsize),
+    require(precompute_estimate(n, block, dtype, far_field),
             f"precomputing {count + ' ' if count else ''}{n:,} patches",
             f"use fewer patches (--patches/--max-edge) or a larger --eps (the estimate assumes a rank of "
             f"{rank_guess(n):,}: {RANK_ASSUMPTION})")

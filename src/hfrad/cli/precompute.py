@@ -31,7 +31,7 @@ def register(app: typer.Typer) -> None:
         order: str = typer.Option("zorder", "--order", help="Internal patch order: zorder, hilbert, random, input."),
         processes: Optional[int] = typer.Option(None, "--processes", help="Form-factor worker processes, each with its own Embree scene. Default: one per core from 4,000 patches on (below, their start-up costs more than it saves), else this process; the result does not depend on it."),
         near_field: str = typer.Option("auto", "--near-field", help="Near-field split: pairs within the radius holding ~this many facing neighbours (nonzeros of a row of N) go into a sparse N, HF factors the smooth rest, the solver is Woodbury around I - D_c N (Neumann series per solve, sparse LU in the set-up). 'auto' (default): 120 where the split pays, from 20,000 (0.02 / eps)^1.5 patches on (20,000 at --eps 0.02, 5,060 at 0.05; 2,000 at least; a clustered mesh from 2,000 on, with 120 (n / 4,000)^0.75 a row from 4,000 patches, at most 400), off below; the split lowers the rank HF needs and, at equal --eps, the radiosity error; 'off' or 0: plain Woodbury."),
-        far_field: str = typer.Option("auto", "--far-field", help="How the form factors of well-separated pairs are found: 'exact' (every pair), 'sampled' (each column block's near rows exactly, its far rows from a few sampled rows and skeleton columns, checked on held-out rows; a separate sample of exact rows certifies the error), 'auto' (default): the faster one, which is 'exact' at every size measured so far (to 163,000 patches the sampled field evaluates 4-5x fewer pairs but costs more wall time). On Dask too (the same leaves)."),
+        far_field: str = typer.Option("auto", "--far-field", help="How the form factors of well-separated pairs are found: 'exact' (every pair), 'sampled' (each column block's near rows exactly, its far rows from a few sampled rows and skeleton columns, checked on held-out rows; a separate sample of exact rows certifies the error), 'hierarchical' (F as an H-matrix: near leaf pairs exact, far cluster pairs of low rank from a few of their rows and columns; the factors from products with it; a sample of exact rows drawn by importance certifies the error; in this process only, no checkpoint, no near-field split), 'auto' (default): the faster one, which is 'exact' at every size measured so far (to 163,000 patches the sampled field evaluates 4-5x fewer pairs but costs more wall time). 'sampled' runs on Dask too (the same leaves)."),
         scheduler: Optional[str] = typer.Option(
             None, "--scheduler", help="Run on a Dask cluster: tcp://HOST:PORT of a running `dask scheduler` "
             "(docs/cluster.md)."),
@@ -61,6 +61,12 @@ def register(app: typer.Typer) -> None:
         With --far-field sampled: no reciprocity tiles and no scratch file; besides the
         same column blocks, the certification and sampled rows' exact values (about
         (2 sqrt(n) + 400) b float64 a block) and the cluster-pair visibility table (n^2 / 1024 bytes).
+        With --far-field hierarchical, instead of all of the above: the H-matrix
+        (about 24 sqrt(n) float32 a patch; 2,310 measured at 10,000 patches), the operator
+        factorization (5 n k s: its basis, projection and SVD, k as above, plus
+        three float64 n x 64 product buffers) and the statistics (about 2.9 KB a
+        patch): hfrad.memory.hierarchical_bytes, refused above 80% of the
+        available memory; no checkpoint is written.
         A checkpoint (OUTPUT.partial) is written every 30 s, and at least 50
         times as long as its last write took apart (writes cost at most ~2% of
         the run); rerun the same command to resume after an interruption. With
@@ -86,7 +92,8 @@ def register(app: typer.Typer) -> None:
 
             def need(n: int) -> None:   # before cutting: --max-edge 1e-4 is refused at once, not by the OOM killer
                 common.check_memory_for_precompute(n, min(block or DEFAULT_BLOCK_SIZE, max(n, 1)), dtype,
-                                                   count="at least" if scene_options.max_edge is not None else "about")
+                                                   count="at least" if scene_options.max_edge is not None else "about",
+                                                   far_field=far_field)
 
             with common.stage_clock(quiet, start=t0) as clock:
                 s = load_scene_from_options(scene, **dataclasses.asdict(scene_options), need=need, on_stage=clock)
@@ -100,9 +107,14 @@ def register(app: typer.Typer) -> None:
                 if not quiet:
                     common.console.print(f"refined: {marked:,} of {before:,} patches marked, {s.n_patches:,} patches now")
                 clock.stop()
-            common.check_memory_for_precompute(s.n_patches, block or DEFAULT_BLOCK_SIZE, dtype)
+            common.check_memory_for_precompute(s.n_patches, block or DEFAULT_BLOCK_SIZE, dtype, far_field=far_field)
             common.warn_disk_for_hfr(output, s.n_patches, dtype)
-            if not quiet:
+            if not quiet and far_field == "hierarchical":
+                from ..memory import human
+                common.console.print(f"memory estimate: about {human(common.precompute_estimate(s.n_patches, 0, dtype, far_field))} "
+                                     f"for {s.n_patches:,} patches (rank guessed; refused above 80% of the available "
+                                     "memory)", highlight=False)
+            elif not quiet:
                 from ..formfactors.mirror import mirror_bytes
                 from ..memory import human, precompute_bytes
                 estimate = precompute_bytes(s.n_patches, block or DEFAULT_BLOCK_SIZE,
@@ -241,6 +253,8 @@ def _report(fac, output: Path, clock) -> None:
         f"wrote {output}: {fac.n_patches:,} patches, rank {fac.rank:,}, "
         f"achieved error {fac.relative_error:.4f} (target {fac.eps})\n{figures}\n"
         f"solver {fac.solver}, time: {clock.summary()}{dask}", highlight=False)
+    if info.get("hierarchical"):
+        common.console.print(_hierarchical_line(info["hierarchical"]), highlight=False)
     far = info.get("far_field")
     if far:
         from ..formfactors.farfield import CERTIFICATE_FAILURE
@@ -253,6 +267,19 @@ def _report(fac, output: Path, clock) -> None:
             f"{far['error_estimate']:.3g}, upper figure {far['error_upper']:.3g} (the error above it with probability "
             f"~{CERTIFICATE_FAILURE:.1%}; {far['certificate_rows']:,} exact rows drawn in each column group: "
             "docs/method.md section 4b)", highlight=False)
+
+
+def _hierarchical_line(h: dict) -> str:
+    """What ``far_field="hierarchical"`` did (``info["hierarchical"]``), in words."""
+    from ..formfactors.farfield import CERTIFICATE_FAILURE
+
+    c = h["certificate"]
+    return (f"far field hierarchical: {h['pairs_share']:.2%} of the n^2 form factors evaluated "
+            f"({h['exact_pairs']:,} with rays, {h['kernel_pairs']:,} kernel only), {h['blocks']:,} blocks "
+            f"(mean far rank {h['mean_rank']:.1f}), {h['storage_floats'] / max(h['n'], 1):,.0f} floats a patch; "
+            f"{h['factorization']['products']:,} products; its error ||G - G_H||_F about {c['error_estimate']:.3g}, "
+            f"upper figure {c['error_upper']:.3g} (the error above it with probability ~{CERTIFICATE_FAILURE:.1%}; "
+            f"{c['rows']:,} exact rows drawn by importance: docs/method.md section 4c)")
 
 
 def _scratch_estimate(n: int, block_size: int, itemsize: int, memory_band_bytes: int) -> int:

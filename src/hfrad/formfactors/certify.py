@@ -21,7 +21,7 @@ import numpy as np
 
 from ..errors import InputError
 
-__all__ = ["RowCertificate", "FAILURE", "DEFENSIVE_SHARE", "upper_margin"]
+__all__ = ["RowCertificate", "FAILURE", "DEFENSIVE_SHARE", "upper_margin", "row_errors"]
 
 #: The upper figure's stated failure probability (the far field's ``CERTIFICATE_FAILURE``).
 FAILURE = 0.025
@@ -121,9 +121,7 @@ class RowCertificate:
             ``sqrt(mean(y) + upper_margin(y, failure))``.
         """
         d, rho, areas = self._check_rows(exact_rows, approx_rows, rho, areas, failure)
-        d *= rho[self.rows, None]
-        e = areas[self.rows] * np.einsum("ij,ij->i", d, d / areas[None, :])
-        y = e * self.scale
+        y = row_errors(d, self.rows, rho, areas) * self.scale
         mean = float(y.mean())
         return math.sqrt(mean), math.sqrt(mean + upper_margin(y, failure))
 
@@ -143,6 +141,17 @@ class RowCertificate:
         if not (0.0 < failure < 1.0):
             raise InputError(f"failure must be in (0, 1); got {failure!r}")
         return exact - approx, rho, areas
+
+
+def row_errors(d: np.ndarray, rows: np.ndarray, rho: np.ndarray, areas: np.ndarray) -> np.ndarray:
+    """(m,) ``e_i = A_i rho_i^2 sum_j d_ij^2 / A_j`` of the rows ``d = (F - F~)[rows]`` (m, n), float64.
+
+    Each row's share of ``||D||_F^2`` (see the module's docstring); callers that compute the exact
+    rows a few at a time (the hierarchical precompute) sum these and scale them by the slots'
+    :attr:`RowCertificate.scale`.
+    """
+    d = np.asarray(d, np.float64) * rho[rows, None]
+    return areas[rows] * np.einsum("ij,ij->i", d, d / areas[None, :])
 
 
 def _check_draw(n, m, weights):

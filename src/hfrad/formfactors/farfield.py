@@ -54,7 +54,7 @@ MIN_GROUP = 16
 #: conclusive (one to each of PROBES patches spread along the cluster).
 PROBES = 6
 #: The values of ``far_field`` (``hfrad.factorize``, ``hfrad precompute --far-field``).
-FAR_FIELD_CHOICES = ("exact", "sampled", "auto")
+FAR_FIELD_CHOICES = ("exact", "sampled", "hierarchical", "auto")
 #: The certificate's stated failure probability: its upper figure is below ``||G - G~||`` about
 #: this often (benchmarks/README.md, "A dependable certificate", counts redraws).
 CERTIFICATE_FAILURE = 0.025

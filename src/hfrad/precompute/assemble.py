@@ -30,6 +30,7 @@ from ..lowrank.factors import LowRank
 from ..lowrank.nearsplit import NearFieldSplit
 from ..formfactors.energy import warn_energy
 from ..formfactors.farfield import FarFieldOptions
+from ..formfactors.hmatrix import HMatrixOptions
 from ..scene.scene import Scene
 from ..solve.nearfield import NearFieldFactorization
 from ..solve.samples import SampledRows
@@ -69,6 +70,8 @@ class PrecomputePlan:
         "exact" (every pair) or "sampled" (:mod:`hfrad.formfactors.farfield`).
     far_options : FarFieldOptions
         The sampled far field's knobs (recorded with ``far_field="sampled"``).
+    hmatrix_options : HMatrixOptions or None
+        The H-matrix's knobs with ``far_field="hierarchical"`` (recorded), else None.
     """
 
     n: int
@@ -87,6 +90,7 @@ class PrecomputePlan:
     form_factors: dict
     far_field: str = "exact"
     far_options: FarFieldOptions = dataclasses.field(default_factory=FarFieldOptions)
+    hmatrix_options: HMatrixOptions | None = None
 
     @property
     def n_blocks(self) -> int:
@@ -104,6 +108,8 @@ class PrecomputePlan:
     def params(self) -> dict:
         """The parameters recorded in the ``.hfr`` (the backend adds ``backend``, ``workers``)."""
         far = {"far_options": dataclasses.asdict(self.far_options)} if self.far_field == "sampled" else {}
+        if self.hmatrix_options is not None:
+            far["hmatrix_options"] = dataclasses.asdict(self.hmatrix_options)
         return far | {"eps": self.eps, "relative": self.relative, "block_size": self.block_size, "dtype": self.dtype,
                 "samples": self.samples, "order": self.order, "leaf_share": self.leaf_share,
                 "one_ray_tol": self.one_ray_tol, "near_field": self.near_entries, "near_radius": self.near_radius,

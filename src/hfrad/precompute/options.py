@@ -22,6 +22,7 @@ from ..defaults import DEFAULT_BLOCK_SIZE
 from ..errors import InputError, SceneError
 from ..formfactors.budget import default_one_ray_tol
 from ..formfactors.farfield import FAR_FIELD_CHOICES, FarFieldOptions
+from ..formfactors.hmatrix import HMatrixOptions
 from ..lowrank.nearsplit import DEFAULT_NEAR_ENTRIES, near_radius
 from ..scene.scene import Scene
 from ..scene.zorder import patch_order
@@ -103,7 +104,7 @@ def near_entries(near_field, n: int, eps: float = NEAR_FIELD_REFERENCE_EPS, rela
 
 
 def far_field_mode(far_field, n: int, relative: bool) -> str:
-    """``"exact"`` or ``"sampled"`` for ``factorize(far_field=...)``.
+    """``"exact"``, ``"sampled"`` or ``"hierarchical"`` for ``factorize(far_field=...)``.
 
     "auto" is the exact pass at every size for now: measured at 40,000 and 163,000 patches
     (benchmarks/README.md, "The sampled far field"), the sampled far field evaluates 4-5
@@ -118,6 +119,22 @@ def far_field_mode(far_field, n: int, relative: bool) -> str:
         raise InputError("far_field='sampled' needs a relative eps (its tolerance is a share of each "
                          "block's norm); use far_field='exact' with relative=False")
     return far_field
+
+
+#: ``far_field="hierarchical"``: each far block's cross approximation may be off by this share of
+#: eps (relative Frobenius), as the sampled far field's parts (``FarFieldOptions.share``).
+HMATRIX_EPS_SHARE = 0.2
+
+
+def hmatrix_options(hmatrix, eps: float, relative: bool) -> HMatrixOptions:
+    """The H-matrix's options: the user's, else the defaults with the block tolerance
+    ``HMATRIX_EPS_SHARE * eps`` (a relative eps; an absolute one keeps the default 0.01)."""
+    if hmatrix is not None:
+        if not isinstance(hmatrix, HMatrixOptions):
+            raise InputError(f"options.hmatrix must be an hfrad.formfactors.hmatrix.HMatrixOptions; "
+                             f"got {type(hmatrix).__name__}")
+        return hmatrix
+    return HMatrixOptions(tolerance=HMATRIX_EPS_SHARE * eps) if relative else HMatrixOptions()
 
 
 def _far_options(far) -> FarFieldOptions:
@@ -157,6 +174,10 @@ class PrecomputeOptions:
         The sampled far field's knobs (admissibility ``eta``, its share of eps, sample
         sizes; :class:`hfrad.formfactors.farfield.FarFieldOptions`); used with
         ``far_field="sampled"``.
+    hmatrix : HMatrixOptions, optional
+        The H-matrix's knobs (leaf size, admissibility, each far block's tolerance;
+        :class:`hfrad.formfactors.hmatrix.HMatrixOptions`), used with ``far_field="hierarchical"``;
+        default: its defaults with the tolerance ``HMATRIX_EPS_SHARE`` (0.2) times a relative eps.
     """
 
     block_size: int | None = None
@@ -164,6 +185,7 @@ class PrecomputeOptions:
     leaf_share: float = 0.5
     one_ray_tol: float | None = None
     far: FarFieldOptions | None = None
+    hmatrix: HMatrixOptions | None = None
 
     def replace(self, **changes) -> "PrecomputeOptions":
         return dataclasses.replace(self, **changes)
@@ -186,8 +208,9 @@ def plan_precompute(scene: Scene, eps: float = 0.02, *, relative: bool = True, d
         The expert knobs (default: ``PrecomputeOptions()``).
     reciprocity : bool
         The backend's reciprocity copy (recorded; not part of the checkpoint key).
-    far_field : {"exact", "sampled", "auto"}
-        As in :func:`hfrad.factorize` (resolved by :func:`far_field_mode`).
+    far_field : {"exact", "sampled", "hierarchical", "auto"}
+        As in :func:`hfrad.factorize` (resolved by :func:`far_field_mode`); "hierarchical" orders the
+        patches by the H-matrix's cluster tree (``order`` then must be a name, and is not used).
 
     Returns
     -------
@@ -221,12 +244,25 @@ def plan_precompute(scene: Scene, eps: float = 0.02, *, relative: bool = True, d
         one_ray_tol = default_one_ray_tol(eps, relative)
     elif not (one_ray_tol >= 0 and np.isfinite(one_ray_tol)):
         raise InputError(f"one_ray_tol must be a share >= 0 of ||F||_F; got {one_ray_tol!r}")
-    if isinstance(order, str):
+    far_field = far_field_mode(far_field, n, bool(relative))
+    hm_options = hmatrix_options(options.hmatrix, eps, relative) if far_field == "hierarchical" else None
+    if hm_options is not None:
+        if not isinstance(order, str):
+            raise InputError("far_field='hierarchical' orders the patches by its cluster tree; a custom "
+                             "order cannot be used with it")
+        from .hierarchical import tree_order
+
+        perm, order = tree_order(scene, hm_options), "tree"
+    elif isinstance(order, str):
         perm = patch_order(scene.centroids, order)
     else:
         perm = check_permutation(order, n)
         order = "custom"
     entries = near_entries(near_field, n, eps, relative, clustered=scene.is_clustered)
+    if hm_options is not None:      # the H-matrix holds the near pairs exactly: no split (for now)
+        if near_field != "auto" and entries:
+            raise InputError("far_field='hierarchical' has no near-field split yet; use near_field=None or 'auto'")
+        entries = 0
     from ..formfactors.kernel import settings as kernel_settings
     from ..formfactors.visibility import settings as visibility_settings
 
@@ -236,7 +272,7 @@ def plan_precompute(scene: Scene, eps: float = 0.02, *, relative: bool = True, d
         leaf_share=float(leaf_share), one_ray_tol=float(one_ray_tol), near_entries=entries,
         # the radius, not only the count, is part of the checkpoint key
         near_radius=near_radius(scene.centroids, entries, scene.normals) if entries else 0.0,
-        reciprocity=bool(reciprocity), far_field=far_field_mode(far_field, n, bool(relative)),
-        far_options=_far_options(options.far),
+        reciprocity=bool(reciprocity), far_field=far_field,
+        far_options=_far_options(options.far), hmatrix_options=hm_options,
         # kernel version and tolerance: recorded in the .hfr, part of the checkpoint key
         form_factors={**kernel_settings(), **visibility_settings()})

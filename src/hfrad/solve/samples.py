@@ -293,13 +293,42 @@ class SampledRows:
             self.gain_vector[start:stop] = x
             self.gain_product += product(F_block, x[:, None].astype(np.float64))[:, 0]
 
-    def _column_bounce(self, start: int, stop: int, F_block) -> None:
+    def record_operator(self, matmat, rmatmat, squares, exact: np.ndarray) -> None:
+        """Record all n columns of an F known by its products (an H-matrix), as :meth:`record` would
+        record them block by block: every quantity is linear in F or a column sum of its squares.
+
+        Parameters
+        ----------
+        matmat, rmatmat : callable
+            ``F @ X`` and ``F.T @ X`` (internal order) for X (n, l) float64, returning (n, l) float64.
+        squares : callable
+            ``squares(scale)``: (n, c) ``sum_i scale[i, c] F[i, p]^2`` for ``scale`` (n, c) >= 0.
+        exact : (m1 + m2 + m3, n)
+            The exact rows at :attr:`row_patches`.
+        """
+        n = self.rows.shape[1]
+        self.rows[:] = exact
+        self.span = (0, n)
+        if self.products is not None:
+            m1, m2 = self.index.size, self.smooth_index.size
+            Fs = np.asarray(exact[m1:m1 + m2], np.float64)                       # (m2, n)
+            Y = Fs.T[:, :, None] * (self.reflectance / self.weights[:, None])[:, None, :]
+            self.products = matmat(Y.reshape(n, -1)).reshape(self.products.shape)
+        if self.bounce is not None or self.dual_bounce is not None:
+            self._column_bounce(0, n, None, squares)
+        if self.gain_vector is not None:
+            self.gain_vector = rmatmat(self.weights[:, None])[:, 0] / self.weights
+            self.gain_product = matmat(self.gain_vector[:, None])[:, 0]
+
+    def _column_bounce(self, start: int, stop: int, F_block, squares=None) -> None:
         """``bounce`` (``sum_i w_i rho_ic^2 F_ip^2``) and ``dual_bounce`` (``sum_i w_i F_ip^2``) of a column
-        block, in float64, from one pass of squares over it."""
+        block, in float64, from one pass of squares over it (``squares(scale)``: the column squares of
+        an operator's F instead of ``F_block``'s)."""
         w = np.ones(self.rows.shape[1]) if self.weights is None else self.weights
         scales = ([] if self.bounce is None else [self.reflectance ** 2 * w[:, None]]) + \
             ([] if self.dual_bounce is None else [w[:, None]])
-        squares = column_squares(F_block, np.concatenate(scales, axis=1))          # (b, 3 or 4 or 1)
+        scale = np.concatenate(scales, axis=1)
+        squares = column_squares(F_block, scale) if squares is None else squares(scale)   # (b, 3 or 4 or 1)
         if self.bounce is not None:
             self.bounce[start:stop] = squares[:, :3]
         if self.dual_bounce is not None:

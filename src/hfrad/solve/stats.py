@@ -160,6 +160,35 @@ class PassStatistics:
         G = F.scaled(rho, F.dtype)
         return G, G.frobenius2()
 
+    def record_operator(self, matmat, rmatmat, squares, rows_rho, exact_rows: np.ndarray | None = None) -> None:
+        """Record all n columns of an F known only by its products (an H-matrix: ``far_field="hierarchical"``).
+
+        What the column blocks' pass records, from products instead: the row sums ``F 1``, the column
+        sums ``F^T 1``, the sketch ``rho F Omega'`` and the sampled rows' quantities
+        (:meth:`SampledRows.record_operator`), all of the F the factorization was given.
+
+        Parameters
+        ----------
+        matmat, rmatmat : callable
+            ``F @ X`` and ``F.T @ X`` (internal order), X (n, l) float64 -> (n, l) float64.
+        squares : callable
+            ``squares(scale)`` (n, c) -> (n, c) ``sum_i scale[i, c] F[i, p]^2``.
+        rows_rho : (n,) or (n, 1) float
+            ``rho_max`` in internal order.
+        exact_rows : (m, n), optional
+            The exact rows of F at ``self.samples.row_patches`` (required when there are samples).
+        """
+        self._check_writable()
+        rho = np.asarray(rows_rho, np.float64).reshape(self.n)
+        Y = matmat(np.column_stack([np.ones(self.n), self._omega]))
+        self.row_sums = Y[:, 0].copy()
+        self.sketch = rho[:, None] * Y[:, 1:]
+        self.col_sums = rmatmat(np.ones((self.n, 1)))[:, 0]
+        if self.samples is not None:
+            if exact_rows is None:
+                raise ValueError("record_operator needs the exact rows at samples.row_patches")
+            self.samples.record_operator(matmat, rmatmat, squares, exact_rows)
+
     def _check_writable(self) -> None:
         if not all(a.flags.writeable for a in (self.row_sums, self.col_sums, self.sketch)):
             raise ValueError("these pass statistics are read-only (a factorization's frozen copy): "

@@ -1,0 +1,251 @@
+"""The precompute from an H-matrix of F: ``far_field="hierarchical"`` (issue 43; docs/method.md, section 4c).
+
+Instead of streaming column blocks of F into HF, F is built once as an H-matrix
+(:func:`hfrad.formfactors.hmatrix.build_hmatrix`: near leaf pairs exact, far cluster pairs
+of low rank, O(n log n) pairs evaluated), and the global factors ``G_H = diag(rho_max) F_H
+~= Q V^T`` come from products with it alone (:func:`hfrad.lowrank.operator_factorization`,
+stopped by the exact ``||G_H||_F^2``). The internal order is the cluster tree's, so the
+H-matrix's products need no permutation.
+
+The pass statistics (row and column sums, the probe sketch, the per-solve sampled rows) are
+linear in F or column sums of its squares, so they come from products and from the blocks
+too (:meth:`~hfrad.solve.stats.PassStatistics.record_operator`); the sampled rows themselves
+are exact rows of F, computed with the engine. What the H-matrix itself is off by,
+``||A^1/2 (G - G_H) A^-1/2||_F``, is certified by exact rows drawn by importance (their
+H-matrix norms; :class:`~hfrad.formfactors.certify.RowCertificate`) and added to
+``fac.error_estimate()`` as the sampled far field's certificate is.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from numba import njit
+
+from ..formfactors.certify import RowCertificate, row_errors
+from ..formfactors.engine import FormFactorEngine
+from ..formfactors.farfield import FarFieldCertificate, patch_boxes
+from ..formfactors.hmatrix import BlockList, FormFactorHMatrix, HMatrixOptions, build_hmatrix, cluster_tree
+from ..lowrank.operator import operator_factorization
+from ..errors import InputError
+from ..memory import RANK_ASSUMPTION, hierarchical_bytes, rank_guess, require
+from .. import resources
+from ..progress import ProgressCallback
+from ..scene.scene import Scene
+from ..solve.stats import PassStatistics
+from ..solve.woodbury import HFactorization
+from .assemble import PrecomputePlan, assemble
+
+__all__ = ["factorize_hierarchical", "factorize_hmatrix", "engine_for", "tree_order", "block_squares", "CERTIFICATE_ROWS", "CERTIFICATE_SEED"]
+
+#: Exact rows drawn (with replacement, by importance) to certify ``||G - G_H||``.
+CERTIFICATE_ROWS = 256
+CERTIFICATE_SEED = 4343
+#: The operator factorization's random draws (the same seed: the same factors).
+FACTORIZATION_SEED = 4344
+#: Entries of exact rows computed by one engine call (float64: 32 MB).
+EXACT_CHUNK = 1 << 22
+
+
+def tree_order(scene: Scene, options: HMatrixOptions) -> np.ndarray:
+    """(n,) the H-matrix's tree order of ``scene`` (what :func:`build_hmatrix` will build; deterministic)."""
+    lo, hi = patch_boxes(scene)
+    return cluster_tree(scene.centroids, lo, hi, options.leaf_size).perm
+
+
+def factorize_hierarchical(scene: Scene, plan: PrecomputePlan, progress: ProgressCallback = None,
+                           status=None, *, blas_threads: int | None = 1) -> HFactorization:
+    """Run ``plan`` (``far_field="hierarchical"``) in this process: H-matrix, operator factorization,
+    statistics and certificate, then the solver object (:func:`~hfrad.precompute.assemble.assemble`).
+
+    Parameters
+    ----------
+    scene : Scene
+    plan : PrecomputePlan
+        With ``far_field="hierarchical"`` (its ``perm`` the tree order, no near-field split).
+    progress : callable, optional
+        ``progress(done, total)``: the H-matrix's exact blocks, then the basis columns.
+    status : callable, optional
+        Called once, after the factorization, with ``blocks`` (0), ``rank`` and ``elapsed``.
+    blas_threads : int or None
+        BLAS threads throughout (``LocalBackend.blas_threads``, default 1): numba's parallel products
+        and multi-threaded OpenBLAS spin against each other; on the 2-core machine the operator
+        factorization of 1,508 patches took 79 s with the default BLAS threads and 4.1 s with one.
+
+    Returns
+    -------
+    HFactorization
+
+    Raises
+    ------
+    MemoryLimitError
+        The estimate (:func:`hfrad.memory.hierarchical_bytes`) exceeds 80% of the available memory.
+    """
+    n, dt = plan.n, np.dtype(plan.dtype)
+    require(hierarchical_bytes(n, itemsize=dt.itemsize), f"precomputing {n:,} patches with far_field='hierarchical'",
+            f"use fewer patches or a larger eps (the estimate assumes a rank of {rank_guess(n):,}: {RANK_ASSUMPTION})")
+    t0 = time.perf_counter()
+    engine = engine_for(scene, plan)
+    try:
+        with resources.blas_threads(blas_threads):
+            hm = build_hmatrix(scene, engine, plan.hmatrix_options, progress)
+        return factorize_hmatrix(scene, plan, engine, hm, progress, status, t0=t0, blas_threads=blas_threads)
+    finally:
+        engine.close()
+
+
+def factorize_hmatrix(scene: Scene, plan: PrecomputePlan, engine: FormFactorEngine, hm: FormFactorHMatrix,
+                      progress: ProgressCallback = None, status=None, *, t0: float | None = None,
+                      blas_threads: int | None = 1) -> HFactorization:
+    """The rest of :func:`factorize_hierarchical` once the H-matrix ``hm`` of ``scene`` is built with
+    ``engine`` (which then computes the exact rows): factors, statistics, certificate, solver object.
+    ``t0``: when the run started (``perf_counter``; default now), for the recorded timings."""
+    if not np.array_equal(hm.perm, plan.perm):
+        raise InputError("the H-matrix's tree order differs from the plan's: build it with plan.hmatrix_options")
+    with resources.blas_threads(blas_threads):
+        return _factorize_hmatrix(scene, plan, engine, hm, progress, status, time.perf_counter() if t0 is None else t0)
+
+
+def _factorize_hmatrix(scene, plan, engine, hm, progress, status, t0) -> HFactorization:
+    n, dt = plan.n, np.dtype(plan.dtype)
+    t_hm = time.perf_counter()
+    rho = plan.rows_rho(scene)[:, 0].astype(np.float64)
+    areas = plan.stats_weights(scene)
+    rows2 = block_squares(hm.blocks, np.column_stack([np.ones(n), 1.0 / areas]), columns=False)
+    lowrank = operator_factorization(lambda X: rho[:, None] * hm.matmat(X), lambda X: hm.rmatmat(rho[:, None] * X),
+                                     n, float(np.dot(rho ** 2, rows2[:, 0])), eps=plan.eps, relative=plan.relative,
+                                     dtype=dt, rng=FACTORIZATION_SEED, progress=progress)
+    t_fac = time.perf_counter()
+    if status is not None:
+        status({"blocks": 0, "rank": lowrank.rank, "elapsed": t_fac - t0})
+    stats = PassStatistics(n, areas, reflectance=scene.reflectance[plan.perm])
+    exact = _RowSource(engine, plan.perm)
+    sample_rows = None if stats.samples is None else exact.rows(stats.samples.row_patches, np.float32)
+    stats.record_operator(hm.matmat, hm.rmatmat, lambda s: block_squares(hm.blocks, s, columns=True), rho,
+                          sample_rows)
+    t_stats = time.perf_counter()
+    # importance: each row's rho sqrt(A)-weighted norm in F_H, the sampled field's predictor (its errors
+    # grew with it); on the Cornell box at 1,508 patches uniform draws did as well (docs/method.md, 4c)
+    weights = rho * np.sqrt(areas * np.maximum(rows2[:, 1], 0.0))
+    stats.far_field, certificate = _certify(hm, exact, rho, areas, weights)
+    t_cert = time.perf_counter()
+    lowrank.info.update({"time_formfactors": t_hm - t0, "time_factorization": t_fac - t_hm, "time_statistics": t_stats - t_fac,
+                         "time_certificate": t_cert - t_stats, "time_precompute": t_cert - t0,
+                         "hierarchical": {**hm.info, "factorization": {k: v for k, v in lowrank.info.items()
+                                                                       if not k.startswith("time")},
+                                          "certificate": certificate, "exact_row_pairs": int(exact.pairs)}})
+    fac = assemble(scene, plan, lowrank, stats, None, backend={"backend": "local"})
+    fac.lowrank.info["time_assemble"] = time.perf_counter() - t_cert
+    return fac
+
+
+def engine_for(scene: Scene, plan: PrecomputePlan) -> FormFactorEngine:
+    """The form-factor engine with the plan's visibility settings (as the column blocks' pass has them)."""
+    kwargs = {} if plan.samples is None else {"samples": plan.samples}
+    if plan.samples != 0:
+        kwargs["ray_budget"] = plan.ray_budget(scene)
+    return FormFactorEngine(scene, **kwargs)
+
+
+class _RowSource:
+    """Exact rows of F at internal positions, a few at a time (``EXACT_CHUNK`` entries an engine call)."""
+
+    def __init__(self, engine: FormFactorEngine, perm: np.ndarray) -> None:
+        self.engine, self.perm = engine, perm
+        self.pairs = 0
+
+    def chunks(self, rows: np.ndarray):
+        """``(slice, F[rows[slice]])`` (float64, columns in internal order) over ``rows``."""
+        step = max(1, EXACT_CHUNK // max(1, self.perm.size))
+        for a in range(0, rows.size, step):
+            part = rows[a:a + step]
+            self.pairs += part.size * self.perm.size
+            yield slice(a, a + part.size), self.engine.block(self.perm[part], self.perm)
+
+    def rows(self, rows: np.ndarray, dtype) -> np.ndarray:
+        out = np.empty((rows.size, self.perm.size), dtype)
+        for where, F in self.chunks(np.asarray(rows, np.int64)):
+            out[where] = F
+        return out
+
+
+def _certify(hm: FormFactorHMatrix, exact: _RowSource, rho, areas, weights) -> tuple[FarFieldCertificate, dict]:
+    """The certificate of ``||A^1/2 diag(rho) (F - F_H) A^-1/2||_F`` from ``CERTIFICATE_ROWS`` exact rows
+    drawn by ``weights`` (a :class:`RowCertificate`), as the sampled far field's certificate object
+    (its slots' totals over n: the solver adds its upper figure to the operator error)."""
+    n = hm.n
+    draw = RowCertificate.draw(n, CERTIFICATE_ROWS, weights, seed=CERTIFICATE_SEED)
+    unique, inverse = np.unique(draw.rows, return_inverse=True)
+    e = np.empty(unique.size)
+    pairs0 = exact.pairs
+    for where, F in exact.chunks(unique):
+        picked = unique[where]
+        X = np.zeros((n, picked.size))
+        X[picked, np.arange(picked.size)] = 1.0
+        approx = hm.rmatmat(X).T                         # rows of F_H: (F_H^T e_i)^T
+        e[where] = row_errors(F - approx, picked, rho, areas)
+    y = e[inverse] * draw.scale
+    certificate = FarFieldCertificate(np.arange(y.size, dtype=np.int64), y / n, n, CERTIFICATE_SEED)
+    estimate, upper = certificate.frobenius()
+    return certificate, {"rows": int(draw.rows.size), "distinct_rows": int(unique.size),
+                         "pairs": int(exact.pairs - pairs0), "weighted": True,
+                         "error_estimate": estimate, "error_upper": upper}
+
+
+def block_squares(blocks: BlockList, scale: np.ndarray, *, columns: bool) -> np.ndarray:
+    """(n, c) weighted squares of the H-matrix's F, float64, from its blocks (tree order).
+
+    ``columns``: ``out[p, c] = sum_i scale[i, c] F[i, p]^2`` (column sums of squares, rows weighted);
+    else ``out[i, c] = sum_p scale[p, c] F[i, p]^2`` (row sums, columns weighted). A low-rank block
+    ``U V^T`` adds ``diag(V (U^T diag(s) U) V^T)`` (or the transpose's): O((m + b) r^2) a channel.
+    ``scale``: (n, c) >= 0.
+    """
+    scale = np.ascontiguousarray(scale, np.float64)
+    out = np.zeros_like(scale)
+    k = blocks
+    _squares(k.row_index, k.row_ptr, k.c0, k.b, k.rank, k.u_off, k.v_off, k.U, k.V, scale, columns, out)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _squares(rows, row_ptr, c0, b_, rank, u_off, v_off, U, V, W, columns, out):  # pragma: no cover (numba)
+    """:func:`block_squares`, block after block (blocks share rows and columns: one thread)."""
+    C = W.shape[1]
+    for t in range(c0.shape[0]):
+        p, m, b, c, r = row_ptr[t], row_ptr[t + 1] - row_ptr[t], b_[t], c0[t], rank[t]
+        if r < 0:                                     # dense, (m, b) row-major at u_off
+            o = u_off[t]
+            for i in range(m):
+                gi = rows[p + i]
+                for j in range(b):
+                    f = np.float64(U[o + i * b + j])
+                    f2 = f * f
+                    if f2 == 0.0:
+                        continue
+                    for k in range(C):
+                        if columns:
+                            out[c + j, k] += W[gi, k] * f2
+                        else:
+                            out[gi, k] += W[c + j, k] * f2
+            continue
+        if r == 0:
+            continue
+        Ut = U[u_off[t]:u_off[t] + m * r].reshape(m, r).astype(np.float64)
+        Vt = V[v_off[t]:v_off[t] + b * r].reshape(b, r).astype(np.float64)
+        ws = np.empty(m if columns else b)
+        for k in range(C):
+            if columns:
+                for i in range(m):
+                    ws[i] = W[rows[p + i], k]
+                M = (Ut * ws.reshape(-1, 1)).T @ Ut      # U^T diag(s) U
+                Z = Vt @ M
+                for j in range(b):
+                    out[c + j, k] += np.dot(Z[j], Vt[j])
+            else:
+                for j in range(b):
+                    ws[j] = W[c + j, k]
+                M = (Vt * ws.reshape(-1, 1)).T @ Vt
+                Z = Ut @ M
+                for i in range(m):
+                    out[rows[p + i], k] += np.dot(Z[i], Ut[i])

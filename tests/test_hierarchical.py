@@ -1,0 +1,156 @@
+"""``far_field="hierarchical"``: the precompute from an H-matrix of F (issue 43, docs/method.md section 4c).
+
+On a 1,508-patch Cornell box at eps 0.05 the H-matrix path is checked against things it does not
+compute itself: the dense F of the same engine (radiosity by LAPACK's solve, the certificate's
+error), the column-block pass statistics of the same H-matrix (its products and squares), and
+the exact path's factorization (the same radiosity within both stated figures).
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+
+import hfrad
+from conftest import run_cli as run
+from hfrad.errors import AccuracyWarning, InputError, MemoryLimitError
+from hfrad.formfactors.hmatrix import build_hmatrix
+from hfrad.precompute.hierarchical import block_squares, engine_for, factorize_hmatrix, tree_order
+from hfrad.precompute.options import plan_precompute
+from hfrad.solve.stats import PassStatistics
+
+PATCHES = 1500
+EPS = 0.05
+
+
+@pytest.fixture(scope="module")
+def box():
+    """The scene, its plan, H-matrix, dense F (internal order, the same engine) and the factorization."""
+    scene = hfrad.load_scene("cornell", patches=PATCHES)
+    plan = plan_precompute(scene, EPS, far_field="hierarchical")
+    engine = engine_for(scene, plan)
+    hm = build_hmatrix(scene, engine, plan.hmatrix_options)
+    F = engine.block(plan.perm, plan.perm)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", AccuracyWarning)     # the H-matrix's row sums (energy check)
+        fac = factorize_hmatrix(scene, plan, engine, hm)
+    engine.close()
+    return scene, plan, hm, F, fac
+
+
+def _dense_radiosity(scene, plan, F, E):
+    """(n, 3) B of (I - R_c F) B = E in user order, by LAPACK (F in internal order)."""
+    p = plan.perm
+    out = np.empty_like(E)
+    for c in range(3):
+        rho = scene.reflectance[p, c]
+        out[p, c] = np.linalg.solve(np.eye(plan.n) - rho[:, None] * F, E[p, c])
+    return out
+
+
+def _relative(scene, B, B_true, E):
+    """(3,) ``||B - B_true||_A / ||B_true - E||_A`` (the per-solve figure's norm)."""
+    a = np.asarray(scene.areas)[:, None]
+    return np.sqrt((a * (B - B_true) ** 2).sum(axis=0) / (a * (B_true - E) ** 2).sum(axis=0))
+
+
+def test_radiosity_within_its_figure_and_the_exact_path(box):
+    scene, plan, hm, F, fac = box
+    E = scene.emission
+    B_true = _dense_radiosity(scene, plan, F, E)
+    B, figure = fac.solve(E, return_error=True)
+    error = _relative(scene, B, B_true, E)
+    assert np.all(error <= figure.bound), (error, figure.bound)     # measured 0.049-0.060 against 0.42-0.54
+    exact = hfrad.factorize(scene, EPS, far_field="exact", near_field=None)
+    B_exact, figure_exact = exact.solve(E, return_error=True)
+    # the two solutions within the sum of the two stated figures (each against the true B)
+    assert np.all(_relative(scene, B, B_exact, E) <= figure.bound + figure_exact.bound)
+    assert exact.rank / 2 < fac.rank < 2 * exact.rank                 # measured 568 against 592
+
+
+def test_certificate_within_2x_of_the_measured_error(box):
+    scene, plan, hm, F, fac = box
+    rho = plan.rows_rho(scene)[:, 0].astype(np.float64)
+    a = plan.stats_weights(scene)
+    D = np.sqrt(a)[:, None] * rho[:, None] * (F - hm.to_dense()) / np.sqrt(a)[None, :]
+    measured = np.linalg.norm(D)
+    estimate, upper = fac.stats.far_field.frobenius()
+    assert 0.5 * measured <= estimate <= 2.0 * measured, (estimate, measured)   # measured 0.89-1.18 over 30 seeds
+    assert upper >= measured
+    info = fac.lowrank.info["hierarchical"]["certificate"]
+    assert (info["error_estimate"], info["error_upper"]) == (estimate, upper)
+
+
+def test_statistics_are_the_column_pass_of_the_hmatrix(box):
+    """The products and squares give what the column-block pass gives when it reads F_H densely."""
+    scene, plan, hm, F, fac = box
+    n = plan.n
+    dense = PassStatistics(n, plan.stats_weights(scene), reflectance=scene.reflectance[plan.perm])
+    exact_rows = F[dense.samples.row_patches].astype(np.float32)
+    dense.add_scaled(0, n, hm.to_dense(), plan.rows_rho(scene).astype(np.float64), exact_rows=exact_rows)
+    ours, tol = fac.stats, dict(rtol=1e-9, atol=1e-12)
+    for name in ("row_sums", "col_sums", "sketch"):
+        np.testing.assert_allclose(getattr(ours, name), getattr(dense, name), **tol)
+    for name in ("products", "bounce", "dual_bounce", "gain_vector", "gain_product"):
+        np.testing.assert_allclose(getattr(ours.samples, name), getattr(dense.samples, name), rtol=1e-6, atol=1e-12)
+    # the kept rows (a factorization keeps a nested sub-sample) are exact rows of F, not of F_H
+    np.testing.assert_array_equal(ours.samples.rows, F[ours.samples.row_patches].astype(np.float32))
+
+
+def test_block_squares_match_the_dense_matrix(box):
+    scene, plan, hm, F, fac = box
+    H = hm.to_dense()
+    s = np.random.default_rng(0).random((plan.n, 2))
+    np.testing.assert_allclose(block_squares(hm.blocks, s, columns=True), np.einsum("ic,ip->pc", s, H ** 2),
+                               rtol=1e-10)
+    np.testing.assert_allclose(block_squares(hm.blocks, s, columns=False), np.einsum("pc,ip->ic", s, H ** 2),
+                               rtol=1e-10)
+
+
+def test_error_estimate_holds_the_certificate_and_survives_a_file(box, tmp_path):
+    scene, plan, hm, F, fac = box
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", AccuracyWarning)     # no global bound at this size and eps
+        est = fac.error_estimate()
+    upper = fac.stats.far_field.frobenius()[1]
+    assert np.isfinite(est.operator_error).all()
+    assert np.all(est.operator_error >= upper)      # the probes' figure of ||G_H - Q V^T|| plus ||G - G_H||'s
+    path = hfrad.save(fac, tmp_path / "box.hfr")
+    back = hfrad.load(path)
+    assert back.params["far_field"] == "hierarchical" and back.params["order"] == "tree"
+    assert back.lowrank.info["hierarchical"]["certificate"]["rows"] > 0
+    assert back.stats.far_field.frobenius() == fac.stats.far_field.frobenius()
+    np.testing.assert_allclose(back.solve(scene.emission), fac.solve(scene.emission), rtol=1e-6)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", AccuracyWarning)
+        np.testing.assert_allclose(back.error_estimate().operator_error, est.operator_error, rtol=1e-6)
+
+
+def test_front_door_and_cli(tmp_path):
+    scene = hfrad.load_scene("cornell", patches=300)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", AccuracyWarning)
+        fac = hfrad.factorize(scene, EPS, far_field="hierarchical")
+    plan = plan_precompute(scene, EPS, far_field="hierarchical")
+    np.testing.assert_array_equal(fac.perm, tree_order(scene, plan.hmatrix_options))
+    assert fac.params["near_field"] == 0 and fac.params["hmatrix_options"]["tolerance"] == pytest.approx(0.2 * EPS)
+    assert fac.lowrank.method == "operator" and fac.lowrank.info["hierarchical"]["pairs_evaluated"] > 0
+    with pytest.raises(InputError, match="this process only"):
+        hfrad.factorize(scene, EPS, far_field="hierarchical", backend=hfrad.DaskBackend(workers=1))
+    with pytest.raises(InputError, match="custom"):
+        hfrad.factorize(scene, EPS, far_field="hierarchical", order=np.arange(scene.n_patches))
+    out = tmp_path / "small.hfr"
+    result = run("precompute", "cornell", "--patches", "300", "--eps", EPS, "--far-field", "hierarchical", "-o", out)
+    assert result.exit_code == 0, result.output
+    assert "far field hierarchical" in result.output and hfrad.load(out).params["far_field"] == "hierarchical"
+
+
+def test_memory_refused_with_the_number(monkeypatch):
+    import hfrad.memory as memory
+
+    scene = hfrad.load_scene("cornell", patches=300)
+    monkeypatch.setattr(memory, "available_bytes", lambda: 1 << 20)
+    with pytest.raises(MemoryLimitError, match=r"far_field='hierarchical' needs about [0-9.]+ MB"):
+        hfrad.factorize(scene, EPS, far_field="hierarchical")
