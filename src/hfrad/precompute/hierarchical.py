@@ -18,6 +18,7 @@ H-matrix norms; :class:`~hfrad.formfactors.certify.RowCertificate`) and added to
 
 from __future__ import annotations
 
+import math
 import time
 
 import numpy as np
@@ -35,7 +36,7 @@ from ..progress import ProgressCallback
 from ..scene.scene import Scene
 from ..solve.stats import PassStatistics
 from ..solve.woodbury import HFactorization
-from .assemble import PrecomputePlan, assemble
+from .assemble import PrecomputePlan, assemble, near_state
 
 __all__ = ["factorize_hierarchical", "factorize_hmatrix", "engine_for", "tree_order", "block_squares", "CERTIFICATE_ROWS", "CERTIFICATE_SEED"]
 
@@ -113,12 +114,8 @@ def _factorize_hmatrix(scene, plan, engine, hm, progress, status, t0) -> HFactor
     rho = plan.rows_rho(scene)[:, 0].astype(np.float64)
     areas = plan.stats_weights(scene)
     rows2 = block_squares(hm.blocks, np.column_stack([np.ones(n), 1.0 / areas]), columns=False)
-    lowrank = operator_factorization(lambda X: rho[:, None] * hm.matmat(X), lambda X: hm.rmatmat(rho[:, None] * X),
-                                     n, float(np.dot(rho ** 2, rows2[:, 0])), eps=plan.eps, relative=plan.relative,
-                                     dtype=dt, rng=FACTORIZATION_SEED, progress=progress)
-    t_fac = time.perf_counter()
-    if status is not None:
-        status({"blocks": 0, "rank": lowrank.rank, "elapsed": t_fac - t0})
+    norm2 = float(np.dot(rho ** 2, rows2[:, 0]))            # ||G||_F^2, G = diag(rho) F_H
+    # the pass statistics and the certificate read the whole F (as the column blocks' pass does) ...
     stats = PassStatistics(n, areas, reflectance=scene.reflectance[plan.perm])
     exact = _RowSource(engine, plan.perm)
     sample_rows = None if stats.samples is None else exact.rows(stats.samples.row_patches, np.float32)
@@ -130,13 +127,29 @@ def _factorize_hmatrix(scene, plan, engine, hm, progress, status, t0) -> HFactor
     weights = rho * np.sqrt(areas * np.maximum(rows2[:, 1], 0.0))
     stats.far_field, certificate = _certify(hm, exact, rho, areas, weights)
     t_cert = time.perf_counter()
-    lowrank.info.update({"time_formfactors": t_hm - t0, "time_factorization": t_fac - t_hm, "time_statistics": t_stats - t_fac,
-                         "time_certificate": t_cert - t_stats, "time_precompute": t_cert - t0,
+    # ... then the near field's entries leave the H-matrix (kept sparse and exact, as the split of the
+    # column blocks keeps them) and G - N is factored within eps of the whole G (its rank is far lower:
+    # 1,898 -> 214 at 9,986 patches, eps 0.05)
+    near = None
+    if plan.near_entries:
+        r, c, v = hm.take_near(scene.centroids[plan.perm], plan.near_radius)
+        near = near_state([r], [c], [rho[r] * v])
+    target = plan.eps * math.sqrt(norm2) if plan.relative else plan.eps
+    lowrank = operator_factorization(lambda X: rho[:, None] * hm.matmat(X), lambda X: hm.rmatmat(rho[:, None] * X),
+                                     n, hm.frobenius2(rho), eps=target, relative=False, dtype=dt,
+                                     rng=FACTORIZATION_SEED, progress=progress)
+    lowrank.norm, lowrank.eps, lowrank.relative = math.sqrt(norm2), plan.eps, plan.relative
+    t_fac = time.perf_counter()
+    if status is not None:
+        status({"blocks": 0, "rank": lowrank.rank, "elapsed": t_fac - t0})
+    lowrank.info.update({"time_formfactors": t_hm - t0, "time_statistics": t_stats - t_hm,
+                         "time_certificate": t_cert - t_stats, "time_factorization": t_fac - t_cert,
+                         "time_precompute": t_fac - t0,
                          "hierarchical": {**hm.info, "factorization": {k: v for k, v in lowrank.info.items()
                                                                        if not k.startswith("time")},
                                           "certificate": certificate, "exact_row_pairs": int(exact.pairs)}})
-    fac = assemble(scene, plan, lowrank, stats, None, backend={"backend": "local"})
-    fac.lowrank.info["time_assemble"] = time.perf_counter() - t_cert
+    fac = assemble(scene, plan, lowrank, stats, near, backend={"backend": "local"})
+    fac.lowrank.info["time_assemble"] = time.perf_counter() - t_fac
     return fac
 
 
