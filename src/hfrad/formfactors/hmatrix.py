@@ -611,13 +611,27 @@ class _Builder:
 
     def probe(self, r: np.ndarray, c: np.ndarray) -> None:
         """Mixed pairs: PROBES rays from each row patch to patches spread over the column node; rows
-        whose facing rays all agree are visible (cross approximation) or blocked (zero), the others exact."""
-        if not len(r):
-            return
+        whose facing rays all agree are visible (cross approximation) or blocked (zero). The others
+        (a shadow edge across the node) are probed again against each half of the column node, down
+        to a leaf, where they are computed exactly: the exact pairs follow the shadow edge."""
+        tree = self.tree
+        rows, row_ptr = _concat_ranges(np.arange(tree.perm.size), tree.start[r], tree.stop[r])
+        groups = [rows[row_ptr[q]:row_ptr[q + 1]] for q in range(len(r))]
+        self.info["probed_blocks"] += len(r)
+        c = np.asarray(c, np.int64)
+        while len(groups):
+            groups, c = self._probe_round(groups, c)
+
+    def _probe_round(self, groups: list, c: np.ndarray):
+        """One round of :meth:`probe` over (row group, column node) pairs; returns the next round's."""
+        if not len(groups):
+            return [], np.zeros(0, np.int64)
         tree, perm, k = self.tree, self.tree.perm, PROBES
         t = time.perf_counter()
-        rows, row_ptr = _concat_ranges(np.arange(self.tree.perm.size), tree.start[r], tree.stop[r])
-        owner = np.repeat(np.arange(len(r)), np.diff(row_ptr))
+        row_ptr = np.zeros(len(groups) + 1, np.int64)
+        np.cumsum([len(g) for g in groups], out=row_ptr[1:])
+        rows = np.concatenate(groups)
+        owner = np.repeat(np.arange(len(groups)), np.diff(row_ptr))
         size = tree.size[c][owner]
         targets = tree.start[c][owner][:, None] + (size[:, None] * (2 * np.arange(k) + 1)) // (2 * k)
         facing, blocked = self.engine.visibility.segments_blocked(np.repeat(perm[rows], k), perm[targets.ravel()])
@@ -628,17 +642,20 @@ class _Builder:
         state[n_blocked == 0] = VISIBLE
         state[(n_blocked == n_facing) & (n_facing > 0)] = BLOCKED
         self.info["time_probes"] += time.perf_counter() - t
-        self.info["probed_blocks"] += len(r)
-        vis_rows, vis_c = [], []
-        for q in range(len(r)):
+        vis_rows, vis_c, next_groups, next_c = [], [], [], []
+        for q in range(len(groups)):
             s = state[row_ptr[q]:row_ptr[q + 1]]
-            rq = rows[row_ptr[q]:row_ptr[q + 1]]
+            rq = groups[q]
             if (s == VISIBLE).any():
                 vis_rows.append(rq[s == VISIBLE]); vis_c.append(c[q])
-            if (s == MIXED).any():
-                self.exact_rows(rq[s == MIXED], c[q])
+            mixed = rq[s == MIXED]
+            if len(mixed) and tree.left[c[q]] < 0:
+                self.exact_rows(mixed, c[q])
+            elif len(mixed):
+                next_groups += [mixed, mixed]; next_c += [tree.left[c[q]], tree.right[c[q]]]
             self.info["blocked_pairs"] += int((s == BLOCKED).sum()) * int(tree.size[c[q]])
         self.lowrank(vis_rows, np.asarray(vis_c, np.int64))
+        return next_groups, np.asarray(next_c, np.int64)
 
     def near(self, r: np.ndarray, c: np.ndarray, progress) -> None:
         """The near leaf pairs, exactly: one engine call a row leaf for its pairs (r, c) with r <= c;
