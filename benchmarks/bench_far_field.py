@@ -25,7 +25,7 @@ and HF's leaf, handed on in pieces (exact rows + W X) and made dense, side by si
 
 Not a test: prints tables and writes results/far-field-{blocks,end-to-end,downstream}-SCENE-SIZES.json.
 Run: ``PYTHONPATH=src python3 benchmarks/bench_far_field.py [--patches 40000,163000] [--blocks 6]
-[--eps 0.02] [--scene cornell] [--redraws 50]`` or ``... --end-to-end [--modes exact,sampled]`` or ``... --downstream``.
+[--eps 0.02] [--scene cornell] [--redraws 50]`` or ``... --end-to-end [--modes exact,sampled,hierarchical]`` or ``... --downstream``.
 """
 
 from __future__ import annotations
@@ -64,6 +64,12 @@ def run(scene, mode: str, eps: float) -> dict:
                    certificate=far["error_estimate"], certificate_upper=far["error_upper"],
                    holdout=far.get("holdout_estimate"), exact_groups=far["exact_groups"], groups=far["groups"],
                    refined_groups=far["refined_groups"], skeleton_mean=far["skeleton_mean"], far_field=far)
+    elif "hierarchical" in info:
+        h = info["hierarchical"]
+        n2 = scene.n_patches ** 2
+        row.update(pairs_share=h["pairs_share"], traced_share=h["exact_pairs"] / n2,
+                   certificate=h["certificate"]["error_estimate"], certificate_upper=h["certificate"]["error_upper"],
+                   hierarchical={k: v for k, v in h.items() if k != "factorization"})
     else:
         copied = info.get("reciprocity", {}).get("copied_pairs", 0)
         row.update(pairs_share=1.0 - copied / scene.n_patches ** 2, traced_share=None)

@@ -18,7 +18,8 @@ import hfrad
 from conftest import run_cli as run
 from hfrad.errors import AccuracyWarning, InputError, MemoryLimitError
 from hfrad.formfactors.hmatrix import build_hmatrix
-from hfrad.precompute.hierarchical import block_squares, engine_for, factorize_hmatrix, tree_order
+from hfrad.formfactors.hmatrix import block_squares
+from hfrad.precompute.hierarchical import engine_for, factorize_hmatrix, tree_order
 from hfrad.precompute.options import plan_precompute
 from hfrad.solve.stats import PassStatistics
 

@@ -40,7 +40,7 @@ from .clustervis import BLOCKED, CLUSTER_SIZE, MIXED, VISIBLE, _cluster_pair_sta
 from .engine import FormFactorEngine
 
 __all__ = ["ClusterTree", "cluster_tree", "block_partition", "FormFactorHMatrix", "build_hmatrix",
-           "HMatrixOptions"]
+           "HMatrixOptions", "block_squares"]
 
 #: Patches in a leaf of the cluster tree.
 LEAF_SIZE = 32
@@ -320,9 +320,13 @@ class FormFactorHMatrix:
 
         ``row_scale`` (n,) in tree order, e.g. rho_max for G = diag(rho_max) F; default ones.
         """
-        k = self.blocks
-        w = np.ones(self.n) if row_scale is None else np.asarray(row_scale, np.float64).reshape(self.n) ** 2
-        return float(_frobenius2(k.row_index, k.row_ptr, k.b, k.rank, k.u_off, k.v_off, k.U, k.V, w))
+        rows2 = self.squares(np.ones((self.n, 1)), columns=False)[:, 0]
+        s = np.ones(self.n) if row_scale is None else np.asarray(row_scale, np.float64).reshape(self.n)
+        return float(np.dot(s * s, rows2))
+
+    def squares(self, scale: np.ndarray, *, columns: bool) -> np.ndarray:
+        """(n, c) weighted sums of squares of F's rows or columns (:func:`block_squares`)."""
+        return block_squares(self.blocks, scale, columns=columns)
 
     def matmat(self, X: np.ndarray) -> np.ndarray:
         """F @ X in tree order: X (n,) or (n, l) -> the same shape, float64."""
@@ -376,28 +380,6 @@ class FormFactorHMatrix:
 
 
 @njit(cache=True, parallel=True, nogil=True)
-def _frobenius2(rows, row_ptr, b_, rank, u_off, v_off, U, V, w):
-    """sum_t ||diag(w)^1/2 block_t||_F^2: dense blocks entry by entry, low-rank ones as
-    trace((U^T W U)(V^T V)) (r x r products)."""
-    total = 0.0
-    for t in prange(b_.shape[0]):
-        p, m, b, r = row_ptr[t], row_ptr[t + 1] - row_ptr[t], b_[t], rank[t]
-        if r < 0:
-            for i in range(m):
-                s = 0.0
-                for j in range(b):
-                    s += np.float64(U[u_off[t] + i * b + j]) ** 2
-                total += w[rows[p + i]] * s
-        elif r > 0:
-            Ut = U[u_off[t]:u_off[t] + m * r].reshape(m, r).astype(np.float64)
-            for i in range(m):
-                Ut[i] *= math.sqrt(w[rows[p + i]])
-            Vt = V[v_off[t]:v_off[t] + b * r].reshape(b, r).astype(np.float64)
-            total += np.sum((Ut.T @ Ut) * (Vt.T @ Vt))
-    return total
-
-
-@njit(cache=True, parallel=True, nogil=True)
 def _near_entries(c, r2, rows, row_ptr, c0, b_, rank, u_off, U, at, out_r, out_c, out_v, take):
     """Count (``take`` False: into ``at``) or move out (``take``: from offsets ``at``) the entries of dense
     blocks whose centroids are within sqrt(r2)."""
@@ -419,6 +401,64 @@ def _near_entries(c, r2, rows, row_ptr, c0, b_, rank, u_off, U, at, out_r, out_c
                     q += 1
         if not take:
             at[t] = q
+
+
+def block_squares(blocks: BlockList, scale: np.ndarray, *, columns: bool) -> np.ndarray:
+    """(n, c) weighted squares of the H-matrix's F, float64, from its blocks (tree order).
+
+    ``columns``: ``out[p, c] = sum_i scale[i, c] F[i, p]^2`` (column sums of squares, rows weighted);
+    else ``out[i, c] = sum_p scale[p, c] F[i, p]^2`` (row sums, columns weighted). A low-rank block
+    ``U V^T`` adds ``diag(V (U^T diag(s) U) V^T)`` (or the transpose's): O((m + b) r^2) a channel.
+    ``scale``: (n, c) >= 0.
+    """
+    scale = np.ascontiguousarray(scale, np.float64)
+    out = np.zeros_like(scale)
+    k = blocks
+    _squares(k.row_index, k.row_ptr, k.c0, k.b, k.rank, k.u_off, k.v_off, k.U, k.V, scale, columns, out)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _squares(rows, row_ptr, c0, b_, rank, u_off, v_off, U, V, W, columns, out):  # pragma: no cover (numba)
+    """:func:`block_squares`, block after block (blocks share rows and columns: one thread)."""
+    C = W.shape[1]
+    for t in range(c0.shape[0]):
+        p, m, b, c, r = row_ptr[t], row_ptr[t + 1] - row_ptr[t], b_[t], c0[t], rank[t]
+        if r < 0:                                     # dense, (m, b) row-major at u_off
+            o = u_off[t]
+            for i in range(m):
+                gi = rows[p + i]
+                for j in range(b):
+                    f = np.float64(U[o + i * b + j])
+                    f2 = f * f
+                    if f2 == 0.0:
+                        continue
+                    for k in range(C):
+                        if columns:
+                            out[c + j, k] += W[gi, k] * f2
+                        else:
+                            out[gi, k] += W[c + j, k] * f2
+            continue
+        if r == 0:
+            continue
+        Ut = U[u_off[t]:u_off[t] + m * r].reshape(m, r).astype(np.float64)
+        Vt = V[v_off[t]:v_off[t] + b * r].reshape(b, r).astype(np.float64)
+        ws = np.empty(m if columns else b)
+        for k in range(C):
+            if columns:
+                for i in range(m):
+                    ws[i] = W[rows[p + i], k]
+                M = (Ut * ws.reshape(-1, 1)).T @ Ut      # U^T diag(s) U
+                Z = Vt @ M
+                for j in range(b):
+                    out[c + j, k] += np.dot(Z[j], Vt[j])
+            else:
+                for j in range(b):
+                    ws[j] = W[c + j, k]
+                M = (Vt * ws.reshape(-1, 1)).T @ Vt
+                Z = Ut @ M
+                for i in range(m):
+                    out[rows[p + i], k] += np.dot(Z[i], Ut[i])
 
 
 def _work_parts(blocks: BlockList, threads: int) -> np.ndarray:

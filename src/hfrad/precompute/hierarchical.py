@@ -22,12 +22,11 @@ import math
 import time
 
 import numpy as np
-from numba import njit
 
 from ..formfactors.certify import RowCertificate, row_errors
 from ..formfactors.engine import FormFactorEngine
 from ..formfactors.farfield import FarFieldCertificate, patch_boxes
-from ..formfactors.hmatrix import BlockList, FormFactorHMatrix, HMatrixOptions, build_hmatrix, cluster_tree
+from ..formfactors.hmatrix import FormFactorHMatrix, HMatrixOptions, build_hmatrix, cluster_tree
 from ..lowrank.operator import operator_factorization
 from ..errors import InputError
 from ..memory import RANK_ASSUMPTION, hierarchical_bytes, rank_guess, require
@@ -38,7 +37,7 @@ from ..solve.stats import PassStatistics
 from ..solve.woodbury import HFactorization
 from .assemble import PrecomputePlan, assemble, near_state
 
-__all__ = ["factorize_hierarchical", "factorize_hmatrix", "engine_for", "tree_order", "block_squares", "CERTIFICATE_ROWS", "CERTIFICATE_SEED"]
+__all__ = ["factorize_hierarchical", "factorize_hmatrix", "engine_for", "tree_order", "CERTIFICATE_ROWS", "CERTIFICATE_SEED"]
 
 #: Exact rows drawn (with replacement, by importance) to certify ``||G - G_H||``.
 CERTIFICATE_ROWS = 256
@@ -113,13 +112,13 @@ def _factorize_hmatrix(scene, plan, engine, hm, progress, status, t0) -> HFactor
     t_hm = time.perf_counter()
     rho = plan.rows_rho(scene)[:, 0].astype(np.float64)
     areas = plan.stats_weights(scene)
-    rows2 = block_squares(hm.blocks, np.column_stack([np.ones(n), 1.0 / areas]), columns=False)
+    rows2 = hm.squares(np.column_stack([np.ones(n), 1.0 / areas]), columns=False)
     norm2 = float(np.dot(rho ** 2, rows2[:, 0]))            # ||G||_F^2, G = diag(rho) F_H
     # the pass statistics and the certificate read the whole F (as the column blocks' pass does) ...
     stats = PassStatistics(n, areas, reflectance=scene.reflectance[plan.perm])
     exact = _RowSource(engine, plan.perm)
     sample_rows = None if stats.samples is None else exact.rows(stats.samples.row_patches, np.float32)
-    stats.record_operator(hm.matmat, hm.rmatmat, lambda s: block_squares(hm.blocks, s, columns=True), rho,
+    stats.record_operator(hm.matmat, hm.rmatmat, lambda s: hm.squares(s, columns=True), rho,
                           sample_rows)
     t_stats = time.perf_counter()
     # importance: each row's rho sqrt(A)-weighted norm in F_H, the sampled field's predictor (its errors
@@ -204,61 +203,3 @@ def _certify(hm: FormFactorHMatrix, exact: _RowSource, rho, areas, weights) -> t
     return certificate, {"rows": int(draw.rows.size), "distinct_rows": int(unique.size),
                          "pairs": int(exact.pairs - pairs0), "weighted": True,
                          "error_estimate": estimate, "error_upper": upper}
-
-
-def block_squares(blocks: BlockList, scale: np.ndarray, *, columns: bool) -> np.ndarray:
-    """(n, c) weighted squares of the H-matrix's F, float64, from its blocks (tree order).
-
-    ``columns``: ``out[p, c] = sum_i scale[i, c] F[i, p]^2`` (column sums of squares, rows weighted);
-    else ``out[i, c] = sum_p scale[p, c] F[i, p]^2`` (row sums, columns weighted). A low-rank block
-    ``U V^T`` adds ``diag(V (U^T diag(s) U) V^T)`` (or the transpose's): O((m + b) r^2) a channel.
-    ``scale``: (n, c) >= 0.
-    """
-    scale = np.ascontiguousarray(scale, np.float64)
-    out = np.zeros_like(scale)
-    k = blocks
-    _squares(k.row_index, k.row_ptr, k.c0, k.b, k.rank, k.u_off, k.v_off, k.U, k.V, scale, columns, out)
-    return out
-
-
-@njit(cache=True, nogil=True)
-def _squares(rows, row_ptr, c0, b_, rank, u_off, v_off, U, V, W, columns, out):  # pragma: no cover (numba)
-    """:func:`block_squares`, block after block (blocks share rows and columns: one thread)."""
-    C = W.shape[1]
-    for t in range(c0.shape[0]):
-        p, m, b, c, r = row_ptr[t], row_ptr[t + 1] - row_ptr[t], b_[t], c0[t], rank[t]
-        if r < 0:                                     # dense, (m, b) row-major at u_off
-            o = u_off[t]
-            for i in range(m):
-                gi = rows[p + i]
-                for j in range(b):
-                    f = np.float64(U[o + i * b + j])
-                    f2 = f * f
-                    if f2 == 0.0:
-                        continue
-                    for k in range(C):
-                        if columns:
-                            out[c + j, k] += W[gi, k] * f2
-                        else:
-                            out[gi, k] += W[c + j, k] * f2
-            continue
-        if r == 0:
-            continue
-        Ut = U[u_off[t]:u_off[t] + m * r].reshape(m, r).astype(np.float64)
-        Vt = V[v_off[t]:v_off[t] + b * r].reshape(b, r).astype(np.float64)
-        ws = np.empty(m if columns else b)
-        for k in range(C):
-            if columns:
-                for i in range(m):
-                    ws[i] = W[rows[p + i], k]
-                M = (Ut * ws.reshape(-1, 1)).T @ Ut      # U^T diag(s) U
-                Z = Vt @ M
-                for j in range(b):
-                    out[c + j, k] += np.dot(Z[j], Vt[j])
-            else:
-                for j in range(b):
-                    ws[j] = W[c + j, k]
-                M = (Vt * ws.reshape(-1, 1)).T @ Vt
-                Z = Ut @ M
-                for i in range(m):
-                    out[rows[p + i], k] += np.dot(Z[i], Ut[i])
