@@ -1,10 +1,9 @@
 """Benchmark: ACA (formfactors/aca.py) over the far blocks of a k-d cluster tree of the Cornell box.
 
-The tree: recursive median split of the patch centroids along the longest axis of their bounding
-box, leaves of at most ``--leaf`` patches. Two clusters' blocks are *far* (admissible) when the gap
-between their patches' bounding boxes is at least ``--eta`` x the larger box diameter; the block
-tree descends from (root, root), splitting the larger cluster (both when equal) until a pair is
-far or both are leaves. ``--blocks`` far blocks are drawn at random (seed 0) and factored by one
+The tree and its far blocks are the H-matrix's (``hmatrix.cluster_tree``: median split of the
+patch centroids along the longest side of their box, leaves of at most ``--leaf`` patches;
+``hmatrix.block_partition``: far when the gap between the boxes is at least ``--eta`` x the larger
+diagonal). ``--blocks`` far blocks are drawn at random (seed 0) and factored by one
 ``aca_blocks`` call at each ``--tol`` (after one untimed call, which compiles or loads numba's
 cache); a subset (``--check``) is compared with the dense block (the kernel's block function).
 
@@ -25,48 +24,9 @@ import numpy as np
 
 from hfrad.formfactors.aca import aca_blocks
 from hfrad.formfactors.clustered import kernel_for
+from hfrad.formfactors.farfield import patch_boxes
+from hfrad.formfactors.hmatrix import block_partition, cluster_tree
 from hfrad.scene.load import load_scene
-
-
-def kd_tree(lo: np.ndarray, hi: np.ndarray, leaf: int):
-    """Clusters as (patch index list, box lo, box hi, children) nodes; boxes over the patches' boxes."""
-    centres = 0.5 * (lo + hi)
-    nodes = []
-
-    def build(idx):
-        box_lo, box_hi = lo[idx].min(axis=0), hi[idx].max(axis=0)
-        k = len(nodes)
-        nodes.append([idx, box_lo, box_hi, ()])
-        if len(idx) > leaf:
-            axis = int(np.argmax(box_hi - box_lo))
-            order = idx[np.argsort(centres[idx, axis], kind="stable")]
-            half = len(order) // 2
-            nodes[k][3] = (build(order[:half]), build(order[half:]))
-        return k
-
-    build(np.arange(len(lo)))
-    return nodes
-
-
-def far_blocks(nodes, eta: float):
-    """(row node, column node) pairs of the far blocks of the block tree."""
-    out = []
-    stack = [(0, 0)]
-    while stack:
-        a, b = stack.pop()
-        _, alo, ahi, ach = nodes[a]
-        _, blo, bhi, bch = nodes[b]
-        gap = np.linalg.norm(np.maximum(0.0, np.maximum(alo - bhi, blo - ahi)))
-        diam = max(np.linalg.norm(ahi - alo), np.linalg.norm(bhi - blo))
-        if a != b and gap >= eta * diam:
-            out.append((a, b))
-        elif ach or bch:
-            da = np.linalg.norm(ahi - alo) if ach else -1.0
-            db = np.linalg.norm(bhi - blo) if bch else -1.0
-            sa = ach if da >= db else (a,)
-            sb = bch if db >= da else (b,)
-            stack += [(x, y) for x in sa for y in sb]
-    return out
 
 
 def main() -> None:
@@ -82,15 +42,16 @@ def main() -> None:
 
     scene = load_scene("cornell", patches=args.patches)
     geometry, block = kernel_for(scene)
-    tri = scene.triangles
     t0 = time.perf_counter()
-    nodes = kd_tree(tri.min(axis=1), tri.max(axis=1), args.leaf)
-    pairs = far_blocks(nodes, args.eta)
+    lo, hi = patch_boxes(scene)
+    tree = cluster_tree(scene.centroids, lo, hi, args.leaf)
+    far_r, far_c, _, _ = block_partition(tree, args.eta)
+    pairs = list(zip(far_r, far_c))
     print(f"{scene.n_patches} patches; tree and {len(pairs)} far blocks in {time.perf_counter() - t0:.1f} s")
     rng = np.random.default_rng(0)
     pick = rng.choice(len(pairs), min(args.blocks, len(pairs)), replace=False)
-    rows = [nodes[pairs[k][0]][0] for k in pick]
-    cols = [nodes[pairs[k][1]][0] for k in pick]
+    rows = [tree.perm[tree.start[pairs[k][0]]:tree.stop[pairs[k][0]]] for k in pick]
+    cols = [tree.perm[tree.start[pairs[k][1]]:tree.stop[pairs[k][1]]] for k in pick]
     m = np.array([len(r) for r in rows])
     b = np.array([len(c) for c in cols])
     R, C = np.concatenate(rows), np.concatenate(cols)

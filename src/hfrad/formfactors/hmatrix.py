@@ -15,9 +15,10 @@ A far pair's visibility is decided without rays by the conservative cluster-pair
 :mod:`hfrad.formfactors.clustervis` on the two nodes' boxes: VISIBLE (``F`` is the unoccluded
 kernel: adaptive cross approximation from a few of its rows and columns,
 :mod:`hfrad.formfactors.aca`), BLOCKED (``F = 0``: nothing stored) or MIXED (a shadow edge, a
-contact: the larger node is halved and its halves tried again; two leaves still MIXED are
-computed exactly with rays). A VISIBLE block whose cross approximation does not converge
-within ``max_rank`` is halved the same way.
+contact: the larger node is halved until both have at most ``probe_size`` patches, then
+``PROBES`` rays from each row patch decide that row; rows whose rays disagree are probed again
+against each half of the column node, down to a leaf, where they are computed exactly). A
+VISIBLE block whose cross approximation does not converge within ``max_rank`` is computed exactly.
 
 At n patches this evaluates O(n log n) pairs instead of n² (``pairs_evaluated``), and
 holds ``storage`` floats (dense entries plus ``r (m + b)`` a far block). G = diag(rho) F is
@@ -109,9 +110,6 @@ class ClusterTree:
     @property
     def size(self) -> np.ndarray:
         return self.stop - self.start
-
-    def is_leaf(self, t) -> np.ndarray:
-        return self.left[t] < 0
 
 
 def cluster_tree(centroids: np.ndarray, lo: np.ndarray, hi: np.ndarray, leaf_size: int = LEAF_SIZE) -> ClusterTree:
@@ -655,7 +653,7 @@ class _Builder:
         (a shadow edge across the node) are probed again against each half of the column node, down
         to a leaf, where they are computed exactly: the exact pairs follow the shadow edge."""
         tree = self.tree
-        rows, row_ptr = _concat_ranges(np.arange(tree.perm.size), tree.start[r], tree.stop[r])
+        rows, row_ptr = _concat_ranges(None, tree.start[r], tree.stop[r])
         groups = [rows[row_ptr[q]:row_ptr[q + 1]] for q in range(len(r))]
         self.info["probed_blocks"] += len(r)
         c = np.asarray(c, np.int64)
@@ -713,7 +711,7 @@ class _Builder:
         for g in range(len(bounds) - 1):
             a, e = bounds[g], bounds[g + 1]
             rows = self.node_rows(r[a])
-            cols, ptr = _concat_ranges(np.arange(perm.size), tree.start[c[a:e]], tree.stop[c[a:e]])
+            cols, ptr = _concat_ranges(None, tree.start[c[a:e]], tree.stop[c[a:e]])
             F = self.engine.block(perm[rows], perm[cols])
             for q in range(e - a):
                 part = F[:, ptr[q]:ptr[q + 1]]
@@ -770,10 +768,11 @@ def _states(engine: FormFactorEngine, boxes, r: np.ndarray, c: np.ndarray) -> np
     return out
 
 
-def _concat_ranges(perm: np.ndarray, start: np.ndarray, stop: np.ndarray):
-    """``perm[start[k]:stop[k]]`` for every k, concatenated, and the offsets of each."""
+def _concat_ranges(perm: np.ndarray | None, start: np.ndarray, stop: np.ndarray):
+    """``perm[start[k]:stop[k]]`` for every k, concatenated (the positions themselves when ``perm``
+    is None), and the offsets of each."""
     size = stop - start
     ptr = np.zeros(len(size) + 1, np.int64)
     np.cumsum(size, out=ptr[1:])
     idx = np.repeat(start - ptr[:-1], size) + np.arange(ptr[-1], dtype=np.int64)
-    return perm[idx], ptr
+    return (idx if perm is None else perm[idx]), ptr

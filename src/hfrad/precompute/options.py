@@ -261,7 +261,7 @@ def plan_precompute(scene: Scene, eps: float = 0.02, *, relative: bool = True, d
     entries = near_entries(near_field, n, eps, relative, clustered=scene.is_clustered)
     if hm_options is not None and near_field == "auto":   # the H-matrix holds the near pairs already: the
         # split costs nothing there and lowers the rank at every size (1,898 -> 214 at 9,986 patches, eps 0.05)
-        entries = near_entries(DEFAULT_NEAR_ENTRIES, n) if not scene.is_clustered else clustered_near_entries(n)
+        entries = clustered_near_entries(n) if scene.is_clustered else DEFAULT_NEAR_ENTRIES
     from ..formfactors.kernel import settings as kernel_settings
     from ..formfactors.visibility import settings as visibility_settings
 
