@@ -92,7 +92,7 @@ def _segments(pid: int) -> list[str]:
 class _Precompute:
     """``hfrad precompute cornell`` with two form-factor workers in a subprocess of its own session."""
 
-    def __init__(self, tmp_path: Path, patches: int = 600):
+    def __init__(self, tmp_path: Path, patches: int = 2400):
         self.output = tmp_path / "x.hfr"
         self.checkpoint = tmp_path / "x.hfr.partial"
         self.stderr = tmp_path / "stderr.txt"
