@@ -53,6 +53,18 @@ MAX_RANK = 24
 PROBE_SIZE = 256
 #: Rays from a row patch to patches spread over a mixed column node.
 PROBES = 6
+#: More rays from each row whose first ``PROBES`` agreed, where other rows of its pair disagreed.
+MORE_PROBES = 16
+
+
+def _unit_hash(a, b, k):
+    """Uniform numbers in [0, 1) from integers (a splitmix64 step): the same (a, b, k), the same number."""
+    x = (np.asarray(a, np.uint64) * np.uint64(0x9E3779B97F4A7C15) ^ np.asarray(b, np.uint64) * np.uint64(0xBF58476D1CE4E5B9)
+         ^ np.asarray(k, np.uint64) * np.uint64(0x94D049BB133111EB))
+    x = (x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    x = (x ^ (x >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    x = x ^ (x >> np.uint64(31))
+    return (x >> np.uint64(11)).astype(np.float64) / float(1 << 53)
 
 
 @dataclass(frozen=True)
@@ -661,21 +673,29 @@ class _Builder:
             groups, c = self._probe_round(groups, c)
 
     def _probe_round(self, groups: list, c: np.ndarray):
-        """One round of :meth:`probe` over (row group, column node) pairs; returns the next round's."""
+        """One round of :meth:`probe` over (row group, column node) pairs; returns the next round's.
+
+        Each row first casts ``PROBES`` rays; in a pair where some row's rays disagree (a shadow
+        edge crosses it), the rows whose rays agreed cast ``MORE_PROBES`` more before they count as
+        visible or blocked: the shadow may fall between their first rays (Šibenik, 3,103 patches:
+        6 rays a row put rows of F_H 8% above the exact row sums, and the H-matrix 3.8% off; 6 + 16
+        rays: 0.1% and 1.8%)."""
         if not len(groups):
             return [], np.zeros(0, np.int64)
-        tree, perm, k = self.tree, self.tree.perm, PROBES
+        tree = self.tree
         t = time.perf_counter()
         row_ptr = np.zeros(len(groups) + 1, np.int64)
         np.cumsum([len(g) for g in groups], out=row_ptr[1:])
         rows = np.concatenate(groups)
         owner = np.repeat(np.arange(len(groups)), np.diff(row_ptr))
-        size = tree.size[c][owner]
-        targets = tree.start[c][owner][:, None] + (size[:, None] * (2 * np.arange(k) + 1)) // (2 * k)
-        facing, blocked = self.engine.visibility.segments_blocked(np.repeat(perm[rows], k), perm[targets.ravel()])
-        facing, blocked = facing.reshape(-1, k), (blocked & facing).reshape(-1, k)
-        self.info["probe_rays"] += int(facing.sum())
-        n_blocked, n_facing = blocked.sum(axis=1), facing.sum(axis=1)
+        n_facing, n_blocked = self._probe_rays(rows, c[owner], 0, PROBES)
+        edge = np.zeros(len(groups), bool)
+        edge[owner[(n_blocked > 0) & (n_blocked < n_facing)]] = True
+        again = np.flatnonzero(edge[owner] & ((n_blocked == 0) | (n_blocked == n_facing)))
+        if len(again) and MORE_PROBES:
+            f2, b2 = self._probe_rays(rows[again], c[owner[again]], PROBES, MORE_PROBES)
+            n_facing[again] += f2
+            n_blocked[again] += b2
         state = np.full(len(rows), MIXED, np.int8)
         state[n_blocked == 0] = VISIBLE
         state[(n_blocked == n_facing) & (n_facing > 0)] = BLOCKED
@@ -694,6 +714,25 @@ class _Builder:
             self.info["blocked_pairs"] += int((s == BLOCKED).sum()) * int(tree.size[c[q]])
         self.lowrank(vis_rows, np.asarray(vis_c, np.int64))
         return next_groups, np.asarray(next_c, np.int64)
+
+    def _probe_rays(self, rows: np.ndarray, c: np.ndarray, first: int, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """(facing, blocked) counts of ``k`` rays from each row position ``rows[i]`` to patches of
+        column node ``c[i]``, one in each of k equal parts of its range at a hashed place (rays
+        ``first .. first + k - 1`` of the pair: the same pair and ray, the same patch)."""
+        tree, perm = self.tree, self.tree.perm
+        size = tree.size[c][:, None]
+        slot = np.arange(k)[None, :]
+        u = _unit_hash(rows[:, None], c[:, None], first + slot)
+        targets = tree.start[c][:, None] + np.minimum(((slot + u) * size / k).astype(np.int64), size - 1)
+        vis = self.engine.visibility
+        points = vis.probe_design_points   # from a hashed point of the row patch to one of the target's
+        start = (_unit_hash(rows[:, None], targets, first + slot) * points).astype(np.int64)
+        end = (_unit_hash(targets, rows[:, None], first + slot) * points).astype(np.int64)
+        facing, blocked = vis.segments_blocked(np.repeat(perm[rows], k), perm[targets.ravel()], start.ravel(),
+                                               end.ravel())
+        facing, blocked = facing.reshape(-1, k), (blocked & facing).reshape(-1, k)
+        self.info["probe_rays"] += int(facing.sum())
+        return facing.sum(axis=1), blocked.sum(axis=1)
 
     def near(self, r: np.ndarray, c: np.ndarray, progress) -> None:
         """The near leaf pairs, exactly: one engine call a row leaf for its pairs (r, c) with r <= c;

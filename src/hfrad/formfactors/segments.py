@@ -128,17 +128,18 @@ def fill_rays(P, plane, partner, r_idx, c_idx, valid, first, o, d, t, w):
 
 
 @njit(cache=True, parallel=True, nogil=True)
-def probe_segments(P, normals, i, j, o, d, t, facing):  # pragma: no cover (numba)
-    """One segment from point ``P[i[k]]`` to ``P[j[k]]`` for each k, where the two patches face
-    each other (normals ``normals``): origins, unit directions and lengths into ``o``, ``d``,
-    ``t`` (float32); elsewhere ``facing[k]`` is False and the length 0 (Embree finds no hit)."""
+def probe_segments(P, normals, i, ki, j, kj, o, d, t, facing):  # pragma: no cover (numba)
+    """One segment from point ``P[i[k], ki[k]]`` to ``P[j[k], kj[k]]`` for each k (``P`` (n, s, 3): s
+    points a patch), where the two patches face each other (normals ``normals``): origins, unit
+    directions and lengths into ``o``, ``d``, ``t`` (float32); elsewhere ``facing[k]`` is False and
+    the length 0 (Embree finds no hit)."""
     for k in prange(i.size):
-        a, b = i[k], j[k]
-        vx, vy, vz = P[b, 0] - P[a, 0], P[b, 1] - P[a, 1], P[b, 2] - P[a, 2]
+        a, b, pa, pb = i[k], j[k], ki[k], kj[k]
+        vx, vy, vz = P[b, pb, 0] - P[a, pa, 0], P[b, pb, 1] - P[a, pa, 1], P[b, pb, 2] - P[a, pa, 2]
         length = math.sqrt(vx * vx + vy * vy + vz * vz)
         front = normals[a, 0] * vx + normals[a, 1] * vy + normals[a, 2] * vz
         back = normals[b, 0] * vx + normals[b, 1] * vy + normals[b, 2] * vz
-        o[k, 0], o[k, 1], o[k, 2] = P[a, 0], P[a, 1], P[a, 2]
+        o[k, 0], o[k, 1], o[k, 2] = P[a, pa, 0], P[a, pa, 1], P[a, pa, 2]
         facing[k] = front > 0.0 and back < 0.0 and length > 0.0
         if facing[k]:
             d[k, 0], d[k, 1], d[k, 2] = vx / length, vy / length, vz / length

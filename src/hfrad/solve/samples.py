@@ -496,22 +496,28 @@ class SampledRows:
         return self.bounce if same else None
 
     def spectral_bound(self, reflectance: np.ndarray, row_sums: np.ndarray) -> np.ndarray | None:
-        """(3,) upper bound on the spectral radius of ``R_c F``, or None (older files, or ``F x > 0``
-        where ``x = 0``).
+        """(3,) upper bound on the spectral radius of ``R_c F``, or None (older files).
 
         ``max_i rho_ic (F x)_i / x_i`` for the recorded ``x >= 0`` (Collatz-Wielandt, for ``x + delta``
         with ``delta -> 0``: where ``x_i = 0`` the ratio tends to ``rho_ic`` times the row sum, given as
         ``row_sums`` (n,)). ``reflectance`` (n, 3), internal order.
+
+        Where ``F x > 0`` at an ``x_i = 0`` (an F without reciprocity, as an H-matrix's rows and
+        columns decided apart: a column of zeros whose row is not), the limit does not hold; then
+        ``x + delta`` for a few ``delta > 0`` (``F (x + delta) = F x + delta F 1`` exactly), the least.
         """
         if self.gain_vector is None or self.gain_product is None:
             return None
         x, fx = self.gain_vector, self.gain_product
+        rho, rs = np.asarray(reflectance, np.float64), np.asarray(row_sums, np.float64)
         seen = x > 0
-        if (fx[~seen] > 0).any():
-            return None
-        ratio = np.asarray(row_sums, np.float64).copy()
-        ratio[seen] = fx[seen] / x[seen]
-        return (np.asarray(reflectance, np.float64) * ratio[:, None]).max(axis=0) * GAIN_ROUNDING
+        if not (fx[~seen] > 0).any():
+            ratio = rs.copy()
+            ratio[seen] = fx[seen] / x[seen]
+            return (rho * ratio[:, None]).max(axis=0) * GAIN_ROUNDING
+        scale = float(np.median(x[seen])) if seen.any() else 1.0
+        bounds = [(rho * ((fx + d * rs) / (x + d))[:, None]).max(axis=0) for d in scale * np.logspace(-6, 2, 33)]
+        return np.min(bounds, axis=0) * GAIN_ROUNDING
 
     def _rough_of_both(self, E, B, reflectance, w, a, adjoint: bool) -> tuple[np.ndarray, int]:
         """(3, q) upper figure for ``||r||`` in the norm of weights ``a`` from the residual rows drawn by
