@@ -39,6 +39,9 @@ SCENES: dict[str, tuple[str, dict]] = {
     # with two boxes (occlusion), and the empty one with a 0.95-reflectance wall (sigma_max near 1)
     "cbox-original": (str(SHARED_SCENES / "cornell-box" / "CornellBox-Original.obj"), {}),
     "cbox-empty": (str(SHARED_SCENES / "cornell-box" / "CornellBox-Empty-CO.obj"), {}),
+    # the Šibenik cathedral (shared/scenes/sibenik), cleaned and clustered: many occluders (columns,
+    # pews, galleries); it has no emitter of its own: a downward area light of 50 W/m^2 under its top
+    "sibenik": (str(SHARED_SCENES / "sibenik" / "sibenik.obj"), {"area_light": (50, 50, 50)}),
 }
 
 
