@@ -32,11 +32,13 @@ from __future__ import annotations
 
 import argparse
 import time
+from pathlib import Path
 
 import numpy as np
 
 import common
 import hfrad
+from hfrad.atomic import atomic_path
 from hfrad.formfactors.farfield import CERTIFICATE_FAILURE, FarFieldOptions
 
 
@@ -232,6 +234,9 @@ def main() -> None:
     p.add_argument("--redraws", type=int, default=0,
                    help="per block: redraw the certificate this many times (and the systematic one of before)")
     p.add_argument("--end-to-end", action="store_true")
+    p.add_argument("--save-radiosity", metavar="DIR", default=None,
+                   help="with --end-to-end: keep each mode's radiosity as DIR/radiosity-SCENE-N-MODE.npy "
+                        "(user order, W/m^2), to check the answers afterwards")
     p.add_argument("--downstream", action="store_true",
                    help="what a block costs after the form factors, in pieces and dense")
     common.add_blas_arg(p)
@@ -267,6 +272,12 @@ def main() -> None:
     for size in common.parse_sizes(args.patches):
         scene = common.load_bench_scene(args.scene, size)
         results = {mode: run(scene, mode, args.eps) for mode in common.parse_list(args.modes)}
+        if args.save_radiosity:
+            for mode, r in results.items():
+                path = Path(args.save_radiosity) / f"radiosity-{args.scene}-{scene.n_patches}-{mode}.npy"
+                path.parent.mkdir(parents=True, exist_ok=True)
+                with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+                    np.save(fh, r["B"])
         exact = results.get("exact")
         for r in results.values():
             if exact is not None and r is not exact:
