@@ -207,6 +207,22 @@ def test_a_killed_worker_is_one_clear_error(precompute):
     assert _segments(run.proc.pid) == []
 
 
+def test_a_worker_dead_before_the_next_submit_is_the_same_clear_error():
+    """A worker killed between two blocks breaks the pool before the next submit (seen on a
+    fast CI machine): that is the dead-worker message too, not an internal error."""
+    from concurrent.futures.process import BrokenProcessPool
+
+    from hfrad.errors import WorkerError
+    from hfrad.formfactors.parallel import _submit
+
+    class Broken:
+        def submit(self, *args, **kwargs):
+            raise BrokenProcessPool("A child process terminated abruptly")
+
+    with pytest.raises(WorkerError, match="worker process exited"):
+        _submit(Broken(), 0, np.arange(3), slice(0, 0))
+
+
 @linux_only
 def test_stale_segments_of_dead_creators_are_removed(tmp_path):
     """Segments named after a process that no longer runs are unlinked once old enough; others stay."""

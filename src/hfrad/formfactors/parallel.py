@@ -258,6 +258,18 @@ def _result(pool: ProcessPoolExecutor, fut):
                 raise WorkerError(_DEAD_WORKER.format(code=dead[0].exitcode)) from None
 
 
+def _submit(pool: ProcessPoolExecutor, slot: int, cols: np.ndarray, skip: slice):
+    """A future for one block; WorkerError if a worker already died (the pool is broken).
+
+    A worker killed between two blocks breaks the pool before the next submit: that is
+    the same dead worker as one seen while waiting (:func:`_result`), not a bug.
+    """
+    try:
+        return pool.submit(_work, slot, cols, skip)
+    except BrokenProcessPool:
+        raise WorkerError(_DEAD_WORKER.format(code="unknown")) from None
+
+
 _DEAD_WORKER = ("a form-factor worker process exited (exit code {code}) before finishing its block. If this "
                 "runs from a script, put the script's code under `if __name__ == \"__main__\":` (workers are "
                 "spawned and import the script again); otherwise it was killed (out of memory?): retry with "
@@ -352,7 +364,7 @@ class ProcessEngine:
                     if len(cols) > self.block_size:
                         raise ValueError(f"column block of {len(cols)} > block_size {self.block_size}")
                     slot = free.pop(0)
-                    pending.append((slot, len(cols), pool.submit(_work, slot, cols, skip)))
+                    pending.append((slot, len(cols), _submit(pool, slot, cols, skip)))
                 if not pending:
                     break
                 slot, width, fut = pending.pop(0)
