@@ -1,6 +1,32 @@
 """Shared test fixtures and builders."""
 
+import signal
+import warnings
+
 import numpy as np
+import pytest
+
+
+def default_sigint() -> None:
+    """``preexec_fn`` for a child that a test interrupts: SIGINT back to its default action.
+
+    A process started with SIGINT ignored keeps it ignored (an exec keeps SIG_IGN), and a
+    pytest-xdist worker may have it ignored, so a test's Ctrl-C would not reach the child: what
+    a terminal's foreground command has is the default action.
+    """
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+@pytest.fixture(autouse=True)
+def _sigint_kept():
+    """A test that leaves this process's SIGINT action changed gets it restored, with a warning
+    naming it: the action is inherited by the children later tests start."""
+    before = signal.getsignal(signal.SIGINT)
+    yield
+    after = signal.getsignal(signal.SIGINT)
+    if after is not before and before is not None:
+        signal.signal(signal.SIGINT, before)
+        warnings.warn(f"this test changed SIGINT's action ({before!r} -> {after!r}); restored", stacklevel=1)
 
 
 def closed_system(n, seed=0):

@@ -9,6 +9,8 @@ import textwrap
 
 import pytest
 
+from conftest import default_sigint
+
 SCRIPT = textwrap.dedent("""
     import sys, time
     from hfrad.cli import redeliver_interrupts
@@ -33,7 +35,7 @@ SCRIPT = textwrap.dedent("""
 
 def interrupt_in_finalizer(mode: str) -> str:
     proc = subprocess.Popen([sys.executable, "-c", SCRIPT, mode], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True)
+                            text=True, preexec_fn=default_sigint)
     try:
         assert proc.stdout.readline() == "in finalizer\n"
         proc.send_signal(signal.SIGINT)

@@ -329,28 +329,33 @@ def process_cluster(_process_cluster):
 
 
 def test_worker_processes_match_local_despite_a_killed_worker(cornell, process_cluster, monkeypatch):
-    """Kill one worker process (SIGKILL) mid-run: Dask re-runs its tasks (leaves and reciprocity tiles) and the
-    result is still the local one."""
+    """One worker process dies (SIGKILL) in its first leaf: Dask re-runs its tasks (leaves and reciprocity
+    tiles) and the result is still the local one.
+
+    The victim kills itself when it reaches its first leaf's factorization (``leaf_from_block``, replaced in
+    that process only), so the death comes while blocks remain however fast the machine is: a kill sent
+    from the progress callback came after the last block on a fast one.
+    """
     from hfrad.distributed import tiles
 
-    # groups of 2 blocks (5 groups, 10 tiles): leaves finish in pairs, so the kill comes while blocks remain
-    monkeypatch.setattr(tiles, "MIN_GROUP_COLUMNS", 128)
+    monkeypatch.setattr(tiles, "MIN_GROUP_COLUMNS", 128)   # groups of 2 blocks: 5 group tasks for 2 workers
     scene, local = cornell
     client = process_cluster.client
     pids = client.run(os.getpid)  # {worker address: pid}
     victim = sorted(pids.items())[0]
-    killed = []
 
-    def kill_once(done, total):
-        if done >= 3 and not killed:
-            os.kill(victim[1], signal.SIGKILL)
-            killed.append(done)
+    def die_in_the_first_leaf():
+        from hfrad.distributed import tasks
 
-    dist = factorize(scene, eps=EPS, near_field=NEAR, progress=kill_once,
-                     backend=DaskBackend(scheduler=process_cluster), options=PrecomputeOptions(block_size=64))
-    assert killed and killed[0] < -(-scene.n_patches // 64), "the worker must die while blocks remain"
+        def leaf_from_block(*args, **kwargs):
+            os.kill(os.getpid(), signal.SIGKILL)
+        tasks.leaf_from_block = leaf_from_block
+
+    client.run(die_in_the_first_leaf, workers=[victim[0]])
+    dist = factorize(scene, eps=EPS, near_field=NEAR, backend=DaskBackend(scheduler=process_cluster),
+                     options=PrecomputeOptions(block_size=64))
     _assert_same_factorization(dist, local, scene)
-    assert victim[0] not in client.run(os.getpid)  # that worker really is gone (its nanny started a new one)
+    assert victim[0] not in client.run(os.getpid)  # that worker really died (its nanny started a new one)
 
 
 def test_panelled_merges_on_worker_processes_equal_serial_merges(cornell, process_cluster):

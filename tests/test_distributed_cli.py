@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from conftest import default_sigint
 from hfrad import DaskBackend, PrecomputeOptions
 import hfrad
 from hfrad.cli import app
@@ -187,7 +188,8 @@ def test_ctrl_c_leaves_no_output(tmp_path):
     log = tmp_path / "stderr.log"
     proc = subprocess.Popen([sys.executable, "-m", "hfrad", "precompute", "cornell", "--patches", "3000",
                              "--block", "32", "--workers", "1", "-o", str(out)],
-                            stdout=subprocess.DEVNULL, stderr=log.open("w"), env={**ENV, "COLUMNS": "200"})
+                            stdout=subprocess.DEVNULL, stderr=log.open("w"), env={**ENV, "COLUMNS": "200"},
+                            preexec_fn=default_sigint)
     try:
         _wait_for(log, "running on 1 local worker", proc, 60)
         time.sleep(4.0)  # the cluster is up and the blocks are being computed

@@ -19,7 +19,7 @@ import h5py
 import numpy as np
 import pytest
 
-from conftest import Interrupt, interrupt_at, run_cli
+from conftest import Interrupt, default_sigint, interrupt_at, run_cli
 
 from hfrad import Checkpoint, PrecomputeOptions
 from hfrad import factorize, load_scene
@@ -100,7 +100,8 @@ class _Precompute:
                 "--near-field", "off", "-o", str(self.output), "--quiet"]
         with open(self.stderr, "wb") as err:
             self.proc = subprocess.Popen([sys.executable, "-c", _CLI, *args], cwd=tmp_path, stdout=subprocess.DEVNULL,
-                                         stderr=err, start_new_session=True)
+                                         stderr=err, start_new_session=True,
+                                         preexec_fn=default_sigint)
         self.children: list[int] = []
 
     def wait_busy(self, timeout: float = 180.0, checkpoint: bool = False) -> list[int]:
