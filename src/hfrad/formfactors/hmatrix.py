@@ -339,20 +339,26 @@ class FormFactorHMatrix:
         return block_squares(self.blocks, scale, columns=columns)
 
     def matmat(self, X: np.ndarray) -> np.ndarray:
-        """F @ X in tree order: X (n,) or (n, l) -> the same shape, float64."""
+        """F @ X in tree order: X (n,) or (n, l) -> the same shape; float32 X gives float32, else float64."""
         return self._apply(X, False)
 
     def rmatmat(self, X: np.ndarray) -> np.ndarray:
-        """F.T @ X in tree order: X (n,) or (n, l) -> the same shape, float64."""
+        """F.T @ X in tree order: X (n,) or (n, l) -> the same shape; float32 X gives float32, else float64."""
         return self._apply(X, True)
 
     def _apply(self, X: np.ndarray, transpose: bool) -> np.ndarray:
-        X = np.asarray(X, np.float64)
-        X2 = np.ascontiguousarray(X.reshape(self.n, -1))
+        # float32 products where the caller works in float32 (the operator factorization's default):
+        # the blocks are float32 already, and the products run twice as fast (2-core VM, 39,482 patches,
+        # 64 vectors: 0.47-0.64 s against 1.02 s), at ~1e-6 relative rounding
+        X = np.asarray(X)
+        dt = np.float32 if X.dtype == np.float32 else np.float64
+        X2 = np.ascontiguousarray(X.reshape(self.n, -1), dt)
         k = self.blocks
         parts = _work_parts(k, numba.get_num_threads())
-        Y = np.zeros((len(parts) - 1,) + X2.shape)
-        _apply(X2, Y, parts, k.row_index, k.row_ptr, k.c0, k.b, k.rank, k.u_off, k.v_off, k.U, k.V, transpose)
+        Y = np.zeros((len(parts) - 1,) + X2.shape, dt)
+        max_rank = max(1, int(k.rank.max(initial=0)))
+        _apply(X2, Y, parts, k.row_index, k.row_ptr, k.c0, k.b, k.rank, k.u_off, k.v_off, k.U, k.V, transpose,
+               max_rank)
         return Y.sum(axis=0).reshape(X.shape)
 
     def take_near(self, centroids: np.ndarray, radius: float):
@@ -479,13 +485,15 @@ def _work_parts(blocks: BlockList, threads: int) -> np.ndarray:
 
 
 @njit(cache=True, parallel=True, nogil=True, fastmath={"reassoc", "contract"})
-def _apply(X, Y, parts, rows, row_ptr, c0, b_, rank, u_off, v_off, U, V, transpose):
+def _apply(X, Y, parts, rows, row_ptr, c0, b_, rank, u_off, v_off, U, V, transpose, max_rank):
     """Y[part] += F X (or F^T X with ``transpose``) over the blocks of each part, X (n, l) row-major: every
-    block is read once for all l vectors. Each part writes its own copy of Y (the caller sums them)."""
+    block is read once for all l vectors. Each part writes its own copy of Y (the caller sums them).
+    Arithmetic in X's dtype. ``max_rank``: the largest block rank (sizes each part's scratch once: an array
+    re-allocated inside a prange body is not safe with numba's allocation hoisting)."""
     l = X.shape[1]
     for q in prange(parts.shape[0] - 1):
         y = Y[q]
-        z = np.zeros((64, l))
+        z = np.empty((max_rank, l), X.dtype)
         for t in range(parts[q], parts[q + 1]):
             p, m, b, c, r = row_ptr[t], row_ptr[t + 1] - row_ptr[t], b_[t], c0[t], rank[t]
             if r < 0:                                 # dense, (m, b) row-major at u_off
@@ -493,7 +501,7 @@ def _apply(X, Y, parts, rows, row_ptr, c0, b_, rank, u_off, v_off, U, V, transpo
                 for i in range(m):
                     ri = rows[p + i]
                     for j in range(b):
-                        d = np.float64(U[o + i * b + j])
+                        d = U[o + i * b + j]
                         if d == 0.0:
                             continue
                         if transpose:
@@ -505,8 +513,6 @@ def _apply(X, Y, parts, rows, row_ptr, c0, b_, rank, u_off, v_off, U, V, transpo
                 continue
             if r == 0:
                 continue
-            if r > z.shape[0]:
-                z = np.zeros((r, l))
             uo, vo = u_off[t], v_off[t]
             for k in range(r):
                 for v in range(l):
@@ -515,13 +521,13 @@ def _apply(X, Y, parts, rows, row_ptr, c0, b_, rank, u_off, v_off, U, V, transpo
             for i in range(m if transpose else b):
                 src = rows[p + i] if transpose else c + i
                 for k in range(r):
-                    f = np.float64(U[uo + i * r + k] if transpose else V[vo + i * r + k])
+                    f = U[uo + i * r + k] if transpose else V[vo + i * r + k]
                     for v in range(l):
                         z[k, v] += f * X[src, v]
             for i in range(b if transpose else m):
                 dst = c + i if transpose else rows[p + i]
                 for k in range(r):
-                    f = np.float64(V[vo + i * r + k] if transpose else U[uo + i * r + k])
+                    f = V[vo + i * r + k] if transpose else U[uo + i * r + k]
                     for v in range(l):
                         y[dst, v] += f * z[k, v]
 

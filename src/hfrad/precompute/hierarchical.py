@@ -134,7 +134,8 @@ def _factorize_hmatrix(scene, plan, engine, hm, progress, status, t0) -> HFactor
         r, c, v = hm.take_near(scene.centroids[plan.perm], plan.near_radius)
         near = near_state([r], [c], [rho[r] * v])
     target = plan.eps * math.sqrt(norm2) if plan.relative else plan.eps
-    lowrank = operator_factorization(lambda X: rho[:, None] * hm.matmat(X), lambda X: hm.rmatmat(rho[:, None] * X),
+    rho_dt = rho.astype(dt)[:, None]    # products in the factors' dtype (float32: twice as fast)
+    lowrank = operator_factorization(lambda X: rho_dt * hm.matmat(X), lambda X: hm.rmatmat(rho_dt * X),
                                      n, hm.frobenius2(rho), eps=target, relative=False, dtype=dt,
                                      rng=FACTORIZATION_SEED, progress=progress)
     lowrank.norm, lowrank.eps, lowrank.relative = math.sqrt(norm2), plan.eps, plan.relative
