@@ -57,14 +57,36 @@ PROBES = 6
 MORE_PROBES = 8
 
 
-def _unit_hash(a, b, k):
-    """Uniform numbers in [0, 1) from integers (a splitmix64 step): the same (a, b, k), the same number."""
-    x = (np.asarray(a, np.uint64) * np.uint64(0x9E3779B97F4A7C15) ^ np.asarray(b, np.uint64) * np.uint64(0xBF58476D1CE4E5B9)
-         ^ np.asarray(k, np.uint64) * np.uint64(0x94D049BB133111EB))
+@njit(cache=True, nogil=True)
+def _unit_hash(a, b, k):  # pragma: no cover (numba)
+    """A uniform number in [0, 1) from three integers (a splitmix64 step): the same (a, b, k), the same number."""
+    x = (np.uint64(a) * np.uint64(0x9E3779B97F4A7C15) ^ np.uint64(b) * np.uint64(0xBF58476D1CE4E5B9)
+         ^ np.uint64(k) * np.uint64(0x94D049BB133111EB))
     x = (x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
     x = (x ^ (x >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
     x = x ^ (x >> np.uint64(31))
-    return (x >> np.uint64(11)).astype(np.float64) / float(1 << 53)
+    return np.float64(x >> np.uint64(11)) / 9007199254740992.0
+
+
+@njit(cache=True, nogil=True)
+def _probe_ends(rows, c, node_start, node_size, perm, first, k, points):  # pragma: no cover (numba)
+    """The rays of :meth:`_Builder._probe_rays`, one pass (NumPy's version built six (m, k) temporaries):
+    ``(row patch, target patch, start point, end point)`` (m k,) each, row-major."""
+    m = rows.shape[0]
+    out_i, out_j = np.empty(m * k, np.int64), np.empty(m * k, np.int64)
+    ki, kj = np.empty(m * k, np.int64), np.empty(m * k, np.int64)
+    for a in range(m):
+        r, node = rows[a], c[a]
+        size = node_size[node]
+        for s in range(k):
+            ray = first + s
+            at = min(int((s + _unit_hash(r, node, ray)) * size / k), size - 1)
+            target = node_start[node] + at
+            q = a * k + s
+            out_i[q], out_j[q] = perm[r], perm[target]
+            ki[q] = int(_unit_hash(r, target, ray) * points)
+            kj[q] = int(_unit_hash(target, r, ray) * points)
+    return out_i, out_j, ki, kj
 
 
 @dataclass(frozen=True)
@@ -725,17 +747,11 @@ class _Builder:
         """(facing, blocked) counts of ``k`` rays from each row position ``rows[i]`` to patches of
         column node ``c[i]``, one in each of k equal parts of its range at a hashed place (rays
         ``first .. first + k - 1`` of the pair: the same pair and ray, the same patch)."""
-        tree, perm = self.tree, self.tree.perm
-        size = tree.size[c][:, None]
-        slot = np.arange(k)[None, :]
-        u = _unit_hash(rows[:, None], c[:, None], first + slot)
-        targets = tree.start[c][:, None] + np.minimum(((slot + u) * size / k).astype(np.int64), size - 1)
-        vis = self.engine.visibility
-        points = vis.probe_design_points   # from a hashed point of the row patch to one of the target's
-        start = (_unit_hash(rows[:, None], targets, first + slot) * points).astype(np.int64)
-        end = (_unit_hash(targets, rows[:, None], first + slot) * points).astype(np.int64)
-        facing, blocked = vis.segments_blocked(np.repeat(perm[rows], k), perm[targets.ravel()], start.ravel(),
-                                               end.ravel())
+        tree, vis = self.tree, self.engine.visibility
+        i, j, ki, kj = _probe_ends(np.asarray(rows, np.int64), np.asarray(c, np.int64), tree.start, tree.size,
+                                   tree.perm, int(first), int(k), int(vis.probe_design_points))
+        # from a hashed point of the row patch to one of the target's
+        facing, blocked = vis.segments_blocked(i, j, ki, kj)
         facing, blocked = facing.reshape(-1, k), (blocked & facing).reshape(-1, k)
         self.info["probe_rays"] += int(facing.sum())
         return facing.sum(axis=1), blocked.sum(axis=1)
