@@ -117,6 +117,7 @@ def test_cluster_size_checked():
         Visibility(subdivide(cornell_box(), patches=60), cluster_size=-1)
 
 
+@pytest.mark.slow   # the Cornell box's test of the same property runs by default
 @needs_shared
 def test_clustered_sponza_same_F():
     from hfrad.scene.cluster import cluster

@@ -79,6 +79,7 @@ def test_cornell_F_same_with_packets():
     assert any((a > 0).sum() < a.size * 0.99 for a in F1)  # some pairs are shadowed: rays mattered
 
 
+@pytest.mark.slow   # the Cornell box's test of the same property runs by default
 @needs_shared
 def test_clustered_sponza_F_same_with_packets():
     from hfrad.scene.cluster import cluster
