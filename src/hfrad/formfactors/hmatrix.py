@@ -557,33 +557,44 @@ def _apply(X, Y, parts, rows, row_ptr, c0, b_, rank, u_off, v_off, U, V, transpo
 # -- Building it ----------------------------------------------------------------------------------
 
 class _Collector:
-    """Blocks as they are decided: dense (exact values) and low rank (U, V)."""
+    """Blocks as they are decided, in batches (no Python step a block: 2.1M blocks at 161,808 patches):
+    dense (exact values) and low rank (U, V)."""
 
     def __init__(self) -> None:
-        self.rows, self.c0, self.b, self.rank, self.U, self.V = [], [], [], [], [], []
+        self.rows, self.m, self.c0, self.b, self.rank = [], [], [], [], []
+        self.U, self.V, self.u_size, self.v_size = [], [], [], []
+
+    def _add(self, rows, m, c0, b, rank, U, V, u_size, v_size) -> None:
+        for store, x in ((self.rows, rows), (self.m, m), (self.c0, c0), (self.b, b), (self.rank, rank),
+                         (self.U, U), (self.V, V), (self.u_size, u_size), (self.v_size, v_size)):
+            store.append(np.asarray(x))
 
     def add_dense(self, rows: np.ndarray, c0: int, values: np.ndarray) -> None:
-        self.rows.append(rows); self.c0.append(c0); self.b.append(values.shape[1]); self.rank.append(-1)
-        self.U.append(np.asarray(values, np.float32).ravel()); self.V.append(np.zeros(0, np.float32))
+        values = np.asarray(values, np.float32)
+        self._add(np.asarray(rows, np.int64), [len(rows)], [c0], [values.shape[1]], [-1], values.ravel(),
+                  np.zeros(0, np.float32), [values.size], [0])
 
-    def add_lowrank(self, rows, c0, b, res, keep) -> None:
-        """The converged blocks ``keep`` (bool) of an ACA result over blocks (rows[t], c0[t], b[t])."""
-        for t in np.flatnonzero(keep):
-            U, V = res.factors(t)
-            self.rows.append(rows[t]); self.c0.append(int(c0[t])); self.b.append(int(b[t]))
-            self.rank.append(U.shape[1]); self.U.append(U.ravel()); self.V.append(V.ravel())
+    def add_lowrank(self, rows: np.ndarray, row_ptr: np.ndarray, c0: np.ndarray, b: np.ndarray, res, keep) -> None:
+        """The blocks ``keep`` (bool) of an ACA result ``res`` over the blocks t (rows
+        ``rows[row_ptr[t]:row_ptr[t + 1]]``, columns ``c0[t] : c0[t] + b[t]``)."""
+        keep = np.asarray(keep, bool)
+        if not keep.any():
+            return
+        m = np.diff(row_ptr)
+        u_size, v_size = np.diff(res.u_offsets), np.diff(res.v_offsets)    # m_t r_t and b_t r_t
+        U = res.U[res.u_offsets[0]:res.u_offsets[-1]][np.repeat(keep, u_size)]
+        V = res.V[res.v_offsets[0]:res.v_offsets[-1]][np.repeat(keep, v_size)]
+        self._add(rows[np.repeat(keep, m)], m[keep], c0[keep], b[keep], res.ranks[keep], U, V, u_size[keep],
+                  v_size[keep])
 
     def blocks(self) -> BlockList:
-        row_ptr = np.zeros(len(self.rows) + 1, np.int64)
-        np.cumsum([len(r) for r in self.rows], out=row_ptr[1:])
-        u_off = np.zeros(len(self.U) + 1, np.int64)
-        v_off = np.zeros(len(self.V) + 1, np.int64)
-        np.cumsum([u.size for u in self.U], out=u_off[1:])
-        np.cumsum([v.size for v in self.V], out=v_off[1:])
-        cat = (lambda xs, dt: np.concatenate(xs).astype(dt) if xs else np.zeros(0, dt))
-        return BlockList(cat(self.rows, np.int64), row_ptr, np.asarray(self.c0, np.int64),
-                         np.asarray(self.b, np.int64), np.asarray(self.rank, np.int64), u_off[:-1], v_off[:-1],
-                         cat(self.U, np.float32), cat(self.V, np.float32))
+        cat = (lambda xs, dt: np.concatenate(xs).astype(dt, copy=False) if xs else np.zeros(0, dt))
+        exclusive = (lambda z: np.cumsum(z) - z)                 # each block's offset from the sizes
+        row_ptr = np.zeros(sum(len(x) for x in self.m) + 1, np.int64)
+        np.cumsum(cat(self.m, np.int64), out=row_ptr[1:])
+        u_off, v_off = exclusive(cat(self.u_size, np.int64)), exclusive(cat(self.v_size, np.int64))
+        return BlockList(cat(self.rows, np.int64), row_ptr, cat(self.c0, np.int64), cat(self.b, np.int64),
+                         cat(self.rank, np.int64), u_off, v_off, cat(self.U, np.float32), cat(self.V, np.float32))
 
 
 def build_hmatrix(scene, engine: FormFactorEngine, options: HMatrixOptions | None = None,
@@ -657,7 +668,8 @@ class _Builder:
             info["blocked_pairs"] += int((tree.size[r[blocked]] * tree.size[c[blocked]]).sum())
             visible = states == VISIBLE
             info["visible_blocks"] += int(visible.sum())
-            self.lowrank([self.node_rows(q) for q in r[visible]], c[visible])
+            rows, row_ptr = _concat_ranges(None, tree.start[r[visible]], tree.stop[r[visible]])
+            self.lowrank(rows, row_ptr, c[visible])
             mixed = states == MIXED
             info["mixed_blocks"] += int(mixed.sum())
             small = mixed & (np.maximum(tree.size[r], tree.size[c]) <= self.options.probe_size)
@@ -666,26 +678,24 @@ class _Builder:
             split = mixed & ~small
             r, c = _split_pairs(tree, r[split], c[split])
 
-    def lowrank(self, rows: list, c: np.ndarray) -> None:
-        """Cross approximations of the unoccluded blocks F[rows[k]][:, node c[k]]; those that do not
-        converge are computed exactly."""
+    def lowrank(self, rows: np.ndarray, row_ptr: np.ndarray, c: np.ndarray) -> None:
+        """Cross approximations of the unoccluded blocks F[rows[row_ptr[k]:row_ptr[k + 1]]][:, node c[k]];
+        those that do not converge are computed exactly."""
         from .aca import aca_blocks
 
         if not len(c):
             return
         tree, perm = self.tree, self.tree.perm
         t = time.perf_counter()
-        row_ptr = np.zeros(len(rows) + 1, np.int64)
-        np.cumsum([len(x) for x in rows], out=row_ptr[1:])
         cols, col_ptr = _concat_ranges(perm, tree.start[c], tree.stop[c])
-        res = aca_blocks(self.engine.geometry, perm[np.concatenate(rows)], row_ptr, cols, col_ptr,
-                         self.options.tolerance, self.options.max_rank)
+        res = aca_blocks(self.engine.geometry, perm[rows], row_ptr, cols, col_ptr, self.options.tolerance,
+                         self.options.max_rank)
         self.info["time_aca"] += time.perf_counter() - t
         self.info["kernel_pairs"] += int(res.evaluated.sum())
-        self.out.add_lowrank(rows, tree.start[c], tree.size[c], res, res.ok)
+        self.out.add_lowrank(rows, row_ptr, tree.start[c], tree.size[c], res, res.ok)
         self.info["aca_failed"] += int((~res.ok).sum())
         for k in np.flatnonzero(~res.ok):
-            self.exact_rows(rows[k], c[k])
+            self.exact_rows(rows[row_ptr[k]:row_ptr[k + 1]], c[k])
 
     def probe(self, r: np.ndarray, c: np.ndarray) -> None:
         """Mixed pairs: PROBES rays from each row patch to patches spread over the column node; rows
@@ -694,30 +704,25 @@ class _Builder:
         to a leaf, where they are computed exactly: the exact pairs follow the shadow edge."""
         tree = self.tree
         rows, row_ptr = _concat_ranges(None, tree.start[r], tree.stop[r])
-        groups = [rows[row_ptr[q]:row_ptr[q + 1]] for q in range(len(r))]
         self.info["probed_blocks"] += len(r)
         c = np.asarray(c, np.int64)
-        while len(groups):
-            groups, c = self._probe_round(groups, c)
+        while len(c):
+            rows, row_ptr, c = self._probe_round(rows, row_ptr, c)
 
-    def _probe_round(self, groups: list, c: np.ndarray):
-        """One round of :meth:`probe` over (row group, column node) pairs; returns the next round's.
+    def _probe_round(self, rows: np.ndarray, row_ptr: np.ndarray, c: np.ndarray):
+        """One round of :meth:`probe` over the groups of rows ``rows[row_ptr[q]:row_ptr[q + 1]]``, each
+        against column node ``c[q]``; returns the next round's ``(rows, row_ptr, c)``.
 
         Each row first casts ``PROBES`` rays; in a pair where some row's rays disagree (a shadow
         edge crosses it), the rows whose rays agreed cast ``MORE_PROBES`` more before they count as
         visible or blocked: the shadow may fall between their first rays. Šibenik, 3,103 patches,
         the H-matrix's error in the certificate's norm: 3.6% with 6 rays a row, 1.6% with 6 + 8,
         1.0% with 6 + 16; the 10K Cornell box's build 10.5, 11.4 and 15.0 s."""
-        if not len(groups):
-            return [], np.zeros(0, np.int64)
         tree = self.tree
         t = time.perf_counter()
-        row_ptr = np.zeros(len(groups) + 1, np.int64)
-        np.cumsum([len(g) for g in groups], out=row_ptr[1:])
-        rows = np.concatenate(groups)
-        owner = np.repeat(np.arange(len(groups)), np.diff(row_ptr))
+        owner = np.repeat(np.arange(len(c)), np.diff(row_ptr))
         n_facing, n_blocked = self._probe_rays(rows, c[owner], 0, PROBES)
-        edge = np.zeros(len(groups), bool)
+        edge = np.zeros(len(c), bool)
         edge[owner[(n_blocked > 0) & (n_blocked < n_facing)]] = True
         again = np.flatnonzero(edge[owner] & ((n_blocked == 0) | (n_blocked == n_facing)))
         if len(again) and MORE_PROBES:
@@ -728,20 +733,16 @@ class _Builder:
         state[n_blocked == 0] = VISIBLE
         state[(n_blocked == n_facing) & (n_facing > 0)] = BLOCKED
         self.info["time_probes"] += time.perf_counter() - t
-        vis_rows, vis_c, next_groups, next_c = [], [], [], []
-        for q in range(len(groups)):
-            s = state[row_ptr[q]:row_ptr[q + 1]]
-            rq = groups[q]
-            if (s == VISIBLE).any():
-                vis_rows.append(rq[s == VISIBLE]); vis_c.append(c[q])
-            mixed = rq[s == MIXED]
-            if len(mixed) and tree.left[c[q]] < 0:
-                self.exact_rows(mixed, c[q])
-            elif len(mixed):
-                next_groups += [mixed, mixed]; next_c += [tree.left[c[q]], tree.right[c[q]]]
-            self.info["blocked_pairs"] += int((s == BLOCKED).sum()) * int(tree.size[c[q]])
-        self.lowrank(vis_rows, np.asarray(vis_c, np.int64))
-        return next_groups, np.asarray(next_c, np.int64)
+        self.info["blocked_pairs"] += int(tree.size[c[owner[state == BLOCKED]]].sum())
+        leaf = (tree.left[c] < 0)[owner]
+        exact_rows, exact_ptr, exact_c = _groups_where(rows, owner, (state == MIXED) & leaf, c)
+        for q in range(len(exact_c)):
+            self.exact_rows(exact_rows[exact_ptr[q]:exact_ptr[q + 1]], exact_c[q])
+        self.lowrank(*_groups_where(rows, owner, state == VISIBLE, c))
+        # the other mixed rows, against each half of their column node (left, then right)
+        rows, row_ptr, c = _groups_where(rows, owner, (state == MIXED) & ~leaf, c)
+        rows, row_ptr = _concat_ranges(rows, np.repeat(row_ptr[:-1], 2), np.repeat(row_ptr[1:], 2))
+        return rows, row_ptr, np.column_stack([tree.left[c], tree.right[c]]).ravel()
 
     def _probe_rays(self, rows: np.ndarray, c: np.ndarray, first: int, k: int) -> tuple[np.ndarray, np.ndarray]:
         """(facing, blocked) counts of ``k`` rays from each row position ``rows[i]`` to patches of
@@ -827,6 +828,15 @@ def _states(engine: FormFactorEngine, boxes, r: np.ndarray, c: np.ndarray) -> np
     _cluster_pair_states(a, b, boxes[0], boxes[1], cv.tri, cv.normal, cv.d0, cv.tlo, cv.thi, cv.glo, cv.cell,
                          cv.g, cv.cstart, cv.clist, cv.tol, cv.margin, out)
     return out
+
+
+def _groups_where(rows: np.ndarray, owner: np.ndarray, where: np.ndarray, c: np.ndarray):
+    """The rows ``where`` (bool), still grouped by ``owner`` (non-decreasing group numbers), groups left
+    empty dropped: ``(rows, row_ptr, c)`` as the probe rounds pass them."""
+    groups, counts = np.unique(owner[where], return_counts=True)
+    row_ptr = np.zeros(len(groups) + 1, np.int64)
+    np.cumsum(counts, out=row_ptr[1:])
+    return rows[where], row_ptr, np.asarray(c, np.int64)[groups]
 
 
 def _concat_ranges(perm: np.ndarray | None, start: np.ndarray, stop: np.ndarray):
