@@ -138,3 +138,19 @@ def test_bad_arguments_and_products():
         operator_factorization(lambda X: X, lambda X: X, 10, -1.0, eps=0.1)
     with pytest.raises(InputError, match=r"matmat\(X\) must return an array of shape \(10, 4\)"):
         operator_factorization(lambda X: X[:5], lambda X: X, 10, 10.0, eps=0.1, block=4)
+
+
+def test_range_share_trades_basis_for_rank_within_the_target():
+    """A low-rank G plus flat noise (an H-matrix's own error): a larger range_share stops the range
+    finder earlier (fewer products), keeps a somewhat larger rank, and still meets the target."""
+    n = 400
+    rng = np.random.default_rng(3)
+    G = spectrum_matrix(n, 0.9 ** np.arange(n)) + 2.5e-4 * rng.standard_normal((n, n))   # noise 4% of ||G||
+    norm = np.linalg.norm(G)
+    runs = {share: factor(G, eps=0.05, block=16, range_share=share)[0] for share in (0.5, 0.95)}
+    for lr in runs.values():
+        assert true_error(G, lr) <= 0.05 * norm * (1 + 1e-9)
+    assert runs[0.95].info["vectors"] < runs[0.5].info["vectors"]
+    assert runs[0.5].rank <= runs[0.95].rank
+    with pytest.raises(InputError, match="range_share"):
+        factor(G, eps=0.05, range_share=0.0)

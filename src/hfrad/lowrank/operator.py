@@ -40,7 +40,7 @@ Product = Callable[[np.ndarray], np.ndarray]
 
 def operator_factorization(matmat: Product, rmatmat: Product, n: int, norm2: float, *, eps: float,
                            relative: bool = True, dtype=np.float32, rng=None, block: int = 64,
-                           power: int = 1, max_rank: int | None = None,
+                           power: int = 1, max_rank: int | None = None, range_share: float = RANGE_SHARE,
                            progress: ProgressCallback = None) -> LowRank:
     """``G ~= Q V^T`` within ``eps`` from products with G and G^T only.
 
@@ -49,7 +49,7 @@ def operator_factorization(matmat: Product, rmatmat: Product, n: int, norm2: flo
     (``G G^T``, re-orthonormalised at each step), projected off P twice and
     orthonormalised; then ``B_i = P_i^T G`` (one product with G^T) joins ``B = P^T G``. With
     ``E = ||G||_F^2 - ||B||_F^2 = ||G - P B||_F^2`` it stops once
-    ``E <= RANGE_SHARE * target^2`` (``target = eps ||G||_F``, or ``eps`` when not
+    ``E <= range_share * target^2`` (``target = eps ||G||_F``, or ``eps`` when not
     ``relative``), then keeps the smallest rank k of the SVD ``B = U S W^T`` whose discarded
     part fits the rest: ``E + sum(s[k:]^2) <= target^2``. ``Q = P U_k S_k``, ``V = W_k``.
 
@@ -77,6 +77,12 @@ def operator_factorization(matmat: Product, rmatmat: Product, n: int, norm2: flo
     max_rank : int or None
         At most this many basis columns (None: n). Where the target is not reached by then, the
         result keeps every column, ``info["converged"]`` is False and an AccuracyWarning says so.
+    range_share : float in (0, 1]
+        The share of ``target^2`` the range finder may leave (:data:`RANGE_SHARE` by default); the
+        rest is the truncation's. Larger: a smaller basis (fewer products), a rank further above
+        the optimal one. Where G carries a flat-spectrum error of its own (an H-matrix's, a few
+        per cent of ``||G||_F``), the range finder spends most of its products on that noise below
+        ``RANGE_SHARE``: see :mod:`hfrad.precompute.hierarchical`.
     progress : callable or None
         ``progress(basis columns, max_rank or n)`` after each block.
 
@@ -125,12 +131,14 @@ def operator_factorization(matmat: Product, rmatmat: Product, n: int, norm2: flo
     (20, True)
     """
     eps, dtype, limit = _check(n, norm2, eps, dtype, block, power, max_rank)
+    if not 0.0 < range_share <= 1.0:
+        raise InputError(f"range_share must be in (0, 1]; got {range_share!r}")
     t0 = time.perf_counter()
     run = _RangeFinder(matmat, rmatmat, n, dtype, np.random.default_rng(rng))
     target2 = eps * eps * norm2 if relative else eps * eps
     E, trace = float(norm2), []
     spanned = False
-    while E > RANGE_SHARE * target2 and run.size < limit:
+    while E > range_share * target2 and run.size < limit:
         if not run.grow(min(block, limit - run.size), power):
             spanned = True    # no direction left outside the basis: G's range is spanned
             break
