@@ -14,6 +14,7 @@ than a few seconds (a clustered mesh, worker processes) are marked slow
 from __future__ import annotations
 
 import re
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -80,6 +81,9 @@ def test_snippets_run(path, tmp_path, monkeypatch):
         pytest.skip("needs ../shared/scenes (not in a user's clone)")
     (tmp_path / "examples").symlink_to(ROOT / "examples", target_is_directory=True)
     monkeypatch.chdir(tmp_path)
+    # a snippet's tempfile.mkdtemp() (as a user would write it) lands in this test's folder, not in /tmp
+    # for good: a run of the suite left one folder with a .hfr behind each time
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
     namespace: dict = {"__name__": f"docs_{path.stem}"}
     for i, c in enumerate(code):
         code_object = compile(c, f"{_name(path)}[snippet {i + 1}]", "exec")
