@@ -31,6 +31,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numba
 import numpy as np
@@ -376,12 +377,23 @@ class FormFactorHMatrix:
         dt = np.float32 if X.dtype == np.float32 else np.float64
         X2 = np.ascontiguousarray(X.reshape(self.n, -1), dt)
         k = self.blocks
-        parts = _work_parts(k, numba.get_num_threads())
+        parts = self._parts(numba.get_num_threads())
         Y = np.zeros((len(parts) - 1,) + X2.shape, dt)
-        max_rank = max(1, int(k.rank.max(initial=0)))
         _apply(X2, Y, parts, k.row_index, k.row_ptr, k.c0, k.b, k.rank, k.u_off, k.v_off, k.U, k.V, transpose,
-               max_rank)
+               self._max_rank)
         return Y.sum(axis=0).reshape(X.shape)
+
+    # the blocks' shapes never change once built (take_near only zeroes values): what the products
+    # derive from them is computed once, not at each of the range finder's products
+    @cached_property
+    def _max_rank(self) -> int:
+        return max(1, int(self.blocks.rank.max(initial=0)))
+
+    def _parts(self, threads: int) -> np.ndarray:
+        cache = self.__dict__.setdefault("_parts_by_threads", {})
+        if threads not in cache:
+            cache[threads] = _work_parts(self.blocks, threads)
+        return cache[threads]
 
     def take_near(self, centroids: np.ndarray, radius: float):
         """Move the entries of the dense blocks whose patches' centroids are at most ``radius`` apart
