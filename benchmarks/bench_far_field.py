@@ -71,7 +71,12 @@ def run(scene, mode: str, eps: float) -> dict:
         n2 = scene.n_patches ** 2
         row.update(pairs_share=h["pairs_share"], traced_share=h["exact_pairs"] / n2,
                    certificate=h["certificate"]["error_estimate"], certificate_upper=h["certificate"]["error_upper"],
-                   hierarchical={k: v for k, v in h.items() if k != "factorization"})
+                   hierarchical={k: v for k, v in h.items() if k != "factorization"},
+                   basis=h["factorization"]["basis"], near_nnz=info.get("near_nnz"), norm=fac.lowrank.norm,
+                   # the certificate is absolute (||A^1/2 diag(rho) (F - F_H) A^-1/2||_F): as a share of ||G||_F
+                   certificate_relative=h["certificate"]["error_estimate"] / fac.lowrank.norm,
+                   stages={k: info[k] for k in ("time_formfactors", "time_statistics", "time_certificate",
+                                                "time_factorization", "time_assemble") if k in info})
     else:
         copied = info.get("reciprocity", {}).get("copied_pairs", 0)
         row.update(pairs_share=1.0 - copied / scene.n_patches ** 2, traced_share=None)

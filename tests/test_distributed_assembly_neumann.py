@@ -9,7 +9,7 @@ import pytest
 import hfrad.precompute.local as local
 from hfrad import LocalBackend, PrecomputeOptions, factorize
 from hfrad.distributed.assembly import NeumannColumns, SETUP_TOL
-from hfrad.distributed.prefetch import channel_scales, near_matrix
+from hfrad.solve.prefetch import channel_scales, near_matrix
 from hfrad.scene.load import load_scene
 from hfrad.precompute.assemble import assemble
 from hfrad.solve.nearfield import channel_solver

@@ -1,4 +1,4 @@
-"""The near-field LUs prefetched in the client (hfrad.distributed.prefetch): the same solver object as the
+"""The near-field LUs prefetched in the client (hfrad.solve.prefetch): the same solver object as the
 plain in-process assembly, used only for the very calls it was made for."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import pytest
 
 from hfrad import DaskBackend, LocalBackend, PrecomputeOptions
 from hfrad.distributed import connect
-from hfrad.distributed.prefetch import NearPrefetch, channel_scales
+from hfrad.solve.prefetch import NearPrefetch, channel_scales
 from hfrad.pipeline import factorize
 from hfrad.scene.load import load_scene
 from hfrad.precompute.assemble import assemble

@@ -123,25 +123,40 @@ def test_shadow_edges_are_computed_exactly(cornell):
     assert share >= 0.7, share                            # observed 0.82
 
 
-def test_near_entries_move_out_exactly(cornell):
-    """take_near leaves F - N in the H-matrix and returns N: their sum is the H-matrix before."""
+@pytest.mark.parametrize("lowrank", [False, True])
+def test_near_entries_move_out_exactly(cornell, lowrank):
+    """take_near leaves F - N in the H-matrix and returns N: their sum is the H-matrix before, in its
+    products and in its squares; with ``lowrank`` every close pair is in N (low-rank blocks' too)."""
     import copy
 
     scene, hm, _ = cornell
     hm = copy.deepcopy(hm)
     before = _dense_from_blocks(hm)
     centroids = scene.centroids[hm.perm]
-    radius = 0.15 * float(np.ptp(centroids, axis=0).max())
-    rows, cols, values = hm.take_near(centroids, radius)
+    # a radius that reaches into far (low-rank) blocks where those are taken too
+    radius = (0.4 if lowrank else 0.15) * float(np.ptp(centroids, axis=0).max())
+    rows, cols, values = hm.take_near(centroids, radius, lowrank=lowrank)
     N = np.zeros_like(before)
     N[rows, cols] = values
-    after = _dense_from_blocks(hm)
+    taken = np.zeros(before.shape, bool)
+    taken[rows, cols] = True
+    after = hm.to_dense()                                 # the products: F~ - N
     np.testing.assert_allclose(after + N, before, rtol=0, atol=1e-7 * np.abs(before).max())
     d = np.linalg.norm(centroids[rows] - centroids[cols], axis=1)
     assert len(rows) > 0 and (d <= radius).all()
     dist = np.linalg.norm(centroids[:, None] - centroids[None], axis=2)
     exact_close = (dist <= radius) & (before != 0)
-    assert N[exact_close].size and (np.count_nonzero(N) >= 0.9 * exact_close.sum())   # most close pairs in dense blocks
+    if lowrank:
+        assert hm.info["near_lowrank_entries"] > 0 and taken[exact_close].all()
+    else:
+        assert hm.removed is None and taken.sum() >= 0.9 * exact_close.sum()   # most close pairs: dense blocks
+    ones = np.ones((hm.n, 1))
+    for columns in (False, True):
+        np.testing.assert_allclose(hm.squares(ones, columns=columns)[:, 0], (after ** 2).sum(axis=0 if columns else 1),
+                                   rtol=1e-5, atol=1e-9 * (before ** 2).max())
+    assert hm.frobenius2() == pytest.approx((after ** 2).sum(), rel=1e-6)
+    X = np.random.default_rng(1).standard_normal((hm.n, 3)).astype(np.float32)
+    np.testing.assert_allclose(hm.rmatmat(X), after.T @ X, rtol=0, atol=1e-5 * np.abs(after.T @ X).max())
 
 
 def test_probe_rays_start_from_points_across_both_patches(cornell):

@@ -38,7 +38,7 @@ from ..solve.stats import PassStatistics
 from ..solve.woodbury import HFactorization
 from . import panels, sizing, store
 from .connection import Cluster, WorkerLostError, connect
-from .prefetch import NearPrefetch
+from ..solve.prefetch import NearPrefetch
 from . import tiles as tiles_mod
 from .tasks import (Job, chunk_task, form_task, gram_task, group_leaf_task, group_tree_task, leaf_task,
                     load_task,
@@ -71,7 +71,7 @@ class DaskTuning:
     near_prefetch : bool
         With the near field, a row-panelled top and an in-process assembly (fewer than
         ``ASSEMBLY_MIN_WORKERS`` workers): factor the channels' ``I - D_c N`` in the client
-        while the top merges run (:mod:`hfrad.distributed.prefetch`; the same result).
+        while the top merges run (:mod:`hfrad.solve.prefetch`; the same result).
     """
 
     panel_leaves: int | None = None
@@ -507,7 +507,7 @@ def _run(cluster: Cluster, scene, options: PrecomputePlan, task_threads, checkpo
                                                  plan=plan, fuse=checkpoint is None)
         final = [root] if not isinstance(root, _Panelled) else [*root.U, *root.V, root.meta, *root.tails]
         # the near field is complete once the serial subtrees are: an in-process assembly's LUs
-        # start then, beside the panelled top merges (hfrad.distributed.prefetch)
+        # start then, beside the panelled top merges (hfrad.solve.prefetch)
         early = isinstance(root, _Panelled) and bool(options.near_entries) \
             and cluster.n_workers < ASSEMBLY_MIN_WORKERS and near_prefetch
         report(progress, 0, m)

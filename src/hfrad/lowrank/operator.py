@@ -80,9 +80,7 @@ def operator_factorization(matmat: Product, rmatmat: Product, n: int, norm2: flo
     range_share : float in (0, 1]
         The share of ``target^2`` the range finder may leave (:data:`RANGE_SHARE` by default); the
         rest is the truncation's. Larger: a smaller basis (fewer products), a rank further above
-        the optimal one. Where G carries a flat-spectrum error of its own (an H-matrix's, a few
-        per cent of ``||G||_F``), the range finder spends most of its products on that noise below
-        ``RANGE_SHARE``: see :mod:`hfrad.precompute.hierarchical`.
+        the optimal one (measured: :data:`hfrad.precompute.hierarchical.RANGE_SHARE`).
     progress : callable or None
         ``progress(basis columns, max_rank or n)`` after each block.
 

@@ -33,6 +33,7 @@ from ..memory import RANK_ASSUMPTION, hierarchical_bytes, rank_guess, require
 from .. import resources
 from ..progress import ProgressCallback
 from ..scene.scene import Scene
+from ..solve.prefetch import NearPrefetch
 from ..solve.stats import PassStatistics
 from ..solve.woodbury import HFactorization
 from .assemble import PrecomputePlan, assemble, near_state
@@ -44,13 +45,16 @@ CERTIFICATE_ROWS = 256
 CERTIFICATE_SEED = 4343
 #: The operator factorization's random draws (the same seed: the same factors).
 FACTORIZATION_SEED = 4344
-#: The share of the factorization's error budget its range finder may leave (``range_share``): F_H's
-#: own error (the certificate's few per cent of ||G||_F, spread over all singular directions) is
-#: noise that a deep range finder captures at great cost. Cornell box, 39,482 patches, eps 0.05, the
-#: same H-matrix: 0.5 -> basis 512, rank 276, 25.4 s; 0.7 -> 448, 278, 20.8 s; 0.85 -> 384, 282,
-#: 17.0 s; 0.95 -> 320, 292, 14.5 s (blocks of 32 vectors were slower: 32.0 and 25.2 s). But a
-#: shallower range finder leaves error in directions a solve meets: Šibenik, 10,181 patches, rank 28
-#: each time, the per-solve figure 7.4-7.6% at 0.5, 7.6-7.8% at 0.7, 9.6-9.8% at 0.85.
+#: The share of the factorization's error budget its range finder may leave (``range_share``): a
+#: shallower range finder needs fewer products, and the truncation of B's SVD still finds a rank near
+#: the optimal one. Cornell box, 39,482 patches, eps 0.05, the same H-matrix (before the near split
+#: took the low-rank blocks' entries): 0.5 -> basis 512, rank 276, 25.4 s; 0.7 -> 448, 278, 20.8 s;
+#: 0.85 -> 384, 282, 17.0 s; 0.95 -> 320, 292, 14.5 s (blocks of 32 vectors were slower: 32.0 and
+#: 25.2 s). But a shallower range finder leaves error in directions a solve meets: Šibenik, 10,181
+#: patches, rank 28 each time, the per-solve figure 7.4-7.6% at 0.5, 7.6-7.8% at 0.7, 9.6-9.8% at 0.85.
+#: (An earlier note blamed F_H's own error for the large bases: it is far smaller, 0.3-0.9% of
+#: ||G||_F on the Cornell box, and the same split of the exact F gives the same rank; the rank came
+#: from the near split, see :meth:`FormFactorHMatrix.take_near`.)
 RANGE_SHARE = 0.7
 #: Entries of exact rows computed by one engine call (float64: 32 MB).
 EXACT_CHUNK = 1 << 22
@@ -137,28 +141,38 @@ def _factorize_hmatrix(scene, plan, engine, hm, progress, status, t0) -> HFactor
     # ... then the near field's entries leave the H-matrix (kept sparse and exact, as the split of the
     # column blocks keeps them) and G - N is factored within eps of the whole G (its rank is far lower:
     # 1,898 -> 214 at 9,986 patches, eps 0.05)
-    near = None
+    near = prefetch = None
     if plan.near_entries:
         r, c, v = hm.take_near(scene.centroids[plan.perm], plan.near_radius)
         near = near_state([r], [c], [rho[r] * v])
-    target = plan.eps * math.sqrt(norm2) if plan.relative else plan.eps
-    rho_dt = rho.astype(dt)[:, None]    # products in the factors' dtype (float32: twice as fast)
-    lowrank = operator_factorization(lambda X: rho_dt * hm.matmat(X), lambda X: hm.rmatmat(rho_dt * X),
-                                     n, hm.frobenius2(rho), eps=target, relative=False, dtype=dt,
-                                     rng=FACTORIZATION_SEED, range_share=RANGE_SHARE, progress=progress)
-    lowrank.norm, lowrank.eps, lowrank.relative = math.sqrt(norm2), plan.eps, plan.relative
-    t_fac = time.perf_counter()
-    if status is not None:
-        status({"blocks": 0, "rank": lowrank.rank, "elapsed": t_fac - t0})
-    lowrank.info.update({"time_formfactors": t_hm - t0, "time_statistics": t_stats - t_hm,
-                         "time_certificate": t_cert - t_stats, "time_factorization": t_fac - t_cert,
-                         "time_precompute": t_fac - t0,
-                         "hierarchical": {**hm.info, "factorization": {k: v for k, v in lowrank.info.items()
-                                                                       if not k.startswith("time")},
-                                          "certificate": certificate, "exact_row_pairs": int(exact.pairs)}})
-    fac = assemble(scene, plan, lowrank, stats, near, backend={"backend": "local"})
-    fac.lowrank.info["time_assemble"] = time.perf_counter() - t_fac
-    return fac
+        # the solver's sparse LUs need only N: factored beside the range finder, on the core its
+        # single-threaded steps leave idle (hfrad.solve.prefetch)
+        prefetch = NearPrefetch(near, n, scene.reflectance, plan.perm, dt)
+    try:
+        target = plan.eps * math.sqrt(norm2) if plan.relative else plan.eps
+        rho_dt = rho.astype(dt)[:, None]    # products in the factors' dtype (float32: twice as fast)
+        lowrank = operator_factorization(lambda X: rho_dt * hm.matmat(X), lambda X: hm.rmatmat(rho_dt * X),
+                                         n, hm.frobenius2(rho), eps=target, relative=False, dtype=dt,
+                                         rng=FACTORIZATION_SEED, range_share=RANGE_SHARE, progress=progress)
+        lowrank.norm, lowrank.eps, lowrank.relative = math.sqrt(norm2), plan.eps, plan.relative
+        t_fac = time.perf_counter()
+        if status is not None:
+            status({"blocks": 0, "rank": lowrank.rank, "elapsed": t_fac - t0})
+        lowrank.info.update({"time_formfactors": t_hm - t0, "time_statistics": t_stats - t_hm,
+                             "time_certificate": t_cert - t_stats, "time_factorization": t_fac - t_cert,
+                             "time_precompute": t_fac - t0,
+                             "hierarchical": {**hm.info, "factorization": {k: v for k, v in lowrank.info.items()
+                                                                           if not k.startswith("time")},
+                                              "certificate": certificate, "exact_row_pairs": int(exact.pairs)}})
+        fac = assemble(scene, plan, lowrank, stats, near, backend={"backend": "local"},
+                       runner=None if prefetch is None else prefetch.runner())
+        fac.lowrank.info["time_assemble"] = time.perf_counter() - t_fac
+        if prefetch is not None:
+            fac.lowrank.info["near_prefetched"] = prefetch.hits
+        return fac
+    finally:
+        if prefetch is not None:
+            prefetch.close()
 
 
 def engine_for(scene: Scene, plan: PrecomputePlan) -> FormFactorEngine:
@@ -191,6 +205,18 @@ class _RowSource:
         return out
 
 
+def _hmatrix_rows(hm: FormFactorHMatrix, rows: np.ndarray, batch: int = 64) -> np.ndarray:
+    """(len(rows), n) float32 rows of F_H, ``(F_H^T e_i)^T``, ``batch`` at a time: each product reads the
+    whole H-matrix, so few wide ones (161,808 patches: 4 instead of the exact rows' 11 chunks)."""
+    out = np.empty((rows.size, hm.n), np.float32)
+    for a in range(0, rows.size, batch):
+        picked = rows[a:a + batch]
+        X = np.zeros((hm.n, picked.size), np.float32)
+        X[picked, np.arange(picked.size)] = 1.0
+        out[a:a + picked.size] = hm.rmatmat(X).T
+    return out
+
+
 def _certify(hm: FormFactorHMatrix, exact: _RowSource, rho, areas, weights) -> tuple[FarFieldCertificate, dict]:
     """The certificate of ``||A^1/2 diag(rho) (F - F_H) A^-1/2||_F`` from ``CERTIFICATE_ROWS`` exact rows
     drawn by ``weights`` (a :class:`RowCertificate`), as the sampled far field's certificate object
@@ -198,14 +224,11 @@ def _certify(hm: FormFactorHMatrix, exact: _RowSource, rho, areas, weights) -> t
     n = hm.n
     draw = RowCertificate.draw(n, CERTIFICATE_ROWS, weights, seed=CERTIFICATE_SEED)
     unique, inverse = np.unique(draw.rows, return_inverse=True)
+    approx = _hmatrix_rows(hm, unique)
     e = np.empty(unique.size)
     pairs0 = exact.pairs
     for where, F in exact.chunks(unique):
-        picked = unique[where]
-        X = np.zeros((n, picked.size))
-        X[picked, np.arange(picked.size)] = 1.0
-        approx = hm.rmatmat(X).T                         # rows of F_H: (F_H^T e_i)^T
-        e[where] = row_errors(F - approx, picked, rho, areas)
+        e[where] = row_errors(F - approx[where], unique[where], rho, areas)
     y = e[inverse] * draw.scale
     certificate = FarFieldCertificate(np.arange(y.size, dtype=np.int64), y / n, n, CERTIFICATE_SEED)
     estimate, upper = certificate.frobenius()

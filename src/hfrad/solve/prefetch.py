@@ -1,16 +1,18 @@
-"""The near-field LUs factored in the client while the workers finish the tree's top.
+"""The near-field LUs factored in a background thread while other work of the precompute runs.
 
-With fewer than :data:`~hfrad.distributed.run.ASSEMBLY_MIN_WORKERS` workers the
-near-field set-up runs in the client once the tree is done
-(:func:`hfrad.precompute.assemble.assemble`, :class:`~hfrad.solve.nearfield.InProcess`).
-Its sparse LUs (:func:`~hfrad.solve.nearfield.channel_solver`, one per distinct
-colour channel, single-threaded) need only the near field N, which is complete once
-every leaf is: for a panelled root that is when the serial subtrees' tails are done,
-before the row-panelled top merges, whose serial steps (the small step, the Gram
-reduction) leave cores idle. :class:`NearPrefetch` factors the channels then, in a
-background thread of the client at a lower CPU priority (``nice``), so it takes the
-cores the workers leave idle first; :meth:`NearPrefetch.runner` gives the in-process
-runner that hands those factors to the assembly.
+The near-field set-up's sparse LUs (:func:`~hfrad.solve.nearfield.channel_solver`, one per
+distinct colour channel, single-threaded) need only the near field N, which is known before
+the factors are:
+
+- the Dask backend with fewer than :data:`~hfrad.distributed.run.ASSEMBLY_MIN_WORKERS` workers:
+  N is complete once every leaf is, before the row-panelled top merges, whose serial steps (the
+  small step, the Gram reduction) leave cores idle;
+- ``far_field="hierarchical"``: N leaves the H-matrix before the operator factorization, whose
+  single-threaded steps (QR, SVD of each block of the basis) leave a core idle.
+
+:class:`NearPrefetch` factors the channels then, in a background thread at a lower CPU
+priority (``nice``), so it takes the cores the rest leaves idle first;
+:meth:`NearPrefetch.runner` gives the in-process runner that hands those factors to the assembly.
 
 The assembly is unchanged: the runner returns a prefetched factor only for the very
 call it was made for (same N, same channel scale, dtype and order: compared entry by
@@ -27,8 +29,8 @@ import threading
 import numpy as np
 import scipy.sparse as sp
 
-from ..solve.nearfield import InProcess, channel_solver, solver_order
-from ..solve.woodbury import N_CHANNELS
+from .nearfield import InProcess, channel_solver, solver_order
+from .woodbury import N_CHANNELS
 
 __all__ = ["NearPrefetch", "PrefetchRunner", "PREFETCH_NICE", "PREFETCH_MAX_SHARE"]
 
