@@ -438,6 +438,8 @@ class FormFactorHMatrix:
         """
         if self.removed is not None:
             raise ValueError("take_near was called on this H-matrix already")
+        if lowrank not in (True, False, "auto"):
+            raise ValueError(f"lowrank must be True, False or 'auto'; got {lowrank!r}")
         k = self.blocks
         c = np.ascontiguousarray(centroids, np.float64)
         r2 = float(radius) ** 2
@@ -445,10 +447,10 @@ class FormFactorHMatrix:
                                                            k.u_off, k.U), k.count, count_only=False)
         low = _take_entries(_lowrank_near_entries, (c, r2, k.row_index, k.row_ptr, k.c0, k.b, k.rank, k.u_off,
                                                     k.v_off, k.U, k.V), k.count, count_only=True)
-        take_low = (low[0] >= len(rows)) if lowrank == "auto" else bool(lowrank)
-        self.info.update({"near_dense_entries": int(len(rows)), "near_lowrank_entries": int(low[0]),
+        take_low = (low >= len(rows)) if lowrank == "auto" else lowrank
+        self.info.update({"near_dense_entries": int(len(rows)), "near_lowrank_entries": low,
                           "near_lowrank_taken": bool(take_low)})
-        if not take_low or low[0] == 0:
+        if not take_low or low == 0:
             return rows, cols, values
         lr, lc, lv = _take_entries(_lowrank_near_entries, (c, r2, k.row_index, k.row_ptr, k.c0, k.b, k.rank,
                                                            k.u_off, k.v_off, k.U, k.V), k.count, count_only=False)
@@ -463,12 +465,12 @@ class FormFactorHMatrix:
 
 def _take_entries(kernel, args, count: int, *, count_only: bool):
     """Run a two-pass entry kernel (:func:`_near_entries`, :func:`_lowrank_near_entries`): count each
-    block's entries, then (unless ``count_only``: ``(total,)``) fill ``(rows, cols, values)``."""
+    block's entries (``count_only``: their total), then fill ``(rows, cols, values)``."""
     counts = np.zeros(count, np.int64)
     z = np.zeros(0, np.int64)
     kernel(*args, counts, z, z, np.zeros(0), False)
     if count_only:
-        return (int(counts.sum()),)
+        return int(counts.sum())
     ptr = np.zeros(count + 1, np.int64)
     np.cumsum(counts, out=ptr[1:])
     rows, cols, values = np.empty(ptr[-1], np.int64), np.empty(ptr[-1], np.int64), np.empty(ptr[-1])
