@@ -154,7 +154,9 @@ def test_exact_rows_make_a_bound_on_a_small_scene():
     _, batch = fac.solve(E, return_error=True)
     for j in range(4):
         _, one = fac.solve(E[:, :, j], return_error=True)
-        np.testing.assert_allclose(batch.bound[:, j], one.bound, rtol=1e-5)
+        # the same figure but for float32 rounding of solves four wide against one wide: below 1e-5 on the
+        # Intel VM, 1.06e-5 on the AMD EPYC one (the BLAS kernels block the widths differently)
+        np.testing.assert_allclose(batch.bound[:, j], one.bound, rtol=4e-5)
 
 
 def test_figure_survives_the_file_and_stays_within_its_share(cornell_scene_path, tmp_path):
