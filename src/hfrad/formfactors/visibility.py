@@ -443,7 +443,7 @@ class Visibility:
 
     def _probe_design(self, m: int) -> np.ndarray:
         """(n, m^2, 3) float32 the probes' points (kept: 12 m^2 bytes a patch)."""
-        if not hasattr(self, "_probe_points"):
+        if not hasattr(self, "_probe_designs"):
             self._probe_designs = {}
             self._normals = np.ascontiguousarray(self.plane[:, :3])
         if m not in self._probe_designs:
