@@ -99,6 +99,10 @@ class FormFactorEngine:
         self.pairs += F.size
         return F
 
+    def unoccluded(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """(len(rows), len(cols)) float64 F[rows][:, cols] without visibility (counted in ``pairs``)."""
+        return self._kernel(rows, cols)
+
     def block(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
         """(len(rows), len(cols)) float64 F[rows][:, cols] with visibility."""
         F = self._kernel(rows, cols)
