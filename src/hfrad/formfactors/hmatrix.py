@@ -117,6 +117,21 @@ def _probe_ends(rows, c, node_start, node_size, perm, first, k, points):  # prag
     return out_i, out_j, ki, kj
 
 
+@njit(cache=True, nogil=True)
+def _ray_counts(facing, blocked, k):  # pragma: no cover (numba)
+    """(facing, blocked and facing) counts of each run of ``k`` rays (NumPy's sum over a short last
+    axis of a bool array was 5% of a build)."""
+    m = facing.shape[0] // k
+    n_facing, n_blocked = np.zeros(m, np.int64), np.zeros(m, np.int64)
+    for q in range(m):
+        for s in range(q * k, q * k + k):
+            if facing[s]:
+                n_facing[q] += 1
+                if blocked[s]:
+                    n_blocked[q] += 1
+    return n_facing, n_blocked
+
+
 @dataclass(frozen=True)
 class HMatrixOptions:
     """How the H-matrix of F is built (defaults for a first run).
@@ -903,10 +918,9 @@ class _Builder:
         i, j, ki, kj = _probe_ends(np.asarray(rows, np.int64), np.asarray(c, np.int64), tree.start, tree.size,
                                    tree.perm, int(first), int(k), int(vis.probe_design_points))
         # from a hashed point of the row patch to one of the target's
-        facing, blocked = vis.segments_blocked(i, j, ki, kj)
-        facing, blocked = facing.reshape(-1, k), (blocked & facing).reshape(-1, k)
-        self.info["probe_rays"] += int(facing.sum())
-        return facing.sum(axis=1), blocked.sum(axis=1)
+        n_facing, n_blocked = _ray_counts(*vis.segments_blocked(i, j, ki, kj), int(k))
+        self.info["probe_rays"] += int(n_facing.sum())
+        return n_facing, n_blocked
 
     def near(self, r: np.ndarray, c: np.ndarray, progress) -> None:
         """The near leaf pairs, exactly: one engine call a row leaf for its pairs (r, c) with r <= c;
@@ -971,8 +985,7 @@ class _Builder:
         F = self.engine.unoccluded(rows, cols)
         ii, jj = np.nonzero(F > 0)
         i, j, ki, kj = _pair_ray_ends(rows[ii], cols[jj], int(k), int(vis.probe_design_points))
-        facing, blocked = vis.segments_blocked(i, j, ki, kj)
-        facing, blocked = facing.reshape(-1, k).sum(axis=1), blocked.reshape(-1, k).sum(axis=1)
+        facing, blocked = _ray_counts(*vis.segments_blocked(i, j, ki, kj), int(k))
         F[ii, jj] *= np.where(facing > 0, 1.0 - blocked / np.maximum(facing, 1), 1.0)
         return F
 
