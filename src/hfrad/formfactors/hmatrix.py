@@ -616,17 +616,28 @@ def block_squares(blocks: BlockList, scale: np.ndarray, *, columns: bool) -> np.
     ``scale``: (n, c) >= 0.
     """
     scale = np.ascontiguousarray(scale, np.float64)
-    out = np.zeros_like(scale)
     k = blocks
-    _squares(k.row_index, k.row_ptr, k.c0, k.b, k.rank, k.u_off, k.v_off, k.U, k.V, scale, columns, out)
-    return out
+    parts = _work_parts(k, numba.get_num_threads())
+    out = np.zeros((len(parts) - 1,) + scale.shape)          # one copy a part: blocks share rows and columns
+    _squares_parts(parts, k.row_index, k.row_ptr, k.c0, k.b, k.rank, k.u_off, k.v_off, k.U, k.V, scale, columns, out)
+    return out.sum(axis=0)
+
+
+@njit(cache=True, parallel=True, nogil=True)
+def _squares_parts(parts, rows, row_ptr, c0, b_, rank, u_off, v_off, U, V, W, columns, out):  # pragma: no cover
+    """:func:`_squares` over each run of blocks ``parts[q]:parts[q + 1]`` on its own thread, into ``out[q]``
+    (the runs' scratch arrays are made inside :func:`_squares`, a call per run, never hoisted across runs)."""
+    for q in prange(parts.shape[0] - 1):
+        _squares(parts[q], parts[q + 1], rows, row_ptr, c0, b_, rank, u_off, v_off, U, V, W, columns, out[q])
 
 
 @njit(cache=True, nogil=True)
-def _squares(rows, row_ptr, c0, b_, rank, u_off, v_off, U, V, W, columns, out):  # pragma: no cover (numba)
-    """:func:`block_squares`, block after block (blocks share rows and columns: one thread)."""
+def _squares(first, last, rows, row_ptr, c0, b_, rank, u_off, v_off, U, V, W, columns, out):  # pragma: no cover
+    """:func:`block_squares` of blocks ``first:last``, block after block, added to ``out``."""
     C = W.shape[1]
-    for t in range(c0.shape[0]):
+    R = max(1, rank[first:last].max()) if last > first else 1
+    M = np.zeros((R, R))
+    for t in range(first, last):
         p, m, b, c, r = row_ptr[t], row_ptr[t + 1] - row_ptr[t], b_[t], c0[t], rank[t]
         if r < 0:                                     # dense, (m, b) row-major at u_off
             o = u_off[t]
@@ -645,24 +656,28 @@ def _squares(rows, row_ptr, c0, b_, rank, u_off, v_off, U, V, W, columns, out): 
             continue
         if r == 0:
             continue
-        Ut = U[u_off[t]:u_off[t] + m * r].reshape(m, r).astype(np.float64)
-        Vt = V[v_off[t]:v_off[t] + b * r].reshape(b, r).astype(np.float64)
-        ws = np.empty(m if columns else b)
+        # U V^T: M = X^T diag(w) X (r x r) over the weighted factor's rows X, then each row y of the
+        # other factor adds y M y^T (plain loops: no array made per block)
+        src, dst = (U, V) if columns else (V, U)
+        so, do = (u_off[t], v_off[t]) if columns else (v_off[t], u_off[t])
         for k in range(C):
-            if columns:
-                for i in range(m):
-                    ws[i] = W[rows[p + i], k]
-                M = (Ut * ws.reshape(-1, 1)).T @ Ut      # U^T diag(s) U
-                Z = Vt @ M
-                for j in range(b):
-                    out[c + j, k] += np.dot(Z[j], Vt[j])
-            else:
-                for j in range(b):
-                    ws[j] = W[c + j, k]
-                M = (Vt * ws.reshape(-1, 1)).T @ Vt
-                Z = Ut @ M
-                for i in range(m):
-                    out[rows[p + i], k] += np.dot(Z[i], Ut[i])
+            M[:r, :r] = 0.0
+            for i in range(m if columns else b):
+                w = W[rows[p + i], k] if columns else W[c + i, k]
+                if w == 0.0:
+                    continue
+                for a in range(r):
+                    fa = w * np.float64(src[so + i * r + a])
+                    for e in range(r):
+                        M[a, e] += fa * np.float64(src[so + i * r + e])
+            for i in range(b if columns else m):
+                acc = 0.0
+                for a in range(r):
+                    inner = 0.0
+                    for e in range(r):
+                        inner += M[a, e] * np.float64(dst[do + i * r + e])
+                    acc += np.float64(dst[do + i * r + a]) * inner
+                out[c + i if columns else rows[p + i], k] += acc
 
 
 def _work_parts(blocks: BlockList, threads: int) -> np.ndarray:
