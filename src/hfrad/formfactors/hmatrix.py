@@ -1030,10 +1030,10 @@ def _states(engine: FormFactorEngine, boxes, r: np.ndarray, c: np.ndarray) -> np
 def _groups_where(rows: np.ndarray, owner: np.ndarray, where: np.ndarray, c: np.ndarray):
     """The rows ``where`` (bool), still grouped by ``owner`` (non-decreasing group numbers), groups left
     empty dropped: ``(rows, row_ptr, c)`` as the probe rounds pass them."""
-    groups, counts = np.unique(owner[where], return_counts=True)
-    row_ptr = np.zeros(len(groups) + 1, np.int64)
-    np.cumsum(counts, out=row_ptr[1:])
-    return rows[where], row_ptr, np.asarray(c, np.int64)[groups]
+    kept = owner[where]                      # sorted already: its runs are the groups (no np.unique sort)
+    starts = np.flatnonzero(np.r_[True, kept[1:] != kept[:-1]]) if len(kept) else np.zeros(0, np.int64)
+    row_ptr = np.r_[starts, len(kept)].astype(np.int64)
+    return rows[where], row_ptr, np.asarray(c, np.int64)[kept[starts]]
 
 
 def _concat_ranges(perm: np.ndarray | None, start: np.ndarray, stop: np.ndarray):
