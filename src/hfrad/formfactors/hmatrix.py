@@ -419,7 +419,7 @@ class FormFactorHMatrix:
         entries :meth:`take_near` moved out of low-rank blocks."""
         out = block_squares(self.blocks, scale, columns=columns)
         if self.removed is not None:
-            L2 = self.removed[0].astype(np.float64).power(2)
+            L2 = self._removed_squares
             out -= (L2.T if columns else L2) @ np.asarray(scale, np.float64)
             np.maximum(out, 0.0, out=out)     # an entry's square and its block's share agree to rounding
         return out
@@ -496,35 +496,44 @@ class FormFactorHMatrix:
         k = self.blocks
         c = np.ascontiguousarray(centroids, np.float64)
         r2 = float(radius) ** 2
-        rows, cols, values = _take_entries(_near_entries, (c, r2, k.row_index, k.row_ptr, k.c0, k.b, k.rank,
-                                                           k.u_off, k.U), k.count, count_only=False)
-        low = _take_entries(_lowrank_near_entries, (c, r2, k.row_index, k.row_ptr, k.c0, k.b, k.rank, k.u_off,
-                                                    k.v_off, k.U, k.V), k.count, count_only=True)
+        dense_args = (c, r2, k.row_index, k.row_ptr, k.c0, k.b, k.rank, k.u_off, k.U)
+        rows, cols, values = _fill_entries(_near_entries, dense_args, _count_entries(_near_entries, dense_args,
+                                                                                     k.count))
+        low_args = (c, r2, k.row_index, k.row_ptr, k.c0, k.b, k.rank, k.u_off, k.v_off, k.U, k.V)
+        low_counts = _count_entries(_lowrank_near_entries, low_args, k.count)
+        low = int(low_counts.sum())
         take_low = (low >= len(rows)) if lowrank == "auto" else lowrank
         self.info.update({"near_dense_entries": int(len(rows)), "near_lowrank_entries": low,
                           "near_lowrank_taken": bool(take_low)})
         if not take_low or low == 0:
             return rows, cols, values
-        lr, lc, lv = _take_entries(_lowrank_near_entries, (c, r2, k.row_index, k.row_ptr, k.c0, k.b, k.rank,
-                                                           k.u_off, k.v_off, k.U, k.V), k.count, count_only=False)
+        lr, lc, lv = _fill_entries(_lowrank_near_entries, low_args, low_counts)
         L = sp.csr_matrix((lv.astype(np.float32), (lr, lc)), shape=(self.n, self.n))
         self.removed = (L, L.T.tocsr())
         return np.concatenate([rows, lr]), np.concatenate([cols, lc]), np.concatenate([values, lv])
+
+    @cached_property
+    def _removed_squares(self) -> sp.csr_matrix:
+        """The squares of :attr:`removed`'s entries, float64 (made once: every ``squares`` call reads them)."""
+        return self.removed[0].astype(np.float64).power(2)
 
     def to_dense(self) -> np.ndarray:
         """(n, n) F in tree order (small scenes: tests)."""
         return self.matmat(np.eye(self.n))
 
 
-def _take_entries(kernel, args, count: int, *, count_only: bool):
-    """Run a two-pass entry kernel (:func:`_near_entries`, :func:`_lowrank_near_entries`): count each
-    block's entries (``count_only``: their total), then fill ``(rows, cols, values)``."""
+def _count_entries(kernel, args, count: int) -> np.ndarray:
+    """(count,) each block's entries a two-pass entry kernel (:func:`_near_entries`,
+    :func:`_lowrank_near_entries`) would take, from its counting pass."""
     counts = np.zeros(count, np.int64)
     z = np.zeros(0, np.int64)
     kernel(*args, counts, z, z, np.zeros(0), False)
-    if count_only:
-        return int(counts.sum())
-    ptr = np.zeros(count + 1, np.int64)
+    return counts
+
+
+def _fill_entries(kernel, args, counts: np.ndarray):
+    """``(rows, cols, values)`` from the kernel's filling pass, each block's entries at the offsets of ``counts``."""
+    ptr = np.zeros(len(counts) + 1, np.int64)
     np.cumsum(counts, out=ptr[1:])
     rows, cols, values = np.empty(ptr[-1], np.int64), np.empty(ptr[-1], np.int64), np.empty(ptr[-1])
     kernel(*args, ptr, rows, cols, values, True)
@@ -988,7 +997,6 @@ class _Builder:
         self.pending.clear()
         self.info["exact_pairs"] += int(self.engine.pairs - pairs0)
         self.info["time_exact"] += time.perf_counter() - t
-
 
     def edge_block(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
         """F[rows][:, cols] (patch numbers) across a shadow edge: each pair's visibility the unblocked
