@@ -101,7 +101,7 @@ def measure(source: str, patches: int, blocks: int, eps: float, modes: str) -> d
     if getattr(caster, "_packets", None) is not None:
         from hfrad.formfactors.raycast import _occluded
         hit = np.empty(len(t), np.bool_)
-        best = min(_seconds(lambda: _occluded(caster._packets.scene, o, d, t, hit)) for _ in range(2))
+        best = min(_seconds(lambda: _occluded(caster._packets.scene, caster._packets.width, o, d, t, hit)) for _ in range(2))
         out["raw_packets"] = {"seconds": best, "rays_per_s": len(t) / best}
     for key in ("pipelined", "serial"):
         if key in out:

@@ -170,6 +170,47 @@ def test_front_door_and_cli(tmp_path):
     assert "far field hierarchical" in result.output and hfrad.load(out).params["far_field"] == "hierarchical"
 
 
+def test_resumes_from_the_hmatrix_checkpoint(tmp_path, monkeypatch):
+    """The built H-matrix is saved once; a rerun loads it (no build) and gives the same answer; a
+    checkpoint that is damaged or made for other parameters is refused, never resumed."""
+    import hfrad.precompute.hierarchical as hier
+    from hfrad.errors import FileFormatError
+
+    scene = hfrad.load_scene("cornell", patches=300)
+    kw = dict(eps=EPS, far_field="hierarchical")
+    ckpt = tmp_path / "run.partial"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", AccuracyWarning)
+        first = hfrad.factorize(scene, checkpoint=hfrad.Checkpoint(ckpt, interval=0.0, keep=True), **kw)
+        assert ckpt.exists()
+
+        def no_build(*args, **kwargs):
+            raise AssertionError("the H-matrix was built again")
+
+        monkeypatch.setattr(hier, "build_hmatrix", no_build)
+        said = []
+        again = hfrad.factorize(scene, checkpoint=ckpt, status=said.append, **kw)
+    assert said[0]["resumed"] == again.lowrank.info["hierarchical"]["blocks"] > 0
+    np.testing.assert_array_equal(again.solve(scene.emission), first.solve(scene.emission))
+    assert not ckpt.exists()                   # deleted on completion (keep=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", AccuracyWarning)
+        monkeypatch.undo()
+        hfrad.factorize(scene, checkpoint=hfrad.Checkpoint(ckpt, keep=True), **kw)
+        assert not ckpt.exists()               # a build shorter than the interval is not saved
+        hfrad.factorize(scene, checkpoint=hfrad.Checkpoint(ckpt, interval=0.0, keep=True), **kw)
+    with pytest.raises(InputError, match="another scene or other parameters"):
+        hfrad.factorize(scene, checkpoint=ckpt, eps=0.1, far_field="hierarchical")
+    with pytest.raises(InputError, match="another far field"):
+        hfrad.factorize(scene, checkpoint=ckpt, eps=EPS, far_field="exact")
+    data = bytearray(ckpt.read_bytes())
+    data[len(data) // 2] ^= 0xFF                # a flipped byte in the blocks
+    ckpt.write_bytes(bytes(data))
+    with pytest.raises(FileFormatError, match="damaged"):
+        hfrad.factorize(scene, checkpoint=ckpt, **kw)
+    assert ckpt.exists()                       # refused, never deleted
+
+
 def test_memory_refused_with_the_number(monkeypatch):
     import hfrad.memory as memory
 

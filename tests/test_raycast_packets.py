@@ -1,7 +1,7 @@
-"""Occlusion in packets of 16 (formfactors/raycast.py) answers exactly as embreex's one-ray ``run``.
+"""Occlusion in packets (formfactors/raycast.py) answers exactly as embreex's one-ray ``run``.
 
 The packet path builds its own Embree scene with the library embreex ships and
-casts rtcOccluded16 from numba; embreex casts rtcOccluded1 per ray. Both must
+casts rtcOccluded16, 8 or 4 (the widest the CPU runs natively) from numba; embreex casts rtcOccluded1 per ray. Both must
 say the same for every ray (random rays over random triangles, negative and
 zero lengths included), and the form factors computed with either must be the
 same bit for bit: on the built-in Cornell box (all of F, probes and both
@@ -52,6 +52,35 @@ def test_packets_match_embreex_on_random_rays(threads):
     got = caster.occluded(o, d, t)
     want = _embreex_answer(caster, o, d, t)
     assert 0.2 < want[t > 0].mean() < 0.8  # both answers occur
+    np.testing.assert_array_equal(got, want)
+    caster.close()
+
+
+@pytest.mark.parametrize("width", [4, 8, 16])
+def test_every_native_packet_width_matches_embreex(width):
+    """Each packet size Embree runs natively here answers as embreex does. A size the CPU lacks is never
+    used: rtcOccluded16 on a CPU without AVX-512 corrupted the heap (glibc aborted the process)."""
+    from hfrad.formfactors.raycast import _NATIVE_PACKETS
+
+    rng = np.random.default_rng(11)
+    tri = rng.random((300, 3, 3)) * 10.0
+    caster = RayCaster(tri.reshape(-1, 3), np.arange(900).reshape(-1, 3), threads=1)
+    assert caster._packets is not None, "the Embree library shipped with embreex was not found"
+    native = [k for k, prop in _NATIVE_PACKETS
+              if caster._packets._lib.rtcGetDeviceProperty(caster._packets.device, prop) > 0]
+    assert caster._packets.width == max(native)
+    if width not in native:
+        caster.close()
+        pytest.skip(f"Embree runs no packets of {width} natively on this CPU (native: {native})")
+    caster._packets.width = width
+    n = 20_003  # not a multiple of any width: the last packet is partly valid
+    o = rng.random((n, 3)) * 12.0 - 1.0
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    t = rng.random(n) * 15.0 - 2.0
+    got = caster.occluded(o, d, t)
+    want = _embreex_answer(caster, o, d, t)
+    assert 0.2 < want[t > 0].mean() < 0.8
     np.testing.assert_array_equal(got, want)
     caster.close()
 

@@ -169,7 +169,8 @@ def factorize(scene: Scene, eps: float = 0.02, *, relative: bool = True, dtype="
                              "(or far_field='sampled' on Dask)")
         from .precompute.hierarchical import factorize_hierarchical
 
-        return factorize_hierarchical(scene, plan, progress, status, blas_threads=backend.blas_threads)
+        return factorize_hierarchical(scene, plan, progress, status, blas_threads=backend.blas_threads,
+                                      checkpoint=checkpoint)
     if isinstance(backend, LocalBackend):
         return factorize_local(scene, plan, backend, checkpoint, progress, status)
     from .distributed import factorize_distributed, remove_checkpoint

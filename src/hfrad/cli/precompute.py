@@ -153,8 +153,9 @@ def register(app: typer.Typer) -> None:
             with common.progress_bar(f"precompute {s.n_patches:,} patches", quiet) as bar:
                 def status(info: dict) -> None:
                     if info.get("resumed"):    # said only once factorize has accepted the checkpoint
-                        common.console.print(f"resumed from checkpoint {checkpoint} ({info['resumed']:,} "
-                                             "column blocks were done)", highlight=False)
+                        unit = info.get("resumed_unit", "column blocks were done")
+                        common.console.print(f"resumed from checkpoint {checkpoint} ({info['resumed']:,} {unit})",
+                                             highlight=False)
                     if "estimate" in info and not quiet:
                         line = common.estimate_line(info["estimate"], info.get("pass_over_kernel"))
                         common.console.print(line, highlight=False)

@@ -1,6 +1,8 @@
 """Ray casting with Intel Embree (through ``embreex``), batched.
 
-Occlusion queries go to Embree in packets of 16 rays (``rtcOccluded16``) from a
+Occlusion queries go to Embree in packets of 16, 8 or 4 rays (``rtcOccluded16/8/4``,
+the widest this CPU runs natively: Embree's ``RTC_DEVICE_PROPERTY_NATIVE_RAY*_SUPPORTED``;
+``rtcOccluded16`` on a CPU without AVX-512 corrupts the heap) from a
 numba loop that holds no GIL, on an Embree scene of our own built with the
 Embree library that ``embreex`` ships: ``embreex``'s ``run`` offers only one ray
 at a time (``rtcOccluded1``), and the rays of the form factors come in coherent
@@ -56,9 +58,15 @@ _SCENE_FLAG_ROBUST = 1 << 2
 _GEOMETRY_TRIANGLE, _BUFFER_INDEX, _BUFFER_VERTEX = 0, 0, 1
 _FORMAT_UINT3, _FORMAT_FLOAT3 = 0x5003, 0x9003
 
-# rtcOccluded16(const int* valid, RTCScene scene, RTCRay16* rays, RTCOccludedArguments* args), pointers
+# rtcOccludedK(const int* valid, RTCScene scene, RTCRayK* rays, RTCOccludedArguments* args), pointers
 # passed as integers (the same registers on every 64-bit ABI); resolved by name, so cached code keeps working
-_occluded16 = types.ExternalFunction("rtcOccluded16", types.void(types.intp, types.intp, types.intp, types.intp))
+_SIGNATURE = types.void(types.intp, types.intp, types.intp, types.intp)
+_occluded16 = types.ExternalFunction("rtcOccluded16", _SIGNATURE)
+_occluded8 = types.ExternalFunction("rtcOccluded8", _SIGNATURE)
+_occluded4 = types.ExternalFunction("rtcOccluded4", _SIGNATURE)
+#: rtcGetDeviceProperty's RTC_DEVICE_PROPERTY_NATIVE_RAY{4,8,16}_SUPPORTED (embree4/rtcore_device.h): Embree
+#: runs a packet size only where the CPU has its ISA (16: AVX-512; 8: AVX/AVX2); the widest of them is used
+_NATIVE_PACKETS = ((16, 34), (8, 33), (4, 32))
 
 _LIB: list = []  # [ctypes library] once loaded, [None] when it cannot be
 
@@ -87,7 +95,8 @@ def _embree_library():
                                     ("rtcCommitGeometry", None, [u64]), ("rtcAttachGeometry", ctypes.c_uint, [u64, u64]),
                                     ("rtcReleaseGeometry", None, [u64]), ("rtcCommitScene", None, [u64]),
                                     ("rtcGetDeviceError", ctypes.c_int, [u64]), ("rtcReleaseScene", None, [u64]),
-                                    ("rtcReleaseDevice", None, [u64])):
+                                    ("rtcReleaseDevice", None, [u64]),
+                                    ("rtcGetDeviceProperty", ctypes.c_ssize_t, [u64, ctypes.c_int])):
                 f = getattr(lib, name)
                 f.restype, f.argtypes = res, args
     except (ImportError, OSError, AttributeError):  # pragma: no cover - depends on the install
@@ -107,6 +116,11 @@ class _PacketScene:
         self.scene = 0
         if not self.device:
             raise OSError("rtcNewDevice failed")
+        #: rays a packet: the widest size this CPU runs natively
+        self.width = next((k for k, prop in _NATIVE_PACKETS if lib.rtcGetDeviceProperty(self.device, prop) > 0), 0)
+        if not self.width:
+            self.release()
+            raise OSError("Embree runs no ray packets natively on this CPU")
         self.scene = lib.rtcNewScene(self.device)
         lib.rtcSetSceneFlags(self.scene, _SCENE_FLAG_ROBUST)
         geom = lib.rtcNewGeometry(self.device, _GEOMETRY_TRIANGLE)
@@ -138,46 +152,51 @@ class _PacketScene:
 
 
 @njit(cache=True, nogil=True)
-def _occluded(scene, o, d, t, hit):
+def _occluded(scene, width, o, d, t, hit):
     """hit[i] = some triangle of ``scene`` (an RTCScene address) blocks ray i within t[i].
 
-    Rays go in packets of 16 in their order (an RTCRay16: structure of arrays,
-    64-byte aligned): ``tnear`` 0, all mask bits, Embree's default query
+    Rays go in packets of ``width`` (16, 8 or 4) in their order (an RTCRay16/8/4: structure of
+    arrays, aligned to 4 ``width`` bytes): ``tnear`` 0, all mask bits, Embree's default query
     arguments, as embreex's ``run`` casts them one at a time. Embree sets ``tfar``
     to -inf where the ray is blocked and leaves it otherwise; a negative t (which
     Embree ignores) counts as blocked, as it does in embreex.
     """
-    n = o.shape[0]
-    raw = np.empty(12 * 16 + 16, np.float32)
+    n, w = o.shape[0], width
+    raw = np.empty(12 * 16 + 16, np.float32)      # room for the widest packet, 64-byte aligned
     a = (64 - raw.ctypes.data % 64) % 64 // 4
-    ray = raw[a:a + 12 * 16]
+    ray = raw[a:a + 12 * w]
     bits = ray.view(np.uint32)
     rawv = np.empty(32, np.int32)
     av = (64 - rawv.ctypes.data % 64) % 64 // 4
-    valid = rawv[av:av + 16]
-    for s in range(0, n, 16):
-        m = min(16, n - s)
-        for k in range(16):
+    valid = rawv[av:av + w]
+    for s in range(0, n, w):
+        m = min(w, n - s)
+        for k in range(w):
             if k < m:
                 i = s + k
                 valid[k] = -1
                 ray[k] = o[i, 0]
-                ray[16 + k] = o[i, 1]
-                ray[32 + k] = o[i, 2]
-                ray[48 + k] = 0.0  # tnear
-                ray[64 + k] = d[i, 0]
-                ray[80 + k] = d[i, 1]
-                ray[96 + k] = d[i, 2]
-                ray[112 + k] = 0.0  # time
-                ray[128 + k] = t[i]  # tfar
-                bits[144 + k] = 0xFFFFFFFF  # mask
-                bits[160 + k] = 0  # id
-                bits[176 + k] = 0  # flags
+                ray[w + k] = o[i, 1]
+                ray[2 * w + k] = o[i, 2]
+                ray[3 * w + k] = 0.0  # tnear
+                ray[4 * w + k] = d[i, 0]
+                ray[5 * w + k] = d[i, 1]
+                ray[6 * w + k] = d[i, 2]
+                ray[7 * w + k] = 0.0  # time
+                ray[8 * w + k] = t[i]  # tfar
+                bits[9 * w + k] = 0xFFFFFFFF  # mask
+                bits[10 * w + k] = 0  # id
+                bits[11 * w + k] = 0  # flags
             else:
                 valid[k] = 0
-        _occluded16(valid.ctypes.data, scene, ray.ctypes.data, 0)
+        if w == 16:
+            _occluded16(valid.ctypes.data, scene, ray.ctypes.data, 0)
+        elif w == 8:
+            _occluded8(valid.ctypes.data, scene, ray.ctypes.data, 0)
+        else:
+            _occluded4(valid.ctypes.data, scene, ray.ctypes.data, 0)
         for k in range(m):
-            hit[s + k] = ray[128 + k] < 0.0
+            hit[s + k] = ray[8 * w + k] < 0.0
 
 
 class RayCaster:
@@ -272,7 +291,7 @@ class RayCaster:
 
         def run(s: slice) -> None:
             if packets is not None:
-                _occluded(packets.scene, o[s], d[s], t[s], out[s])
+                _occluded(packets.scene, packets.width, o[s], d[s], t[s], out[s])
             else:
                 out[s] = self._scene.run(o[s], d[s], query="OCCLUDED", dists=t[s]) >= 0
 

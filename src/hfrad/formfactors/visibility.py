@@ -545,7 +545,7 @@ class Visibility:
             yield RayJob(pairs, first, o, d, t, w, buf, pool, r_idx, c_idx, final, str(s))
 
     def cast(self, job: "RayJob") -> np.ndarray:
-        """(r,) bool: blocked segments of a job (Embree, in packets of 16; holds no GIL)."""
+        """(r,) bool: blocked segments of a job (Embree, in the widest packets this CPU runs; holds no GIL)."""
         return self.cast_segments(job.o, job.d, job.t, job.round, len(job.pairs))
 
     def cast_segments(self, o: np.ndarray, d: np.ndarray, t: np.ndarray, round: str = "",

@@ -98,8 +98,11 @@ def load_checkpoint(path: str | os.PathLike, key: str = "") -> HFStream:
                               f"{str(exc)[:200]}); {_DELETE}") from None
     with f:
         try:
-            version = f.attrs.get("version")
-            if version is None or (int(version) >= 2 and f.attrs.get("format") != FORMAT):
+            version, fmt = f.attrs.get("version"), f.attrs.get("format")
+            if isinstance(fmt, str) and fmt.startswith("hfrad-") and fmt.endswith("-checkpoint") and fmt != FORMAT:
+                raise InputError(f"{path}: a checkpoint of another far field ({fmt}), made with other parameters; "
+                                 f"{_DELETE}, or use another output name")
+            if version is None or (int(version) >= 2 and fmt != FORMAT):
                 raise FileFormatError(f"{path}: not an hfrad checkpoint; {_DELETE}")
             if int(version) != CHECKPOINT_VERSION:
                 raise FileFormatError(f"{path}: checkpoint version {int(version)}, this hfrad writes and reads "
