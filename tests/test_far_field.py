@@ -208,9 +208,34 @@ def test_far_field_options_are_checked():
         FarFieldOptions(eta=0.0)
     with pytest.raises(InputError, match="options.far"):
         hfrad.factorize(scene, 0.05, options=hfrad.PrecomputeOptions(far={"eta": 1}))
-    # "auto" is the exact pass (no measured crossover yet: options.far_field_mode)
+    # "auto" below AUTO_HIERARCHICAL_FROM patches is the exact pass
     fac = hfrad.factorize(scene, 0.05)
     assert fac.params["far_field"] == "exact"
+
+
+def test_auto_chooses_the_measured_faster_far_field(monkeypatch):
+    """"auto": the H-matrix in this process from AUTO_HIERARCHICAL_FROM patches at a relative eps of at
+    least AUTO_HIERARCHICAL_EPS (where it was measured faster), the exact pass everywhere else."""
+    import warnings
+
+    from hfrad.errors import AccuracyWarning
+    from hfrad.precompute import options as opts
+
+    big, eps = opts.AUTO_HIERARCHICAL_FROM, opts.AUTO_HIERARCHICAL_EPS
+    assert opts.far_field_mode("auto", big, True, eps=eps) == "hierarchical"
+    assert opts.far_field_mode("auto", big - 1, True, eps=eps) == "exact"
+    assert opts.far_field_mode("auto", big, True, eps=0.02) == "exact"        # measured slower at 39,482
+    assert opts.far_field_mode("auto", big, False, eps=eps) == "exact"        # an absolute eps
+    assert opts.far_field_mode("auto", big, True, eps=eps, local=False) == "exact"   # Dask
+    assert opts.far_field_mode("auto", big, True, eps=eps, clustered=True) == "exact"  # Šibenik: not faster
+    assert opts.far_field_mode("exact", big, True, eps=eps) == "exact"        # a named mode is kept
+    monkeypatch.setattr(opts, "AUTO_HIERARCHICAL_FROM", 200)
+    scene = load_scene("cornell", patches=300)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", AccuracyWarning)
+        assert hfrad.factorize(scene, 0.05).params["far_field"] == "hierarchical"
+        custom = hfrad.factorize(scene, 0.05, order=np.arange(scene.n_patches)[::-1].copy())
+    assert custom.params["far_field"] == "exact" and custom.params["order"] == "custom"
 
 
 def test_sampled_far_field_resumes_from_a_checkpoint(tmp_path):

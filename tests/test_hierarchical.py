@@ -168,6 +168,15 @@ def test_front_door_and_cli(tmp_path):
     result = run("precompute", "cornell", "--patches", "300", "--eps", EPS, "--far-field", "hierarchical", "-o", out)
     assert result.exit_code == 0, result.output
     assert "far field hierarchical" in result.output and hfrad.load(out).params["far_field"] == "hierarchical"
+    # the command resumes from the H-matrix an interrupted run saved (OUTPUT.partial), and says so
+    partial = tmp_path / "again.hfr.partial"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", AccuracyWarning)
+        hfrad.factorize(scene, EPS, far_field="hierarchical", checkpoint=hfrad.Checkpoint(partial, interval=0.0, keep=True))
+    result = run("precompute", "cornell", "--patches", "300", "--eps", EPS, "--far-field", "hierarchical",
+                 "-o", tmp_path / "again.hfr")
+    assert result.exit_code == 0, result.output
+    assert "H-matrix blocks were built" in result.output and not partial.exists()
 
 
 def test_resumes_from_the_hmatrix_checkpoint(tmp_path, monkeypatch):

@@ -93,17 +93,22 @@ def factorize(scene: Scene, eps: float = 0.02, *, relative: bool = True, dtype="
         held-out rows and computed exactly where they do not compress; visibility of far
         pairs from cluster-pair tests and probe rays (:mod:`hfrad.formfactors.farfield`,
         docs/method.md section 4b). Its error is certified by exact rows of a separate
-        sample (added to ``fac.error_estimate()``). "auto" (default): the faster of the two
-        for the scene, which is "exact" at every size measured so far (up to 163,000
-        patches: the sampled field evaluates 4-5 times fewer pairs but costs more wall time
-        per block). Both backends: a ``DaskBackend``'s leaves run the same block producer
+        sample (added to ``fac.error_estimate()``). "auto" (default): the one measured faster
+        (:func:`~hfrad.precompute.options.far_field_mode`): "hierarchical" in this process from
+        20,000 patches at a relative eps of 0.05 or more on a scene that is not clustered, else
+        "exact" (a smaller or absolute eps, fewer patches, a clustered scene, a custom ``order``,
+        a ``DaskBackend``); "sampled" is never chosen
+        (it evaluates 4-5 times fewer pairs than the exact pass but costs more wall time per
+        block). "sampled" runs on both backends: a ``DaskBackend``'s leaves run the same block producer
         (the same factorization, certificate and counters as this process's).
         "hierarchical": F as an H-matrix (near leaf pairs exact, far cluster pairs of low
         rank by cross approximation; :mod:`hfrad.formfactors.hmatrix`), the factors from
         products with it (:func:`hfrad.lowrank.operator_factorization`), its error certified
         by exact rows drawn by importance (added to ``fac.error_estimate()``); docs/method.md
-        section 4c. In this process only, without checkpoints or the near-field split, the
-        internal order the cluster tree's (``order`` is not used); memory
+        section 4c. In this process only; the internal order is the cluster tree's (``order``
+        is not used); with ``near_field="auto"`` the near pairs leave the H-matrix (the split
+        costs nothing there); a ``checkpoint`` saves the built H-matrix once (when the build
+        took at least its interval) and a rerun loads it instead of building it; memory
         :func:`hfrad.memory.hierarchical_bytes`.
     progress : callable (done, total), optional
         Column blocks done.
@@ -162,7 +167,7 @@ def factorize(scene: Scene, eps: float = 0.02, *, relative: bool = True, dtype="
     checkpoint = as_checkpoint(checkpoint)
     plan = plan_precompute(scene, eps, relative=relative, dtype=dtype, order="zorder" if order is None else order,
                            near_field=near_field, options=options, reciprocity=backend.reciprocity,
-                           far_field=far_field)
+                           far_field=far_field, local=isinstance(backend, LocalBackend))
     if plan.far_field == "hierarchical":
         if not isinstance(backend, LocalBackend):
             raise InputError("far_field='hierarchical' runs in this process only; use a LocalBackend "

@@ -31,7 +31,7 @@ def register(app: typer.Typer) -> None:
         order: str = typer.Option("zorder", "--order", help="Internal patch order: zorder, hilbert, random, input."),
         processes: Optional[int] = typer.Option(None, "--processes", help="Form-factor worker processes, each with its own Embree scene. Default: one per core from 4,000 patches on (below, their start-up costs more than it saves), else this process; the result does not depend on it."),
         near_field: str = typer.Option("auto", "--near-field", help="Near-field split: pairs within the radius holding ~this many facing neighbours (nonzeros of a row of N) go into a sparse N, HF factors the smooth rest, the solver is Woodbury around I - D_c N (Neumann series per solve, sparse LU in the set-up). 'auto' (default): 120 where the split pays, from 20,000 (0.02 / eps)^1.5 patches on (20,000 at --eps 0.02, 5,060 at 0.05; 2,000 at least; a clustered mesh from 2,000 on, with 120 (n / 4,000)^0.75 a row from 4,000 patches, at most 400), off below; the split lowers the rank HF needs and, at equal --eps, the radiosity error; 'off' or 0: plain Woodbury."),
-        far_field: str = typer.Option("auto", "--far-field", help="How the form factors of well-separated pairs are found: 'exact' (every pair), 'sampled' (each column block's near rows exactly, its far rows from a few sampled rows and skeleton columns, checked on held-out rows; a separate sample of exact rows certifies the error), 'hierarchical' (F as an H-matrix: near leaf pairs exact, far cluster pairs of low rank from a few of their rows and columns; the factors from products with it; a sample of exact rows drawn by importance certifies the error; in this process only, no checkpoint, no near-field split), 'auto' (default): the faster one, which is 'exact' at every size measured so far (to 163,000 patches the sampled field evaluates 4-5x fewer pairs but costs more wall time). 'sampled' runs on Dask too (the same leaves)."),
+        far_field: str = typer.Option("auto", "--far-field", help="How the form factors of well-separated pairs are found: 'exact' (every pair), 'sampled' (each column block's near rows exactly, its far rows from a few sampled rows and skeleton columns, checked on held-out rows; a separate sample of exact rows certifies the error), 'hierarchical' (F as an H-matrix: near leaf pairs exact, far cluster pairs of low rank from a few of their rows and columns; the factors from products with it; a sample of exact rows drawn by importance certifies the error; in this process only; the checkpoint OUTPUT.partial holds the built H-matrix, so a rerun skips its build), 'auto' (default): the one measured faster, 'hierarchical' from 20,000 patches at --eps 0.05 or more on a scene that is not clustered (not on Dask), else 'exact'. 'sampled' runs on Dask too (the same leaves)."),
         scheduler: Optional[str] = typer.Option(
             None, "--scheduler", help="Run on a Dask cluster: tcp://HOST:PORT of a running `dask scheduler` "
             "(docs/cluster.md)."),
@@ -66,7 +66,8 @@ def register(app: typer.Typer) -> None:
         factorization (5 n k s: its basis, projection and SVD, k as above, plus
         three float64 n x 64 product buffers) and the statistics (about 2.9 KB a
         patch): hfrad.memory.hierarchical_bytes, refused above 80% of the
-        available memory; no checkpoint is written.
+        available memory; its checkpoint, the built H-matrix, takes about
+        5.5 bytes a stored float on disk (600 MB at 39,482 patches).
         A checkpoint (OUTPUT.partial) is written every 30 s, and at least 50
         times as long as its last write took apart (writes cost at most ~2% of
         the run); rerun the same command to resume after an interruption. With
@@ -90,10 +91,15 @@ def register(app: typer.Typer) -> None:
             common.check_output(output)
             common.check_output(output.with_name(output.name + ".partial"))
 
+            def mode(n: int, clustered: bool = False) -> str:   # what "auto" chooses (the estimate follows it)
+                from ..precompute.options import far_field_mode
+                return far_field_mode(far_field, n, True, eps=eps, local=scheduler is None and workers is None,
+                                      clustered=clustered)
+
             def need(n: int) -> None:   # before cutting: --max-edge 1e-4 is refused at once, not by the OOM killer
                 common.check_memory_for_precompute(n, min(block or DEFAULT_BLOCK_SIZE, max(n, 1)), dtype,
                                                    count="at least" if scene_options.max_edge is not None else "about",
-                                                   far_field=far_field)
+                                                   far_field=mode(n))
 
             with common.stage_clock(quiet, start=t0) as clock:
                 s = load_scene_from_options(scene, **dataclasses.asdict(scene_options), need=need, on_stage=clock)
@@ -107,11 +113,12 @@ def register(app: typer.Typer) -> None:
                 if not quiet:
                     common.console.print(f"refined: {marked:,} of {before:,} patches marked, {s.n_patches:,} patches now")
                 clock.stop()
-            common.check_memory_for_precompute(s.n_patches, block or DEFAULT_BLOCK_SIZE, dtype, far_field=far_field)
+            chosen = mode(s.n_patches, s.is_clustered)
+            common.check_memory_for_precompute(s.n_patches, block or DEFAULT_BLOCK_SIZE, dtype, far_field=chosen)
             common.warn_disk_for_hfr(output, s.n_patches, dtype)
-            if not quiet and far_field == "hierarchical":
+            if not quiet and chosen == "hierarchical":
                 from ..memory import human
-                common.console.print(f"memory estimate: about {human(common.precompute_estimate(s.n_patches, 0, dtype, far_field))} "
+                common.console.print(f"memory estimate: about {human(common.precompute_estimate(s.n_patches, 0, dtype, 'hierarchical'))} "
                                      f"for {s.n_patches:,} patches (rank guessed; refused above 80% of the available "
                                      "memory)", highlight=False)
             elif not quiet:

@@ -462,6 +462,17 @@ class FormFactorHMatrix:
             cache[threads] = _work_parts(self.blocks, threads)
         return cache[threads]
 
+    def release(self) -> None:
+        """Drop the blocks (and what the products derived from them), keeping ``perm`` and ``info``: the
+        precompute's solver set-up (the near field's sparse LUs, gigabytes on a clustered scene) then
+        does not hold the H-matrix too. The object is unusable for products afterwards."""
+        empty = np.zeros(0, np.int64)
+        self.blocks = BlockList(empty, np.zeros(1, np.int64), empty, empty, empty, empty, empty,
+                                np.zeros(0, np.float32), np.zeros(0, np.float32))
+        self.removed = None
+        for cached in ("_parts_by_threads", "_removed_squares", "_max_rank"):
+            self.__dict__.pop(cached, None)
+
     def take_near(self, centroids: np.ndarray, radius: float, *, lowrank: bool | str = "auto"):
         """Move the entries whose patches' centroids are at most ``radius`` apart out of the H-matrix
         (it then holds F - N) and return N as coordinates in tree order.

@@ -142,6 +142,7 @@ def factorize_hmatrix(scene: Scene, plan: PrecomputePlan, engine: FormFactorEngi
                       blas_threads: int | None = 1) -> HFactorization:
     """The rest of :func:`factorize_hierarchical` once the H-matrix ``hm`` of ``scene`` is built with
     ``engine`` (which then computes the exact rows): factors, statistics, certificate, solver object.
+    ``hm`` is used up: its near entries leave it and its blocks are released once the factors are found.
     ``t0``: when the run started (``perf_counter``; default now), for the recorded timings."""
     if not np.array_equal(hm.perm, plan.perm):
         raise InputError("the H-matrix's tree order differs from the plan's: build it with plan.hmatrix_options")
@@ -185,6 +186,7 @@ def _factorize_hmatrix(scene, plan, engine, hm, progress, status, t0) -> HFactor
                                          n, hm.frobenius2(rho), eps=target, relative=False, dtype=dt,
                                          rng=FACTORIZATION_SEED, range_share=RANGE_SHARE, progress=progress)
         lowrank.norm, lowrank.eps, lowrank.relative = math.sqrt(norm2), plan.eps, plan.relative
+        hm.release()        # not needed by the solver set-up, whose near-field LUs may take gigabytes
         t_fac = time.perf_counter()
         if status is not None:
             status({"blocks": 0, "rank": lowrank.rank, "elapsed": t_fac - t0})

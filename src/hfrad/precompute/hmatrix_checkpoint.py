@@ -46,7 +46,7 @@ def save_hmatrix_checkpoint(hm: FormFactorHMatrix, path: str | os.PathLike, key:
     size = sum(a.nbytes for a in arrays.values()) + hm.perm.nbytes + (64 << 10)
     with atomic_path(path, size=size) as tmp, h5py.File(tmp, "w") as f:
         f.attrs["format"], f.attrs["version"], f.attrs["key"] = FORMAT, VERSION, key
-        f.attrs["info"] = json.dumps(hm.info)
+        f.attrs["info"] = json.dumps(hm.info, default=lambda x: x.item() if isinstance(x, np.generic) else str(x))
         checked_dataset(f, "perm", hm.perm)
         for name, a in arrays.items():
             checked_dataset(f, f"blocks/{name}", a, chunks=(min(_CHUNK, a.size),) if a.size else None)

@@ -103,16 +103,34 @@ def near_entries(near_field, n: int, eps: float = NEAR_FIELD_REFERENCE_EPS, rela
     return int(near_field)
 
 
-def far_field_mode(far_field, n: int, relative: bool) -> str:
+#: ``far_field="auto"`` chooses the hierarchical far field from this many patches ...
+AUTO_HIERARCHICAL_FROM = 20000
+#: ... at a relative eps of at least this (where it was measured faster: benchmarks/README.md, "Where
+#: the hierarchical far field pays"). The Cornell box, one run each, this process, the same day:
+#: eps 0.05, 9,986 patches 14.8 s against the exact pass's 13.3 s, 19,596 patches 28.4 s against 32.3 s,
+#: 161,808 patches about 3x faster; eps 0.02, 19,596 patches 58 s against 97 s but 39,482 patches 289 s
+#: against 188 s (rank 1,882: the range finder's basis of 3,136 columns, O(n l^2), is most of it).
+AUTO_HIERARCHICAL_EPS = 0.05
+
+
+def far_field_mode(far_field, n: int, relative: bool, *, eps: float = 0.0, local: bool = True,
+                   clustered: bool = False) -> str:
     """``"exact"``, ``"sampled"`` or ``"hierarchical"`` for ``factorize(far_field=...)``.
 
-    "auto" is the exact pass at every size for now: measured at 40,000 and 163,000 patches
-    (benchmarks/README.md, "The sampled far field"), the sampled far field evaluates 4-5
-    times fewer pairs but its blocks still cost more wall time than the exact pass's (Python
-    work per column group, the dense n x b blocks HF is given), so there is no crossover yet.
+    "auto" is the hierarchical far field where it was measured faster than the exact pass: in this
+    process (``local``), on a scene of plain patches (not ``clustered``), from
+    ``AUTO_HIERARCHICAL_FROM`` patches at a relative eps of at least ``AUTO_HIERARCHICAL_EPS``; the
+    exact pass elsewhere (smaller scenes, a smaller or absolute eps, a Dask cluster, and clustered
+    real scenes: Šibenik, 10,181 patches, 40.2 s against the exact pass's 35.0 s; at 60,568 patches
+    the near field's sparse LUs (4.5 GB at 20,616 patches, 400 neighbours a row) beside the
+    H-matrix ran the 23.5 GB machine out of memory, 2026-12-07). The sampled far field is never
+    chosen: it evaluates 4-5 times fewer pairs than the exact pass but costs more wall time
+    (benchmarks/README.md, "The sampled far field").
     """
     if far_field == "auto":
-        return "exact"
+        hierarchical = (local and relative and not clustered and n >= AUTO_HIERARCHICAL_FROM
+                        and eps >= AUTO_HIERARCHICAL_EPS)
+        return "hierarchical" if hierarchical else "exact"
     if far_field not in FAR_FIELD_CHOICES:
         raise InputError(f"far_field must be one of {', '.join(map(repr, FAR_FIELD_CHOICES))}; got {far_field!r}")
     if far_field == "sampled" and not relative:
@@ -193,7 +211,7 @@ class PrecomputeOptions:
 
 def plan_precompute(scene: Scene, eps: float = 0.02, *, relative: bool = True, dtype="float32", order="zorder",
                     near_field=None, options: PrecomputeOptions | None = None,
-                    reciprocity: bool = True, far_field: str = "exact") -> PrecomputePlan:
+                    reciprocity: bool = True, far_field: str = "exact", local: bool = True) -> PrecomputePlan:
     """Validate the precompute's options for ``scene`` at the API boundary (both backends), once.
 
     Parameters
@@ -211,6 +229,9 @@ def plan_precompute(scene: Scene, eps: float = 0.02, *, relative: bool = True, d
     far_field : {"exact", "sampled", "hierarchical", "auto"}
         As in :func:`hfrad.factorize` (resolved by :func:`far_field_mode`); "hierarchical" orders the
         patches by the H-matrix's cluster tree (``order`` then must be a name, and is not used).
+    local : bool
+        The precompute runs in this process (a ``LocalBackend``), not on Dask: "auto" may then
+        choose the hierarchical far field.
 
     Returns
     -------
@@ -244,7 +265,9 @@ def plan_precompute(scene: Scene, eps: float = 0.02, *, relative: bool = True, d
         one_ray_tol = default_one_ray_tol(eps, relative)
     elif not (one_ray_tol >= 0 and np.isfinite(one_ray_tol)):
         raise InputError(f"one_ray_tol must be a share >= 0 of ||F||_F; got {one_ray_tol!r}")
-    far_field = far_field_mode(far_field, n, bool(relative))
+    if far_field == "auto" and not isinstance(order, str):
+        far_field = "exact"        # a custom order: only the column pass keeps it
+    far_field = far_field_mode(far_field, n, bool(relative), eps=eps, local=local, clustered=scene.is_clustered)
     hm_options = hmatrix_options(options.hmatrix, eps, relative) if far_field == "hierarchical" else None
     if hm_options is not None:
         if not isinstance(order, str):
