@@ -76,6 +76,40 @@ def save_checkpoint(stream: HFStream, path: str | os.PathLike, key: str = "") ->
 _DELETE = "delete it to start over (the precompute then starts from the first block)"
 
 
+def open_checkpoint(path: str | os.PathLike, fmt: str, advice: str):
+    """``path`` opened for reading as an HDF5 checkpoint of format ``fmt`` (an open ``h5py.File``).
+
+    Raises FileNotFoundError when there is none, FileFormatError when it is not readable HDF5, and
+    InputError when it is an hfrad checkpoint of another kind (the other far field's: made with other
+    parameters); ``advice`` ends each message (what to do with the file)."""
+    import h5py
+
+    try:
+        f = h5py.File(path, "r")
+    except FileNotFoundError:
+        raise
+    except (OSError, ValueError) as exc:
+        raise FileFormatError(f"{path}: the checkpoint is not a readable HDF5 file (truncated or damaged: "
+                              f"{str(exc)[:200]}); {advice}") from None
+    other = f.attrs.get("format")
+    if isinstance(other, str) and other.startswith("hfrad-") and other.endswith("-checkpoint") and other != fmt:
+        f.close()
+        raise InputError(f"{path}: a checkpoint of another far field ({other}), made with other parameters; "
+                         f"{advice}, or use another output name")
+    return f
+
+
+def check_checkpoint(f, path: str | os.PathLike, key: str, advice: str) -> None:
+    """Refuse the open checkpoint ``f`` when it is damaged (FileFormatError) or made for another input
+    (InputError: ``key`` differs); ``advice`` ends each message."""
+    problem = integrity_problem(f)
+    if problem is not None:
+        raise FileFormatError(f"{path}: damaged checkpoint, {problem}; {advice}")
+    if str(f.attrs["key"]) != key:
+        raise InputError(f"{path}: checkpoint was made for another scene or other parameters; "
+                         f"{advice}, or use another output name")
+
+
 def load_checkpoint(path: str | os.PathLike, key: str = "") -> HFStream:
     """Rebuild a stream from a checkpoint written by :func:`save_checkpoint`.
 
@@ -87,32 +121,16 @@ def load_checkpoint(path: str | os.PathLike, key: str = "") -> HFStream:
     InputError
         It was made for another input (``key`` differs).
     """
-    import h5py
-
-    try:
-        f = h5py.File(path, "r")
-    except FileNotFoundError:
-        raise
-    except (OSError, ValueError) as exc:
-        raise FileFormatError(f"{path}: the checkpoint is not a readable HDF5 file (truncated or damaged: "
-                              f"{str(exc)[:200]}); {_DELETE}") from None
+    f = open_checkpoint(path, FORMAT, _DELETE)
     with f:
         try:
             version, fmt = f.attrs.get("version"), f.attrs.get("format")
-            if isinstance(fmt, str) and fmt.startswith("hfrad-") and fmt.endswith("-checkpoint") and fmt != FORMAT:
-                raise InputError(f"{path}: a checkpoint of another far field ({fmt}), made with other parameters; "
-                                 f"{_DELETE}, or use another output name")
             if version is None or (int(version) >= 2 and fmt != FORMAT):
                 raise FileFormatError(f"{path}: not an hfrad checkpoint; {_DELETE}")
             if int(version) != CHECKPOINT_VERSION:
                 raise FileFormatError(f"{path}: checkpoint version {int(version)}, this hfrad writes and reads "
                                       f"{CHECKPOINT_VERSION} only; {_DELETE}")
-            problem = integrity_problem(f)
-            if problem is not None:
-                raise FileFormatError(f"{path}: damaged checkpoint, {problem}; {_DELETE}")
-            if str(f.attrs["key"]) != key:
-                raise InputError(f"{path}: checkpoint was made for another scene or other parameters; "
-                                 f"{_DELETE}, or use another output name")
+            check_checkpoint(f, path, key, _DELETE)
             stream = HFStream(**json.loads(f.attrs["params"]))
             stream.blocks_done = int(f.attrs["blocks_done"])
             stream.columns_done = int(f.attrs["columns_done"])

@@ -19,7 +19,8 @@ import numpy as np
 from ..atomic import atomic_path
 from ..errors import FileFormatError, InputError
 from ..formfactors.hmatrix import BlockList, FormFactorHMatrix
-from ..integrity import checked_dataset, integrity_problem, seal
+from ..integrity import checked_dataset, seal
+from ..lowrank.streaming import check_checkpoint, open_checkpoint
 
 __all__ = ["save_hmatrix_checkpoint", "load_hmatrix_checkpoint", "FORMAT", "VERSION"]
 
@@ -66,31 +67,14 @@ def load_hmatrix_checkpoint(path: str | os.PathLike, key: str, perm: np.ndarray)
     InputError
         Made for another input (another key, or a checkpoint of the column-block pass).
     """
-    import h5py
-
-    try:
-        f = h5py.File(path, "r")
-    except FileNotFoundError:
-        raise
-    except (OSError, ValueError) as exc:
-        raise FileFormatError(f"{path}: the checkpoint is not a readable HDF5 file (truncated or damaged: "
-                              f"{str(exc)[:200]}); {_DELETE}") from None
+    f = open_checkpoint(path, FORMAT, _DELETE)
     with f:
-        fmt = f.attrs.get("format")
-        if fmt != FORMAT:
-            if isinstance(fmt, str) and fmt.startswith("hfrad-"):
-                raise InputError(f"{path}: a checkpoint of another far field ({fmt}), made with other parameters; "
-                                 f"{_DELETE}, or use another output name")
+        if f.attrs.get("format") != FORMAT:
             raise FileFormatError(f"{path}: not an hfrad checkpoint; {_DELETE}")
         if int(f.attrs.get("version", -1)) != VERSION:
             raise FileFormatError(f"{path}: H-matrix checkpoint version {f.attrs.get('version')}, this hfrad "
                                   f"reads {VERSION} only; {_DELETE}")
-        problem = integrity_problem(f)
-        if problem is not None:
-            raise FileFormatError(f"{path}: damaged checkpoint, {problem}; {_DELETE}")
-        if str(f.attrs["key"]) != key:
-            raise InputError(f"{path}: checkpoint was made for another scene or other parameters; "
-                             f"{_DELETE}, or use another output name")
+        check_checkpoint(f, path, key, _DELETE)
         try:
             saved_perm = f["perm"][()]
             blocks = BlockList(*(f[f"blocks/{name}"][()] for name in _ARRAYS))
