@@ -90,9 +90,10 @@ def factorize_hierarchical(scene: Scene, plan: PrecomputePlan, progress: Progres
         factorization of 1,508 patches took 79 s with the default BLAS threads and 4.1 s with one.
     checkpoint : Checkpoint, optional
         The built H-matrix is saved at ``checkpoint.path`` (once, when it is built: most of the run's
-        time; only when the build took at least ``checkpoint.interval``), and a rerun that finds it there loads it instead of building it
-        (:mod:`~hfrad.precompute.hmatrix_checkpoint`; ``status`` is then called with ``resumed``, the
-        blocks loaded, and ``resumed_unit``). Deleted on completion unless ``checkpoint.keep``.
+        time; only when the build took at least ``checkpoint.interval``), and a rerun that finds it
+        there loads it instead of building it (:mod:`~hfrad.precompute.hmatrix_checkpoint`; ``status``
+        is then called with ``resumed``, the blocks loaded, and ``resumed_unit``). Deleted on
+        completion unless ``checkpoint.keep``.
 
     Returns
     -------
