@@ -11,6 +11,7 @@ checkpoint made for another input (the plan's key) is refused, never resumed and
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 
@@ -27,7 +28,7 @@ __all__ = ["save_hmatrix_checkpoint", "load_hmatrix_checkpoint", "FORMAT", "VERS
 FORMAT = "hfrad-hmatrix-checkpoint"
 VERSION = 1
 #: The block list's arrays, in the order of :class:`BlockList`'s fields.
-_ARRAYS = ("row_index", "row_ptr", "c0", "b", "rank", "u_off", "v_off", "U", "V")
+_ARRAYS = tuple(f.name for f in dataclasses.fields(BlockList))
 #: HDF5 chunks of 4M entries: the default chunking of a multi-GB dataset makes its writes slow.
 _CHUNK = 1 << 22
 _DELETE = "delete it to start over (the precompute then builds the H-matrix again)"
