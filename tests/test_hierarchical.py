@@ -225,8 +225,29 @@ def test_memory_refused_with_the_number(monkeypatch):
 
     scene = hfrad.load_scene("cornell", patches=300)
     monkeypatch.setattr(memory, "available_bytes", lambda: 1 << 20)
-    with pytest.raises(MemoryLimitError, match=r"far_field='hierarchical' needs about [0-9.]+ MB"):
+    with pytest.raises(MemoryLimitError, match=r"far_field='hierarchical'( and \d+ near-field entries a row)? "
+                                               r"needs about [0-9.]+ MB"):
         hfrad.factorize(scene, EPS, far_field="hierarchical")
+
+
+def test_near_field_lus_after_the_release_where_they_do_not_fit_beside(box, monkeypatch):
+    """Where the near field's LUs would not fit beside the H-matrix (hfrad.solve.prefetch.prefetch_fits),
+    they are factored by the set-up after the H-matrix is released: no prefetch, the same solver bit for bit."""
+    import hfrad.memory as memory
+    import hfrad.precompute.hierarchical as hierarchical
+    from hfrad.solve.prefetch import PREFETCH_BESIDE_SHARE, prefetch_fits
+
+    scene = box[0]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", AccuracyWarning)
+        beside = hfrad.factorize(scene, EPS, far_field="hierarchical", near_field=120)
+        monkeypatch.setattr(hierarchical, "prefetch_fits", lambda n, entries: False)
+        after = hfrad.factorize(scene, EPS, far_field="hierarchical", near_field=120)
+    assert beside.lowrank.info["near_prefetched"] == 3 and "near_prefetched" not in after.lowrank.info
+    assert np.array_equal(beside.solve(scene.emission), after.solve(scene.emission))
+    need = memory.near_field_bytes(scene.n_patches, 120)
+    monkeypatch.setattr(memory, "available_bytes", lambda: int(need / PREFETCH_BESIDE_SHARE))
+    assert prefetch_fits(scene.n_patches, 120) and not prefetch_fits(scene.n_patches, 121)
 
 
 def test_near_field_split_lowers_the_rank(box):

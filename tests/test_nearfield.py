@@ -306,3 +306,32 @@ def test_float32_set_up_capacitance_and_radiosity_against_the_dense_solve():
     err = np.linalg.norm(w * (fac.solve(scene.emission) - exact), axis=0) / np.linalg.norm(w * exact, axis=0)
     assert (err < 0.01).all()                                  # observed 0.21-0.26% at eps 0.03
     assert (err <= fac.error_estimate().bound).all()
+
+
+def test_sparse_lu_within_its_memory_estimate(pair):
+    """The memory check's LU entries (n c^1.5, hfrad.memory.near_lu_entries) hold the LU SuperLU makes
+    of a real N, and are not a figure that cannot fail: measured 0.44-0.50 of it on the Cornell box
+    (1,508 and 2,974 patches, c = 120), 0.53-0.84 at 9,986-60,568 patches (benchmarks/README.md)."""
+    from hfrad.memory import near_lu_entries
+    from hfrad.solve.nearfield import factor_near
+
+    split = pair[1]
+    lu = factor_near(split.N, split._D[:, 0])
+    ratio = (lu.L.nnz + lu.U.nnz) / near_lu_entries(split.n_patches, split.params["near_field"])
+    assert 0.3 <= ratio <= 1.0, ratio
+
+
+def test_near_field_set_up_refused_with_the_number(monkeypatch):
+    """The set-up's sparse LUs are estimated before the pass and refused with the number (a 60,568-patch
+    clustered run was killed at 24.3 GB by the OOM killer before they were counted); without the near
+    field the same memory is enough."""
+    import hfrad.memory as memory
+    from hfrad.errors import MemoryLimitError
+
+    scene = load_scene("cornell", patches=300)
+    need = memory.near_setup_bytes(scene.n_patches, 120)
+    monkeypatch.setattr(memory, "available_bytes", lambda: int(need / 0.8) - 1)
+    with pytest.raises(MemoryLimitError, match=r"near field's set-up for 3\d\d patches \(120 entries a row\) "
+                                               r"needs about [0-9.]+ MB"):
+        factorize(scene, 0.05, near_field=120, backend=LocalBackend(processes=1))
+    assert factorize(scene, 0.05, near_field=None, backend=LocalBackend(processes=1)).rank > 0

@@ -105,3 +105,59 @@ def hierarchical_bytes(n: int, rank_guess_: int | None = None, itemsize: int = 4
     k = rank_guess(n) if rank_guess_ is None else rank_guess_
     return int(n * (4 * HMATRIX_FLOATS_PER_SQRT_N * n ** 0.5 + 5 * k * itemsize + 3 * 8 * OPERATOR_BLOCK
                     + HIERARCHICAL_STATS_BYTES))
+
+
+#: Entries a row of the near field's sparse LU (SuperLU, minimum degree on A^T + A) over ``c^1.5``, c the
+#: entries a row of N: it grows faster than N. Measured (N's pattern, one channel): the Cornell box,
+#: c = 120, 0.70 at 9,986 patches and 0.53 at 39,482; the Šibenik cathedral, clustered, 0.69 at 10,181
+#: patches (c = 242), 0.67 at 20,616 and 0.84 at 60,568 (c = 400: 396 million entries, 16.6 times N's).
+#: Taken as 1: an upper figure on both scenes.
+NEAR_LU_ENTRIES_PER_C15 = 1.0
+#: Bytes an LU entry takes while one channel is factored: SuperLU's own storage (about 9), SciPy's float64
+#: copy of L and U (12) and the panel solver's float32 copy (4); measured 24.7 (Šibenik, 10,181 patches)
+#: and 25.0. Held afterwards, per channel: about 8 (float32 values and int32 indices).
+NEAR_LU_PEAK_BYTES = 25
+#: Bytes an entry of N takes while the set-up holds it: two float64 CSR copies (the assembly's and the
+#: solver's) and the sweeps' float32 copy.
+NEAR_N_BYTES = 2 * 12 + 8
+
+
+def near_lu_entries(n: int, entries: int) -> float:
+    """Entries of one channel's sparse LU of ``I - D_c N``, estimated (:data:`NEAR_LU_ENTRIES_PER_C15`)."""
+    return NEAR_LU_ENTRIES_PER_C15 * n * float(entries) ** 1.5
+
+
+def near_field_bytes(n: int, entries: int) -> int:
+    """Peak of the near field's own set-up, bytes: ``25 n c^1.5 + 32 n c`` for c entries a row of N.
+
+    One channel's sparse LU while it is factored (:data:`NEAR_LU_PEAK_BYTES` an entry of
+    :func:`near_lu_entries`; the channels are factored one at a time) and N itself
+    (:data:`NEAR_N_BYTES` an entry). 0 without the near field (``entries`` 0).
+    """
+    if not entries:
+        return 0
+    return int(NEAR_LU_PEAK_BYTES * near_lu_entries(n, entries) + NEAR_N_BYTES * n * entries)
+
+
+def near_setup_bytes(n: int, entries: int, rank_guess_: int | None = None, itemsize: int = 4) -> int:
+    """Peak of the solver's set-up with the near field, bytes: the factors (:func:`factors_bytes`), three
+    n x k ``Z_c`` (one a distinct colour channel, ``3 n k s``) and :func:`near_field_bytes`. The rank
+    k is :func:`rank_guess` unless given (see :data:`RANK_ASSUMPTION`)."""
+    if not entries:
+        return 0
+    k = rank_guess(n) if rank_guess_ is None else rank_guess_
+    return factors_bytes(n, k, itemsize) + 3 * n * k * itemsize + near_field_bytes(n, entries)
+
+
+def precompute_peak_bytes(n: int, block_size: int, *, far_field: str = "exact", near_entries: int = 0,
+                          itemsize: int = 4) -> int:
+    """Rough peak memory of a precompute in this process, bytes: the larger of its pass over F
+    (:func:`precompute_bytes`, or :func:`hierarchical_bytes` with ``far_field="hierarchical"``) and the
+    solver's set-up (:func:`near_setup_bytes`, with ``near_entries`` c > 0 a row of N): the pass's
+    blocks (or the H-matrix) are released before the set-up, and the near field's LUs are factored
+    beside the pass only where they fit (:mod:`hfrad.solve.prefetch`)."""
+    if far_field == "hierarchical":
+        pass_bytes = hierarchical_bytes(n, itemsize=itemsize)
+    else:
+        pass_bytes = precompute_bytes(n, block_size, itemsize=itemsize)
+    return max(pass_bytes, near_setup_bytes(n, near_entries, itemsize=itemsize))

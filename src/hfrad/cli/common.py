@@ -327,26 +327,26 @@ def check_samples(samples) -> None:
                 why="visibility rays per patch pair; time and memory grow in proportion")
 
 
-def precompute_estimate(n: int, block: int, dtype: str, far_field: str = "auto") -> int:
-    """Bytes a precompute of n patches is estimated to need (:func:`hfrad.memory.precompute_bytes`, or
-    :func:`hfrad.memory.hierarchical_bytes` with ``far_field="hierarchical"``)."""
-    from ..memory import hierarchical_bytes, precompute_bytes
+def precompute_estimate(n: int, block: int, dtype: str, far_field: str = "auto", near_entries: int = 0) -> int:
+    """Bytes a precompute of n patches is estimated to need (:func:`hfrad.memory.precompute_peak_bytes`:
+    the pass, or the near field's set-up with ``near_entries`` a row where that is larger)."""
+    from ..memory import precompute_peak_bytes
 
-    itemsize = check_dtype(dtype).itemsize
-    if far_field == "hierarchical":
-        return hierarchical_bytes(n, itemsize=itemsize)
-    return precompute_bytes(n, block, itemsize=itemsize)
+    return precompute_peak_bytes(n, block, far_field=far_field, near_entries=near_entries,
+                                 itemsize=check_dtype(dtype).itemsize)
 
 
-def check_memory_for_precompute(n: int, block: int, dtype: str, *, count: str = "", far_field: str = "auto") -> None:
+def check_memory_for_precompute(n: int, block: int, dtype: str, *, count: str = "", far_field: str = "auto",
+                                near_entries: int = 0) -> None:
     """Refuse a precompute that would not fit in memory (see ``hfrad precompute --help``); ``count``
     qualifies the patch count in the message ("at least" for an estimate before cutting)."""
     from ..memory import RANK_ASSUMPTION, rank_guess, require
 
-    require(precompute_estimate(n, block, dtype, far_field),
-            f"precomputing {count + ' ' if count else ''}{n:,} patches",
-            f"use fewer patches (--patches/--max-edge) or a larger --eps (the estimate assumes a rank of "
-            f"{rank_guess(n):,}: {RANK_ASSUMPTION})")
+    require(precompute_estimate(n, block, dtype, far_field, near_entries),
+            f"precomputing {count + ' ' if count else ''}{n:,} patches"
+            + (f" with {near_entries} near-field entries a row" if near_entries else ""),
+            f"use fewer patches (--patches/--max-edge), a larger --eps or a smaller --near-field (the estimate "
+            f"assumes a rank of {rank_guess(n):,}: {RANK_ASSUMPTION})")
 
 
 def error_figures_line(fac, residual=None, solution=None) -> str:

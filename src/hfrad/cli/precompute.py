@@ -55,9 +55,12 @@ def register(app: typer.Typer) -> None:
         gives the share of pairs copied. The file is unlinked as soon as it is
         created (nothing is left after an error or Ctrl-C); damaged tiles are
         detected by checksum and recomputed. With the near field (by default from 20,000 (0.02 / eps)^1.5 patches, c = 120 entries a row, up to 400 on clustered meshes of 20,000 patches; c entries a
-        row): about 40 n c bytes while N is collected, one n x k Z per distinct
-        colour channel (n k s each) and, during the set-up, one channel's sparse
-        LU (about 9 times N's entries).
+        row): about 40 n c bytes while N is collected and, after the pass, the
+        set-up: the factors, one n x k Z per distinct colour channel (3 n k s at
+        most) and one channel's sparse LU while it is factored, 25 bytes an
+        entry for about n c^1.5 entries (16.6 times N's entries measured on a
+        clustered mesh of 60,568 patches, c = 400), plus 32 n c for N:
+        hfrad.memory.near_setup_bytes, refused above 80% of the available memory.
         With --far-field sampled: no reciprocity tiles and no scratch file; besides the
         same column blocks, the certification and sampled rows' exact values (about
         (2 sqrt(n) + 400) b float64 a block) and the cluster-pair visibility table (n^2 / 1024 bytes).
@@ -96,10 +99,14 @@ def register(app: typer.Typer) -> None:
                 return far_field_mode(far_field, n, True, eps=eps, local=scheduler is None and workers is None,
                                       clustered=clustered)
 
+            def entries(n: int, clustered: bool = False) -> int:   # near-field entries a row, as the plan resolves them
+                from ..precompute.options import near_entries
+                return near_entries(near, n, eps, True, clustered=clustered, far_field=mode(n, clustered))
+
             def need(n: int) -> None:   # before cutting: --max-edge 1e-4 is refused at once, not by the OOM killer
                 common.check_memory_for_precompute(n, min(block or DEFAULT_BLOCK_SIZE, max(n, 1)), dtype,
                                                    count="at least" if scene_options.max_edge is not None else "about",
-                                                   far_field=mode(n))
+                                                   far_field=mode(n), near_entries=entries(n))
 
             with common.stage_clock(quiet, start=t0) as clock:
                 s = load_scene_from_options(scene, **dataclasses.asdict(scene_options), need=need, on_stage=clock)
@@ -114,23 +121,28 @@ def register(app: typer.Typer) -> None:
                     common.console.print(f"refined: {marked:,} of {before:,} patches marked, {s.n_patches:,} patches now")
                 clock.stop()
             chosen = mode(s.n_patches, s.is_clustered)
-            common.check_memory_for_precompute(s.n_patches, block or DEFAULT_BLOCK_SIZE, dtype, far_field=chosen)
+            near_count = entries(s.n_patches, s.is_clustered)
+            common.check_memory_for_precompute(s.n_patches, block or DEFAULT_BLOCK_SIZE, dtype, far_field=chosen,
+                                               near_entries=near_count)
             common.warn_disk_for_hfr(output, s.n_patches, dtype)
             if not quiet and chosen == "hierarchical":
                 from ..memory import human
-                common.console.print(f"memory estimate: about {human(common.precompute_estimate(s.n_patches, 0, dtype, 'hierarchical'))} "
-                                     f"for {s.n_patches:,} patches (rank guessed; refused above 80% of the available "
-                                     "memory)", highlight=False)
+                estimate = common.precompute_estimate(s.n_patches, 0, dtype, 'hierarchical', near_count)
+                common.console.print(f"memory estimate: about {human(estimate)} for {s.n_patches:,} patches "
+                                     "(rank guessed; the near field's sparse LUs included; refused above 80% of "
+                                     "the available memory)", highlight=False)
             elif not quiet:
                 from ..formfactors.mirror import mirror_bytes
                 from ..memory import human, precompute_bytes
-                estimate = precompute_bytes(s.n_patches, block or DEFAULT_BLOCK_SIZE,
-                                            itemsize=common.check_dtype(dtype).itemsize)
                 itemsize = common.check_dtype(dtype).itemsize
-                mirror = mirror_bytes(s.n_patches, itemsize, reserved=estimate)
+                pass_bytes = precompute_bytes(s.n_patches, block or DEFAULT_BLOCK_SIZE, itemsize=itemsize)
+                estimate = common.precompute_estimate(s.n_patches, block or DEFAULT_BLOCK_SIZE, dtype, chosen,
+                                                      near_count)
+                mirror = mirror_bytes(s.n_patches, itemsize, reserved=pass_bytes)
                 scratch = _scratch_estimate(s.n_patches, block or DEFAULT_BLOCK_SIZE, itemsize, mirror)
                 common.console.print(f"memory estimate: about {human(estimate)} for {s.n_patches:,} patches "
-                                     "(rank guessed; refused above 80% of the available memory), plus up to "
+                                     "(rank guessed" + ("; the near field's sparse LUs included" if near_count else "")
+                                     + "; refused above 80% of the available memory), plus up to "
                                      f"{human(mirror)} of form factors kept for reciprocity"
                                      + (f" and up to {human(scratch)} of them in a scratch file beside the output"
                                         if scratch else ""), highlight=False)

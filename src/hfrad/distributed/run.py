@@ -38,7 +38,7 @@ from ..solve.stats import PassStatistics
 from ..solve.woodbury import HFactorization
 from . import panels, sizing, store
 from .connection import Cluster, WorkerLostError, connect
-from ..solve.prefetch import NearPrefetch
+from ..solve.prefetch import NearPrefetch, prefetch_fits
 from . import tiles as tiles_mod
 from .tasks import (Job, chunk_task, form_task, gram_task, group_leaf_task, group_tree_task, leaf_task,
                     load_task,
@@ -509,7 +509,7 @@ def _run(cluster: Cluster, scene, options: PrecomputePlan, task_threads, checkpo
         # the near field is complete once the serial subtrees are: an in-process assembly's LUs
         # start then, beside the panelled top merges (hfrad.solve.prefetch)
         early = isinstance(root, _Panelled) and bool(options.near_entries) \
-            and cluster.n_workers < ASSEMBLY_MIN_WORKERS and near_prefetch
+            and cluster.n_workers < ASSEMBLY_MIN_WORKERS and near_prefetch and prefetch_fits(n, options.near_entries)
         report(progress, 0, m)
         while not all(f.done() for f in final):
             time.sleep(_POLL_SECONDS)

@@ -30,11 +30,11 @@ from ..formfactors.farfield import FarFieldCertificate, patch_boxes
 from ..formfactors.hmatrix import FormFactorHMatrix, HMatrixOptions, build_hmatrix, cluster_tree
 from ..lowrank.operator import operator_factorization
 from ..errors import InputError
-from ..memory import RANK_ASSUMPTION, hierarchical_bytes, rank_guess, require
+from ..memory import RANK_ASSUMPTION, precompute_peak_bytes, rank_guess, require
 from .. import resources
 from ..progress import ProgressCallback
 from ..scene.scene import Scene
-from ..solve.prefetch import NearPrefetch
+from ..solve.prefetch import NearPrefetch, prefetch_fits
 from ..solve.stats import PassStatistics
 from ..solve.woodbury import HFactorization
 from .assemble import PrecomputePlan, assemble, near_state
@@ -102,11 +102,16 @@ def factorize_hierarchical(scene: Scene, plan: PrecomputePlan, progress: Progres
     Raises
     ------
     MemoryLimitError
-        The estimate (:func:`hfrad.memory.hierarchical_bytes`) exceeds 80% of the available memory.
+        The estimate (:func:`hfrad.memory.precompute_peak_bytes`: the H-matrix and its factorization, or
+        the near field's set-up with its sparse LUs where that is larger) exceeds 80% of the available memory.
     """
     n, dt = plan.n, np.dtype(plan.dtype)
-    require(hierarchical_bytes(n, itemsize=dt.itemsize), f"precomputing {n:,} patches with far_field='hierarchical'",
-            f"use fewer patches or a larger eps (the estimate assumes a rank of {rank_guess(n):,}: {RANK_ASSUMPTION})")
+    require(precompute_peak_bytes(n, plan.block_size, far_field="hierarchical", near_entries=plan.near_entries,
+                                  itemsize=dt.itemsize),
+            f"precomputing {n:,} patches with far_field='hierarchical'"
+            + (f" and {plan.near_entries} near-field entries a row" if plan.near_entries else ""),
+            f"use fewer patches, a larger eps or fewer near-field entries (the estimate assumes a rank of "
+            f"{rank_guess(n):,}: {RANK_ASSUMPTION})")
     t0 = time.perf_counter()
     engine = engine_for(scene, plan)
     try:
@@ -178,8 +183,11 @@ def _factorize_hmatrix(scene, plan, engine, hm, progress, status, t0) -> HFactor
         r, c, v = hm.take_near(scene.centroids[plan.perm], plan.near_radius)
         near = near_state([r], [c], [rho[r] * v])
         # the solver's sparse LUs need only N: factored beside the range finder, on the core its
-        # single-threaded steps leave idle (hfrad.solve.prefetch)
-        prefetch = NearPrefetch(near, n, scene.reflectance, plan.perm, dt)
+        # single-threaded steps leave idle (hfrad.solve.prefetch), where they fit beside the H-matrix
+        # (Šibenik, 60,568 patches: 10.3 GB for one channel's factorization, 278 s; the run was killed
+        # at 24.3 GB when they were factored beside it)
+        if prefetch_fits(n, plan.near_entries):
+            prefetch = NearPrefetch(near, n, scene.reflectance, plan.perm, dt)
     try:
         target = plan.eps * math.sqrt(norm2) if plan.relative else plan.eps
         rho_dt = rho.astype(dt)[:, None]    # products in the factors' dtype (float32: twice as fast)

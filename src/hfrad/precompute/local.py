@@ -26,7 +26,7 @@ from ..formfactors.farfield import (FarFieldCertificate, FarFieldStats, SampledF
 from ..lowrank.hf import HFStream
 from ..lowrank.nearsplit import NearFieldSplit
 from ..lowrank.streaming import load_checkpoint, save_checkpoint
-from ..memory import precompute_bytes
+from ..memory import RANK_ASSUMPTION, near_setup_bytes, precompute_bytes, rank_guess, require
 from ..progress import ProgressCallback, report
 from ..resources import blas_threads, cores
 from ..scene.scene import Scene
@@ -70,9 +70,21 @@ def factorize_local(scene: Scene, plan: PrecomputePlan, backend: LocalBackend | 
     Returns
     -------
     HFactorization or NearFieldFactorization
+
+    Raises
+    ------
+    MemoryLimitError
+        With the near field: its set-up (:func:`hfrad.memory.near_setup_bytes`, the sparse LUs
+        included) is estimated above 80% of the available memory. The pass itself adapts: its
+        reciprocity tiles take what the rest leaves.
     """
     backend = LocalBackend() if backend is None else backend
     n, block_size, dt = plan.n, plan.block_size, np.dtype(plan.dtype)
+    if plan.near_entries:
+        require(near_setup_bytes(n, plan.near_entries, itemsize=dt.itemsize),
+                f"the near field's set-up for {n:,} patches ({plan.near_entries} entries a row)",
+                f"use fewer patches, a larger eps or fewer near-field entries (near_field=...; the estimate "
+                f"assumes a rank of {rank_guess(n):,}: {RANK_ASSUMPTION})")
     perm, n_blocks = plan.perm, plan.n_blocks
     key = plan.key(scene)
     path = None if checkpoint is None else checkpoint.path

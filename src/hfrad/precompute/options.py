@@ -83,16 +83,19 @@ def clustered_near_entries(n: int) -> int:
 
 
 def near_entries(near_field, n: int, eps: float = NEAR_FIELD_REFERENCE_EPS, relative: bool = True,
-                 clustered: bool = False) -> int:
+                 clustered: bool = False, far_field: str = "exact") -> int:
     """Neighbours per row of the near field for ``factorize(near_field=...)`` (0 = no split).
 
     "auto": ``DEFAULT_NEAR_ENTRIES`` where the split pays (from
     :func:`near_field_pays_from` patches on at this ``eps``, for a scene ``clustered`` or not), else 0;
     a clustered scene's count grows with n from ``CLUSTERED_NEAR_FROM`` patches on
-    (:func:`clustered_near_entries`).
+    (:func:`clustered_near_entries`). With ``far_field="hierarchical"`` (resolved) the split is
+    made at every size.
     """
     if near_field == "auto":
-        if n < near_field_pays_from(eps, relative, clustered):
+        # the H-matrix holds the near pairs already: the split costs nothing there and lowers the
+        # rank at every size (1,898 -> 214 at 9,986 patches, eps 0.05)
+        if n < near_field_pays_from(eps, relative, clustered) and far_field != "hierarchical":
             return 0
         return clustered_near_entries(n) if clustered else DEFAULT_NEAR_ENTRIES
     if near_field is None or near_field is False:
@@ -281,10 +284,7 @@ def plan_precompute(scene: Scene, eps: float = 0.02, *, relative: bool = True, d
     else:
         perm = check_permutation(order, n)
         order = "custom"
-    entries = near_entries(near_field, n, eps, relative, clustered=scene.is_clustered)
-    if hm_options is not None and near_field == "auto":   # the H-matrix holds the near pairs already: the
-        # split costs nothing there and lowers the rank at every size (1,898 -> 214 at 9,986 patches, eps 0.05)
-        entries = clustered_near_entries(n) if scene.is_clustered else DEFAULT_NEAR_ENTRIES
+    entries = near_entries(near_field, n, eps, relative, clustered=scene.is_clustered, far_field=far_field)
     from ..formfactors.kernel import settings as kernel_settings
     from ..formfactors.visibility import settings as visibility_settings
 

@@ -32,7 +32,7 @@ import scipy.sparse as sp
 from .nearfield import InProcess, channel_solver, solver_order
 from .woodbury import N_CHANNELS
 
-__all__ = ["NearPrefetch", "PrefetchRunner", "PREFETCH_NICE", "PREFETCH_MAX_SHARE"]
+__all__ = ["NearPrefetch", "PrefetchRunner", "PREFETCH_NICE", "PREFETCH_MAX_SHARE", "PREFETCH_BESIDE_SHARE", "prefetch_fits"]
 
 #: Niceness of the prefetching thread (Linux: per thread): the worker processes on the same
 #: cores keep their share while they are busy; the LU takes what they leave idle.
@@ -41,6 +41,18 @@ PREFETCH_NICE = 10
 #: of the first one's) fit this share of the available memory; the rest are factored by the
 #: assembly, one at a time, as without the prefetch.
 PREFETCH_MAX_SHARE = 0.25
+#: A client starts the prefetch only where the near field's estimated set-up
+#: (:func:`hfrad.memory.near_field_bytes`: one channel's LU while it is factored) takes at most this share
+#: of the memory available then: the work it runs beside keeps its own memory meanwhile.
+PREFETCH_BESIDE_SHARE = 0.5
+
+
+def prefetch_fits(n: int, entries: int) -> bool:
+    """Whether the near field of ``entries`` a row fits beside the client's other work now
+    (:data:`PREFETCH_BESIDE_SHARE` of the available memory)."""
+    from ..memory import available_bytes, near_field_bytes
+
+    return near_field_bytes(n, entries) <= PREFETCH_BESIDE_SHARE * available_bytes()
 
 
 def channel_scales(reflectance: np.ndarray, perm: np.ndarray) -> tuple[list[int], dict[int, np.ndarray]]:
