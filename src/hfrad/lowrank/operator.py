@@ -25,7 +25,10 @@ from ..progress import ProgressCallback, report
 from ..validation import check_dtype, check_tolerance
 from .factors import LowRank, sign_fix, truncation_rank
 
-__all__ = ["operator_factorization", "RANGE_SHARE"]
+__all__ = ["operator_factorization", "RANGE_SHARE", "METHODS"]
+
+#: How the range finder draws its blocks (:func:`operator_factorization`, ``method``).
+METHODS = ("power", "lanczos")
 
 #: The range finder stops once its error is within this share of the squared target, leaving
 #: the rest for the truncation of B's SVD: the smaller, the closer the kept rank to the optimal
@@ -41,13 +44,17 @@ Product = Callable[[np.ndarray], np.ndarray]
 def operator_factorization(matmat: Product, rmatmat: Product, n: int, norm2: float, *, eps: float,
                            relative: bool = True, dtype=np.float32, rng=None, block: int = 64,
                            power: int = 1, max_rank: int | None = None, range_share: float = RANGE_SHARE,
-                           progress: ProgressCallback = None) -> LowRank:
+                           method: str = "power", progress: ProgressCallback = None) -> LowRank:
     """``G ~= Q V^T`` within ``eps`` from products with G and G^T only.
 
-    An orthonormal basis P of G's range grows ``block`` columns at a time: each new block
-    is ``G Omega`` (Gaussian ``Omega``), refined by ``power`` passes of power iteration
-    (``G G^T``, re-orthonormalised at each step), projected off P twice and
-    orthonormalised; then ``B_i = P_i^T G`` (one product with G^T) joins ``B = P^T G``. With
+    An orthonormal basis P of G's range grows ``block`` columns at a time: with
+    ``method="power"`` each new block is ``G Omega`` (Gaussian ``Omega``), refined by ``power``
+    passes of power iteration (``G G^T``, re-orthonormalised at each step); with
+    ``method="lanczos"`` it is ``G X_i``, where ``X_i`` is the last block's ``G^T P_{i-1}`` taken
+    off the earlier ``X`` (block Golub-Kahan bidiagonalization with full reorthogonalization,
+    randUBV [3]_: P spans a block Krylov space of ``G G^T``, two products a block instead of
+    ``2 + 2 power``). Either way the block is projected off P twice and orthonormalised;
+    then ``B_i = P_i^T G`` (one product with G^T) joins ``B = P^T G``. With
     ``E = ||G||_F^2 - ||B||_F^2 = ||G - P B||_F^2`` it stops once
     ``E <= range_share * target^2`` (``target = eps ||G||_F``, or ``eps`` when not
     ``relative``), then keeps the smallest rank k of the SVD ``B = U S W^T`` whose discarded
@@ -81,6 +88,9 @@ def operator_factorization(matmat: Product, rmatmat: Product, n: int, norm2: flo
         The share of ``target^2`` the range finder may leave (:data:`RANGE_SHARE` by default); the
         rest is the truncation's. Larger: a smaller basis (fewer products), a rank further above
         the optimal one (measured: :data:`hfrad.precompute.hierarchical.RANGE_SHARE`).
+    method : {"power", "lanczos"}
+        How each new block is drawn (above). "lanczos" ignores ``power``: its ``G^T P_i``, which
+        ``B`` needs anyway, is the next block's start, so each block costs two products.
     progress : callable or None
         ``progress(basis columns, max_rank or n)`` after each block.
 
@@ -117,6 +127,8 @@ def operator_factorization(matmat: Product, rmatmat: Product, n: int, norm2: flo
        SIAM Review 53(2), 2011, Alg. 4.2 and 4.4.
     .. [2] P. G. Martinsson, S. Voronin, "A randomized blocked algorithm for efficiently
        computing rank-revealing factorizations of matrices", SIAM J. Sci. Comput. 38(5), 2016.
+    .. [3] E. Hallman, "A block bidiagonalization method for fixed-accuracy low-rank matrix
+       approximation", SIAM J. Matrix Anal. Appl. 43(2), 2022.
 
     Examples
     --------
@@ -131,8 +143,10 @@ def operator_factorization(matmat: Product, rmatmat: Product, n: int, norm2: flo
     eps, dtype, limit = _check(n, norm2, eps, dtype, block, power, max_rank)
     if not 0.0 < range_share <= 1.0:
         raise InputError(f"range_share must be in (0, 1]; got {range_share!r}")
+    if method not in METHODS:
+        raise InputError(f"method must be one of {', '.join(map(repr, METHODS))}; got {method!r}")
     t0 = time.perf_counter()
-    run = _RangeFinder(matmat, rmatmat, n, dtype, np.random.default_rng(rng))
+    run = _RangeFinder(matmat, rmatmat, n, dtype, np.random.default_rng(rng), krylov=method == "lanczos")
     target2 = eps * eps * norm2 if relative else eps * eps
     E, trace = float(norm2), []
     spanned = False
@@ -176,12 +190,15 @@ def _check(n, norm2, eps, dtype, block, power, max_rank) -> tuple[float, np.dtyp
 class _RangeFinder:
     """The growing basis P (blocks of columns) of G's range and ``B = P^T G`` (blocks of rows)."""
 
-    def __init__(self, matmat: Product, rmatmat: Product, n: int, dtype: np.dtype, rng) -> None:
+    def __init__(self, matmat: Product, rmatmat: Product, n: int, dtype: np.dtype, rng, *, krylov: bool = False) -> None:
         self.matmat, self.rmatmat, self.n, self.dtype, self.rng = matmat, rmatmat, n, dtype, rng
         self.P: list[np.ndarray] = []       # (n, b_i) orthonormal blocks
         self.B: list[np.ndarray] = []       # (b_i, n) rows of P^T G
         self.size, self.kept2 = 0, 0.0      # columns of P, ||B||_F^2 (float64)
         self.products = self.vectors = 0
+        self.krylov = krylov
+        self.X: list[np.ndarray] = []       # Lanczos: the (n, w_i) orthonormal blocks G was applied to
+        self._next: np.ndarray | None = None   # ... and the next one, from the last G^T P_i
 
     def _apply(self, product: Product, X: np.ndarray, name: str) -> np.ndarray:
         """One product, checked (the caller's operator is the only thing here not trusted)."""
@@ -194,23 +211,26 @@ class _RangeFinder:
         self.vectors += X.shape[1]
         return Y.astype(self.dtype, copy=False)
 
-    def _project(self, Y: np.ndarray) -> np.ndarray:
-        """``Y - P P^T Y``, block by block (classical Gram-Schmidt on blocks); Y is not changed."""
+    @staticmethod
+    def _project(Y: np.ndarray, basis: list[np.ndarray]) -> np.ndarray:
+        """``Y - P P^T Y`` for the blocks P of ``basis``, block by block (classical Gram-Schmidt on
+        blocks); Y is not changed."""
         Y = Y.copy()
-        C = [Pi.T @ Y for Pi in self.P]
-        for Pi, Ci in zip(self.P, C):
+        C = [Pi.T @ Y for Pi in basis]
+        for Pi, Ci in zip(basis, C):
             Y -= Pi @ Ci
         return Y
 
-    def _new_directions(self, Y: np.ndarray) -> np.ndarray:
-        """Orthonormal columns spanning the part of ``Y`` outside P, orthogonal to P.
+    def _new_directions(self, Y: np.ndarray, basis: list[np.ndarray] | None = None) -> np.ndarray:
+        """Orthonormal columns spanning the part of ``Y`` outside ``basis`` (default P), orthogonal to it.
 
         Projected twice: the first projection and QR make the block orthonormal; what of it
-        still lies in P (from rounding, when Y was mostly in P's span) goes in the second,
+        still lies in the basis (from rounding, when Y was mostly in its span) goes in the second,
         whose SVD keeps only the directions with at least ``KEEP`` of their length left.
         """
-        Y = sla.qr(self._project(Y), mode="economic", check_finite=False)[0]
-        U, s, _ = sla.svd(self._project(Y), full_matrices=False, check_finite=False)
+        basis = self.P if basis is None else basis
+        Y = sla.qr(self._project(Y, basis), mode="economic", check_finite=False)[0]
+        U, s, _ = sla.svd(self._project(Y, basis), full_matrices=False, check_finite=False)
         return np.ascontiguousarray(U[:, s >= KEEP])
 
     def _orth(self, Y: np.ndarray) -> np.ndarray:
@@ -218,21 +238,65 @@ class _RangeFinder:
 
     def grow(self, width: int, power: int) -> bool:
         """Add up to ``width`` columns to P (and their rows to B); False when none was new."""
+        if self.krylov:
+            return self._grow_krylov(width)
         Omega = self.rng.standard_normal((self.n, width)).astype(self.dtype)
         Y = self._apply(self.matmat, Omega, "matmat")
         for _ in range(power):
             # G^T P_i needs no projection: P_i is orthogonal to P, so it is the residual's transpose
-            W = self._orth(self._apply(self.rmatmat, self._orth(self._project(Y)), "rmatmat"))
+            W = self._orth(self._apply(self.rmatmat, self._orth(self._project(Y, self.P)), "rmatmat"))
             Y = self._apply(self.matmat, W, "matmat")
-        Pi = self._new_directions(Y)
+        return self._keep(self._new_directions(Y)) is not None
+
+    def _keep(self, Pi: np.ndarray) -> np.ndarray | None:
+        """Add the orthonormal block ``Pi`` to P and ``(G^T Pi)^T`` to B; returns ``G^T Pi`` (None for an empty block)."""
         if Pi.shape[1] == 0:
-            return False
-        Bi = self._apply(self.rmatmat, Pi, "rmatmat").T
+            return None
+        Z = self._apply(self.rmatmat, Pi, "rmatmat")
         self.P.append(Pi)
-        self.B.append(np.ascontiguousarray(Bi))
+        self.B.append(np.ascontiguousarray(Z.T))
         self.size += Pi.shape[1]
-        self.kept2 += float(np.square(Bi, dtype=np.float64).sum())
-        return True
+        self.kept2 += float(np.square(Z, dtype=np.float64).sum())
+        return Z
+
+    def _grow_krylov(self, width: int) -> bool:
+        """One step of block Golub-Kahan: ``P_i`` from ``G X_i``; ``X_{i+1}`` from ``G^T P_i`` (the product B
+        needs) off every earlier X, topped up with Gaussian columns to ``width`` where directions were
+        lost. A step that finds nothing new starts again from a Gaussian block once (the Krylov space
+        was invariant); False when that finds nothing either."""
+        for fresh in (self._next is None, True):
+            X = self._next if not fresh else self._start(width)
+            self._next = None
+            if X.shape[1] == 0:
+                return False
+            self.X.append(X)
+            Z = self._keep(self._new_directions(self._apply(self.matmat, X, "matmat")))
+            if Z is not None:
+                self._next = self._start(width, self._next_block(Z))
+                return True
+        return False
+
+    def _next_block(self, Z: np.ndarray) -> np.ndarray:
+        """The next block of X: orthonormal columns spanning the part of ``Z`` (n, b) off every earlier X.
+
+        One projection and a QR, where each column keeps at least ``KEEP`` of its length through both
+        (B, hence the error, is exact for any X: X's blocks only need to be near orthonormal, and the
+        second projection and SVD that keep P orthonormal took 13% longer at rank 1,819); else, where
+        the Krylov directions run out, :meth:`_new_directions`, which drops what lay in X already.
+        """
+        Y, R = sla.qr(self._project(Z, self.X), mode="economic", check_finite=False)
+        if np.all(np.abs(np.diag(R)) >= KEEP * np.linalg.norm(Z, axis=0)):
+            return Y
+        return self._new_directions(Z, self.X)
+
+    def _start(self, width: int, X: np.ndarray | None = None) -> np.ndarray:
+        """``X`` (orthonormal, off the earlier X) topped up to ``width`` columns with Gaussian ones off both."""
+        have = 0 if X is None else X.shape[1]
+        if have >= width:
+            return X[:, :width]
+        Omega = self.rng.standard_normal((self.n, width - have)).astype(self.dtype)
+        extra = self._new_directions(Omega, self.X + ([] if X is None else [X]))
+        return extra if X is None else np.ascontiguousarray(np.hstack([X, extra]))
 
     def factors(self, budget2: float) -> tuple[np.ndarray, np.ndarray, float]:
         """``(Q (n, k), V (n, k), discarded^2)``: B's SVD truncated within ``budget2``."""

@@ -59,6 +59,8 @@ FACTORIZATION_SEED = 4344
 #: ||G||_F on the Cornell box, and the same split of the exact F gives the same rank; the rank came
 #: from the near split, see :meth:`FormFactorHMatrix.take_near`.)
 RANGE_SHARE = 0.7
+#: How the range finder draws its blocks (:func:`hfrad.lowrank.operator_factorization`, ``method``).
+RANGE_METHOD = "power"
 #: Entries of exact rows computed by one engine call (float64: 32 MB).
 EXACT_CHUNK = 1 << 22
 
@@ -193,7 +195,8 @@ def _factorize_hmatrix(scene, plan, engine, hm, progress, status, t0) -> HFactor
         rho_dt = rho.astype(dt)[:, None]    # products in the factors' dtype (float32: twice as fast)
         lowrank = operator_factorization(lambda X: rho_dt * hm.matmat(X), lambda X: hm.rmatmat(rho_dt * X),
                                          n, hm.frobenius2(rho), eps=target, relative=False, dtype=dt,
-                                         rng=FACTORIZATION_SEED, range_share=RANGE_SHARE, progress=progress)
+                                         rng=FACTORIZATION_SEED, range_share=RANGE_SHARE, method=RANGE_METHOD,
+                                         progress=progress)
         lowrank.norm, lowrank.eps, lowrank.relative = math.sqrt(norm2), plan.eps, plan.relative
         hm.release()        # not needed by the solver set-up, whose near-field LUs may take gigabytes
         t_fac = time.perf_counter()
