@@ -128,9 +128,10 @@ class Redraws:
         return out
 
 
-def best_runs(scene, modes: list[str], eps: float, repeat: int) -> dict:
+def best_runs(scene, modes: list[str], eps: float, repeat: int, keep=None) -> dict:
     """Each mode's fastest of ``repeat`` runs (the modes in turn, so that a drift of the machine
-    reaches all alike), with every run's wall time in ``walls_s``."""
+    reaches all alike), with every run's wall time in ``walls_s``; ``keep(mode, result)`` is called
+    as each mode's best so far is found (a long run's answer is saved before the next mode runs)."""
     if repeat < 1:
         raise SystemExit(f"--repeat must be at least 1, got {repeat}")
     best: dict = {}
@@ -141,6 +142,8 @@ def best_runs(scene, modes: list[str], eps: float, repeat: int) -> dict:
             walls[mode].append(r["wall_s"])
             if mode not in best or r["wall_s"] < best[mode]["wall_s"]:
                 best[mode] = r
+                if keep is not None:
+                    keep(mode, r)
     for mode, r in best.items():
         r["walls_s"] = walls[mode]
     return best
@@ -261,6 +264,10 @@ def main() -> None:
     p.add_argument("--save-radiosity", metavar="DIR", default=None,
                    help="with --end-to-end: keep each mode's radiosity as DIR/radiosity-SCENE-N-MODE.npy "
                         "(user order, W/m^2), to check the answers afterwards")
+    p.add_argument("--reference", metavar="FILE", default=None,
+                   help="with --end-to-end and without the exact mode: compare each mode with this exact "
+                        "radiosity (a --save-radiosity file of an earlier run), e.g. when both do not fit "
+                        "in one process")
     p.add_argument("--repeat", type=int, default=1,
                    help="with --end-to-end: run the modes this many times, in turn, and keep each one's "
                         "fastest run (its wall times all in walls_s)")
@@ -298,14 +305,18 @@ def main() -> None:
     rows = []
     for size in common.parse_sizes(args.patches):
         scene = common.load_bench_scene(args.scene, size)
-        results = best_runs(scene, common.parse_list(args.modes), args.eps, args.repeat)
-        if args.save_radiosity:
-            for mode, r in results.items():
-                path = Path(args.save_radiosity) / f"radiosity-{args.scene}-{scene.n_patches}-{mode}.npy"
+
+        def keep(mode, r, n=scene.n_patches):     # written at once: a later mode may not finish
+            if args.save_radiosity:
+                path = Path(args.save_radiosity) / f"radiosity-{args.scene}-{n}-{mode}.npy"
                 path.parent.mkdir(parents=True, exist_ok=True)
                 with atomic_path(path) as tmp, open(tmp, "wb") as fh:
                     np.save(fh, r["B"])
+
+        results = best_runs(scene, common.parse_list(args.modes), args.eps, args.repeat, keep)
         exact = results.get("exact")
+        if exact is None and args.reference:
+            exact = {"B": np.load(args.reference), "wall_s": float("nan")}
         for r in results.values():
             if exact is not None and r is not exact:
                 r["vs_exact"] = reflected_difference(r["B"], exact["B"], np.asarray(scene.emission, float),

@@ -85,6 +85,20 @@ def test_precompute_on_a_scheduler_started_by_hand(hand_made_cluster, tmp_path):
     assert np.allclose(B, B_local, rtol=1e-4, atol=1e-6 * np.abs(B_local).max())
 
 
+def test_hierarchical_precompute_on_a_scheduler(hand_made_cluster, tmp_path):
+    """--far-field hierarchical on Dask: the workers build the H-matrix, the client factors it; the
+    checkpoint folder beside the output is gone once the .hfr is written."""
+    out = tmp_path / "cornell.hfr"
+    result = runner.invoke(app, ["precompute", "cornell", "--patches", "600", "--eps", "0.05", "--far-field",
+                                 "hierarchical", "-o", str(out), "--scheduler", hand_made_cluster])
+    assert result.exit_code == 0, result.output
+    assert "far field hierarchical:" in result.output
+    meta = read_hfr_metadata(out)
+    assert meta["parameters"]["backend"] == "dask" and meta["parameters"]["workers"] == 2
+    assert meta["parameters"]["far_field"] == "hierarchical"
+    assert not out.with_name(out.name + ".partial.d").exists()
+
+
 def test_unreachable_scheduler_exits_2(tmp_path):
     import dask
 

@@ -160,8 +160,6 @@ def test_front_door_and_cli(tmp_path):
     np.testing.assert_array_equal(fac.perm, tree_order(scene, plan.hmatrix_options))
     assert fac.params["hmatrix_options"]["tolerance"] == pytest.approx(0.2 * EPS)
     assert fac.lowrank.method == "operator" and fac.lowrank.info["hierarchical"]["pairs_evaluated"] > 0
-    with pytest.raises(InputError, match="this process only"):
-        hfrad.factorize(scene, EPS, far_field="hierarchical", backend=hfrad.DaskBackend(workers=1))
     with pytest.raises(InputError, match="custom"):
         hfrad.factorize(scene, EPS, far_field="hierarchical", order=np.arange(scene.n_patches))
     out = tmp_path / "small.hfr"

@@ -105,11 +105,13 @@ def factorize(scene: Scene, eps: float = 0.02, *, relative: bool = True, dtype="
         rank by cross approximation; :mod:`hfrad.formfactors.hmatrix`), the factors from
         products with it (:func:`hfrad.lowrank.operator_factorization`), its error certified
         by exact rows drawn by importance (added to ``fac.error_estimate()``); docs/method.md
-        section 4c. In this process only; the internal order is the cluster tree's (``order``
-        is not used); with ``near_field="auto"`` the near pairs leave the H-matrix (the split
-        costs nothing there); a ``checkpoint`` saves the built H-matrix once (when the build
-        took at least its interval) and a rerun loads it instead of building it; memory
-        :func:`hfrad.memory.hierarchical_bytes`.
+        section 4c. With a ``DaskBackend`` the workers build the H-matrix in parts and this
+        process factors it (:mod:`hfrad.distributed.hierarchical`; the same blocks). The internal
+        order is the cluster tree's (``order`` is not used); with ``near_field="auto"`` the near
+        pairs leave the H-matrix (the split costs nothing there); a ``checkpoint`` saves the
+        built H-matrix once (when the build took at least its interval; on Dask, a file in the
+        checkpoint's folder) and a rerun loads it instead of building it; memory
+        :func:`hfrad.memory.precompute_peak_bytes` (this process holds the whole H-matrix).
     progress : callable (done, total), optional
         Column blocks done.
     status : callable (dict), optional
@@ -170,8 +172,10 @@ def factorize(scene: Scene, eps: float = 0.02, *, relative: bool = True, dtype="
                            far_field=far_field, local=isinstance(backend, LocalBackend))
     if plan.far_field == "hierarchical":
         if not isinstance(backend, LocalBackend):
-            raise InputError("far_field='hierarchical' runs in this process only; use a LocalBackend "
-                             "(or far_field='sampled' on Dask)")
+            from .distributed.hierarchical import factorize_hierarchical_distributed
+
+            return factorize_hierarchical_distributed(scene, plan, backend, checkpoint=checkpoint, progress=progress,
+                                                      status=status)
         from .precompute.hierarchical import factorize_hierarchical
 
         return factorize_hierarchical(scene, plan, progress, status, blas_threads=backend.blas_threads,

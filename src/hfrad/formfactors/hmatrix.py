@@ -45,7 +45,8 @@ from .clustervis import BLOCKED, CLUSTER_SIZE, MIXED, VISIBLE, _cluster_pair_sta
 from .engine import FormFactorEngine
 
 __all__ = ["ClusterTree", "cluster_tree", "block_partition", "FormFactorHMatrix", "build_hmatrix",
-           "HMatrixOptions", "block_squares"]
+           "HMatrixOptions", "block_squares", "HMatrixPairs", "hmatrix_pairs", "split_into_parts", "build_part",
+           "join_blocks", "join_parts"]
 
 #: Patches in a leaf of the cluster tree.
 LEAF_SIZE = 32
@@ -812,26 +813,98 @@ def build_hmatrix(scene, engine: FormFactorEngine, options: HMatrixOptions | Non
     progress : callable, optional
         ``progress(done, total)`` over the exact blocks' groups.
     """
-    from .farfield import patch_boxes
-
     options = HMatrixOptions() if options is None else options
     t0 = time.perf_counter()
+    pairs = hmatrix_pairs(scene, options)
+    tree_seconds = time.perf_counter() - t0
+    blocks, info = build_part(scene, engine, pairs, options, progress=progress)
+    info["time_tree"] = tree_seconds
+    return join_parts(pairs, [blocks], [info], options, time.perf_counter() - t0)
+
+
+@dataclass
+class HMatrixPairs:
+    """The cluster tree of a build and its node pairs from the root down (:func:`block_partition`):
+    what the build decides, pair by pair. Each pair's blocks depend on that pair alone (hashed rays,
+    a block's own cross approximation), so any split of the pairs into parts
+    (:func:`split_into_parts`), each built on its own (:func:`build_part`, e.g. by a Dask worker), gives
+    the same blocks (:func:`join_parts`)."""
+
+    tree: ClusterTree
+    far_r: np.ndarray
+    far_c: np.ndarray
+    near_r: np.ndarray
+    near_c: np.ndarray
+
+
+def hmatrix_pairs(scene, options: HMatrixOptions) -> HMatrixPairs:
+    """The cluster tree of ``scene`` (its patch boxes) and the far and near node pairs of its partition."""
+    from .farfield import patch_boxes
+
     lo, hi = patch_boxes(scene)
     tree = cluster_tree(scene.centroids, lo, hi, options.leaf_size)
-    far_r, far_c, near_r, near_c = block_partition(tree, options.eta)
-    builder = _Builder(scene, engine, tree, options)
-    builder.info["time_tree"] = time.perf_counter() - t0
-    builder.far(far_r, far_c)
-    builder.near(near_r, near_c, progress)
+    return HMatrixPairs(tree, *block_partition(tree, options.eta))
+
+
+def split_into_parts(pairs: HMatrixPairs, parts: int) -> list[HMatrixPairs]:
+    """``pairs`` in ``parts`` parts of about equal work: far pairs dealt in turn (the partition lists
+    them by level, so each part gets a share of every size); near pairs by their lower node, so a
+    pair and its mirror, which :meth:`_Builder.near` computes once, stay together."""
+    parts = max(1, int(parts))
+    low = np.minimum(pairs.near_r, pairs.near_c)
+    _, rank = np.unique(low, return_inverse=True)
+    out = []
+    for k in range(parts):
+        far = np.arange(k, len(pairs.far_r), parts)
+        near = np.flatnonzero(rank % parts == k)
+        out.append(HMatrixPairs(pairs.tree, pairs.far_r[far], pairs.far_c[far], pairs.near_r[near],
+                                pairs.near_c[near]))
+    return out
+
+
+def build_part(scene, engine: FormFactorEngine, pairs: HMatrixPairs, options: HMatrixOptions,
+               progress: ProgressCallback = None) -> tuple[BlockList, dict]:
+    """The blocks of ``pairs`` (a part of a build, or all of it) and the build's counters over them."""
+    builder = _Builder(scene, engine, pairs.tree, options)
+    builder.far(pairs.far_r, pairs.far_c)
+    builder.near(pairs.near_r, pairs.near_c, progress)
     builder.flush_exact(None)
-    hm = FormFactorHMatrix(tree.perm, builder.out.blocks(), builder.info)
-    n = scene.n_patches
-    info = builder.info
+    return builder.out.blocks(), builder.info
+
+
+def join_blocks(lists: list[BlockList]) -> BlockList:
+    """One block list of several (their blocks in turn; offsets moved to the joined arrays)."""
+    if len(lists) == 1:
+        return lists[0]
+    row_ptr = [np.zeros(1, np.int64)]
+    u_off, v_off, rows_at, u_at, v_at = [], [], 0, 0, 0
+    for k in lists:
+        row_ptr.append(k.row_ptr[1:] + rows_at)
+        u_off.append(k.u_off + u_at)
+        v_off.append(k.v_off + v_at)
+        rows_at, u_at, v_at = rows_at + len(k.row_index), u_at + len(k.U), v_at + len(k.V)
+    cat = (lambda name: np.concatenate([getattr(k, name) for k in lists]))
+    return BlockList(cat("row_index"), np.concatenate(row_ptr), cat("c0"), cat("b"), cat("rank"),
+                     np.concatenate(u_off), np.concatenate(v_off), cat("U"), cat("V"))
+
+
+def join_parts(pairs: HMatrixPairs, blocks: list[BlockList], infos: list[dict], options: HMatrixOptions,
+               seconds: float) -> FormFactorHMatrix:
+    """The H-matrix of the parts built from ``pairs`` (:func:`build_part`); its ``info`` sums the parts'
+    counters and seconds (with several parts: seconds of work, not of the wall) and adds the build's
+    totals, ``seconds`` its wall time."""
+    tree = pairs.tree
+    info: dict = {}
+    for part in infos:
+        for key, value in part.items():
+            info[key] = info.get(key, 0) + value
+    hm = FormFactorHMatrix(tree.perm, join_blocks(blocks), info)
+    n = len(tree.perm)
     info.update({"n": n, "leaf_size": options.leaf_size, "eta": options.eta, "tolerance": options.tolerance,
-                 "tree_nodes": int(len(tree.start)), "near_blocks": int(len(near_r)), "blocks": hm.blocks.count,
+                 "tree_nodes": int(len(tree.start)), "near_blocks": int(len(pairs.near_r)), "blocks": hm.blocks.count,
                  "pairs_evaluated": info["exact_pairs"] + info["kernel_pairs"],
                  "pairs_share": (info["exact_pairs"] + info["kernel_pairs"]) / max(1, n * n),
-                 "storage_floats": hm.storage, "time_total": time.perf_counter() - t0})
+                 "storage_floats": hm.storage, "time_total": seconds})
     ranks = hm.blocks.rank[hm.blocks.rank >= 0]
     info["mean_rank"] = float(ranks.mean()) if len(ranks) else 0.0
     info["lowrank_blocks"] = int(len(ranks))
@@ -964,7 +1037,7 @@ class _Builder:
         is symmetric, ``V_ij == V_ji``), so each pair of patches is computed once."""
         tree, perm = self.tree, self.tree.perm
         t = time.perf_counter()
-        pairs0 = self.engine.pairs
+        pairs = 0       # counted here, not from the engine's counter: parts may share one engine (Dask threads)
         keep = r <= c
         r, c = r[keep], c[keep]
         order = np.lexsort((c, r))
@@ -976,6 +1049,7 @@ class _Builder:
             rows = self.node_rows(r[a])
             cols, ptr = _concat_ranges(None, tree.start[c[a:e]], tree.stop[c[a:e]])
             F = self.engine.block(perm[rows], perm[cols])
+            pairs += F.size
             for q in range(e - a):
                 part = F[:, ptr[q]:ptr[q + 1]]
                 self.out.add_dense(rows, int(tree.start[c[a + q]]), part)
@@ -983,8 +1057,8 @@ class _Builder:
                     mirror = part.T * (areas[perm[rows]][None, :] / areas[perm[cols[ptr[q]:ptr[q + 1]]]][:, None])
                     self.out.add_dense(cols[ptr[q]:ptr[q + 1]], int(tree.start[r[a]]), mirror)
             report(progress, g + 1, len(bounds) - 1)
-        self.info["exact_pairs"] += int(self.engine.pairs - pairs0)
-        self.info["near_pairs"] = int(self.engine.pairs - pairs0)
+        self.info["exact_pairs"] += pairs
+        self.info["near_pairs"] = pairs
         self.info["time_near"] = time.perf_counter() - t
 
     def exact_rows(self, rows: np.ndarray, c: int) -> None:
@@ -995,18 +1069,19 @@ class _Builder:
         """The exact blocks asked for, one engine call per column node (its rows stacked)."""
         tree, perm = self.tree, self.tree.perm
         t = time.perf_counter()
-        pairs0 = self.engine.pairs
+        pairs = 0
         items = sorted(self.pending.items())
         for g, (c, parts) in enumerate(items):
             rows = np.concatenate(parts)
             F = self.edge_block(perm[rows], perm[tree.start[c]:tree.stop[c]])
+            pairs += F.size
             at = 0
             for part in parts:
                 self.out.add_dense(part, int(tree.start[c]), F[at:at + len(part)])
                 at += len(part)
             report(progress, g + 1, len(items))
         self.pending.clear()
-        self.info["exact_pairs"] += int(self.engine.pairs - pairs0)
+        self.info["exact_pairs"] += pairs
         self.info["time_exact"] += time.perf_counter() - t
 
     def edge_block(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:

@@ -73,7 +73,7 @@ _WORKER_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THR
 _ENGINES: dict = {}
 
 
-def _engine_for(scene, samples: int, ray_budget: RayBudget | None):
+def cached_engine(scene, samples: int, ray_budget: RayBudget | None):
     key = (scene_hash(scene), int(samples), ray_budget or RayBudget())
     engine = _ENGINES.get(key)
     if engine is None:
@@ -113,7 +113,7 @@ def column_block(scene, cols, *, order=None, samples: int = DEFAULT_SAMPLES,
     -------
     (n, b) ndarray of ``dtype``
     """
-    engine = _engine_for(scene, samples, ray_budget)
+    engine = cached_engine(scene, samples, ray_budget)
     rows = np.arange(scene.n_patches) if order is None else np.asarray(order, np.int64)
     return engine.block(rows, np.asarray(cols, np.int64)).astype(dtype, copy=False)
 
@@ -225,7 +225,7 @@ def _init_worker(parent_pid: int, setup_name: str, setup_bytes: int, shm_name, s
 
 
 def _work(slot: int, cols: np.ndarray, skip: slice) -> dict:
-    engine = _engine_for(_W["scene"], _W["samples"], _W["ray_budget"])
+    engine = cached_engine(_W["scene"], _W["samples"], _W["ray_budget"])
     k0, e0, p0, r0 = engine.kernel_seconds, engine.embree_seconds, engine.pairs, engine.rays
     t0 = time.perf_counter()
     block = engine.block(computed_rows(_W["order"], skip), cols)

@@ -41,7 +41,8 @@ from .assemble import PrecomputePlan, assemble, near_state
 from .backends import Checkpoint
 from .hmatrix_checkpoint import load_hmatrix_checkpoint, save_hmatrix_checkpoint
 
-__all__ = ["factorize_hierarchical", "factorize_hmatrix", "engine_for", "tree_order", "CERTIFICATE_ROWS", "CERTIFICATE_SEED"]
+__all__ = ["factorize_hierarchical", "factorize_hmatrix", "engine_for", "tree_order", "check_hierarchical_memory",
+           "resumed_hmatrix", "save_if_worth", "CERTIFICATE_ROWS", "CERTIFICATE_SEED"]
 
 #: Exact rows drawn (with replacement, by importance) to certify ``||G - G_H||``.
 CERTIFICATE_ROWS = 256
@@ -107,24 +108,15 @@ def factorize_hierarchical(scene: Scene, plan: PrecomputePlan, progress: Progres
         The estimate (:func:`hfrad.memory.precompute_peak_bytes`: the H-matrix and its factorization, or
         the near field's set-up with its sparse LUs where that is larger) exceeds 80% of the available memory.
     """
-    n, dt = plan.n, np.dtype(plan.dtype)
-    require(precompute_peak_bytes(n, plan.block_size, far_field="hierarchical", near_entries=plan.near_entries,
-                                  itemsize=dt.itemsize),
-            f"precomputing {n:,} patches with far_field='hierarchical'"
-            + (f" and {plan.near_entries} near-field entries a row" if plan.near_entries else ""),
-            f"use fewer patches, a larger eps or fewer near-field entries (the estimate assumes a rank of "
-            f"{rank_guess(n):,}: {RANK_ASSUMPTION})")
+    check_hierarchical_memory(plan)
     t0 = time.perf_counter()
     engine = engine_for(scene, plan)
     try:
-        hm = _resumed_hmatrix(scene, plan, checkpoint, status)
+        hm = resumed_hmatrix(scene, plan, checkpoint, status)
         if hm is None:
             with resources.blas_threads(blas_threads):
                 hm = build_hmatrix(scene, engine, plan.hmatrix_options, progress)
-            # one write, as the column pass writes: when the work it saves took at least the interval
-            # (39,482 patches: 2.5 s for a 46 s build, 600 MB; about 5.5 float32 bytes a stored float)
-            if checkpoint is not None and time.perf_counter() - t0 >= checkpoint.interval:
-                save_hmatrix_checkpoint(hm, checkpoint.path, plan.key(scene))
+            save_if_worth(hm, scene, plan, checkpoint, time.perf_counter() - t0)
         fac = factorize_hmatrix(scene, plan, engine, hm, progress, status, t0=t0, blas_threads=blas_threads)
     finally:
         engine.close()
@@ -133,7 +125,27 @@ def factorize_hierarchical(scene: Scene, plan: PrecomputePlan, progress: Progres
     return fac
 
 
-def _resumed_hmatrix(scene: Scene, plan: PrecomputePlan, checkpoint: Checkpoint | None, status):
+def check_hierarchical_memory(plan: PrecomputePlan) -> None:
+    """Refuse a plan whose estimate (:func:`hfrad.memory.precompute_peak_bytes`) exceeds 80% of the available memory."""
+    n, dt = plan.n, np.dtype(plan.dtype)
+    require(precompute_peak_bytes(n, plan.block_size, far_field="hierarchical", near_entries=plan.near_entries,
+                                  itemsize=dt.itemsize),
+            f"precomputing {n:,} patches with far_field='hierarchical'"
+            + (f" and {plan.near_entries} near-field entries a row" if plan.near_entries else ""),
+            f"use fewer patches, a larger eps or fewer near-field entries (the estimate assumes a rank of "
+            f"{rank_guess(n):,}: {RANK_ASSUMPTION})")
+
+
+def save_if_worth(hm: FormFactorHMatrix, scene: Scene, plan: PrecomputePlan, checkpoint: Checkpoint | None,
+                  seconds: float) -> None:
+    """Save the built ``hm`` at ``checkpoint.path`` when its build took at least the checkpoint's interval:
+    one write, as the column pass writes (39,482 patches: 2.5 s for a 46 s build, 600 MB; about 5.5
+    float32 bytes a stored float)."""
+    if checkpoint is not None and seconds >= checkpoint.interval:
+        save_hmatrix_checkpoint(hm, checkpoint.path, plan.key(scene))
+
+
+def resumed_hmatrix(scene: Scene, plan: PrecomputePlan, checkpoint: Checkpoint | None, status):
     """The H-matrix saved at ``checkpoint.path`` by an earlier run, or None (no checkpoint, or none yet)."""
     if checkpoint is None or not Path(checkpoint.path).exists():
         return None
@@ -147,18 +159,20 @@ def _resumed_hmatrix(scene: Scene, plan: PrecomputePlan, checkpoint: Checkpoint 
 
 def factorize_hmatrix(scene: Scene, plan: PrecomputePlan, engine: FormFactorEngine, hm: FormFactorHMatrix,
                       progress: ProgressCallback = None, status=None, *, t0: float | None = None,
-                      blas_threads: int | None = 1) -> HFactorization:
+                      blas_threads: int | None = 1, backend: dict | None = None) -> HFactorization:
     """The rest of :func:`factorize_hierarchical` once the H-matrix ``hm`` of ``scene`` is built with
     ``engine`` (which then computes the exact rows): factors, statistics, certificate, solver object.
     ``hm`` is used up: its near entries leave it and its blocks are released once the factors are found.
-    ``t0``: when the run started (``perf_counter``; default now), for the recorded timings."""
+    ``t0``: when the run started (``perf_counter``; default now), for the recorded timings; ``backend``:
+    recorded in ``params`` (default ``{"backend": "local"}``)."""
     if not np.array_equal(hm.perm, plan.perm):
         raise InputError("the H-matrix's tree order differs from the plan's: build it with plan.hmatrix_options")
     with resources.blas_threads(blas_threads):
-        return _factorize_hmatrix(scene, plan, engine, hm, progress, status, time.perf_counter() if t0 is None else t0)
+        return _factorize_hmatrix(scene, plan, engine, hm, progress, status, time.perf_counter() if t0 is None else t0,
+                                  backend or {"backend": "local"})
 
 
-def _factorize_hmatrix(scene, plan, engine, hm, progress, status, t0) -> HFactorization:
+def _factorize_hmatrix(scene, plan, engine, hm, progress, status, t0, backend) -> HFactorization:
     n, dt = plan.n, np.dtype(plan.dtype)
     t_hm = time.perf_counter()
     rho = plan.rows_rho(scene)[:, 0].astype(np.float64)
@@ -208,7 +222,7 @@ def _factorize_hmatrix(scene, plan, engine, hm, progress, status, t0) -> HFactor
                              "hierarchical": {**hm.info, "factorization": {k: v for k, v in lowrank.info.items()
                                                                            if not k.startswith("time")},
                                               "certificate": certificate, "exact_row_pairs": int(exact.pairs)}})
-        fac = assemble(scene, plan, lowrank, stats, near, backend={"backend": "local"},
+        fac = assemble(scene, plan, lowrank, stats, near, backend=backend,
                        runner=None if prefetch is None else prefetch.runner())
         fac.lowrank.info["time_assemble"] = time.perf_counter() - t_fac
         if prefetch is not None:
