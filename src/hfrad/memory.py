@@ -85,6 +85,9 @@ def precompute_bytes(n: int, block_size: int, rank_guess_: int | None = None, it
 #: on the Cornell box, eps 0.05 (leaf 32, block tolerance 0.01): 359 a patch at 394 patches, 861 at
 #: 1,508, 2,310 at 9,986 (18, 22 and 23 sqrt(n)); taken a little above until measured at scale.
 HMATRIX_FLOATS_PER_SQRT_N = 24
+#: The same on a clustered mesh (patches made of triangles; more mixed pairs and shadow-edge rows):
+#: 35.4 measured on the Šibenik cathedral at 60,568 patches (527 million floats).
+HMATRIX_FLOATS_PER_SQRT_N_CLUSTERED = 36
 #: Bytes a patch of what ``far_field="hierarchical"`` holds besides the H-matrix and the factors: the
 #: pass statistics' sampled rows (at most ~300 float32 a patch), their products and sketch, and the
 #: float64 product buffers of 70 vectors (three copies).
@@ -93,17 +96,19 @@ HIERARCHICAL_STATS_BYTES = 4 * 300 + 8 * 3 * 70
 OPERATOR_BLOCK = 64
 
 
-def hierarchical_bytes(n: int, rank_guess_: int | None = None, itemsize: int = 4) -> int:
+def hierarchical_bytes(n: int, rank_guess_: int | None = None, itemsize: int = 4, clustered: bool = False) -> int:
     """Rough peak memory of ``factorize(far_field="hierarchical")``, bytes.
 
-    The H-matrix (``HMATRIX_FLOATS_PER_SQRT_N * sqrt(n)`` float32 a patch), the operator factorization at its
+    The H-matrix (``HMATRIX_FLOATS_PER_SQRT_N * sqrt(n)`` float32 a patch, or
+    ``HMATRIX_FLOATS_PER_SQRT_N_CLUSTERED`` on a ``clustered`` mesh), the operator factorization at its
     SVD (basis P and projection B, l x n each, B's right singular vectors, the two n x k factors:
     ``5 n k s`` with l = k, plus a block of ``OPERATOR_BLOCK`` vectors in float64, three copies in the
     products) and the pass statistics (``HIERARCHICAL_STATS_BYTES`` a patch). The rank k is
     :func:`rank_guess` unless given (see :data:`RANK_ASSUMPTION`).
     """
     k = rank_guess(n) if rank_guess_ is None else rank_guess_
-    return int(n * (4 * HMATRIX_FLOATS_PER_SQRT_N * n ** 0.5 + 5 * k * itemsize + 3 * 8 * OPERATOR_BLOCK
+    per_sqrt_n = HMATRIX_FLOATS_PER_SQRT_N_CLUSTERED if clustered else HMATRIX_FLOATS_PER_SQRT_N
+    return int(n * (4 * per_sqrt_n * n ** 0.5 + 5 * k * itemsize + 3 * 8 * OPERATOR_BLOCK
                     + HIERARCHICAL_STATS_BYTES))
 
 
@@ -150,14 +155,15 @@ def near_setup_bytes(n: int, entries: int, rank_guess_: int | None = None, items
 
 
 def precompute_peak_bytes(n: int, block_size: int, *, far_field: str = "exact", near_entries: int = 0,
-                          itemsize: int = 4) -> int:
+                          itemsize: int = 4, clustered: bool = False) -> int:
     """Rough peak memory of a precompute in this process, bytes: the larger of its pass over F
     (:func:`precompute_bytes`, or :func:`hierarchical_bytes` with ``far_field="hierarchical"``) and the
     solver's set-up (:func:`near_setup_bytes`, with ``near_entries`` c > 0 a row of N): the pass's
     blocks (or the H-matrix) are released before the set-up, and the near field's LUs are factored
-    beside the pass only where they fit (:mod:`hfrad.solve.prefetch`)."""
+    beside the pass only where they fit (:mod:`hfrad.solve.prefetch`). ``clustered``: a clustered mesh
+    (:func:`hierarchical_bytes`)."""
     if far_field == "hierarchical":
-        pass_bytes = hierarchical_bytes(n, itemsize=itemsize)
+        pass_bytes = hierarchical_bytes(n, itemsize=itemsize, clustered=clustered)
     else:
         pass_bytes = precompute_bytes(n, block_size, itemsize=itemsize)
     return max(pass_bytes, near_setup_bytes(n, near_entries, itemsize=itemsize))

@@ -327,22 +327,23 @@ def check_samples(samples) -> None:
                 why="visibility rays per patch pair; time and memory grow in proportion")
 
 
-def precompute_estimate(n: int, block: int, dtype: str, far_field: str = "auto", near_entries: int = 0) -> int:
+def precompute_estimate(n: int, block: int, dtype: str, far_field: str = "auto", near_entries: int = 0,
+                        clustered: bool = False) -> int:
     """Bytes a precompute of n patches is estimated to need (:func:`hfrad.memory.precompute_peak_bytes`:
     the pass, or the near field's set-up with ``near_entries`` a row where that is larger)."""
     from ..memory import precompute_peak_bytes
 
     return precompute_peak_bytes(n, block, far_field=far_field, near_entries=near_entries,
-                                 itemsize=check_dtype(dtype).itemsize)
+                                 itemsize=check_dtype(dtype).itemsize, clustered=clustered)
 
 
 def check_memory_for_precompute(n: int, block: int, dtype: str, *, count: str = "", far_field: str = "auto",
-                                near_entries: int = 0) -> None:
+                                near_entries: int = 0, clustered: bool = False) -> None:
     """Refuse a precompute that would not fit in memory (see ``hfrad precompute --help``); ``count``
     qualifies the patch count in the message ("at least" for an estimate before cutting)."""
     from ..memory import RANK_ASSUMPTION, rank_guess, require
 
-    require(precompute_estimate(n, block, dtype, far_field, near_entries),
+    require(precompute_estimate(n, block, dtype, far_field, near_entries, clustered),
             f"precomputing {count + ' ' if count else ''}{n:,} patches"
             + (f" with {near_entries} near-field entries a row" if near_entries else ""),
             f"use fewer patches (--patches/--max-edge), a larger --eps or a smaller --near-field (the estimate "

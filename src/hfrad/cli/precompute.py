@@ -64,12 +64,14 @@ def register(app: typer.Typer) -> None:
         With --far-field sampled: no reciprocity tiles and no scratch file; besides the
         same column blocks, the certification and sampled rows' exact values (about
         (2 sqrt(n) + 400) b float64 a block) and the cluster-pair visibility table (n^2 / 1024 bytes).
-        With --far-field hierarchical, instead of all of the above: the H-matrix
-        (about 24 sqrt(n) float32 a patch; 2,310 measured at 10,000 patches), the operator
-        factorization (5 n k s: its basis, projection and SVD, k as above, plus
-        three float64 n x 64 product buffers) and the statistics (about 2.9 KB a
-        patch): hfrad.memory.hierarchical_bytes, refused above 80% of the
-        available memory; its checkpoint, the built H-matrix, takes about
+        With --far-field hierarchical, instead of the column blocks and tiles: the
+        H-matrix (about 24 sqrt(n) float32 a patch, 36 sqrt(n) on a clustered
+        mesh; 2,310 measured at 10,000 patches, 8,700 on the clustered Šibenik at
+        60,568), the operator factorization (5 n k s: its basis, projection and
+        SVD, k as above, plus three float64 n x 64 product buffers) and the
+        statistics (about 2.9 KB a patch): hfrad.memory.hierarchical_bytes; it is
+        released before the set-up above, and the larger of the two is refused
+        above 80% of the available memory; its checkpoint, the built H-matrix, takes about
         5.5 bytes a stored float on disk (600 MB at 39,482 patches).
         A checkpoint (OUTPUT.partial) is written every 30 s, and at least 50
         times as long as its last write took apart (writes cost at most ~2% of
@@ -123,11 +125,11 @@ def register(app: typer.Typer) -> None:
             chosen = mode(s.n_patches, s.is_clustered)
             near_count = entries(s.n_patches, s.is_clustered)
             common.check_memory_for_precompute(s.n_patches, block or DEFAULT_BLOCK_SIZE, dtype, far_field=chosen,
-                                               near_entries=near_count)
+                                               near_entries=near_count, clustered=s.is_clustered)
             common.warn_disk_for_hfr(output, s.n_patches, dtype)
             if not quiet and chosen == "hierarchical":
                 from ..memory import human
-                estimate = common.precompute_estimate(s.n_patches, 0, dtype, 'hierarchical', near_count)
+                estimate = common.precompute_estimate(s.n_patches, 0, dtype, 'hierarchical', near_count, s.is_clustered)
                 common.console.print(f"memory estimate: about {human(estimate)} for {s.n_patches:,} patches "
                                      "(rank guessed; the near field's sparse LUs included; refused above 80% of "
                                      "the available memory)", highlight=False)

@@ -84,7 +84,7 @@ def factorize_hierarchical_distributed(scene, plan: PrecomputePlan, backend: Das
     SchedulerUnreachableError
         The scheduler cannot be reached.
     """
-    check_hierarchical_memory(plan)
+    check_hierarchical_memory(plan, scene.is_clustered)
     folder = None
     if checkpoint is not None:      # a Dask run's checkpoint names a folder: here it holds the H-matrix's file
         folder = Path(checkpoint.path)

@@ -759,6 +759,19 @@ def _apply(X, Y, parts, rows, row_ptr, c0, b_, rank, u_off, v_off, U, V, transpo
 
 # -- Building it ----------------------------------------------------------------------------------
 
+def _drain(pieces: list, dtype) -> np.ndarray:
+    """``pieces`` (a list, emptied) joined into one array of ``dtype``, each piece dropped once copied:
+    the peak is the joined array and one piece, not twice the pieces (np.concatenate's)."""
+    out = np.empty(sum(len(x) for x in pieces), dtype)
+    at = 0
+    pieces.reverse()            # pop from the end: the first piece first
+    while pieces:
+        x = pieces.pop()
+        out[at:at + len(x)] = x
+        at += len(x)
+    return out
+
+
 class _Collector:
     """Blocks as they are decided, in batches (no Python step a block: 2.1M blocks at 161,808 patches):
     dense (exact values) and low rank (U, V)."""
@@ -791,7 +804,9 @@ class _Collector:
                   v_size[keep])
 
     def blocks(self) -> BlockList:
-        cat = (lambda xs, dt: np.concatenate(xs).astype(dt, copy=False) if xs else np.zeros(0, dt))
+        """The collected blocks as one list; the batches are dropped as they are copied (the values, the
+        H-matrix's storage, are never held twice)."""
+        cat = _drain
         exclusive = (lambda z: np.cumsum(z) - z)                 # each block's offset from the sizes
         row_ptr = np.zeros(sum(len(x) for x in self.m) + 1, np.int64)
         np.cumsum(cat(self.m, np.int64), out=row_ptr[1:])

@@ -108,7 +108,7 @@ def factorize_hierarchical(scene: Scene, plan: PrecomputePlan, progress: Progres
         The estimate (:func:`hfrad.memory.precompute_peak_bytes`: the H-matrix and its factorization, or
         the near field's set-up with its sparse LUs where that is larger) exceeds 80% of the available memory.
     """
-    check_hierarchical_memory(plan)
+    check_hierarchical_memory(plan, scene.is_clustered)
     t0 = time.perf_counter()
     engine = engine_for(scene, plan)
     try:
@@ -125,11 +125,12 @@ def factorize_hierarchical(scene: Scene, plan: PrecomputePlan, progress: Progres
     return fac
 
 
-def check_hierarchical_memory(plan: PrecomputePlan) -> None:
-    """Refuse a plan whose estimate (:func:`hfrad.memory.precompute_peak_bytes`) exceeds 80% of the available memory."""
+def check_hierarchical_memory(plan: PrecomputePlan, clustered: bool = False) -> None:
+    """Refuse a plan whose estimate (:func:`hfrad.memory.precompute_peak_bytes`; ``clustered``: the scene's
+    patches are clusters of triangles) exceeds 80% of the available memory."""
     n, dt = plan.n, np.dtype(plan.dtype)
     require(precompute_peak_bytes(n, plan.block_size, far_field="hierarchical", near_entries=plan.near_entries,
-                                  itemsize=dt.itemsize),
+                                  itemsize=dt.itemsize, clustered=clustered),
             f"precomputing {n:,} patches with far_field='hierarchical'"
             + (f" and {plan.near_entries} near-field entries a row" if plan.near_entries else ""),
             f"use fewer patches, a larger eps or fewer near-field entries (the estimate assumes a rank of "
