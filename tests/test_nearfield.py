@@ -335,3 +335,28 @@ def test_near_field_set_up_refused_with_the_number(monkeypatch):
                                                r"needs about [0-9.]+ MB"):
         factorize(scene, 0.05, near_field=120, backend=LocalBackend(processes=1))
     assert factorize(scene, 0.05, near_field=None, backend=LocalBackend(processes=1)).rank > 0
+
+
+def test_set_up_by_neumann_sweeps_above_the_factored_entries(cornell, pair, monkeypatch):
+    """Above NEAR_LU_MOST_ENTRIES entries a row (clustered meshes: LUs of 10-17 times N's entries) the set-up
+    takes A_c^{-1} D_c Q by Neumann sweeps, no LU: the same Z to the sweeps' tolerance, the same
+    radiosity to float rounding, and no LU in the memory estimate."""
+    import hfrad.memory as memory
+    from hfrad.solve.nearfield import SETUP_TOL
+
+    scene, _, exact = cornell
+    lu = pair[1]
+    assert lu.near_setup == "lu" and lu.lowrank.info["near_setup"] == "lu"
+    monkeypatch.setattr(memory, "NEAR_LU_MOST_ENTRIES", 64)          # below the pair's 96
+    kw = dict(eps=0.03, dtype="float64", backend=LocalBackend(processes=1),
+              options=PrecomputeOptions(block_size=128, one_ray_tol=0))
+    swept = factorize(scene, near_field=96, **kw)
+    assert swept.near_setup == "neumann" and swept.lowrank.info["near_setup"] == "neumann"
+    assert swept.rank == lu.rank
+    Z, Z_lu = np.asarray(swept.Z, np.float64), np.asarray(lu.Z, np.float64)
+    # the sweeps stop at SETUP_TOL (relative residual): Z within SETUP_TOL / (1 - rho) of the LU's
+    assert np.abs(Z - Z_lu).max() <= 10 * SETUP_TOL * np.abs(Z_lu).max()
+    B, B_lu = swept.solve(scene.emission), lu.solve(scene.emission)
+    assert np.abs(B - B_lu).max() <= 1e-6 * np.abs(B_lu).max()
+    n = scene.n_patches
+    assert memory.near_field_bytes(n, 96) == memory.NEAR_N_BYTES * n * 96      # no LU counted

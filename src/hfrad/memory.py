@@ -127,31 +127,55 @@ NEAR_LU_PEAK_BYTES = 25
 NEAR_N_BYTES = 2 * 12 + 8
 
 
+#: The solver's set-up factors ``I - D_c N`` (sparse LU) only up to this many entries a row of N; above,
+#: it sweeps the Neumann series instead (:func:`hfrad.solve.nearfield.near_setup_runner`): the LU's fill
+#: grows with the entries (16.6 times N's at c = 400), the sweeps' work only with N. Šibenik, clustered,
+#: 10,181 patches, c = 242, rank 31, one channel (machine loaded by another run): LU 4.1 s and its solves
+#: 0.2 s, against 0.6 s of sweeps (18, spectral bound 0.665), Z apart 4.5e-6.
+NEAR_LU_MOST_ENTRIES = 200
+#: Bytes a patch and basis column the set-up's Neumann sweeps hold (float64 right-hand sides, iterate,
+#: previous iterate and the result: four n x k arrays).
+NEUMANN_BYTES = 4 * 8
+
+
 def near_lu_entries(n: int, entries: int) -> float:
     """Entries of one channel's sparse LU of ``I - D_c N``, estimated (:data:`NEAR_LU_ENTRIES_PER_C15`)."""
     return NEAR_LU_ENTRIES_PER_C15 * n * float(entries) ** 1.5
 
 
+def near_lu_bytes(n: int, entries: int) -> int:
+    """One channel's sparse LU while it is factored, bytes: ``25 n c^1.5`` (:data:`NEAR_LU_PEAK_BYTES` an
+    entry of :func:`near_lu_entries`; the channels are factored one at a time)."""
+    return int(NEAR_LU_PEAK_BYTES * near_lu_entries(n, entries)) if entries else 0
+
+
+def near_factored(entries: int) -> bool:
+    """Whether the set-up factors a near field of ``entries`` a row (:data:`NEAR_LU_MOST_ENTRIES`)."""
+    return 0 < entries <= NEAR_LU_MOST_ENTRIES
+
+
 def near_field_bytes(n: int, entries: int) -> int:
     """Peak of the near field's own set-up, bytes: ``25 n c^1.5 + 32 n c`` for c entries a row of N.
 
-    One channel's sparse LU while it is factored (:data:`NEAR_LU_PEAK_BYTES` an entry of
-    :func:`near_lu_entries`; the channels are factored one at a time) and N itself
+    One channel's sparse LU while it is factored (:func:`near_lu_bytes`; none above
+    :data:`NEAR_LU_MOST_ENTRIES` entries a row, where the set-up sweeps) and N itself
     (:data:`NEAR_N_BYTES` an entry). 0 without the near field (``entries`` 0).
     """
     if not entries:
         return 0
-    return int(NEAR_LU_PEAK_BYTES * near_lu_entries(n, entries) + NEAR_N_BYTES * n * entries)
+    return (near_lu_bytes(n, entries) if near_factored(entries) else 0) + NEAR_N_BYTES * n * entries
 
 
 def near_setup_bytes(n: int, entries: int, rank_guess_: int | None = None, itemsize: int = 4) -> int:
     """Peak of the solver's set-up with the near field, bytes: the factors (:func:`factors_bytes`), three
-    n x k ``Z_c`` (one a distinct colour channel, ``3 n k s``) and :func:`near_field_bytes`. The rank
+    n x k ``Z_c`` (one a distinct colour channel, ``3 n k s``), :func:`near_field_bytes` and, where the
+    set-up sweeps instead of factoring, the sweeps' ``32 n k`` (:data:`NEUMANN_BYTES`). The rank
     k is :func:`rank_guess` unless given (see :data:`RANK_ASSUMPTION`)."""
     if not entries:
         return 0
     k = rank_guess(n) if rank_guess_ is None else rank_guess_
-    return factors_bytes(n, k, itemsize) + 3 * n * k * itemsize + near_field_bytes(n, entries)
+    sweeps = 0 if near_factored(entries) else NEUMANN_BYTES * n * k
+    return factors_bytes(n, k, itemsize) + 3 * n * k * itemsize + near_field_bytes(n, entries) + sweeps
 
 
 def precompute_peak_bytes(n: int, block_size: int, *, far_field: str = "exact", near_entries: int = 0,

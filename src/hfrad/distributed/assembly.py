@@ -38,18 +38,13 @@ import time
 import numpy as np
 
 from ..precompute.assemble import PrecomputePlan, assemble
-from ..solve.nearfield import channel_solver
-from ..solve.neumann import neumann_solve, spectral_bound
+from ..solve.nearfield import SETUP_TOL, NeumannColumns, channel_solver, neumann_channel
+from ..solve.neumann import spectral_bound
 from ..solve.sparselu import PANEL
 from ..solve.stats import PassStatistics
 
 __all__ = ["DaskRunner", "assemble_on_cluster", "ASSEMBLY_TOPIC", "NeumannColumns", "neumann_channel",
            "SETUP_TOL"]
-
-#: Relative residual (max norm) at which a column panel's Neumann sweeps stop in the set-up: Z_c is then
-#: within ~``SETUP_TOL / (1 - rho)`` of ``A_c^{-1} D_c Q``, as close as the LU path's float32 panels
-#: (~1e-6), and far below the 16-bit storage's rounding (~1.5e-5 of a row's largest entry).
-SETUP_TOL = 1e-7
 
 #: The Dask event topic the pieces log their times under (``client.get_events(ASSEMBLY_TOPIC)``).
 ASSEMBLY_TOPIC = "hfrad-assembly"
@@ -70,56 +65,6 @@ def _timed(fn, *args):
     except ValueError:   # not on a worker (a test calling it directly)
         pass
     return out
-
-
-class NeumannColumns:
-    """``A_c^{-1} X`` for ``A_c = I - D_c N`` by the Chebyshev-accelerated Neumann series over N
-    (:func:`hfrad.solve.neumann.neumann_solve`): the ``solve`` of a channel's solver that
-    :func:`~hfrad.solve.nearfield.near_columns` calls, without a sparse LU.
-
-    Each column panel's task sweeps N itself (float64, every core of its worker), so no task
-    waits for a factorization: the set-up's critical path is one panel's sweeps instead of one
-    channel's LU and one panel's triangular solves. Where the series does not converge (the bound
-    on the spectral radius of ``D_c N`` not below 1, or ``MAX_SWEEPS`` reached) the panel is
-    solved by the channel's LU instead (:func:`~hfrad.solve.nearfield.channel_solver`).
-
-    Parameters
-    ----------
-    N : (n, n) float64 CSR
-        The near field (internal order).
-    d : (n,) float64
-        The channel's scale ``rho_c / rho_max``.
-    dtype : numpy dtype
-        Of the returned columns (the factors').
-    channel : int
-    rho : float
-        Upper bound on the spectral radius of ``N`` (:func:`~hfrad.solve.neumann.spectral_bound`;
-        it bounds ``D_c N``'s too, ``0 <= D_c <= 1``).
-    tol : float
-        The sweeps' stopping residual (:data:`SETUP_TOL`).
-    """
-
-    def __init__(self, N, d, dtype, channel: int, rho: float, tol: float = SETUP_TOL) -> None:
-        self.N, self.d, self.dtype = N, np.asarray(d, np.float64), np.dtype(dtype)
-        self.channel, self.rho, self.tol = int(channel), float(rho), float(tol)
-        #: sweeps of the last solve (0: it fell back to the LU)
-        self.last_sweeps = 0
-
-    def solve(self, X: np.ndarray) -> np.ndarray:
-        """``A_c^{-1} X`` for X (n, w); (n, w) in ``dtype``."""
-        n, w = X.shape
-        post = np.broadcast_to(self.d[:, None], (n, w))
-        x, sweeps = neumann_solve(self.N, X, rho=self.rho, post=post, tol=self.tol)
-        if x is None:   # no convergence: the exact solve
-            self.last_sweeps = 0
-            return channel_solver(self.N, self.d, self.dtype, self.channel).solve(X)
-        self.last_sweeps = sweeps
-        return x.astype(self.dtype)
-
-
-def neumann_channel(N, d, dtype, channel: int, rho: float, tol: float = SETUP_TOL) -> NeumannColumns:
-    """Piece 1 without a factorization: the channel's :class:`NeumannColumns` (nothing computed yet)."""
-    return NeumannColumns(N, d, dtype, channel, rho, tol)
 
 
 class DaskRunner:

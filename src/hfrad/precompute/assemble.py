@@ -301,5 +301,6 @@ def solver_object(perm: np.ndarray, lowrank: LowRank, reflectance: np.ndarray, p
         fac = NearFieldFactorization(perm, lowrank.Q, lowrank.V, near, rho_max, reflectance, lowrank,
                                      params=params, scene=scene, stats=stats, runner=runner)
         lowrank.info["time_nearfield_setup"] = time.perf_counter() - t1
+        lowrank.info["near_setup"] = fac.near_setup
     lowrank.info["solver"] = fac.solver
     return fac

@@ -50,7 +50,8 @@ from .sparselu import PanelSolver
 from .woodbury import (N_CHANNELS, HFactorization, capacitance_applied, invert_capacitance,
                        low_rank_correction)
 
-__all__ = ["NearFieldFactorization", "SOLVER", "QUANTIZE_SHARE", "InProcess", "channel_solver", "solver_order",
+__all__ = ["NearFieldFactorization", "SOLVER", "QUANTIZE_SHARE", "InProcess", "NeumannColumns", "neumann_channel",
+           "SETUP_TOL", "near_setup_runner", "channel_solver", "solver_order",
            "near_columns", "row_maxima", "column_products", "factor_near"]
 
 #: How the solve works, as recorded in .hfr files and reports.
@@ -174,6 +175,61 @@ def column_products(Z_cols: np.ndarray, V: np.ndarray, scale=None, slab: int = S
     return codes, out
 
 
+#: Relative residual (max norm) at which a column panel's Neumann sweeps stop in the set-up: Z_c is then
+#: within ~``SETUP_TOL / (1 - rho)`` of ``A_c^{-1} D_c Q``, as close as the LU path's float32 panels
+#: (~1e-6), and far below the 16-bit storage's rounding (~1.5e-5 of a row's largest entry).
+SETUP_TOL = 1e-7
+
+class NeumannColumns:
+    """``A_c^{-1} X`` for ``A_c = I - D_c N`` by the Chebyshev-accelerated Neumann series over N
+    (:func:`hfrad.solve.neumann.neumann_solve`): the ``solve`` of a channel's solver that
+    :func:`~hfrad.solve.nearfield.near_columns` calls, without a sparse LU.
+
+    Each column panel's task sweeps N itself (float64, every core of its worker), so no task
+    waits for a factorization: the set-up's critical path is one panel's sweeps instead of one
+    channel's LU and one panel's triangular solves. Where the series does not converge (the bound
+    on the spectral radius of ``D_c N`` not below 1, or ``MAX_SWEEPS`` reached) the panel is
+    solved by the channel's LU instead (:func:`channel_solver`).
+
+    Parameters
+    ----------
+    N : (n, n) float64 CSR
+        The near field (internal order).
+    d : (n,) float64
+        The channel's scale ``rho_c / rho_max``.
+    dtype : numpy dtype
+        Of the returned columns (the factors').
+    channel : int
+    rho : float
+        Upper bound on the spectral radius of ``N`` (:func:`~hfrad.solve.neumann.spectral_bound`;
+        it bounds ``D_c N``'s too, ``0 <= D_c <= 1``).
+    tol : float
+        The sweeps' stopping residual (:data:`SETUP_TOL`).
+    """
+
+    def __init__(self, N, d, dtype, channel: int, rho: float, tol: float = SETUP_TOL) -> None:
+        self.N, self.d, self.dtype = N, np.asarray(d, np.float64), np.dtype(dtype)
+        self.channel, self.rho, self.tol = int(channel), float(rho), float(tol)
+        #: sweeps of the last solve (0: it fell back to the LU)
+        self.last_sweeps = 0
+
+    def solve(self, X: np.ndarray) -> np.ndarray:
+        """``A_c^{-1} X`` for X (n, w); (n, w) in ``dtype``."""
+        n, w = X.shape
+        post = np.broadcast_to(self.d[:, None], (n, w))
+        x, sweeps = neumann_solve(self.N, X, rho=self.rho, post=post, tol=self.tol)
+        if x is None:   # no convergence: the exact solve
+            self.last_sweeps = 0
+            return channel_solver(self.N, self.d, self.dtype, self.channel).solve(X)
+        self.last_sweeps = sweeps
+        return x.astype(self.dtype)
+
+
+def neumann_channel(N, d, dtype, channel: int, rho: float, tol: float = SETUP_TOL) -> NeumannColumns:
+    """Piece 1 without a factorization: the channel's :class:`NeumannColumns` (nothing computed yet)."""
+    return NeumannColumns(N, d, dtype, channel, rho, tol)
+
+
 class InProcess:
     """Runs the set-up's pieces here, one after the other (the local backend).
 
@@ -183,15 +239,30 @@ class InProcess:
     all k at once) and ``share_order`` (factor the first distinct channel, then the
     others in its fill-reducing order: less work; False factors all at once: a
     shorter critical path). :mod:`hfrad.distributed.assembly` has the Dask one.
+
+    Parameters
+    ----------
+    neumann : bool
+        No sparse LUs: each channel's ``A_c^{-1} D_c Q`` by Neumann sweeps over N
+        (:class:`NeumannColumns`, N's spectral bound computed once); see :func:`near_setup_runner`.
     """
 
     columns = None
-    share_order = True
+
+    def __init__(self, neumann: bool = False) -> None:
+        self.neumann = bool(neumann)
+        self.share_order = not self.neumann
+        self._rho = None
 
     def scatter(self, x):
         return x
 
     def submit(self, fn, *args):
+        if self.neumann and fn is channel_solver:
+            N, d, dtype, channel = args[:4]
+            if self._rho is None:    # one bound serves every channel (0 <= D_c <= 1)
+                self._rho = spectral_bound(N)
+            return neumann_channel(N, d, dtype, channel, self._rho)
         return fn(*args)
 
     def gather(self, xs):
@@ -199,6 +270,17 @@ class InProcess:
 
     def release(self, x) -> None:
         pass
+
+
+def near_setup_runner(n: int, entries: int) -> InProcess:
+    """The in-process runner of the near field's set-up for ``entries`` a row of N: Neumann sweeps, no LUs
+    (:class:`NeumannColumns`), above :data:`hfrad.memory.NEAR_LU_MOST_ENTRIES` entries a row or where one
+    channel's LU (:func:`hfrad.memory.near_lu_bytes`) would take more than half the memory available;
+    SuperLU otherwise (the channels after the first in its order)."""
+    from ..memory import available_bytes, near_factored, near_lu_bytes
+
+    factored = near_factored(entries) and near_lu_bytes(n, entries) <= 0.5 * available_bytes()
+    return InProcess(neumann=not factored)
 
 
 class NearFieldFactorization(HFactorization):
@@ -313,8 +395,13 @@ class NearFieldFactorization(HFactorization):
         self._quantization_error: np.ndarray | None = None
         self._spectral: float | None = None
         self._quantize = quantize
+        if runner is None:
+            runner = near_setup_runner(self.n_patches, round(self.N.nnz / max(1, self.n_patches)))
+        #: how ``Z_c`` was found: "neumann" (sweeps) or "lu" (SuperLU)
+        self.near_setup = ("stored" if near_solution is not None
+                           else "neumann" if getattr(runner, "neumann", False) else "lu")
         with spare_threads():   # BLAS threads that other processes leave free (hfrad.resources)
-            Z, K_inv = self._near_solution(near_solution, stored, quantize, runner or InProcess())
+            Z, K_inv = self._near_solution(near_solution, stored, quantize, runner)
         self.Z = Z if isinstance(Z, QuantizedRows) else read_only(Z)   # QuantizedRows holds read-only arrays
         return K_inv
 

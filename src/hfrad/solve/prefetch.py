@@ -48,11 +48,12 @@ PREFETCH_BESIDE_SHARE = 0.5
 
 
 def prefetch_fits(n: int, entries: int) -> bool:
-    """Whether the near field of ``entries`` a row fits beside the client's other work now
-    (:data:`PREFETCH_BESIDE_SHARE` of the available memory)."""
-    from ..memory import available_bytes, near_field_bytes
+    """Whether the near field of ``entries`` a row is factored (:func:`hfrad.memory.near_factored`; above
+    that the set-up sweeps and there is nothing to prefetch) and its LU fits beside the client's other
+    work now (:data:`PREFETCH_BESIDE_SHARE` of the available memory)."""
+    from ..memory import available_bytes, near_factored, near_field_bytes
 
-    return near_field_bytes(n, entries) <= PREFETCH_BESIDE_SHARE * available_bytes()
+    return near_factored(entries) and near_field_bytes(n, entries) <= PREFETCH_BESIDE_SHARE * available_bytes()
 
 
 def channel_scales(reflectance: np.ndarray, perm: np.ndarray) -> tuple[list[int], dict[int, np.ndarray]]:
@@ -193,6 +194,7 @@ class PrefetchRunner(InProcess):
     assembly asks for exactly them."""
 
     def __init__(self, prefetch: NearPrefetch) -> None:
+        super().__init__()
         self.prefetch = prefetch
 
     def submit(self, fn, *args):
