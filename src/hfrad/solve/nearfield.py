@@ -14,7 +14,9 @@ Set-up (once): SciPy's SuperLU factors ``A_c`` (``scipy.sparse.linalg.splu``;
 the channels after the first in its fill-reducing order, as every ``A_c`` has N's
 pattern) and takes the k columns of ``D_c Q`` in panels
 (:class:`~hfrad.solve.sparselu.PanelSolver`) to give ``Z_c`` and ``K_c``; the
-LU is then dropped. The set-up is pure functions (:func:`channel_solver`,
+LU is then dropped. Above :data:`hfrad.memory.NEAR_LU_MOST_ENTRIES` entries a row of N
+(clustered meshes, whose LUs hold 10-17 times N's entries) the set-up sweeps the
+Neumann series instead (:class:`NeumannColumns`, :func:`near_setup_runner`): no LU at all. The set-up is pure functions (:func:`channel_solver`,
 :func:`near_columns`, :func:`row_maxima`, :func:`column_products`) that a runner
 runs in this process (:class:`InProcess`) or as Dask tasks
 (:mod:`hfrad.distributed.assembly`), with the same result. A relighting solve applies ``A_c^{-1}`` once, by the
