@@ -124,9 +124,9 @@ def far_field_mode(far_field, n: int, relative: bool, *, eps: float = 0.0, local
     process (``local``), on a scene of plain patches (not ``clustered``), from
     ``AUTO_HIERARCHICAL_FROM`` patches at a relative eps of at least ``AUTO_HIERARCHICAL_EPS``; the
     exact pass elsewhere (smaller scenes, a smaller or absolute eps, a Dask cluster, and clustered
-    real scenes: Šibenik, 10,181 patches, 40.2 s against the exact pass's 35.0 s; at 60,568 patches
-    the near field's sparse LUs (4.5 GB at 20,616 patches, 400 neighbours a row) beside the
-    H-matrix ran the 23.5 GB machine out of memory, 2026-12-07). The sampled far field is never
+    real scenes: Šibenik, 10,181 patches, 40.2 s against the exact pass's 35.0 s; at 60,568 patches,
+    with the near field's set-up by sweeps, 437 s against the exact pass's 719 s, of which about
+    290 s were the LUs that the sweeps now save it too: not measured faster). The sampled far field is never
     chosen: it evaluates 4-5 times fewer pairs than the exact pass but costs more wall time
     (benchmarks/README.md, "The sampled far field").
     """
