@@ -24,7 +24,7 @@ COUNTERS = ("far_blocks", "visible_blocks", "blocked_blocks", "mixed_blocks", "p
 
 @pytest.fixture(scope="module")
 def scene():
-    return hfrad.load_scene("cornell", patches=900)
+    return hfrad.load_scene("cornell", patches=600)
 
 
 def _factorize(scene, **kw):

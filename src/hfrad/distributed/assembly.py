@@ -23,9 +23,9 @@ The client then decides the 16-bit storage from the row scales, inverts the d
 
 With ``neumann=True`` (what runs on 3 or more workers do) there is no LU: one task bounds
 N's spectral radius, and each column panel's task applies ``A_c^{-1}`` by the
-Chebyshev-accelerated Neumann series over N (:class:`NeumannColumns`), so the critical
+Chebyshev-accelerated Neumann series over N (:class:`~hfrad.solve.nearfield.NeumannColumns`), so the critical
 path is one panel's sweeps, not a channel's factorization; Z then equals the LU path's
-to :data:`SETUP_TOL` (the float64 LU's to ~1e-8 relative, closer than the float32 panels). The channels are factored at once
+to :data:`~hfrad.solve.nearfield.SETUP_TOL` (the float64 LU's to ~1e-8 relative, closer than the float32 panels). The channels are factored at once
 (``share_order=False``: the shortest critical path); in one process the later
 channels reuse the first one's fill-reducing order instead (less work in all).
 """
@@ -84,7 +84,7 @@ class DaskRunner:
     neumann : bool
         No sparse LUs: each column panel's task applies ``A_c^{-1}`` by Neumann sweeps over N
         (:class:`NeumannColumns`; one task bounds N's spectral radius first). Z equals the LU
-        path's to :data:`SETUP_TOL` instead of to rounding. Default False.
+        path's to :data:`~hfrad.solve.nearfield.SETUP_TOL` instead of to rounding. Default False.
     """
 
     def __init__(self, client, *, columns: int = PANEL, share_order: bool = False, neumann: bool = False) -> None:

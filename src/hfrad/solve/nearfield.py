@@ -16,7 +16,8 @@ pattern) and takes the k columns of ``D_c Q`` in panels
 (:class:`~hfrad.solve.sparselu.PanelSolver`) to give ``Z_c`` and ``K_c``; the
 LU is then dropped. Above :data:`hfrad.memory.NEAR_LU_MOST_ENTRIES` entries a row of N
 (clustered meshes, whose LUs hold 10-17 times N's entries) the set-up sweeps the
-Neumann series instead (:class:`NeumannColumns`, :func:`near_setup_runner`): no LU at all. The set-up is pure functions (:func:`channel_solver`,
+Neumann series instead (:class:`NeumannColumns`, :func:`near_setup_runner`): no LU at all.
+The set-up is pure functions (:func:`channel_solver`,
 :func:`near_columns`, :func:`row_maxima`, :func:`column_products`) that a runner
 runs in this process (:class:`InProcess`) or as Dask tasks
 (:mod:`hfrad.distributed.assembly`), with the same result. A relighting solve applies ``A_c^{-1}`` once, by the
@@ -182,14 +183,16 @@ def column_products(Z_cols: np.ndarray, V: np.ndarray, scale=None, slab: int = S
 #: (~1e-6), and far below the 16-bit storage's rounding (~1.5e-5 of a row's largest entry).
 SETUP_TOL = 1e-7
 
+
 class NeumannColumns:
     """``A_c^{-1} X`` for ``A_c = I - D_c N`` by the Chebyshev-accelerated Neumann series over N
     (:func:`hfrad.solve.neumann.neumann_solve`): the ``solve`` of a channel's solver that
     :func:`~hfrad.solve.nearfield.near_columns` calls, without a sparse LU.
 
-    Each column panel's task sweeps N itself (float64, every core of its worker), so no task
-    waits for a factorization: the set-up's critical path is one panel's sweeps instead of one
-    channel's LU and one panel's triangular solves. Where the series does not converge (the bound
+    Each column panel (a Dask task, or all k columns in this process) sweeps N itself (float64,
+    every core), so nothing waits for a factorization: on Dask the set-up's critical path is one
+    panel's sweeps instead of one channel's LU and one panel's triangular solves, and in this
+    process no LU is held (:func:`near_setup_runner`). Where the series does not converge (the bound
     on the spectral radius of ``D_c N`` not below 1, or ``MAX_SWEEPS`` reached) the panel is
     solved by the channel's LU instead (:func:`channel_solver`).
 
