@@ -133,9 +133,11 @@ NEAR_N_BYTES = 2 * 12 + 8
 #: 10,181 patches, c = 242, rank 31, one channel (machine loaded by another run): LU 4.1 s and its solves
 #: 0.2 s, against 0.6 s of sweeps (18, spectral bound 0.665), Z apart 4.5e-6.
 NEAR_LU_MOST_ENTRIES = 200
-#: Bytes a patch and basis column the set-up's Neumann sweeps hold (float64 right-hand sides, iterate,
-#: previous iterate and the result: four n x k arrays).
+#: Bytes a patch and column the set-up's Neumann sweeps hold (float64 right-hand sides, iterate,
+#: previous iterate and the result: four n x w arrays), for panels of at most ``NEUMANN_COLUMNS`` columns
+#: (:data:`hfrad.solve.nearfield.NEUMANN_PANEL`).
 NEUMANN_BYTES = 4 * 8
+NEUMANN_COLUMNS = 64
 
 
 def near_lu_entries(n: int, entries: int) -> float:
@@ -169,12 +171,12 @@ def near_field_bytes(n: int, entries: int) -> int:
 def near_setup_bytes(n: int, entries: int, rank_guess_: int | None = None, itemsize: int = 4) -> int:
     """Peak of the solver's set-up with the near field, bytes: the factors (:func:`factors_bytes`), three
     n x k ``Z_c`` (one a distinct colour channel, ``3 n k s``), :func:`near_field_bytes` and, where the
-    set-up sweeps instead of factoring, the sweeps' ``32 n k`` (:data:`NEUMANN_BYTES`). The rank
+    set-up sweeps instead of factoring, the sweeps' ``32 n min(k, 64)`` (:data:`NEUMANN_BYTES`). The rank
     k is :func:`rank_guess` unless given (see :data:`RANK_ASSUMPTION`)."""
     if not entries:
         return 0
     k = rank_guess(n) if rank_guess_ is None else rank_guess_
-    sweeps = 0 if near_factored(entries) else NEUMANN_BYTES * n * k
+    sweeps = 0 if near_factored(entries) else NEUMANN_BYTES * n * min(k, NEUMANN_COLUMNS)
     return factors_bytes(n, k, itemsize) + 3 * n * k * itemsize + near_field_bytes(n, entries) + sweeps
 
 

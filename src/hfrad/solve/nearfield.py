@@ -41,6 +41,7 @@ import scipy.sparse as sp
 from scipy.sparse.linalg import splu
 
 from ..errors import FactorizationError, InputError
+from ..memory import NEUMANN_COLUMNS
 from ..lowrank.hf import SLAB_ROWS
 from ..resources import spare_threads
 from ..lowrank.factors import LowRank
@@ -257,6 +258,8 @@ class InProcess:
     def __init__(self, neumann: bool = False) -> None:
         self.neumann = bool(neumann)
         self.share_order = not self.neumann
+        # the sweeps' work arrays are n x (columns) float64: panels keep them small at any rank
+        self.columns = NEUMANN_COLUMNS if self.neumann else None
         self._rho = None
 
     def scatter(self, x):
