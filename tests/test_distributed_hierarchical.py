@@ -68,7 +68,7 @@ def test_dask_build_gives_the_local_factorization(scene):
     assert h["certificate"]["error_estimate"] == pytest.approx(h_local["certificate"]["error_estimate"], rel=1e-4)
     B, B_local = dist.solve(scene.emission), local.solve(scene.emission)
     diff = np.linalg.norm(B - B_local, axis=0) / np.linalg.norm(B_local, axis=0)
-    assert (diff <= 1e-4).all(), diff          # observed 1.3e-6 at 1,508 patches
+    assert (diff <= 5e-6).all(), diff          # observed 6.2e-7 (1.3e-6 at 1,508 patches)
 
 
 def test_dask_checkpoint_folder_resumes_without_the_cluster_build(scene, tmp_path, monkeypatch):

@@ -355,8 +355,9 @@ def test_set_up_by_neumann_sweeps_above_the_factored_entries(cornell, pair, monk
     assert swept.rank == lu.rank
     Z, Z_lu = np.asarray(swept.Z, np.float64), np.asarray(lu.Z, np.float64)
     # the sweeps stop at SETUP_TOL (relative residual): Z within SETUP_TOL / (1 - rho) of the LU's
-    assert np.abs(Z - Z_lu).max() <= 10 * SETUP_TOL * np.abs(Z_lu).max()
+    # (observed 4.1e-8 of its largest entry, 0.41 SETUP_TOL)
+    assert np.abs(Z - Z_lu).max() <= 2 * SETUP_TOL * np.abs(Z_lu).max()
     B, B_lu = swept.solve(scene.emission), lu.solve(scene.emission)
-    assert np.abs(B - B_lu).max() <= 1e-6 * np.abs(B_lu).max()
+    assert np.abs(B - B_lu).max() <= 5e-9 * np.abs(B_lu).max()         # observed 5.4e-10
     n = scene.n_patches
     assert memory.near_field_bytes(n, 96) == memory.NEAR_N_BYTES * n * 96      # no LU counted
