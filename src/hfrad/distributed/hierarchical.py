@@ -22,14 +22,13 @@ from ..formfactors.hmatrix import (FormFactorHMatrix, HMatrixPairs, build_part, 
 from ..formfactors.parallel import cached_engine
 from ..precompute.assemble import PrecomputePlan
 from ..precompute.backends import Checkpoint, DaskBackend
-from ..precompute.hierarchical import check_hierarchical_memory, engine_for, factorize_hmatrix, \
-    resumed_hmatrix, save_if_worth
+from ..precompute.hierarchical import run_hierarchical
 from ..progress import ProgressCallback, report
 from ..solve.woodbury import HFactorization
 from .connection import Cluster, connect
 from .run import make_job
 from .store import remove_folder
-from .tasks import Job, _threads
+from .tasks import Job, task_numba_threads
 
 __all__ = ["factorize_hierarchical_distributed", "hmatrix_part_task", "PARTS_PER_WORKER"]
 
@@ -45,7 +44,7 @@ def hmatrix_part_task(job: Job, pairs: HMatrixPairs) -> tuple:
     (:func:`~hfrad.formfactors.hmatrix.build_part`), with the worker's engine (built once a process)."""
     plan = job.options
     engine = cached_engine(job.scene, job.samples, job.ray_budget if job.samples else None)
-    with _threads(job.task_threads):
+    with task_numba_threads(job.task_threads):
         return build_part(job.scene, engine, pairs, plan.hmatrix_options)
 
 
@@ -84,31 +83,24 @@ def factorize_hierarchical_distributed(scene, plan: PrecomputePlan, backend: Das
     SchedulerUnreachableError
         The scheduler cannot be reached.
     """
-    check_hierarchical_memory(plan, scene.is_clustered)
     folder = None
     if checkpoint is not None:      # a Dask run's checkpoint names a folder: here it holds the H-matrix's file
         folder = Path(checkpoint.path)
-        folder.mkdir(parents=True, exist_ok=True)
         checkpoint = dataclasses.replace(checkpoint, path=folder / HMATRIX_FILE)
-    t0 = time.perf_counter()
-    hm = resumed_hmatrix(scene, plan, checkpoint, status)
-    workers = 0
-    if hm is None:
+    record = {"backend": "dask", "workers": 0}      # 0 when the H-matrix was resumed
+
+    def build(engine) -> FormFactorHMatrix:
+        if folder is not None:      # after the memory check: a refused run leaves no folder behind
+            folder.mkdir(parents=True, exist_ok=True)
         if isinstance(backend.scheduler, Cluster):
-            hm, workers = _build_on(backend.scheduler, scene, plan, backend.task_threads, progress)
+            hm, record["workers"] = _build_on(backend.scheduler, scene, plan, backend.task_threads, progress)
         else:
             with connect(backend.scheduler, workers=backend.workers, timeout=backend.connect_timeout) as cluster:
-                hm, workers = _build_on(cluster, scene, plan, backend.task_threads, progress)
-        save_if_worth(hm, scene, plan, checkpoint, time.perf_counter() - t0)
-    engine = engine_for(scene, plan)
-    try:
-        fac = factorize_hmatrix(scene, plan, engine, hm, progress, status, t0=t0,
-                                backend={"backend": "dask", "workers": int(workers)})
-    finally:
-        engine.close()
-    if folder is not None and not checkpoint.keep:
-        remove_folder(folder)
-    return fac
+                hm, record["workers"] = _build_on(cluster, scene, plan, backend.task_threads, progress)
+        return hm
+
+    return run_hierarchical(scene, plan, build, progress, status, checkpoint=checkpoint, backend=record,
+                            remove_checkpoint=None if folder is None else (lambda: remove_folder(folder)))
 
 
 def _build_on(cluster: Cluster, scene, plan: PrecomputePlan, task_threads, progress) -> tuple[FormFactorHMatrix, int]:

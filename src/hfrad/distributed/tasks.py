@@ -106,7 +106,7 @@ class Part:
 
 
 @contextlib.contextmanager
-def _threads(count: int | None):
+def task_numba_threads(count: int | None):
     """``count`` numba threads for this task's form-factor kernel (None: the worker's setting).
 
     BLAS stays at one thread, as in the local path: Dask's nanny starts workers
@@ -191,7 +191,7 @@ def _sampled_block(job: Job, j: int):
             ff_kwargs = {"samples": job.samples, **({"ray_budget": job.ray_budget} if job.samples else {})}
             producer = _FAR[job.token] = sampled_far_field(job.scene, job.options, design, ff_kwargs)
         producer.fresh_tallies()
-        with _threads(job.task_threads):
+        with task_numba_threads(job.task_threads):
             pieces, exact = producer.block(j)
         return pieces.astype(job.options.dtype), exact, (producer.stats, producer.certificate, producer.holdout)
 
@@ -214,7 +214,7 @@ def leaf_task(job: Job, j: int) -> Part:
                                extra={"far_field": tallies[0].state()}, exact_rows=exact, far=tallies[1:])
     b = job.options.block_size
     cols = job.perm[j * b:(j + 1) * b]
-    with _threads(job.task_threads):
+    with task_numba_threads(job.task_threads):
         F = column_block(job.scene, cols, order=job.perm, samples=job.samples, ray_budget=job.ray_budget,
                          dtype=job.options.dtype)
     t1, cpu1 = time.perf_counter(), time.process_time()
@@ -270,7 +270,7 @@ def tile_task(job: Job, plan, I: int, J: int) -> np.ndarray:
     factors' dtype (gb x gb), for group J's leaves as it is and group I's by reciprocity."""
     t0, c0 = time.perf_counter(), time.process_time()
     rows, cols = plan.rows(I), plan.rows(J)
-    with _threads(job.task_threads):
+    with task_numba_threads(job.task_threads):
         T = column_block(job.scene, job.perm[cols], order=job.perm[rows], samples=job.samples,
                          ray_budget=job.ray_budget, dtype=job.options.dtype)
     _record(job, {"kind": "tile", "node": int(J), "group_rows": int(I), "rows": int(T.shape[0]),
@@ -335,7 +335,7 @@ def group_tree_task(job: Job, plan, J: int, leaves: tuple, direct_groups: tuple,
 
 def _block(job: Job, rows: slice, cols: slice) -> np.ndarray:
     """F of internal positions ``rows`` x ``cols`` in the factors' dtype."""
-    with _threads(job.task_threads):
+    with task_numba_threads(job.task_threads):
         return column_block(job.scene, job.perm[cols], order=job.perm[rows], samples=job.samples,
                             ray_budget=job.ray_budget, dtype=job.options.dtype)
 
@@ -349,7 +349,7 @@ def group_block(job: Job, plan, J: int, j: int, own: np.ndarray, areas: np.ndarr
 
     b = job.options.block_size
     cols = job.perm[j * b:(j + 1) * b]
-    with _threads(job.task_threads):
+    with task_numba_threads(job.task_threads):
         mine = column_block(job.scene, cols, order=job.perm[own], samples=job.samples,
                             ray_budget=job.ray_budget, dtype=job.options.dtype)
     F = np.empty((plan.n, cols.size), mine.dtype)

@@ -805,14 +805,18 @@ class _Collector:
 
     def blocks(self) -> BlockList:
         """The collected blocks as one list; the batches are dropped as they are copied (the values, the
-        H-matrix's storage, are never held twice)."""
+        H-matrix's storage, are never held twice), so it can be called once."""
+        if self.m is None:
+            raise RuntimeError("the collected blocks were already taken (_Collector.blocks is called once)")
         cat = _drain
         exclusive = (lambda z: np.cumsum(z) - z)                 # each block's offset from the sizes
         row_ptr = np.zeros(sum(len(x) for x in self.m) + 1, np.int64)
         np.cumsum(cat(self.m, np.int64), out=row_ptr[1:])
         u_off, v_off = exclusive(cat(self.u_size, np.int64)), exclusive(cat(self.v_size, np.int64))
-        return BlockList(cat(self.rows, np.int64), row_ptr, cat(self.c0, np.int64), cat(self.b, np.int64),
-                         cat(self.rank, np.int64), u_off, v_off, cat(self.U, np.float32), cat(self.V, np.float32))
+        out = BlockList(cat(self.rows, np.int64), row_ptr, cat(self.c0, np.int64), cat(self.b, np.int64),
+                        cat(self.rank, np.int64), u_off, v_off, cat(self.U, np.float32), cat(self.V, np.float32))
+        self.m = None
+        return out
 
 
 def build_hmatrix(scene, engine: FormFactorEngine, options: HMatrixOptions | None = None,

@@ -21,6 +21,7 @@ from __future__ import annotations
 import math
 import time
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -42,7 +43,7 @@ from .backends import Checkpoint
 from .hmatrix_checkpoint import load_hmatrix_checkpoint, save_hmatrix_checkpoint
 
 __all__ = ["factorize_hierarchical", "factorize_hmatrix", "engine_for", "tree_order", "check_hierarchical_memory",
-           "resumed_hmatrix", "save_if_worth", "CERTIFICATE_ROWS", "CERTIFICATE_SEED"]
+           "resumed_hmatrix", "save_if_worth", "run_hierarchical", "CERTIFICATE_ROWS", "CERTIFICATE_SEED"]
 
 #: Exact rows drawn (with replacement, by importance) to certify ``||G - G_H||``.
 CERTIFICATE_ROWS = 256
@@ -114,20 +115,39 @@ def factorize_hierarchical(scene: Scene, plan: PrecomputePlan, progress: Progres
         The estimate (:func:`hfrad.memory.precompute_peak_bytes`: the H-matrix and its factorization, or
         the near field's set-up with its sparse LUs where that is larger) exceeds 80% of the available memory.
     """
+    def build(engine: FormFactorEngine) -> FormFactorHMatrix:
+        with resources.blas_threads(blas_threads):
+            return build_hmatrix(scene, engine, plan.hmatrix_options, progress)
+
+    return run_hierarchical(scene, plan, build, progress, status, checkpoint=checkpoint, blas_threads=blas_threads)
+
+
+def run_hierarchical(scene: Scene, plan: PrecomputePlan, build: Callable[[FormFactorEngine], FormFactorHMatrix],
+                     progress: ProgressCallback = None, status=None, *, checkpoint: Checkpoint | None = None,
+                     blas_threads: int | None = 1, backend: dict | None = None,
+                     remove_checkpoint: Callable[[], None] | None = None) -> HFactorization:
+    """The hierarchical path's steps in their order, whichever backend builds the H-matrix: the memory
+    check; the H-matrix resumed from ``checkpoint`` or built (``build(engine)``) and saved; the rest
+    (:func:`factorize_hmatrix`); the checkpoint removed on completion unless ``checkpoint.keep``
+    (``remove_checkpoint()``, default: its file deleted). ``backend`` (recorded in ``params``) is read
+    after the build, which may fill it in."""
     check_hierarchical_memory(plan, scene.is_clustered)
     t0 = time.perf_counter()
     engine = engine_for(scene, plan)
     try:
         hm = resumed_hmatrix(scene, plan, checkpoint, status)
         if hm is None:
-            with resources.blas_threads(blas_threads):
-                hm = build_hmatrix(scene, engine, plan.hmatrix_options, progress)
+            hm = build(engine)
             save_if_worth(hm, scene, plan, checkpoint, time.perf_counter() - t0)
-        fac = factorize_hmatrix(scene, plan, engine, hm, progress, status, t0=t0, blas_threads=blas_threads)
+        fac = factorize_hmatrix(scene, plan, engine, hm, progress, status, t0=t0, blas_threads=blas_threads,
+                                backend=backend)
     finally:
         engine.close()
     if checkpoint is not None and not checkpoint.keep:
-        Path(checkpoint.path).unlink(missing_ok=True)
+        if remove_checkpoint is None:
+            Path(checkpoint.path).unlink(missing_ok=True)
+        else:
+            remove_checkpoint()
     return fac
 
 
