@@ -85,6 +85,60 @@ def test_products_are_those_of_the_blocks_held(cornell):
     assert hm.frobenius2(rho) == pytest.approx(((rho[:, None] * D) ** 2).sum(), rel=1e-9)
 
 
+def _hand_blocks():
+    """Five blocks over 12 positions: a dense block with a zero row and zero outer columns, an all-zero
+    dense block, a rank-0 block, a rank-2 block and a dense block without zeros."""
+    from hfrad.formfactors.hmatrix import BlockList
+
+    rng = np.random.default_rng(3)
+    A = rng.random((4, 5)).astype(np.float32)
+    A[1] = 0.0                                   # a zero row
+    A[:, 0] = A[:, 4] = 0.0                      # zero outer columns
+    A[2, 2] = 0.0                                # an inner zero stays
+    zero = np.zeros((3, 4), np.float32)
+    U2, V2 = rng.random((3, 2)).astype(np.float32), rng.random((6, 2)).astype(np.float32)
+    full = rng.random((2, 3)).astype(np.float32) + 0.1
+    rows = [np.array([0, 2, 5, 7]), np.array([1, 3, 4]), np.array([6, 8]), np.array([9, 10, 11]), np.array([4, 5])]
+    c0, b, rank = [3, 0, 2, 5, 9], [5, 4, 7, 6, 3], [-1, -1, 0, 2, -1]
+    U = [A.ravel(), zero.ravel(), np.zeros(0, np.float32), U2.ravel(), full.ravel()]
+    v_sizes = [0, 0, 0, V2.size, 0]
+    row_ptr = np.r_[0, np.cumsum([len(r) for r in rows])]
+    u_off = np.r_[0, np.cumsum([len(u) for u in U])[:-1]]
+    v_off = np.r_[0, np.cumsum(v_sizes)[:-1]]
+    return BlockList(np.concatenate(rows).astype(np.int64), row_ptr.astype(np.int64), np.array(c0, np.int64),
+                     np.array(b, np.int64), np.array(rank, np.int64), u_off.astype(np.int64),
+                     v_off.astype(np.int64), np.concatenate(U).astype(np.float32), V2.ravel().copy())
+
+
+def test_blocks_holding_only_zeros_are_dropped_with_the_same_products():
+    from hfrad.formfactors.hmatrix import FormFactorHMatrix, _without_zeros
+
+    n = 12
+    before = FormFactorHMatrix(np.arange(n), _hand_blocks())
+    D = _dense_from_blocks(before)
+    after = FormFactorHMatrix(np.arange(n), _without_zeros(_hand_blocks()))
+    k = after.blocks
+    assert k.count == 3                               # the all-zero and rank-0 blocks are gone
+    assert k.rank.tolist() == [-1, 2, -1]
+    assert k.m.tolist() == [3, 3, 2] and k.b.tolist() == [3, 6, 3] and k.c0.tolist() == [4, 5, 9]
+    assert after.storage == 9 + 12 + 6 + 6 < before.storage
+    np.testing.assert_array_equal(_dense_from_blocks(after), D)
+    X = np.random.default_rng(0).standard_normal((n, 3))
+    np.testing.assert_array_equal(after.matmat(X), before.matmat(X))
+    np.testing.assert_array_equal(after.rmatmat(X), before.rmatmat(X))
+    assert after.frobenius2() == before.frobenius2()
+
+
+def test_built_dense_blocks_hold_no_zero_row(cornell):
+    _, hm, _ = cornell
+    k = hm.blocks
+    for t in np.flatnonzero(k.rank < 0):
+        m, b = k.row_ptr[t + 1] - k.row_ptr[t], k.b[t]
+        A = k.U[k.u_off[t]:k.u_off[t] + m * b].reshape(m, b)
+        assert m > 0 and (A != 0).any(axis=1).all() and (A[:, 0] != 0).any() and (A[:, -1] != 0).any()
+    assert (k.rank != 0).all()
+
+
 def test_against_the_exact_matrix_on_the_cornell_box(cornell):
     _, hm, F = cornell
     D = _dense_from_blocks(hm)
