@@ -139,6 +139,18 @@ def test_built_dense_blocks_hold_no_zero_row(cornell):
     assert (k.rank != 0).all()
 
 
+def test_parts_on_threads_build_the_same_blocks(cornell):
+    scene, hm, _ = cornell
+    engine = FormFactorEngine(scene, samples=SAMPLES)
+    one = build_hmatrix(scene, engine, OPTIONS, threads=1)
+    calls = []
+    two = build_hmatrix(scene, engine, OPTIONS, threads=2, progress=lambda done, total: calls.append((done, total)))
+    assert one.blocks.count == two.blocks.count == hm.blocks.count and one.storage == two.storage
+    np.testing.assert_array_equal(_dense_from_blocks(two), _dense_from_blocks(one))
+    assert calls and calls[-1][0] == calls[-1][1] > 0          # the parts' near blocks, all counted
+    assert two.info["exact_pairs"] == one.info["exact_pairs"] and two.info["probe_rays"] == one.info["probe_rays"]
+
+
 def test_against_the_exact_matrix_on_the_cornell_box(cornell):
     _, hm, F = cornell
     D = _dense_from_blocks(hm)

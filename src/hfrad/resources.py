@@ -16,7 +16,7 @@ import os
 import time
 
 __all__ = ["cores", "blas_threads", "blas_threads_now", "other_processes_cores", "spare_blas_threads",
-           "spare_threads", "spare_cores_now", "solve_threads", "numba_loops_at_once"]
+           "spare_threads", "spare_cores_now", "solve_threads", "numba_loops_at_once", "numba_threads"]
 
 
 def cores() -> int:
@@ -221,3 +221,23 @@ def numba_loops_at_once() -> bool:
         return numba.threading_layer() in ("omp", "tbb")
     except ValueError:
         return False
+
+
+@contextlib.contextmanager
+def numba_threads(count: int | None):
+    """``count`` numba threads for the parallel loops this thread runs inside (None: unchanged).
+
+    numba's thread count is thread-local: a Dask task or one of several threads building parts of
+    a job each set their own. BLAS is left as it is (the callers run with one BLAS thread).
+    """
+    if count is None:
+        yield
+        return
+    import numba
+
+    before = numba.get_num_threads()
+    numba.set_num_threads(max(1, min(int(count), numba.config.NUMBA_NUM_THREADS)))
+    try:
+        yield
+    finally:
+        numba.set_num_threads(before)

@@ -28,7 +28,8 @@ from ..solve.woodbury import HFactorization
 from .connection import Cluster, connect
 from .run import make_job
 from .store import remove_folder
-from .tasks import Job, task_numba_threads
+from ..resources import numba_threads
+from .tasks import Job
 
 __all__ = ["factorize_hierarchical_distributed", "hmatrix_part_task", "PARTS_PER_WORKER"]
 
@@ -44,7 +45,7 @@ def hmatrix_part_task(job: Job, pairs: HMatrixPairs) -> tuple:
     (:func:`~hfrad.formfactors.hmatrix.build_part`), with the worker's engine (built once a process)."""
     plan = job.options
     engine = cached_engine(job.scene, job.samples, job.ray_budget if job.samples else None)
-    with task_numba_threads(job.task_threads):
+    with numba_threads(job.task_threads):
         return build_part(job.scene, engine, pairs, plan.hmatrix_options)
 
 

@@ -13,7 +13,6 @@ validated it on the client.
 
 from __future__ import annotations
 
-import contextlib
 import copy
 import threading
 import time
@@ -30,6 +29,7 @@ from ..precompute.assemble import add_statistics, concat_near, far_block, statis
 from ..precompute.local import sampled_far_field
 from ..solve.stats import PassStatistics
 from . import panels, store
+from ..resources import numba_threads
 
 
 @dataclass(frozen=True)
@@ -105,25 +105,9 @@ class Part:
     near: dict | None = None
 
 
-@contextlib.contextmanager
-def task_numba_threads(count: int | None):
-    """``count`` numba threads for this task's form-factor kernel (None: the worker's setting).
-
-    BLAS stays at one thread, as in the local path: Dask's nanny starts workers
-    with OPENBLAS_NUM_THREADS=1, and a multi-threaded BLAS beside busy cores
-    spin-waits (10-50x slower small SVDs, see hfrad.pipeline).
-    """
-    if count is None:
-        yield
-        return
-    import numba
-
-    before = numba.get_num_threads()
-    numba.set_num_threads(max(1, min(count, numba.config.NUMBA_NUM_THREADS)))  # thread-local in numba
-    try:
-        yield
-    finally:
-        numba.set_num_threads(before)
+# Each task runs its kernels with the job's ``task_threads`` numba threads (numba_threads). BLAS stays at
+# one thread, as in the local path: Dask's nanny starts workers with OPENBLAS_NUM_THREADS=1, and a
+# multi-threaded BLAS beside busy cores spin-waits (10-50x slower small SVDs, see hfrad.pipeline).
 
 
 def _announce(job: Job, message: dict) -> None:
@@ -191,7 +175,7 @@ def _sampled_block(job: Job, j: int):
             ff_kwargs = {"samples": job.samples, **({"ray_budget": job.ray_budget} if job.samples else {})}
             producer = _FAR[job.token] = sampled_far_field(job.scene, job.options, design, ff_kwargs)
         producer.fresh_tallies()
-        with task_numba_threads(job.task_threads):
+        with numba_threads(job.task_threads):
             pieces, exact = producer.block(j)
         return pieces.astype(job.options.dtype), exact, (producer.stats, producer.certificate, producer.holdout)
 
@@ -214,7 +198,7 @@ def leaf_task(job: Job, j: int) -> Part:
                                extra={"far_field": tallies[0].state()}, exact_rows=exact, far=tallies[1:])
     b = job.options.block_size
     cols = job.perm[j * b:(j + 1) * b]
-    with task_numba_threads(job.task_threads):
+    with numba_threads(job.task_threads):
         F = column_block(job.scene, cols, order=job.perm, samples=job.samples, ray_budget=job.ray_budget,
                          dtype=job.options.dtype)
     t1, cpu1 = time.perf_counter(), time.process_time()
@@ -270,7 +254,7 @@ def tile_task(job: Job, plan, I: int, J: int) -> np.ndarray:
     factors' dtype (gb x gb), for group J's leaves as it is and group I's by reciprocity."""
     t0, c0 = time.perf_counter(), time.process_time()
     rows, cols = plan.rows(I), plan.rows(J)
-    with task_numba_threads(job.task_threads):
+    with numba_threads(job.task_threads):
         T = column_block(job.scene, job.perm[cols], order=job.perm[rows], samples=job.samples,
                          ray_budget=job.ray_budget, dtype=job.options.dtype)
     _record(job, {"kind": "tile", "node": int(J), "group_rows": int(I), "rows": int(T.shape[0]),
@@ -335,7 +319,7 @@ def group_tree_task(job: Job, plan, J: int, leaves: tuple, direct_groups: tuple,
 
 def _block(job: Job, rows: slice, cols: slice) -> np.ndarray:
     """F of internal positions ``rows`` x ``cols`` in the factors' dtype."""
-    with task_numba_threads(job.task_threads):
+    with numba_threads(job.task_threads):
         return column_block(job.scene, job.perm[cols], order=job.perm[rows], samples=job.samples,
                             ray_budget=job.ray_budget, dtype=job.options.dtype)
 
@@ -349,7 +333,7 @@ def group_block(job: Job, plan, J: int, j: int, own: np.ndarray, areas: np.ndarr
 
     b = job.options.block_size
     cols = job.perm[j * b:(j + 1) * b]
-    with task_numba_threads(job.task_threads):
+    with numba_threads(job.task_threads):
         mine = column_block(job.scene, cols, order=job.perm[own], samples=job.samples,
                             ray_budget=job.ray_budget, dtype=job.options.dtype)
     F = np.empty((plan.n, cols.size), mine.dtype)
