@@ -248,6 +248,24 @@ def test_near_field_lus_after_the_release_where_they_do_not_fit_beside(box, monk
     assert prefetch_fits(scene.n_patches, 120) and not prefetch_fits(scene.n_patches, 121)
 
 
+def test_prefetch_is_decided_on_the_near_fields_own_entries(box, monkeypatch):
+    """The prefetch asks about N's own entries a row, as the set-up's choice between LUs and sweeps does
+    (hfrad.solve.nearfield.near_setup_runner), not the plan's: a plan above NEAR_LU_MOST_ENTRIES whose N
+    holds fewer is factored, and then beside the range finder."""
+    import hfrad.memory as memory
+    import hfrad.precompute.hierarchical as hierarchical
+
+    scene = box[0]
+    asked, real = [], hierarchical.prefetch_fits
+    monkeypatch.setattr(hierarchical, "prefetch_fits", lambda n, entries: asked.append(entries) or real(n, entries))
+    monkeypatch.setattr(memory, "NEAR_LU_MOST_ENTRIES", 240)      # between N's 215 a row and the plan's 250
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", AccuracyWarning)
+        split = hfrad.factorize(scene, EPS, far_field="hierarchical", near_field=250)
+    assert asked == [round(split.N.nnz / scene.n_patches)] and asked[0] < 240
+    assert split.near_setup == "lu" and split.lowrank.info["near_prefetched"] == 3
+
+
 def test_near_field_split_lowers_the_rank(box):
     """With a near-field split the near entries leave the H-matrix (sparse and exact, as the column
     blocks' split keeps them) and G - N is factored within eps of the whole G: a far lower rank, and
