@@ -822,8 +822,9 @@ class _Collector:
 
 
 def _without_zeros(blocks: BlockList) -> BlockList:
-    """``blocks`` (used up: its row and value arrays are reused) less what holds only zeros: a dense block's all-zero rows and its leading and trailing
-    all-zero columns, then blocks left empty and low-rank blocks of rank 0. Coplanar patches see
+    """``blocks`` (used up: its row and value arrays are reused) less what holds only zeros: a dense
+    block's all-zero rows and its leading and trailing all-zero columns, then blocks left empty and
+    low-rank blocks of rank 0. Coplanar patches see
     nothing of each other and blocked pairs are zero, so at 161,808 Cornell-box patches half the
     dense entries were zero and 163K dense blocks had nothing else. The same products and squares;
     compacted in place (the arrays shrink, nothing is copied whole)."""
