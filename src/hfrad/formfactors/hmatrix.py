@@ -848,6 +848,16 @@ def _shrink(a: np.ndarray, size: int) -> np.ndarray:
 
 
 @njit(cache=True, nogil=True)
+def _nonzero_span(U, start, width):  # pragma: no cover (numba)
+    """(first, last) positions of the nonzeros in ``U[start:start + width]``; (width, -1) when all are zero."""
+    first, last = width, -1
+    for j in range(width):
+        if U[start + j] != 0.0:
+            first, last = min(first, j), j
+    return first, last
+
+
+@njit(cache=True, nogil=True)
 def _compact_dense(rows, row_ptr, m, b, c0, rank, u_off, U):  # pragma: no cover (numba)
     """Move each block's rows and U values down over what :func:`_without_zeros` drops, in block order
     (a block never moves up, so in place): dense blocks lose their all-zero rows and outer all-zero
@@ -872,24 +882,15 @@ def _compact_dense(rows, row_ptr, m, b, c0, rank, u_off, U):  # pragma: no cover
         first, last = bt, -1                       # the nonzero columns' range over the kept rows
         kept = 0
         for i in range(mt):
-            nonzero = False
-            for j in range(bt):
-                if U[o + i * bt + j] != 0.0:
-                    nonzero = True
-                    first = min(first, j)
-                    last = max(last, j)
-            if nonzero:
+            lo, hi = _nonzero_span(U, o + i * bt, bt)
+            if hi >= 0:
                 kept += 1
+                first, last = min(first, lo), max(last, hi)
         width = last - first + 1 if kept else 0
         u_off[t] = at_u
         w = 0
         for i in range(mt):
-            nonzero = False
-            for j in range(bt):
-                if U[o + i * bt + j] != 0.0:
-                    nonzero = True
-                    break
-            if not nonzero:
+            if _nonzero_span(U, o + i * bt, bt)[1] < 0:
                 continue
             rows[at_row + w] = rows[p + i]
             for j in range(width):
