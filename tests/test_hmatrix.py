@@ -151,6 +151,25 @@ def test_parts_on_threads_build_the_same_blocks(cornell):
     assert two.info["exact_pairs"] == one.info["exact_pairs"] and two.info["probe_rays"] == one.info["probe_rays"]
 
 
+def test_rows_are_read_from_the_blocks(cornell):
+    """FormFactorHMatrix.rows gives the rows the products give (any order, repeats), also once
+    take_near has moved entries out of the low-rank blocks."""
+    scene, hm, _ = cornell
+    D = _dense_from_blocks(hm)
+    picked = np.array([hm.n - 1, 3, 77, 3, 0, 401])
+    # observed 6.8e-10 of the largest entry (float32 rounding of a low-rank entry)
+    np.testing.assert_allclose(hm.rows(picked), D[picked], rtol=0, atol=5e-9 * np.abs(D).max())
+    import copy
+
+    split = copy.deepcopy(hm)
+    centroids = scene.centroids[split.perm]
+    split.take_near(centroids, 0.4 * float(np.ptp(centroids, axis=0).max()), lowrank=True)
+    assert split.removed is not None
+    E = np.zeros((split.n, picked.size))
+    E[picked, np.arange(picked.size)] = 1.0
+    np.testing.assert_allclose(split.rows(picked), split.rmatmat(E).T, rtol=0, atol=5e-9 * np.abs(D).max())
+
+
 def test_against_the_exact_matrix_on_the_cornell_box(cornell):
     _, hm, F = cornell
     D = _dense_from_blocks(hm)

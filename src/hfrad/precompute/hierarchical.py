@@ -294,18 +294,6 @@ class _RowSource:
         return out
 
 
-def _hmatrix_rows(hm: FormFactorHMatrix, rows: np.ndarray, batch: int = 64) -> np.ndarray:
-    """(len(rows), n) float32 rows of F_H, ``(F_H^T e_i)^T``, ``batch`` at a time: each product reads the
-    whole H-matrix, so few wide ones (161,808 patches: 4 instead of the exact rows' 11 chunks)."""
-    out = np.empty((rows.size, hm.n), np.float32)
-    for a in range(0, rows.size, batch):
-        picked = rows[a:a + batch]
-        X = np.zeros((hm.n, picked.size), np.float32)
-        X[picked, np.arange(picked.size)] = 1.0
-        out[a:a + picked.size] = hm.rmatmat(X).T
-    return out
-
-
 def _certify(hm: FormFactorHMatrix, exact: _RowSource, rho, areas, weights) -> tuple[FarFieldCertificate, dict]:
     """The certificate of ``||A^1/2 diag(rho) (F - F_H) A^-1/2||_F`` from ``CERTIFICATE_ROWS`` exact rows
     drawn by ``weights`` (a :class:`RowCertificate`), as the sampled far field's certificate object
@@ -313,7 +301,7 @@ def _certify(hm: FormFactorHMatrix, exact: _RowSource, rho, areas, weights) -> t
     n = hm.n
     draw = RowCertificate.draw(n, CERTIFICATE_ROWS, weights, seed=CERTIFICATE_SEED)
     unique, inverse = np.unique(draw.rows, return_inverse=True)
-    approx = _hmatrix_rows(hm, unique)
+    approx = hm.rows(unique)
     e = np.empty(unique.size)
     pairs0 = exact.pairs
     for where, F in exact.chunks(unique):
