@@ -134,9 +134,9 @@ NEAR_N_BYTES = 2 * 12 + 8
 #: 0.2 s, against 0.6 s of sweeps (18, spectral bound 0.665), Z apart 4.5e-6.
 NEAR_LU_MOST_ENTRIES = 200
 #: Bytes a patch and column the set-up's Neumann sweeps hold (float64 right-hand sides, iterate,
-#: previous iterate and the result: four n x w arrays), for panels of at most ``NEUMANN_COLUMNS`` columns
-#: (:data:`hfrad.solve.nearfield.NEUMANN_PANEL`).
+#: previous iterate and the result: four n x w arrays), for panels of at most ``NEUMANN_COLUMNS`` columns.
 NEUMANN_BYTES = 4 * 8
+#: Columns a panel of the set-up's Neumann sweeps takes in this process (:class:`hfrad.solve.nearfield.InProcess`).
 NEUMANN_COLUMNS = 64
 
 

@@ -194,16 +194,11 @@ def solve_threads():
     count = spare_cores_now()
     import numba
 
-    before = numba.get_num_threads()
-    if count >= before:
+    if count >= numba.get_num_threads():
         yield
         return
-    numba.set_num_threads(max(1, count))      # thread-local in numba
-    try:
-        with blas_threads(count):
-            yield
-    finally:
-        numba.set_num_threads(before)
+    with numba_threads(count), blas_threads(count):
+        yield
 
 
 def numba_loops_at_once() -> bool:

@@ -867,10 +867,10 @@ class _Collector:
 def _without_zeros(blocks: BlockList) -> BlockList:
     """``blocks`` (used up: its row and value arrays are reused) less what holds only zeros: a dense
     block's all-zero rows and its leading and trailing all-zero columns, then blocks left empty and
-    low-rank blocks of rank 0. Coplanar patches see
-    nothing of each other and blocked pairs are zero, so at 161,808 Cornell-box patches half the
-    dense entries were zero and 163K dense blocks had nothing else. The same products and squares;
-    compacted in place (the arrays shrink, nothing is copied whole)."""
+    low-rank blocks of rank 0. Coplanar patches see nothing of each other and blocked pairs are zero,
+    so at 161,808 Cornell-box patches half the dense entries were zero and 163K dense blocks had
+    nothing else. The same products and squares; compacted in place (the arrays shrink, nothing is
+    copied whole)."""
     k = blocks
     m, b, c0, u_off = k.m.copy(), k.b.copy(), k.c0.copy(), k.u_off.copy()
     rows_end, u_end = _compact_dense(k.row_index, k.row_ptr, m, b, c0, k.rank, u_off, k.U)

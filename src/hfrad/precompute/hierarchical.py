@@ -266,7 +266,9 @@ def _factorize_hmatrix(scene, plan, engine, hm, progress, status, t0, backend) -
 def engine_for(scene: Scene, plan: PrecomputePlan) -> FormFactorEngine:
     """The form-factor engine with the plan's visibility settings (as the column blocks' pass has them),
     casting each batch of rays on every core: this path calls :meth:`~FormFactorEngine.block` only."""
-    kwargs = {"ray_threads": None} if plan.samples is None else {"samples": plan.samples, "ray_threads": None}
+    kwargs = {"ray_threads": None}
+    if plan.samples is not None:
+        kwargs["samples"] = plan.samples
     if plan.samples != 0:
         kwargs["ray_budget"] = plan.ray_budget(scene)
     return FormFactorEngine(scene, **kwargs)

@@ -190,7 +190,7 @@ class NeumannColumns:
     (:func:`hfrad.solve.neumann.neumann_solve`): the ``solve`` of a channel's solver that
     :func:`~hfrad.solve.nearfield.near_columns` calls, without a sparse LU.
 
-    Each column panel (a Dask task, or all k columns in this process) sweeps N itself (float64,
+    Each column panel (a Dask task, or ``NEUMANN_COLUMNS`` columns in this process) sweeps N itself (float64,
     every core), so nothing waits for a factorization: on Dask the set-up's critical path is one
     panel's sweeps instead of one channel's LU and one panel's triangular solves, and in this
     process no LU is held (:func:`near_setup_runner`). Where the series does not converge (the bound
