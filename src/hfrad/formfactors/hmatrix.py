@@ -45,6 +45,7 @@ from ..progress import ProgressCallback, report
 from ..resources import numba_loops_at_once, numba_threads
 from .clustervis import BLOCKED, CLUSTER_SIZE, MIXED, VISIBLE, _cluster_pair_states
 from .engine import FormFactorEngine
+from .hashed_rays import probe_counts, scale_by_edge_visibility
 
 __all__ = ["ClusterTree", "cluster_tree", "block_partition", "FormFactorHMatrix", "build_hmatrix",
            "HMatrixOptions", "block_squares", "HMatrixPairs", "hmatrix_pairs", "split_into_parts", "build_part",
@@ -69,71 +70,6 @@ MORE_PROBES = 8
 #: exact rows 0.48%, 0.54%, 0.58%. Šibenik, 10,181 patches: 50.1 s and 2.1% with the engine,
 #: 30.2 s and 2.7% with 4 rays. The certificate's exact rows keep the engine's visibility.
 EDGE_RAYS = 4
-
-
-@njit(cache=True, nogil=True)
-def _unit_hash(a, b, k):  # pragma: no cover (numba)
-    """A uniform number in [0, 1) from three integers (a splitmix64 step): the same (a, b, k), the same number."""
-    x = (np.uint64(a) * np.uint64(0x9E3779B97F4A7C15) ^ np.uint64(b) * np.uint64(0xBF58476D1CE4E5B9)
-         ^ np.uint64(k) * np.uint64(0x94D049BB133111EB))
-    x = (x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
-    x = (x ^ (x >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
-    x = x ^ (x >> np.uint64(31))
-    return np.float64(x >> np.uint64(11)) / 9007199254740992.0
-
-
-@njit(cache=True, nogil=True, parallel=True)
-def _pair_ray_ends(i, j, k, points):  # pragma: no cover (numba)
-    """``k`` segments for each pair ``(i[q], j[q])``: ``(i, j, ki, kj)`` (len(i) k,) each, pair-major, from
-    design point ``ki`` of patch i to ``kj`` of patch j, hashed from the pair and the ray (the same pair,
-    the same segments, whichever block asks)."""
-    m = i.shape[0]
-    out_i, out_j = np.empty(m * k, np.int64), np.empty(m * k, np.int64)
-    ki, kj = np.empty(m * k, np.int64), np.empty(m * k, np.int64)
-    for q in prange(m):
-        for s in range(k):
-            at = q * k + s
-            out_i[at], out_j[at] = i[q], j[q]
-            ki[at] = int(_unit_hash(i[q], j[q], s) * points)
-            kj[at] = int(_unit_hash(j[q], i[q], s) * points)
-    return out_i, out_j, ki, kj
-
-
-@njit(cache=True, nogil=True, parallel=True)
-def _probe_ends(rows, c, node_start, node_size, perm, first, k, points):  # pragma: no cover (numba)
-    """The rays of :meth:`_Builder._probe_rays`, one pass (NumPy's version built six (m, k) temporaries):
-    ``(row patch, target patch, start point, end point)`` (m k,) each, row-major; a row a thread
-    (single-threaded, this was 39% of the probes' time at 39,482 patches)."""
-    m = rows.shape[0]
-    out_i, out_j = np.empty(m * k, np.int64), np.empty(m * k, np.int64)
-    ki, kj = np.empty(m * k, np.int64), np.empty(m * k, np.int64)
-    for a in prange(m):
-        r, node = rows[a], c[a]
-        size = node_size[node]
-        for s in range(k):
-            ray = first + s
-            at = min(int((s + _unit_hash(r, node, ray)) * size / k), size - 1)
-            target = node_start[node] + at
-            q = a * k + s
-            out_i[q], out_j[q] = perm[r], perm[target]
-            ki[q] = int(_unit_hash(r, target, ray) * points)
-            kj[q] = int(_unit_hash(target, r, ray) * points)
-    return out_i, out_j, ki, kj
-
-
-@njit(cache=True, nogil=True)
-def _ray_counts(facing, blocked, k):  # pragma: no cover (numba)
-    """(facing, blocked and facing) counts of each run of ``k`` rays (NumPy's sum over a short last
-    axis of a bool array was 5% of a build)."""
-    m = facing.shape[0] // k
-    n_facing, n_blocked = np.zeros(m, np.int64), np.zeros(m, np.int64)
-    for q in range(m):
-        for s in range(q * k, q * k + k):
-            if facing[s]:
-                n_facing[q] += 1
-                if blocked[s]:
-                    n_blocked[q] += 1
-    return n_facing, n_blocked
 
 
 @dataclass(frozen=True)
@@ -1219,11 +1155,9 @@ class _Builder:
         """(facing, blocked) counts of ``k`` rays from each row position ``rows[i]`` to patches of
         column node ``c[i]``, one in each of k equal parts of its range at a hashed place (rays
         ``first .. first + k - 1`` of the pair: the same pair and ray, the same patch)."""
-        tree, vis = self.tree, self.engine.visibility
-        i, j, ki, kj = _probe_ends(np.asarray(rows, np.int64), np.asarray(c, np.int64), tree.start, tree.size,
-                                   tree.perm, int(first), int(k), int(vis.probe_design_points))
-        # from a hashed point of the row patch to one of the target's
-        n_facing, n_blocked = _ray_counts(*vis.segments_blocked(i, j, ki, kj), int(k))
+        tree = self.tree
+        n_facing, n_blocked = probe_counts(self.engine.visibility, rows, c, tree.start, tree.size, tree.perm,
+                                           first, k)
         self.info["probe_rays"] += int(n_facing.sum())
         return n_facing, n_blocked
 
@@ -1288,11 +1222,8 @@ class _Builder:
         k, vis = self.options.edge_rays, self.engine.visibility
         if k == 0 or vis is None:
             return self.engine.block(rows, cols)
-        F = self.engine.unoccluded(rows, cols)
-        ii, jj = np.nonzero(F > 0)
-        i, j, ki, kj = _pair_ray_ends(rows[ii], cols[jj], int(k), int(vis.probe_design_points))
-        facing, blocked = _ray_counts(*vis.segments_blocked(i, j, ki, kj), int(k))
-        F[ii, jj] *= np.where(facing > 0, 1.0 - blocked / np.maximum(facing, 1), 1.0)
+        F = np.ascontiguousarray(self.engine.unoccluded(rows, cols))
+        scale_by_edge_visibility(vis, F, rows, cols, k)
         return F
 
 

@@ -127,6 +127,25 @@ def fill_rays(P, plane, partner, r_idx, c_idx, valid, first, o, d, t, w):
                 row += 1
 
 
+@njit(cache=True, nogil=True, inline="always")
+def segment_into(P, normals, a, pa, b, pb, o, d, t, k):  # pragma: no cover (numba)
+    """Slot ``k`` of ``o``, ``d``, ``t``: the segment from point ``P[a, pa]`` to ``P[b, pb]`` (origin, unit
+    direction, length) where patches a and b face each other along it (normals ``normals``), and True;
+    elsewhere the length 0 (Embree finds no hit) and False."""
+    vx, vy, vz = P[b, pb, 0] - P[a, pa, 0], P[b, pb, 1] - P[a, pa, 1], P[b, pb, 2] - P[a, pa, 2]
+    length = math.sqrt(vx * vx + vy * vy + vz * vz)
+    front = normals[a, 0] * vx + normals[a, 1] * vy + normals[a, 2] * vz
+    back = normals[b, 0] * vx + normals[b, 1] * vy + normals[b, 2] * vz
+    o[k, 0], o[k, 1], o[k, 2] = P[a, pa, 0], P[a, pa, 1], P[a, pa, 2]
+    if front > 0.0 and back < 0.0 and length > 0.0:
+        d[k, 0], d[k, 1], d[k, 2] = vx / length, vy / length, vz / length
+        t[k] = length
+        return True
+    d[k, 0], d[k, 1], d[k, 2] = 1.0, 0.0, 0.0
+    t[k] = 0.0
+    return False
+
+
 @njit(cache=True, parallel=True, nogil=True)
 def probe_segments(P, normals, i, ki, j, kj, o, d, t, facing):  # pragma: no cover (numba)
     """One segment from point ``P[i[k], ki[k]]`` to ``P[j[k], kj[k]]`` for each k (``P`` (n, s, 3): s
@@ -134,19 +153,7 @@ def probe_segments(P, normals, i, ki, j, kj, o, d, t, facing):  # pragma: no cov
     directions and lengths into ``o``, ``d``, ``t`` (float32); elsewhere ``facing[k]`` is False and
     the length 0 (Embree finds no hit)."""
     for k in prange(i.size):
-        a, b, pa, pb = i[k], j[k], ki[k], kj[k]
-        vx, vy, vz = P[b, pb, 0] - P[a, pa, 0], P[b, pb, 1] - P[a, pa, 1], P[b, pb, 2] - P[a, pa, 2]
-        length = math.sqrt(vx * vx + vy * vy + vz * vz)
-        front = normals[a, 0] * vx + normals[a, 1] * vy + normals[a, 2] * vz
-        back = normals[b, 0] * vx + normals[b, 1] * vy + normals[b, 2] * vz
-        o[k, 0], o[k, 1], o[k, 2] = P[a, pa, 0], P[a, pa, 1], P[a, pa, 2]
-        facing[k] = front > 0.0 and back < 0.0 and length > 0.0
-        if facing[k]:
-            d[k, 0], d[k, 1], d[k, 2] = vx / length, vy / length, vz / length
-            t[k] = length
-        else:
-            d[k, 0], d[k, 1], d[k, 2] = 1.0, 0.0, 0.0
-            t[k] = 0.0
+        facing[k] = segment_into(P, normals, i[k], ki[k], j[k], kj[k], o, d, t, k)
 
 
 @njit(parallel=True, cache=True, nogil=True)

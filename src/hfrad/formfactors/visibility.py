@@ -436,6 +436,12 @@ class Visibility:
         self.rays_cast += int(facing.sum())
         return facing, blocked
 
+    def hashed_ray_points(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(P, normals)``: the probes' design points (n, :attr:`probe_design_points`, 3) float32 and the
+        patches' unit normals (n, 3), in this object's frame: what :meth:`segments_blocked` joins
+        (:mod:`hfrad.formfactors.hashed_rays` makes its segments from them)."""
+        return self._probe_design(PROBE_DESIGN), self._normals
+
     @property
     def probe_design_points(self) -> int:
         """Points a patch that :meth:`segments_blocked` picks from (``ki``, ``kj`` below this)."""
