@@ -766,10 +766,13 @@ class _Collector:
                          (self.U, U), (self.V, V), (self.u_size, u_size), (self.v_size, v_size)):
             store.append(np.asarray(x))
 
-    def add_dense(self, rows: np.ndarray, c0: int, values: np.ndarray) -> None:
-        values = np.asarray(values, np.float32)
-        self._add(np.asarray(rows, np.int64), [len(rows)], [c0], [values.shape[1]], [-1], values.ravel(),
-                  np.zeros(0, np.float32), [values.size], [0])
+    def add_dense(self, rows: np.ndarray, m, c0, b, values: np.ndarray) -> None:
+        """Dense blocks t with rows ``rows[sum(m[:t]):][:m[t]]``, columns ``c0[t] : c0[t] + b[t]`` and their
+        values row-major one after the other in ``values``: one batch however many blocks (a list piece a
+        block made 15 s of a 161,808-patch build's joins)."""
+        m, b = np.asarray(m, np.int64), np.asarray(b, np.int64)
+        self._add(np.asarray(rows, np.int64), m, np.asarray(c0, np.int64), b, np.full(len(m), -1, np.int64),
+                  np.asarray(values, np.float32).ravel(), np.zeros(0, np.float32), m * b, np.zeros(len(m), np.int64))
 
     def add_lowrank(self, rows: np.ndarray, row_ptr: np.ndarray, c0: np.ndarray, b: np.ndarray, res, keep) -> None:
         """The blocks ``keep`` (bool) of an ACA result ``res`` over the blocks t (rows
@@ -1180,12 +1183,18 @@ class _Builder:
             cols, ptr = _concat_ranges(None, tree.start[c[a:e]], tree.stop[c[a:e]])
             F = self.engine.block(perm[rows], perm[cols])
             pairs += F.size
+            block_rows, m, c0, b, values = [], [], [], [], []
             for q in range(e - a):
                 part = F[:, ptr[q]:ptr[q + 1]]
-                self.out.add_dense(rows, int(tree.start[c[a + q]]), part)
+                block_rows.append(rows)
+                m.append(len(rows)), c0.append(tree.start[c[a + q]]), b.append(part.shape[1])
+                values.append(part.ravel())
                 if c[a + q] != r[a]:             # the mirror block (c, r): F_ji = F_ij A_i / A_j
                     mirror = part.T * (areas[perm[rows]][None, :] / areas[perm[cols[ptr[q]:ptr[q + 1]]]][:, None])
-                    self.out.add_dense(cols[ptr[q]:ptr[q + 1]], int(tree.start[r[a]]), mirror)
+                    block_rows.append(cols[ptr[q]:ptr[q + 1]])
+                    m.append(part.shape[1]), c0.append(tree.start[r[a]]), b.append(len(rows))
+                    values.append(mirror.ravel())
+            self.out.add_dense(np.concatenate(block_rows), m, c0, b, np.concatenate(values))
             report(progress, g + 1, len(bounds) - 1)
         self.info["exact_pairs"] += pairs
         self.info["near_pairs"] = pairs
@@ -1205,10 +1214,9 @@ class _Builder:
             rows = np.concatenate(parts)
             F = self.edge_block(perm[rows], perm[tree.start[c]:tree.stop[c]])
             pairs += F.size
-            at = 0
-            for part in parts:
-                self.out.add_dense(part, int(tree.start[c]), F[at:at + len(part)])
-                at += len(part)
+            # one block a part (rows of one far pair), their values F's rows in order: one batch
+            self.out.add_dense(rows, [len(part) for part in parts], np.full(len(parts), tree.start[c]),
+                               np.full(len(parts), F.shape[1]), F)
             report(progress, g + 1, len(items))
         self.pending.clear()
         self.info["exact_pairs"] += pairs
