@@ -10,8 +10,9 @@ the factors are:
 - ``far_field="hierarchical"``: N leaves the H-matrix before the operator factorization, whose
   single-threaded steps (QR, SVD of each block of the basis) leave a core idle.
 
-:class:`NearPrefetch` factors the channels then, in a background thread at a lower CPU
-priority (``nice``), so it takes the cores the rest leaves idle first;
+:class:`NearPrefetch` factors the channels then, in background threads at a lower CPU
+priority (``nice``; the first channel, then the others at once on a thread each), so it
+takes the cores the rest leaves idle first;
 :meth:`NearPrefetch.runner` gives the in-process runner that hands those factors to the assembly.
 
 The assembly is unchanged: the runner returns a prefetched factor only for the very
@@ -86,9 +87,9 @@ def _same_matrix(a, b) -> bool:
 
 
 class NearPrefetch:
-    """Factors ``A_c = I - D_c N`` of each distinct channel in a background thread, in the order and with
-    the arguments :class:`~hfrad.solve.nearfield.InProcess` would (the first channel, then the others
-    in its fill-reducing order).
+    """Factors ``A_c = I - D_c N`` of each distinct channel in background threads, with the arguments
+    :class:`~hfrad.solve.nearfield.InProcess` would use (the first channel, then the others in its
+    fill-reducing order, all at once).
 
     Parameters
     ----------
@@ -112,47 +113,76 @@ class NearPrefetch:
         self.nice = int(nice)
         self._solvers = {c: concurrent.futures.Future() for c in self.distinct}
         self._order = None
-        self._tid = None
+        self._tids: list[int] = []
+        self._helpers: list[threading.Thread] = []
         self._stop = False
+        self._hurried = False
         self.hits = 0
         self._thread = threading.Thread(target=self._work, name="hfrad-near-prefetch", daemon=True)
         self._thread.start()
 
     def _work(self) -> None:
-        self._tid = threading.get_native_id()
-        if self.nice and hasattr(os, "setpriority"):
-            try:
-                os.setpriority(os.PRIO_PROCESS, self._tid, os.getpriority(os.PRIO_PROCESS, self._tid) + self.nice)
-            except OSError:
-                pass
+        """The first channel, then the others at once, each on a thread of its own (SciPy's SuperLU holds
+        no GIL): they share the first one's order and are independent, and the set-up, which takes them
+        one after the other, would otherwise wait for each in turn with a core idle."""
         from ..memory import available_bytes
 
-        for i, c in enumerate(self.distinct):
-            future = self._solvers.get(c)
-            if future is not None and self._stop:
-                future.cancel()       # its taker computes it (take sees it cancelled)
-            if future is None or self._stop or not future.set_running_or_notify_cancel():
-                continue
+        self._lower_priority()
+        first, rest = self.distinct[0], self.distinct[1:]
+        solver = self._factor(first)
+        if solver is None or not rest:
+            return
+        self._order = solver_order(solver)
+        bytes_each = sum(x.nbytes for x in (*getattr(solver, "_L", ()), *getattr(solver, "_U", ())))
+        if bytes_each * len(rest) > PREFETCH_MAX_SHARE * available_bytes():
+            self._stop = True
+        for c in rest[1:]:
+            helper = threading.Thread(target=self._helper, args=(c,), name="hfrad-near-prefetch", daemon=True)
+            self._helpers.append(helper)
+            helper.start()
+        self._factor(rest[0])
+        for helper in self._helpers:
+            helper.join()
+
+    def _helper(self, channel: int) -> None:
+        self._lower_priority()
+        self._factor(channel)
+
+    def _lower_priority(self) -> None:
+        tid = threading.get_native_id()
+        self._tids.append(tid)
+        if self.nice and not self._hurried and hasattr(os, "setpriority"):
             try:
-                solver = channel_solver(self.N, self.d[c], self.dtype, c, self._order)
-            except BaseException as exc:   # the assembly computes it again and raises there
-                future.set_exception(exc)
-                continue
-            future.set_result(solver)
-            if i == 0 and len(self.distinct) > 1:
-                self._order = solver_order(solver)
-                bytes_each = sum(x.nbytes for x in (*getattr(solver, "_L", ()), *getattr(solver, "_U", ())))
-                if bytes_each * (len(self.distinct) - 1) > PREFETCH_MAX_SHARE * available_bytes():
-                    self._stop = True
+                os.setpriority(os.PRIO_PROCESS, tid, os.getpriority(os.PRIO_PROCESS, tid) + self.nice)
+            except OSError:
+                pass
+
+    def _factor(self, c: int):
+        """Channel c's solver into its future (None where it is stopped, cancelled or fails: its taker
+        computes it, and raises there)."""
+        future = self._solvers.get(c)
+        if future is not None and self._stop:
+            future.cancel()       # its taker computes it (take sees it cancelled)
+        if future is None or self._stop or not future.set_running_or_notify_cancel():
+            return None
+        try:
+            solver = channel_solver(self.N, self.d[c], self.dtype, c, self._order)
+        except BaseException as exc:   # the assembly computes it again and raises there
+            future.set_exception(exc)
+            return None
+        future.set_result(solver)
+        return solver
 
     def _hurry(self) -> None:
         """Back to the process's niceness: the client now waits for the thread (fails quietly where
         raising the priority again needs privileges)."""
-        if self.nice and self._tid is not None and hasattr(os, "setpriority"):
-            try:
-                os.setpriority(os.PRIO_PROCESS, self._tid, os.getpriority(os.PRIO_PROCESS, 0))
-            except OSError:
-                pass
+        self._hurried = True
+        if self.nice and hasattr(os, "setpriority"):
+            for tid in list(self._tids):
+                try:
+                    os.setpriority(os.PRIO_PROCESS, tid, os.getpriority(os.PRIO_PROCESS, 0))
+                except OSError:
+                    pass
 
     def take(self, N, d, dtype, channel: int, order):
         """The prefetched solver for exactly these arguments of :func:`channel_solver`, or None."""
@@ -182,7 +212,7 @@ class NearPrefetch:
             if future is not None:
                 future.cancel()
         self._hurry()
-        self._thread.join()
+        self._thread.join()         # it joins its helpers
         self._solvers.clear()
 
     def runner(self) -> "PrefetchRunner":
