@@ -71,6 +71,33 @@ def test_prefetched_assembly_is_the_plain_one(parts):
     assert np.array_equal(B, B_plain)
 
 
+def test_channels_after_the_first_are_factored_at_once(parts, monkeypatch):
+    """The channels after the first (the Cornell box has three) are factored at the same time, a thread
+    each: every one of them waits at a barrier for the others before it factors (one after the other,
+    the first waits alone and breaks it), and the assembly is the plain one."""
+    import threading
+
+    from hfrad.solve import prefetch
+
+    scene, options, fac, near, n = parts
+    distinct = channel_scales(scene.reflectance, options.perm)[0]
+    assert len(distinct) == 3
+    barrier, real = threading.Barrier(len(distinct) - 1, timeout=5), prefetch.NearPrefetch._factor
+
+    def together(self, channel):
+        if channel != distinct[0]:
+            try:
+                barrier.wait()
+            except threading.BrokenBarrierError:     # one after the other: it waited alone
+                pass
+        return real(self, channel)
+
+    monkeypatch.setattr(prefetch.NearPrefetch, "_factor", together)
+    got, plain, hits = _assembled_with_prefetch(parts, near)
+    assert hits == 3 and not barrier.broken
+    _same(got, plain)
+
+
 def test_prefetch_of_another_near_field_is_not_used(parts):
     """A prefetch made from other near entries (one value changed) is ignored: the assembly factors
     its own N and the result is the plain one."""
