@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from .segments import segment_into
+from .segments import ray_buffers, segment_into
 
 __all__ = ["unit_hash", "probe_counts", "scale_by_edge_visibility", "CHUNK_RAYS"]
 
@@ -45,8 +45,8 @@ def unit_hash(a, b, k):  # pragma: no cover (numba)
 
 def _buffers(rays: int):
     """Origins, directions, lengths (float32) and owners (int64) for ``rays`` segments."""
-    return (np.empty((rays, 3), np.float32), np.empty((rays, 3), np.float32), np.empty(rays, np.float32),
-            np.empty(rays, np.int64))
+    o, d, t, w = ray_buffers(rays)
+    return o, d, t, w.view(np.int64)
 
 
 def probe_counts(vis, rows: np.ndarray, c: np.ndarray, node_start: np.ndarray, node_size: np.ndarray,

@@ -1183,18 +1183,16 @@ class _Builder:
             cols, ptr = _concat_ranges(None, tree.start[c[a:e]], tree.stop[c[a:e]])
             F = self.engine.block(perm[rows], perm[cols])
             pairs += F.size
-            block_rows, m, c0, b, values = [], [], [], [], []
+            blocks = []                             # (rows, first column, values): one batch a row leaf
             for q in range(e - a):
                 part = F[:, ptr[q]:ptr[q + 1]]
-                block_rows.append(rows)
-                m.append(len(rows)), c0.append(tree.start[c[a + q]]), b.append(part.shape[1])
-                values.append(part.ravel())
+                blocks.append((rows, tree.start[c[a + q]], part))
                 if c[a + q] != r[a]:             # the mirror block (c, r): F_ji = F_ij A_i / A_j
                     mirror = part.T * (areas[perm[rows]][None, :] / areas[perm[cols[ptr[q]:ptr[q + 1]]]][:, None])
-                    block_rows.append(cols[ptr[q]:ptr[q + 1]])
-                    m.append(part.shape[1]), c0.append(tree.start[r[a]]), b.append(len(rows))
-                    values.append(mirror.ravel())
-            self.out.add_dense(np.concatenate(block_rows), m, c0, b, np.concatenate(values))
+                    blocks.append((cols[ptr[q]:ptr[q + 1]], tree.start[r[a]], mirror))
+            self.out.add_dense(np.concatenate([x[0] for x in blocks]), [x[2].shape[0] for x in blocks],
+                               [x[1] for x in blocks], [x[2].shape[1] for x in blocks],
+                               np.concatenate([x[2].ravel() for x in blocks]))
             report(progress, g + 1, len(bounds) - 1)
         self.info["exact_pairs"] += pairs
         self.info["near_pairs"] = pairs

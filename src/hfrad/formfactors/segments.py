@@ -35,6 +35,14 @@ class RayJob:
         self.round = round  # the visibility round's name, for its counters (Visibility.rounds)
 
 
+def ray_buffers(r: int):
+    """Fresh buffers for ``r`` segments (at least one): origins, unit directions (r, 3) and lengths (r,)
+    float32, and an (r,) float64 array (kernel weights, or 8-byte owners seen through ``view``)."""
+    r = max(r, 1)
+    return (np.empty((r, 3), np.float32), np.empty((r, 3), np.float32), np.empty(r, np.float32),
+            np.empty(r, np.float64))
+
+
 class RayBuffers:
     """A free list of ray buffers: fresh pages are slow to fault in, so reuse them."""
 
@@ -45,9 +53,7 @@ class RayBuffers:
         for k, buf in enumerate(self._free):
             if len(buf[2]) >= r:
                 return self._free.pop(k)
-        r = max(r, 1)
-        return (np.empty((r, 3), np.float32), np.empty((r, 3), np.float32), np.empty(r, np.float32),
-                np.empty(r, np.float64))
+        return ray_buffers(r)
 
     def put(self, buf) -> None:
         self._free.append(buf)

@@ -114,7 +114,6 @@ class NearPrefetch:
         self._solvers = {c: concurrent.futures.Future() for c in self.distinct}
         self._order = None
         self._tids: list[int] = []
-        self._helpers: list[threading.Thread] = []
         self._stop = False
         self._hurried = False
         self.hits = 0
@@ -136,12 +135,12 @@ class NearPrefetch:
         bytes_each = sum(x.nbytes for x in (*getattr(solver, "_L", ()), *getattr(solver, "_U", ())))
         if bytes_each * len(rest) > PREFETCH_MAX_SHARE * available_bytes():
             self._stop = True
-        for c in rest[1:]:
-            helper = threading.Thread(target=self._helper, args=(c,), name="hfrad-near-prefetch", daemon=True)
-            self._helpers.append(helper)
+        helpers = [threading.Thread(target=self._helper, args=(c,), name="hfrad-near-prefetch", daemon=True)
+                   for c in rest[1:]]
+        for helper in helpers:
             helper.start()
         self._factor(rest[0])
-        for helper in self._helpers:
+        for helper in helpers:
             helper.join()
 
     def _helper(self, channel: int) -> None:
