@@ -7,7 +7,7 @@ import pytest
 
 from hfrad.errors import AccuracyWarning, InputError
 from hfrad.lowrank.baselines import svd_factorization
-from hfrad.lowrank.operator import operator_factorization
+from hfrad.lowrank.operator import _truncated_svd, operator_factorization
 from hfrad.resources import blas_threads
 
 
@@ -187,3 +187,27 @@ def test_lanczos_tops_up_a_block_whose_krylov_directions_ran_out():
     assert lr.rank == int(np.ceil(0.75 * n))                 # ||G - G_k||^2 = n - k <= 0.25 n
     with pytest.raises(InputError, match="method"):
         factor(G, eps=0.5, method="krylov")
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_truncated_svd_of_B_agrees_with_lapacks(dtype):
+    """The Gram route to B's SVD (B wide, l x n) gives LAPACK's singular values, a right factor as
+    orthonormal and B's truncation error; a kept singular value too small for the Gram (budget 0 on
+    a rank-deficient B) takes LAPACK's SVD."""
+    rng = np.random.default_rng(3)
+    l, n = 48, 5000
+    B = ((rng.standard_normal((l, l)) * np.logspace(0, -3, l)) @ rng.standard_normal((l, n))).astype(dtype)
+    U0, s0, _ = np.linalg.svd(B.astype(np.float64), full_matrices=False)
+    budget2 = float(np.sum(s0[30:] ** 2)) * 1.0001
+    U, s, Wt, discarded2 = _truncated_svd(B, budget2, dtype)
+    assert s.size == 30 and Wt.shape == (30, n) and Wt.dtype == dtype
+    np.testing.assert_allclose(s, s0[:30], rtol=0, atol=1e-12 * s0[0] if dtype == np.float64 else 1e-6 * s0[0])
+    np.testing.assert_allclose(discarded2, np.sum(s0[30:] ** 2), rtol=1e-8)
+    orth = 1e-12 if dtype == np.float64 else 1e-6
+    assert np.abs(Wt.astype(np.float64) @ Wt.T - np.eye(30)).max() < orth
+    assert np.abs(U.T @ U - np.eye(30)).max() < 1e-12
+    R = B.astype(np.float64) - (U * s) @ Wt.astype(np.float64)
+    assert abs(np.linalg.norm(R) - np.sqrt(np.sum(s0[30:] ** 2))) < 1e-5 * s0[0]
+    low = (rng.standard_normal((l, 5)) @ rng.standard_normal((5, n))).astype(dtype)     # rank 5 of 48
+    U, s, Wt, _ = _truncated_svd(low, 0.0, dtype)
+    assert s.size == l and np.abs(Wt.astype(np.float64) @ Wt.T - np.eye(l)).max() < 100 * orth
