@@ -75,28 +75,3 @@ def test_edge_visibility_is_the_open_share_of_each_pairs_rays(engine, chunk):
     assert 0 < (F < K).sum() and (F[K > 0] > 0).any()                   # some pairs shaded, some open
     with pytest.raises(ValueError, match="C-contiguous"):
         scale_by_edge_visibility(vis, np.asfortranarray(K), rows, cols, k)
-
-
-def test_rows_of_a_nodes_own_normal_skip_no_facing_ray(engine, chunk):
-    """normal_groups: the rows skipped against a node of their own normal group are rows none of
-    whose rays faces (their counts are the rays' counts, 0), and most rows of a wall's node are."""
-    engine, n = engine
-    vis = engine.visibility
-    group = hashed_rays.normal_groups(vis.hashed_ray_points()[1], np.array([0]), np.array([n]), np.arange(n))[0]
-    perm = np.argsort(group, kind="stable")            # each group's patches one range of positions
-    sizes = np.bincount(group)
-    starts = np.r_[0, np.cumsum(sizes)[:-1]]
-    node_start = np.r_[starts, 0]                       # a node for each group, and one over all
-    node_size = np.r_[sizes, n]
-    patch_group, node_group = hashed_rays.normal_groups(vis.hashed_ray_points()[1], node_start, node_size, perm)
-    np.testing.assert_array_equal(patch_group, group)
-    np.testing.assert_array_equal(node_group, np.r_[np.arange(sizes.size), -1])
-    rng = np.random.default_rng(5)
-    rows = np.repeat(np.arange(n), 2)
-    c = np.where(rng.random(rows.size) < 0.7, group[perm[rows]], rng.integers(0, node_start.size, rows.size))
-    want = probe_counts(vis, rows, c, node_start, node_size, perm, 0, 6)
-    got = probe_counts(vis, rows, c, node_start, node_size, perm, 0, 6, (patch_group, node_group))
-    np.testing.assert_array_equal(got[0], want[0])
-    np.testing.assert_array_equal(got[1], want[1])
-    own = node_group[c] == patch_group[perm[rows]]
-    assert own.mean() > 0.6 and (want[0][~own] > 0).any()

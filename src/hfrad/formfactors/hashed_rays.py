@@ -25,7 +25,7 @@ from numba import njit
 
 from .segments import ray_buffers, segment_into
 
-__all__ = ["unit_hash", "probe_counts", "scale_by_edge_visibility", "normal_groups", "CHUNK_RAYS"]
+__all__ = ["unit_hash", "probe_counts", "scale_by_edge_visibility", "CHUNK_RAYS"]
 
 #: Segments made and traced at a time (about 4 MB of buffers): two of the ray caster's
 #: smallest hand-offs, so that a caster with threads splits each chunk between two of them.
@@ -49,51 +49,20 @@ def _buffers(rays: int):
     return o, d, t, w.view(np.int64)
 
 
-def normal_groups(normals: np.ndarray, node_start: np.ndarray, node_size: np.ndarray,
-                  perm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(patch_group (n,), node_group (nodes,))`` int64: patches with equal normals (``normals``, as
-    :meth:`Visibility.hashed_ray_points` gives them) share a group; a node (positions ``node_start``,
-    ``node_size`` of the tree order ``perm``) has its patches' group where they all share one, else -1.
-
-    For :func:`probe_counts`: no segment joins two patches of equal normals facing both (the two
-    cosines of :func:`~hfrad.formfactors.segments.segment_into` are then one number, which cannot be
-    both positive and negative), so a row needs no rays to a node of its own group. Those are most
-    probes: a wall's patches against the wall's other nodes (75% of the probes' segments at 161,808
-    Cornell-box patches faced no way)."""
-    _, patch_group = np.unique(np.asarray(normals), axis=0, return_inverse=True)
-    patch_group = np.asarray(patch_group, np.int64).reshape(-1)
-    return patch_group, _node_groups(patch_group[np.asarray(perm, np.int64)], np.asarray(node_start, np.int64),
-                                     np.asarray(node_size, np.int64))
-
-
-@njit(cache=True, nogil=True)
-def _node_groups(group_at, node_start, node_size):  # pragma: no cover (numba)
-    out = np.full(node_start.shape[0], -1, np.int64)
-    for node in range(node_start.shape[0]):
-        a, e = node_start[node], node_start[node] + node_size[node]
-        if e > a and (group_at[a:e] == group_at[a]).all():
-            out[node] = group_at[a]
-    return out
-
-
 def probe_counts(vis, rows: np.ndarray, c: np.ndarray, node_start: np.ndarray, node_size: np.ndarray,
-                 perm: np.ndarray, first: int, k: int, groups: tuple[np.ndarray, np.ndarray] | None = None
-                 ) -> tuple[np.ndarray, np.ndarray]:
+                 perm: np.ndarray, first: int, k: int) -> tuple[np.ndarray, np.ndarray]:
     """(facing, blocked) counts (len(rows),) int64 of rays ``first .. first + k - 1`` from each row
     position ``rows[a]`` to column node ``c[a]``: ray s goes to the node's patch at a hashed place in
     the s-th of k equal parts of its range (positions ``node_start``, ``node_size`` of the tree order
-    ``perm``), from a hashed point of the row patch's probe design to one of the target's.
-    ``groups``: :func:`normal_groups` of these arguments, to skip the rays of a row whose node is of
-    its own normal group (none of them faces: the same counts)."""
+    ``perm``), from a hashed point of the row patch's probe design to one of the target's."""
     P, normals = vis.hashed_ray_points()
     rows, c = np.asarray(rows, np.int64), np.asarray(c, np.int64)
-    patch_group, node_group = groups if groups is not None else (np.zeros(0, np.int64), np.full(len(node_start), -1))
     n_facing, n_blocked = np.zeros(len(rows), np.int64), np.zeros(len(rows), np.int64)
     o, d, t, owner = _buffers(max(CHUNK_RAYS, k))
     a = 0
     while a < len(rows):
         a, q = _fill_probes(rows, c, node_start, node_size, perm, int(first), int(k), P.shape[1], P, normals, a,
-                            o, d, t, owner, patch_group, node_group)
+                            o, d, t, owner)
         hit = vis.cast_segments(o[:q], d[:q], t[:q])
         _count(owner, hit, q, n_facing, n_blocked)
     vis.rays_cast += int(n_facing.sum())
@@ -123,15 +92,12 @@ def scale_by_edge_visibility(vis, F: np.ndarray, rows: np.ndarray, cols: np.ndar
 
 @njit(cache=True, nogil=True)
 def _fill_probes(rows, c, node_start, node_size, perm, first, k, points, P, normals, a, o, d, t,
-                 owner, patch_group, node_group):  # pragma: no cover (numba)
+                 owner):  # pragma: no cover (numba)
     """The facing segments of :func:`probe_counts` for rows ``a, a + 1, ...`` while k more fit; ``owner``
     their row. Returns (the next row, segments written)."""
     q, cap, m = 0, t.shape[0], rows.shape[0]
     while a < m and q + k <= cap:
         r, node = rows[a], c[a]
-        if node_group[node] >= 0 and node_group[node] == patch_group[perm[r]]:
-            a += 1          # no ray of the row faces the node (normal_groups)
-            continue
         size = node_size[node]
         for s in range(k):
             ray = first + s

@@ -45,7 +45,7 @@ from ..progress import ProgressCallback, report
 from ..resources import numba_loops_at_once, numba_threads
 from .clustervis import BLOCKED, CLUSTER_SIZE, MIXED, VISIBLE, _cluster_pair_states
 from .engine import FormFactorEngine
-from .hashed_rays import normal_groups, probe_counts, scale_by_edge_visibility
+from .hashed_rays import probe_counts, scale_by_edge_visibility
 
 __all__ = ["ClusterTree", "cluster_tree", "block_partition", "FormFactorHMatrix", "build_hmatrix",
            "HMatrixOptions", "block_squares", "HMatrixPairs", "hmatrix_pairs", "split_into_parts", "build_part",
@@ -1064,12 +1064,6 @@ class _Builder:
     def node_rows(self, t: int) -> np.ndarray:
         return np.arange(self.tree.start[t], self.tree.stop[t], dtype=np.int64)
 
-    @cached_property
-    def normal_groups(self) -> tuple[np.ndarray, np.ndarray]:
-        """The probes' :func:`~hfrad.formfactors.hashed_rays.normal_groups` of the tree (made once)."""
-        tree = self.tree
-        return normal_groups(self.engine.visibility.hashed_ray_points()[1], tree.start, tree.size, tree.perm)
-
     def far(self, r: np.ndarray, c: np.ndarray) -> None:
         """Decide every far node pair: VISIBLE ones by cross approximation, BLOCKED ones zero,
         MIXED ones halved down to ``probe_size`` and then probed row by row."""
@@ -1166,7 +1160,7 @@ class _Builder:
         ``first .. first + k - 1`` of the pair: the same pair and ray, the same patch)."""
         tree = self.tree
         n_facing, n_blocked = probe_counts(self.engine.visibility, rows, c, tree.start, tree.size, tree.perm,
-                                           first, k, self.normal_groups)
+                                           first, k)
         self.info["probe_rays"] += int(n_facing.sum())
         return n_facing, n_blocked
 
