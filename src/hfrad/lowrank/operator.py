@@ -336,8 +336,8 @@ def _truncated_svd(B: np.ndarray, budget2: float, dtype) -> tuple[np.ndarray, np
     products, a column step at a time).
 
     Why not ``svd(B)``: LAPACK's SVD of the 384 x 161,808 float32 B of the Cornell box took 17.8 s on
-    one core; the Gram route 0.9 s, its singular
-    values within 3e-7 s_1 of LAPACK's and its W orthonormal to 6e-10 (against 1.5e-6).
+    one core; the Gram route 0.9 s, its singular values within 3e-7 s_1 of LAPACK's and its W
+    orthonormal to 6e-10 (LAPACK's 1.5e-6).
     Where the truncation would keep a singular value below ``GRAM_FLOOR`` s_1 (eps near 0), which
     the Gram cannot resolve, LAPACK's SVD is used after all."""
     l, n = B.shape
