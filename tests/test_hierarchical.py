@@ -228,6 +228,43 @@ def test_memory_refused_with_the_number(monkeypatch):
         hfrad.factorize(scene, EPS, far_field="hierarchical")
 
 
+def test_rank_checked_again_as_the_basis_grows(monkeypatch):
+    """The check before the run assumes a rank; the operator factorization checks again before each block
+    of its basis: memory that runs short after the build is refused there, with the basis and the number."""
+    import hfrad.memory as memory
+    import hfrad.precompute.hierarchical as hierarchical
+
+    scene = hfrad.load_scene("cornell", patches=300)
+    built = []
+    build = hierarchical.build_hmatrix
+    monkeypatch.setattr(hierarchical, "build_hmatrix", lambda *a, **k: built.append(1) or build(*a, **k))
+    monkeypatch.setattr(memory, "available_bytes", lambda: 1 << 20 if built else 1 << 40)
+    with pytest.raises(MemoryLimitError, match=r"the operator factorization of 3\d\d patches at a basis of 64 "
+                                               r"columns \(eps 0.05\) needs about [0-9.]+ (kB|MB)"):
+        hfrad.factorize(scene, EPS, far_field="hierarchical")
+    assert built
+
+
+def test_basis_guard_counts_the_set_up_at_the_rank_reached(monkeypatch):
+    """The guard refuses exactly where 80% of the available memory is below the larger of the basis's growth
+    and the set-up at that rank less the H-matrix and basis released before it."""
+    import hfrad.memory as memory
+    from hfrad.precompute.hierarchical import basis_guard
+
+    scene = hfrad.load_scene("cornell", patches=300)
+    plan = plan_precompute(scene, EPS, far_field="hierarchical", near_field=120)
+    n, held = plan.n, 1000
+    guard = basis_guard(n, plan, held)
+    need = max(memory.operator_bytes(n, 192) - memory.operator_bytes(n, 128),
+               memory.near_setup_bytes(n, 120, 192) - held - memory.operator_bytes(n, 128))
+    assert need == memory.near_setup_bytes(n, 120, 192) - held - memory.operator_bytes(n, 128)   # the set-up's
+    monkeypatch.setattr(memory, "available_bytes", lambda: int(need / 0.8) + 2)
+    guard(128, 64)
+    monkeypatch.setattr(memory, "available_bytes", lambda: int(need / 0.8) - 2)
+    with pytest.raises(MemoryLimitError, match="at a basis of 192 columns"):
+        guard(128, 64)
+
+
 def test_near_field_lus_after_the_release_where_they_do_not_fit_beside(box, monkeypatch):
     """Where the near field's LUs would not fit beside the H-matrix (hfrad.solve.prefetch.prefetch_fits),
     they are factored by the set-up after the H-matrix is released: no prefetch, the same solver bit for bit."""

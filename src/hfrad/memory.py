@@ -34,6 +34,25 @@ def _address_space_left() -> int:
     return 1 << 62
 
 
+def release_freed_memory() -> None:
+    """Hand the memory this process has freed back to the system (glibc's ``malloc_trim``; nothing
+    elsewhere), at the end of a stage that freed much of what it allocated.
+
+    Arrays of a few megabytes come from the heap (glibc raises its mmap threshold to 32 MB as large
+    blocks are freed) and the H-matrix build frees many on its threads' arenas, which glibc keeps:
+    at 161,808 Cornell-box patches the process held 6.4 GiB at the end of the build, 4.1 GiB after a
+    trim (39,482 patches: 1.09 and 0.78 GiB), and the operator factorization and the near field's
+    LUs then came on top of the 6.4. Later stages may reuse that memory, but not the near LUs of
+    another thread or the set-up's large arrays, so it counted at the run's peak.
+    """
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):  # pragma: no cover - not glibc
+        pass
+
+
 def human(nbytes: float) -> str:
     for unit in ("B", "KB", "MB", "GB", "TB"):
         if nbytes < 1024 or unit == "TB":
@@ -80,36 +99,57 @@ def precompute_bytes(n: int, block_size: int, rank_guess_: int | None = None, it
     return 5 * 8 * n * block_size + factors_bytes(n, k, itemsize) + 4 * n * k * itemsize
 
 
-#: Floats an H-matrix of F holds a patch (dense near blocks and low-rank far blocks,
+#: Floats an H-matrix of F holds a patch (dense near blocks and shadow-edge rows, low-rank far blocks,
 #: :mod:`hfrad.formfactors.hmatrix`), over sqrt(n): they grow with n (the exact blocks' rows). Measured
-#: on the Cornell box, eps 0.05 (leaf 32, block tolerance 0.01): 359 a patch at 394 patches, 861 at
-#: 1,508, 2,310 at 9,986 (18, 22 and 23 sqrt(n)); taken a little above until measured at scale.
-HMATRIX_FLOATS_PER_SQRT_N = 24
+#: on the Cornell box, eps 0.05 (leaf 32, block tolerance 0.01), all-zero rows and columns dropped:
+#: 11.6 sqrt(n) at 39,482 patches, 10.8 at 161,808 and 10.3 at 296,350 (2026-12-07, AMD EPYC VM).
+HMATRIX_FLOATS_PER_SQRT_N = 12
 #: The same on a clustered mesh (patches made of triangles; more mixed pairs and shadow-edge rows):
-#: 35.4 measured on the Šibenik cathedral at 60,568 patches (527 million floats).
+#: 35.4 measured on the Šibenik cathedral at 60,568 patches (527 million floats, before the zeros were dropped).
 HMATRIX_FLOATS_PER_SQRT_N_CLUSTERED = 36
+#: Row numbers (int64) the H-matrix's blocks keep a patch, over sqrt(n): 1.29 at 39,482 Cornell-box
+#: patches, 1.50 at 161,808.
+HMATRIX_ROWS_PER_SQRT_N = 2
 #: Bytes a patch of what ``far_field="hierarchical"`` holds besides the H-matrix and the factors: the
 #: pass statistics' sampled rows (at most ~300 float32 a patch), their products and sketch, and the
 #: float64 product buffers of 70 vectors (three copies).
 HIERARCHICAL_STATS_BYTES = 4 * 300 + 8 * 3 * 70
 #: Columns the operator factorization adds to its basis at a time (:func:`hfrad.lowrank.operator_factorization`).
 OPERATOR_BLOCK = 64
+#: The rank ``far_field="hierarchical"``'s check assumes before the run; the operator factorization checks
+#: again as its basis grows (:func:`operator_bytes`), so a larger rank is refused when it is reached.
+HIERARCHICAL_RANK_ASSUMPTION = ("min(n, 512) before the run (measured at eps 0.05: 149-193 on the Cornell box "
+                                "from 39,482 to 296,350 patches, 12-59 on the Šibenik cathedral; at eps 0.02: "
+                                "1,882 on the Cornell box at 39,482 patches), checked again as the basis grows")
+
+
+def hierarchical_rank_guess(n: int) -> int:
+    """The rank the hierarchical path's check assumes before a run (:data:`HIERARCHICAL_RANK_ASSUMPTION`)."""
+    return min(n, 512)
+
+
+def hmatrix_bytes(n: int, clustered: bool = False) -> int:
+    """An H-matrix of n patches, bytes: ``4 c sqrt(n) + 8 * 2 sqrt(n)`` a patch (float32 values, int64 row
+    numbers), c :data:`HMATRIX_FLOATS_PER_SQRT_N` (``clustered``: :data:`HMATRIX_FLOATS_PER_SQRT_N_CLUSTERED`)."""
+    per_sqrt_n = HMATRIX_FLOATS_PER_SQRT_N_CLUSTERED if clustered else HMATRIX_FLOATS_PER_SQRT_N
+    return int(n * n ** 0.5 * (4 * per_sqrt_n + 8 * HMATRIX_ROWS_PER_SQRT_N))
+
+
+def operator_bytes(n: int, basis: int, itemsize: int = 4) -> int:
+    """The operator factorization with a basis of ``basis`` columns, bytes: P and B (``2 l n s``), the
+    factors Q and V it ends with (at most ``2 l n s`` more), ``OPERATOR_BLOCK`` vectors in float64 (three
+    copies in the products) and the pass statistics (``HIERARCHICAL_STATS_BYTES`` a patch)."""
+    return int(n * (4 * basis * itemsize + 3 * 8 * OPERATOR_BLOCK + HIERARCHICAL_STATS_BYTES))
 
 
 def hierarchical_bytes(n: int, rank_guess_: int | None = None, itemsize: int = 4, clustered: bool = False) -> int:
-    """Rough peak memory of ``factorize(far_field="hierarchical")``, bytes.
-
-    The H-matrix (``HMATRIX_FLOATS_PER_SQRT_N * sqrt(n)`` float32 a patch, or
-    ``HMATRIX_FLOATS_PER_SQRT_N_CLUSTERED`` on a ``clustered`` mesh), the operator factorization at its
-    SVD (basis P and projection B, l x n each, B's right singular vectors, the two n x k factors:
-    ``5 n k s`` with l = k, plus a block of ``OPERATOR_BLOCK`` vectors in float64, three copies in the
-    products) and the pass statistics (``HIERARCHICAL_STATS_BYTES`` a patch). The rank k is
-    :func:`rank_guess` unless given (see :data:`RANK_ASSUMPTION`).
+    """Rough peak memory of ``factorize(far_field="hierarchical")`` up to its solver set-up, bytes: the
+    H-matrix (:func:`hmatrix_bytes`) and the operator factorization beside it (:func:`operator_bytes`) with
+    a basis of twice the rank (measured: 384 columns for rank 163, 448 for 193), the rank
+    :func:`hierarchical_rank_guess` unless given (see :data:`HIERARCHICAL_RANK_ASSUMPTION`).
     """
-    k = rank_guess(n) if rank_guess_ is None else rank_guess_
-    per_sqrt_n = HMATRIX_FLOATS_PER_SQRT_N_CLUSTERED if clustered else HMATRIX_FLOATS_PER_SQRT_N
-    return int(n * (4 * per_sqrt_n * n ** 0.5 + 5 * k * itemsize + 3 * 8 * OPERATOR_BLOCK
-                    + HIERARCHICAL_STATS_BYTES))
+    k = hierarchical_rank_guess(n) if rank_guess_ is None else rank_guess_
+    return hmatrix_bytes(n, clustered) + operator_bytes(n, 2 * k, itemsize)
 
 
 #: Entries a row of the near field's sparse LU (SuperLU, minimum degree on A^T + A) over ``c^1.5``, c the
@@ -189,7 +229,7 @@ def precompute_peak_bytes(n: int, block_size: int, *, far_field: str = "exact", 
     beside the pass only where they fit (:mod:`hfrad.solve.prefetch`). ``clustered``: a clustered mesh
     (:func:`hierarchical_bytes`)."""
     if far_field == "hierarchical":
-        pass_bytes = hierarchical_bytes(n, itemsize=itemsize, clustered=clustered)
-    else:
-        pass_bytes = precompute_bytes(n, block_size, itemsize=itemsize)
-    return max(pass_bytes, near_setup_bytes(n, near_entries, itemsize=itemsize))
+        k = hierarchical_rank_guess(n)
+        return max(hierarchical_bytes(n, k, itemsize=itemsize, clustered=clustered),
+                   near_setup_bytes(n, near_entries, k, itemsize=itemsize))
+    return max(precompute_bytes(n, block_size, itemsize=itemsize), near_setup_bytes(n, near_entries, itemsize=itemsize))

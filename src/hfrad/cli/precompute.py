@@ -65,12 +65,14 @@ def register(app: typer.Typer) -> None:
         same column blocks, the certification and sampled rows' exact values (about
         (2 sqrt(n) + 400) b float64 a block) and the cluster-pair visibility table (n^2 / 1024 bytes).
         With --far-field hierarchical, instead of the column blocks and tiles: the
-        H-matrix (about 24 sqrt(n) float32 a patch, 36 sqrt(n) on a clustered
-        mesh; 2,310 measured at 10,000 patches, 8,700 on the clustered Šibenik at
-        60,568), the operator factorization (5 n k s: its basis, projection and
-        SVD, k as above, plus three float64 n x 64 product buffers) and the
-        statistics (about 2.9 KB a patch): hfrad.memory.hierarchical_bytes; it is
-        released before the set-up above, and the larger of the two is refused
+        H-matrix (about 12 sqrt(n) float32 and 2 sqrt(n) int64 a patch, 36 sqrt(n)
+        float32 on a clustered mesh; 10.8 sqrt(n) measured at 161,808 patches, 35.4
+        on the clustered Šibenik at 60,568), the operator factorization (4 n l s
+        for a basis of l columns, about twice the rank, plus three float64 n x 64
+        product buffers) and the statistics (about 2.9 KB a patch):
+        hfrad.memory.hierarchical_bytes, with a rank of min(n, 512) before the run
+        and checked again as the basis grows (the set-up above at that rank); the
+        H-matrix is released before the set-up, and the larger of the two is refused
         above 80% of the available memory; its checkpoint, the built H-matrix, takes about
         5.5 bytes a stored float on disk (600 MB at 39,482 patches).
         A checkpoint (OUTPUT.partial) is written every 30 s, and at least 50

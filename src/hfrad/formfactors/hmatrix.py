@@ -41,6 +41,7 @@ import numpy as np
 import scipy.sparse as sp
 from numba import njit, prange
 
+from ..memory import release_freed_memory
 from ..progress import ProgressCallback, report
 from ..resources import numba_loops_at_once, numba_threads
 from .clustervis import BLOCKED, CLUSTER_SIZE, MIXED, VISIBLE, _cluster_pair_states
@@ -338,6 +339,11 @@ class FormFactorHMatrix:
     @property
     def n(self) -> int:
         return len(self.perm)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the blocks' arrays (values, factors and row numbers)."""
+        return sum(int(getattr(self.blocks, f.name).nbytes) for f in dataclasses.fields(self.blocks))
 
     @property
     def storage(self) -> int:
@@ -917,7 +923,9 @@ def build_hmatrix(scene, engine: FormFactorEngine, options: HMatrixOptions | Non
     blocks, infos = [b for b, _ in built], [i for _, i in built]
     del built
     infos[0]["time_tree"] = tree_seconds
-    return join_parts(pairs, blocks, infos, options, time.perf_counter() - t0)
+    hm = join_parts(pairs, blocks, infos, options, time.perf_counter() - t0)
+    release_freed_memory()      # the parts' freed arrays, kept by their threads' arenas
+    return hm
 
 
 #: Parts of an in-process build per thread (:func:`build_hmatrix`): parts differ in cost, and a thread

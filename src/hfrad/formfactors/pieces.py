@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["BlockPieces", "rows_of", "product", "column_squares"]
+__all__ = ["BlockPieces", "rows_of", "product", "column_squares", "gram64"]
 
 #: Rows taken to float64 at a time where a float64 copy of a whole (n x s) factor is not wanted.
 SLAB_ROWS = 8192
@@ -153,7 +153,7 @@ class BlockPieces:
         """``||B||_F^2`` in float64."""
         total = float(np.square(self.dense, dtype=np.float64).sum())
         if self.far.size:
-            M = _gram64(self.W)
+            M = gram64(self.W)
             total += float(np.einsum("kp,kl,lp->", self.X, M, self.X))
         return total
 
@@ -162,17 +162,19 @@ class BlockPieces:
         scale = np.asarray(scale, np.float64)
         out = np.square(self.dense, dtype=np.float64).T @ scale[self.rows]
         for c in range(scale.shape[1]) if self.far.size else ():
-            M = _gram64(self.W, scale[self.far, c])
+            M = gram64(self.W, scale[self.far, c])
             out[:, c] += np.einsum("kp,kl,lp->p", self.X, M, self.X)
         return out
 
 
-def _gram64(W: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
-    """``W^T diag(weights) W`` in float64, slab by slab of rows."""
+def gram64(W: np.ndarray, weights: np.ndarray | None = None, slab_rows: int = SLAB_ROWS) -> np.ndarray:
+    """``W^T diag(weights) W`` (k, k) in float64 for W (m, k) of any float dtype, ``slab_rows`` rows taken
+    to float64 at a time: the Gram matrix of a float32 factor to float64 rounding without a float64
+    copy of W (a transposed view serves for ``B B^T`` of a wide B)."""
     M = np.zeros((W.shape[1], W.shape[1]))
-    for a in range(0, W.shape[0], SLAB_ROWS):
-        slab = np.asarray(W[a:a + SLAB_ROWS], np.float64)
-        M += slab.T @ (slab if weights is None else slab * weights[a:a + SLAB_ROWS, None])
+    for a in range(0, W.shape[0], slab_rows):
+        slab = np.asarray(W[a:a + slab_rows], np.float64)
+        M += slab.T @ (slab if weights is None else slab * weights[a:a + slab_rows, None])
     return M
 
 

@@ -35,7 +35,7 @@ import numpy as np
 import scipy.linalg as sla
 
 from ..errors import FactorizationError, InputError
-from ..formfactors.pieces import BlockPieces
+from ..formfactors.pieces import BlockPieces, gram64
 from ..progress import ProgressCallback, report
 from ..resources import spare_threads
 from ..validation import check_tolerance
@@ -171,10 +171,7 @@ def _cholesky_qr_svd(Y: np.ndarray):
     matrix is not comfortably positive definite (``_CHOLQR_MIN_DIAGONAL``).
     """
     n, k = Y.shape
-    G = np.zeros((k, k))
-    for a in range(0, n, SLAB_ROWS):
-        slab = Y[a:a + SLAB_ROWS].astype(np.float64)
-        G += slab.T @ slab
+    G = gram64(Y, slab_rows=SLAB_ROWS)
     norms = np.sqrt(np.diag(G))
     if k == 0 or not norms.min() > 0.0:
         return None

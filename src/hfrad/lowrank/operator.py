@@ -21,6 +21,7 @@ import numpy as np
 import scipy.linalg as sla
 
 from ..errors import AccuracyWarning, FactorizationError, InputError
+from ..formfactors.pieces import gram64
 from ..progress import ProgressCallback, report
 from ..validation import check_dtype, check_tolerance
 from .factors import LowRank, sign_fix, truncation_rank
@@ -44,7 +45,8 @@ Product = Callable[[np.ndarray], np.ndarray]
 def operator_factorization(matmat: Product, rmatmat: Product, n: int, norm2: float, *, eps: float,
                            relative: bool = True, dtype=np.float32, rng=None, block: int = 64,
                            power: int = 1, max_rank: int | None = None, range_share: float = RANGE_SHARE,
-                           method: str = "power", progress: ProgressCallback = None) -> LowRank:
+                           method: str = "power", progress: ProgressCallback = None,
+                           guard: Callable[[int, int], None] | None = None) -> LowRank:
     """``G ~= Q V^T`` within ``eps`` from products with G and G^T only.
 
     An orthonormal basis P of G's range grows ``block`` columns at a time: with
@@ -93,6 +95,10 @@ def operator_factorization(matmat: Product, rmatmat: Product, n: int, norm2: flo
         ``B`` needs anyway, is the next block's start, so each block costs two products.
     progress : callable or None
         ``progress(basis columns, max_rank or n)`` after each block.
+    guard : callable or None
+        ``guard(columns, more)`` before the basis of ``columns`` columns grows by up to ``more``: a
+        check that may raise (the hierarchical precompute's memory check: the factors and the solver
+        set-up grow with the rank, which is known only as the basis grows).
 
     Returns
     -------
@@ -151,6 +157,8 @@ def operator_factorization(matmat: Product, rmatmat: Product, n: int, norm2: flo
     E, trace = float(norm2), []
     spanned = False
     while E > range_share * target2 and run.size < limit:
+        if guard is not None:
+            guard(run.size, min(block, limit - run.size))
         if not run.grow(min(block, limit - run.size), power):
             spanned = True    # no direction left outside the basis: G's range is spanned
             break
@@ -341,11 +349,7 @@ def _truncated_svd(B: np.ndarray, budget2: float, dtype) -> tuple[np.ndarray, np
     Where the truncation would keep a singular value below ``GRAM_FLOOR`` s_1 (eps near 0), which
     the Gram cannot resolve, LAPACK's SVD is used after all."""
     l, n = B.shape
-    C = np.zeros((l, l))
-    for a in range(0, n, GRAM_STEP):
-        Bc = B[:, a:a + GRAM_STEP].astype(np.float64)
-        C += Bc @ Bc.T
-    lam, U = np.linalg.eigh(C)
+    lam, U = np.linalg.eigh(gram64(B.T, slab_rows=GRAM_STEP))
     s = np.sqrt(np.maximum(lam[::-1], 0.0))
     k, discarded2 = truncation_rank(s, budget2)
     if k and s[k - 1] < GRAM_FLOOR * s[0]:

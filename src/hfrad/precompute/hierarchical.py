@@ -31,7 +31,8 @@ from ..formfactors.farfield import FarFieldCertificate, patch_boxes
 from ..formfactors.hmatrix import FormFactorHMatrix, HMatrixOptions, build_hmatrix, cluster_tree
 from ..lowrank.operator import operator_factorization
 from ..errors import InputError
-from ..memory import RANK_ASSUMPTION, precompute_peak_bytes, rank_guess, require
+from ..memory import (HIERARCHICAL_RANK_ASSUMPTION, hierarchical_rank_guess, near_setup_bytes, operator_bytes,
+                      precompute_peak_bytes, release_freed_memory, require)
 from .. import resources
 from ..progress import ProgressCallback
 from ..scene.scene import Scene
@@ -160,7 +161,26 @@ def check_hierarchical_memory(plan: PrecomputePlan, clustered: bool = False) -> 
             f"precomputing {n:,} patches with far_field='hierarchical'"
             + (f" and {plan.near_entries} near-field entries a row" if plan.near_entries else ""),
             f"use fewer patches, a larger eps or fewer near-field entries (the estimate assumes a rank of "
-            f"{rank_guess(n):,}: {RANK_ASSUMPTION})")
+            f"{hierarchical_rank_guess(n):,}: {HIERARCHICAL_RANK_ASSUMPTION})")
+
+
+def basis_guard(n: int, plan: PrecomputePlan, held: int) -> Callable[[int, int], None]:
+    """The memory check of the operator factorization as its basis grows from l to ``l + more`` columns
+    (the rank is at most that): what the rest of the run adds to what the process holds now, the larger
+    of the factorization's growth (:func:`hfrad.memory.operator_bytes`) and the solver set-up at that
+    rank (:func:`hfrad.memory.near_setup_bytes`, less the H-matrix's ``held`` bytes and the basis, both
+    released before it), refused with the number. The check before the run assumed a rank
+    (:func:`hfrad.memory.hierarchical_rank_guess`); this one sees the rank the scene and eps need."""
+    s = np.dtype(plan.dtype).itemsize
+
+    def guard(columns: int, more: int) -> None:
+        k = columns + more
+        now = operator_bytes(n, columns, s)
+        grow = operator_bytes(n, k, s) - now
+        setup = near_setup_bytes(n, plan.near_entries, k, s) - held - now
+        require(max(grow, setup), f"the operator factorization of {n:,} patches at a basis of {k:,} columns "
+                f"(eps {plan.eps:g})", "a larger eps needs a smaller rank; or use fewer patches")
+    return guard
 
 
 def save_if_worth(hm: FormFactorHMatrix, scene: Scene, plan: PrecomputePlan, checkpoint: Checkpoint | None,
@@ -240,9 +260,10 @@ def _factorize_hmatrix(scene, plan, engine, hm, progress, status, t0, backend) -
         lowrank = operator_factorization(lambda X: rho_dt * hm.matmat(X), lambda X: hm.rmatmat(rho_dt * X),
                                          n, hm.frobenius2(rho), eps=target, relative=False, dtype=dt,
                                          rng=FACTORIZATION_SEED, range_share=RANGE_SHARE, method=RANGE_METHOD,
-                                         progress=progress)
+                                         progress=progress, guard=basis_guard(n, plan, hm.nbytes))
         lowrank.norm, lowrank.eps, lowrank.relative = math.sqrt(norm2), plan.eps, plan.relative
         hm.release()        # not needed by the solver set-up, whose near-field LUs may take gigabytes
+        release_freed_memory()
         t_fac = time.perf_counter()
         if status is not None:
             status({"blocks": 0, "rank": lowrank.rank, "elapsed": t_fac - t0})
