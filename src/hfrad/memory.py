@@ -118,14 +118,14 @@ HIERARCHICAL_STATS_BYTES = 4 * 300 + 8 * 3 * 70
 OPERATOR_BLOCK = 64
 #: The rank ``far_field="hierarchical"``'s check assumes before the run; the operator factorization checks
 #: again as its basis grows (:func:`operator_bytes`), so a larger rank is refused when it is reached.
-HIERARCHICAL_RANK_ASSUMPTION = ("min(n, 512) before the run (measured at eps 0.05: 149-193 on the Cornell box "
+HIERARCHICAL_RANK_ASSUMPTION = ("min(n, 256) before the run (measured at eps 0.05: 149-193 on the Cornell box "
                                 "from 39,482 to 296,350 patches, 12-59 on the Šibenik cathedral; at eps 0.02: "
                                 "1,882 on the Cornell box at 39,482 patches), checked again as the basis grows")
 
 
 def hierarchical_rank_guess(n: int) -> int:
     """The rank the hierarchical path's check assumes before a run (:data:`HIERARCHICAL_RANK_ASSUMPTION`)."""
-    return min(n, 512)
+    return min(n, 256)
 
 
 def hmatrix_bytes(n: int, clustered: bool = False) -> int:
@@ -142,14 +142,24 @@ def operator_bytes(n: int, basis: int, itemsize: int = 4) -> int:
     return int(n * (4 * basis * itemsize + 3 * 8 * OPERATOR_BLOCK + HIERARCHICAL_STATS_BYTES))
 
 
-def hierarchical_bytes(n: int, rank_guess_: int | None = None, itemsize: int = 4, clustered: bool = False) -> int:
+#: Bytes an entry of the near field takes while the operator factorization runs beside the H-matrix: its
+#: entries taken out of the blocks (row, column, value) and the near field's CSR. Measured 63 (296,350
+#: Cornell-box patches, 39.1 million entries: 2.3 GiB more from the end of the certificate to the start
+#: of the factorization).
+NEAR_TAKEN_BYTES = 64
+
+
+def hierarchical_bytes(n: int, rank_guess_: int | None = None, itemsize: int = 4, clustered: bool = False,
+                       near_entries: int = 0) -> int:
     """Rough peak memory of ``factorize(far_field="hierarchical")`` up to its solver set-up, bytes: the
-    H-matrix (:func:`hmatrix_bytes`) and the operator factorization beside it (:func:`operator_bytes`) with
-    a basis of twice the rank (measured: 384 columns for rank 163, 448 for 193), the rank
-    :func:`hierarchical_rank_guess` unless given (see :data:`HIERARCHICAL_RANK_ASSUMPTION`).
+    H-matrix (:func:`hmatrix_bytes`), the near field's ``near_entries`` a row taken out of it
+    (:data:`NEAR_TAKEN_BYTES` an entry) and the operator factorization beside them
+    (:func:`operator_bytes`) with a basis of twice the rank (measured: 384 columns for rank 163, 448
+    for 193), the rank :func:`hierarchical_rank_guess` unless given (see
+    :data:`HIERARCHICAL_RANK_ASSUMPTION`).
     """
     k = hierarchical_rank_guess(n) if rank_guess_ is None else rank_guess_
-    return hmatrix_bytes(n, clustered) + operator_bytes(n, 2 * k, itemsize)
+    return hmatrix_bytes(n, clustered) + NEAR_TAKEN_BYTES * n * near_entries + operator_bytes(n, 2 * k, itemsize)
 
 
 #: Entries a row of the near field's sparse LU (SuperLU, minimum degree on A^T + A) over ``c^1.5``, c the
@@ -230,6 +240,6 @@ def precompute_peak_bytes(n: int, block_size: int, *, far_field: str = "exact", 
     (:func:`hierarchical_bytes`)."""
     if far_field == "hierarchical":
         k = hierarchical_rank_guess(n)
-        return max(hierarchical_bytes(n, k, itemsize=itemsize, clustered=clustered),
+        return max(hierarchical_bytes(n, k, itemsize=itemsize, clustered=clustered, near_entries=near_entries),
                    near_setup_bytes(n, near_entries, k, itemsize=itemsize))
     return max(precompute_bytes(n, block_size, itemsize=itemsize), near_setup_bytes(n, near_entries, itemsize=itemsize))

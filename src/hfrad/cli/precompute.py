@@ -70,7 +70,7 @@ def register(app: typer.Typer) -> None:
         on the clustered Šibenik at 60,568), the operator factorization (4 n l s
         for a basis of l columns, about twice the rank, plus three float64 n x 64
         product buffers) and the statistics (about 2.9 KB a patch):
-        hfrad.memory.hierarchical_bytes, with a rank of min(n, 512) before the run
+        hfrad.memory.hierarchical_bytes, with a rank of min(n, 256) before the run
         and checked again as the basis grows (the set-up above at that rank); the
         H-matrix is released before the set-up, and the larger of the two is refused
         above 80% of the available memory; its checkpoint, the built H-matrix, takes about

@@ -448,13 +448,19 @@ class Visibility:
         return PROBE_DESIGN * PROBE_DESIGN
 
     def _probe_design(self, m: int) -> np.ndarray:
-        """(n, m^2, 3) float32 the probes' points (kept: 12 m^2 bytes a patch)."""
-        if not hasattr(self, "_probe_designs"):
-            self._probe_designs = {}
+        """(n, m^2, 3) float32 the probes' points (kept: 12 m^2 bytes a patch).
+
+        Threads building parts of one H-matrix share this object: ``_normals`` is set before any design
+        can be seen, and the designs' dict and entries come from ``setdefault`` (one call under the GIL),
+        so a thread never meets the dict without the normals or loses its entry to another thread's
+        (before: an AttributeError on ``_normals``, seen once in the distributed tests)."""
+        if "_normals" not in self.__dict__:
             self._normals = np.ascontiguousarray(self.plane[:, :3])
-        if m not in self._probe_designs:
-            self._probe_designs[m] = np.ascontiguousarray(self._points(m, None), dtype=np.float32)
-        return self._probe_designs[m]
+        designs = self.__dict__.setdefault("_probe_designs", {})
+        design = designs.get(m)
+        if design is None:
+            design = designs.setdefault(m, np.ascontiguousarray(self._points(m, None), dtype=np.float32))
+        return design
 
     # ------------------------------------------------------------------
     def apply(self, F: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> None:
