@@ -107,7 +107,7 @@ HMATRIX_FLOATS_PER_SQRT_N = 12
 #: The same on a clustered mesh (patches made of triangles; more mixed pairs and shadow-edge rows):
 #: 35.4 measured on the Šibenik cathedral at 60,568 patches (527 million floats, before the zeros were dropped).
 HMATRIX_FLOATS_PER_SQRT_N_CLUSTERED = 36
-#: Row numbers (int64) the H-matrix's blocks keep a patch, over sqrt(n): 1.29 at 39,482 Cornell-box
+#: Row numbers (int32) the H-matrix's blocks keep a patch, over sqrt(n): 1.29 at 39,482 Cornell-box
 #: patches, 1.50 at 161,808.
 HMATRIX_ROWS_PER_SQRT_N = 2
 #: Bytes a patch of what ``far_field="hierarchical"`` holds besides the H-matrix and the factors: the
@@ -129,10 +129,11 @@ def hierarchical_rank_guess(n: int) -> int:
 
 
 def hmatrix_bytes(n: int, clustered: bool = False) -> int:
-    """An H-matrix of n patches, bytes: ``4 c sqrt(n) + 8 * 2 sqrt(n)`` a patch (float32 values, int64 row
-    numbers), c :data:`HMATRIX_FLOATS_PER_SQRT_N` (``clustered``: :data:`HMATRIX_FLOATS_PER_SQRT_N_CLUSTERED`)."""
+    """An H-matrix of n patches, bytes: ``4 (c + 2) sqrt(n)`` a patch (c sqrt(n) float32 values and
+    :data:`HMATRIX_ROWS_PER_SQRT_N` sqrt(n) int32 row numbers), c :data:`HMATRIX_FLOATS_PER_SQRT_N`
+    (``clustered``: :data:`HMATRIX_FLOATS_PER_SQRT_N_CLUSTERED`)."""
     per_sqrt_n = HMATRIX_FLOATS_PER_SQRT_N_CLUSTERED if clustered else HMATRIX_FLOATS_PER_SQRT_N
-    return int(n * n ** 0.5 * (4 * per_sqrt_n + 8 * HMATRIX_ROWS_PER_SQRT_N))
+    return int(n * n ** 0.5 * 4 * (per_sqrt_n + HMATRIX_ROWS_PER_SQRT_N))
 
 
 def operator_bytes(n: int, basis: int, itemsize: int = 4) -> int:
