@@ -85,6 +85,27 @@ def test_products_are_those_of_the_blocks_held(cornell):
     assert hm.frobenius2(rho) == pytest.approx(((rho[:, None] * D) ** 2).sum(), rel=1e-9)
 
 
+def test_row_numbers_are_int32_and_int64_ones_read_alike(cornell):
+    """The blocks keep their row numbers as int32 (half the bytes); an H-matrix with int64 ones (a checkpoint
+    written before) gives the same products, rows and squares, bit for bit."""
+    import copy
+    import dataclasses
+
+    from hfrad.formfactors.hmatrix import FormFactorHMatrix
+
+    _, hm, _ = cornell
+    assert hm.blocks.row_index.dtype == np.int32
+    old = FormFactorHMatrix(hm.perm, dataclasses.replace(copy.deepcopy(hm.blocks),
+                                                         row_index=hm.blocks.row_index.astype(np.int64)), hm.info)
+    X = np.random.default_rng(5).standard_normal((hm.n, 3)).astype(np.float32)
+    np.testing.assert_array_equal(old.matmat(X), hm.matmat(X))
+    np.testing.assert_array_equal(old.rmatmat(X), hm.rmatmat(X))
+    np.testing.assert_array_equal(old.rows(np.array([0, 9, hm.n - 1])), hm.rows(np.array([0, 9, hm.n - 1])))
+    scale = np.ones((hm.n, 1))
+    np.testing.assert_array_equal(old.squares(scale, columns=True), hm.squares(scale, columns=True))
+    assert old.nbytes - hm.nbytes == 4 * hm.blocks.row_index.size
+
+
 def _hand_blocks():
     """Five blocks over 12 positions: a dense block with a zero row and zero outer columns, an all-zero
     dense block, a rank-0 block, a rank-2 block and a dense block without zeros."""
