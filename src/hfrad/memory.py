@@ -104,8 +104,9 @@ def precompute_bytes(n: int, block_size: int, rank_guess_: int | None = None, it
 #: on the Cornell box, eps 0.05 (leaf 32, block tolerance 0.01), all-zero rows and columns dropped:
 #: 11.6 sqrt(n) at 39,482 patches, 10.8 at 161,808 and 10.3 at 296,350 (2026-12-07, AMD EPYC VM).
 HMATRIX_FLOATS_PER_SQRT_N = 12
-#: The same on a clustered mesh (patches made of triangles; more mixed pairs and shadow-edge rows):
-#: 35.4 measured on the Šibenik cathedral at 60,568 patches (527 million floats, before the zeros were dropped).
+#: The same on a clustered mesh (patches made of triangles; more mixed pairs and shadow-edge rows), measured
+#: on the Šibenik cathedral with the zeros dropped: 21.0 sqrt(n) at 10,181 patches, 23.8 at 20,616 and 30.2
+#: at 60,568 (450 million floats; 35.4 before the zeros were dropped). It still grows: kept at 36.
 HMATRIX_FLOATS_PER_SQRT_N_CLUSTERED = 36
 #: Row numbers (int32) the H-matrix's blocks keep a patch, over sqrt(n): 1.29 at 39,482 Cornell-box
 #: patches, 1.50 at 161,808.
