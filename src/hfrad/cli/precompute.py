@@ -69,12 +69,13 @@ def register(app: typer.Typer) -> None:
         float32 on a clustered mesh; 10.8 sqrt(n) measured at 161,808 patches, 30.2
         on the clustered Šibenik at 60,568), the operator factorization (4 n l s
         for a basis of l columns, about twice the rank, plus three float64 n x 64
-        product buffers) and the statistics (about 2.9 KB a patch):
-        hfrad.memory.hierarchical_bytes, with a rank of min(n, 256) before the run
-        and checked again as the basis grows (the set-up above at that rank); the
-        H-matrix is released before the set-up, and the larger of the two is refused
-        above 80% of the available memory; its checkpoint, the built H-matrix, takes about
-        5.5 bytes a stored float on disk (600 MB at 39,482 patches).
+        product buffers), the near field's entries beside it (64 bytes each) and
+        the statistics (about 2.9 KB a patch): hfrad.memory.hierarchical_bytes,
+        with a rank of min(n, 256) before the run and checked again as the basis
+        grows (the set-up above at that rank); the H-matrix is released before
+        the set-up, and the larger of the two is refused above 80% of the
+        available memory; its checkpoint, the built H-matrix, takes about 5.5
+        bytes a stored float on disk (600 MB at 39,482 patches).
         A checkpoint (OUTPUT.partial) is written every 30 s, and at least 50
         times as long as its last write took apart (writes cost at most ~2% of
         the run); rerun the same command to resume after an interruption. With
