@@ -239,7 +239,9 @@ def precompute_peak_bytes(n: int, block_size: int, *, far_field: str = "exact", 
     solver's set-up (:func:`near_setup_bytes`, with ``near_entries`` c > 0 a row of N): the pass's
     blocks (or the H-matrix) are released before the set-up, and the near field's LUs are factored
     beside the pass only where they fit (:mod:`hfrad.solve.prefetch`). ``clustered``: a clustered mesh
-    (:func:`hierarchical_bytes`)."""
+    (:func:`hierarchical_bytes`). The hierarchical path assumes :func:`hierarchical_rank_guess` for both
+    and checks again as its basis grows (:func:`hfrad.precompute.hierarchical.basis_guard`); the column
+    pass assumes :func:`rank_guess`."""
     if far_field == "hierarchical":
         k = hierarchical_rank_guess(n)
         return max(hierarchical_bytes(n, k, itemsize=itemsize, clustered=clustered, near_entries=near_entries),
