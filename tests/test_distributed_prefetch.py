@@ -128,3 +128,33 @@ def test_two_workers_prefetch_beside_the_panelled_top(parts):
     B, B_off = on.solve(scene.emission), off.solve(scene.emission)
     # separate runs: merges on other BLAS threads round apart (float32 factors), nothing more
     assert np.abs(B - B_off).max() <= 1e-5 * np.abs(B_off).max()
+
+
+def test_close_without_waiting_leaves_the_lu_in_flight(parts, monkeypatch):
+    """A run given up (Ctrl-C, an error) closes the prefetch with ``wait=False``: it returns at once, where
+    ``close()`` waits for the LU in flight (SuperLU cannot be interrupted), which finishes on its daemon thread."""
+    import threading
+    import time
+
+    from hfrad.solve import prefetch
+
+    scene, options, fac, near, n = parts
+    real = prefetch.channel_solver
+    started = threading.Event()
+
+    def slow(*args):
+        started.set()
+        time.sleep(1.5)
+        return real(*args)
+
+    monkeypatch.setattr(prefetch, "channel_solver", slow)
+    seconds = []
+    for wait in (False, True):
+        started.clear()
+        pre = NearPrefetch(near, n, scene.reflectance, options.perm, options.dtype)
+        assert started.wait(10)
+        t = time.perf_counter()
+        pre.close(wait=wait)
+        seconds.append(time.perf_counter() - t)
+        assert pre._thread.is_alive() != wait and pre._thread.daemon
+    assert seconds[0] < 0.2 < 1.0 < seconds[1], seconds

@@ -531,7 +531,7 @@ def _run(cluster: Cluster, scene, options: PrecomputePlan, task_threads, checkpo
     except KilledWorker as exc:
         client.cancel([job_future])
         if prefetch is not None:
-            prefetch.close()
+            prefetch.close(wait=False)
         workers = cluster.n_workers
         raise WorkerLostError(
             f"{exc}: a task took down {dask.config.get('distributed.scheduler.allowed-failures')} workers in a "
@@ -541,7 +541,7 @@ def _run(cluster: Cluster, scene, options: PrecomputePlan, task_threads, checkpo
     except BaseException:
         client.cancel([job_future])  # Ctrl-C or a failure: stop the cluster's work on this run
         if prefetch is not None:
-            prefetch.close()
+            prefetch.close(wait=False)   # nor wait for the LU in flight
         raise
     finally:
         client.unsubscribe_topic(job.topic)

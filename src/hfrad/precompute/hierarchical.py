@@ -279,6 +279,11 @@ def _factorize_hmatrix(scene, plan, engine, hm, progress, status, t0, backend) -
         if prefetch is not None:
             fac.lowrank.info["near_prefetched"] = prefetch.hits
         return fac
+    except BaseException:
+        if prefetch is not None:
+            prefetch.close(wait=False)      # Ctrl-C or an error: not after the LU in flight
+            prefetch = None
+        raise
     finally:
         if prefetch is not None:
             prefetch.close()
