@@ -132,7 +132,8 @@ def test_two_workers_prefetch_beside_the_panelled_top(parts):
 
 def test_close_without_waiting_leaves_the_lu_in_flight(parts, monkeypatch):
     """A run given up (Ctrl-C, an error) closes the prefetch with ``wait=False``: it returns at once, where
-    ``close()`` waits for the LU in flight (SuperLU cannot be interrupted), which finishes on its daemon thread."""
+    ``close()`` waits for the LU in flight (SuperLU cannot be interrupted), which finishes on its daemon thread
+    (the interpreter's exit joins it)."""
     import threading
     import time
 

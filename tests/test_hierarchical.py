@@ -305,7 +305,8 @@ def test_prefetch_is_decided_on_the_near_fields_own_entries(box, monkeypatch):
 
 def test_ctrl_c_does_not_wait_for_the_prefetched_lu(box, monkeypatch):
     """Ctrl-C while the near field's LUs are factored beside the range finder: the KeyboardInterrupt comes
-    back at once, not after the LU in flight (before: 25-35 s at 161,808 patches)."""
+    back to the caller at once, not after the LU in flight (25-35 s at 161,808 patches; the interpreter's
+    exit still waits for it)."""
     import threading
     import time
 

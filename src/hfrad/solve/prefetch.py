@@ -23,6 +23,7 @@ entry), and computes anything else itself, so the object is the one
 
 from __future__ import annotations
 
+import atexit
 import concurrent.futures
 import os
 import threading
@@ -209,15 +210,19 @@ class NearPrefetch:
 
         ``wait=False`` (a run given up: Ctrl-C, an error) returns at once: the factorization in
         flight (SuperLU, which cannot be interrupted: 25-35 s a channel at 161,808 Cornell-box
-        patches, 118 s for three at 296,350) finishes on its daemon thread and its result is dropped;
-        the interpreter does not wait for it at exit."""
+        patches) finishes on its daemon thread and its result is dropped, so a caller in Python (a
+        notebook) has control back at once. The interpreter's exit still waits for it (an ``atexit``
+        join): exiting while the thread was inside SuperLU failed the exit's flush of stdout (status
+        120 instead of the CLI's 130)."""
         self._stop = True
         for future in self._solvers.values():
             if future is not None:
                 future.cancel()
+        self._hurry()
         if wait:
-            self._hurry()
             self._thread.join()     # it joins its helpers
+        else:                       # the interpreter's exit may not race a thread inside SuperLU
+            atexit.register(self._thread.join)
         self._solvers.clear()
 
     def runner(self) -> "PrefetchRunner":
