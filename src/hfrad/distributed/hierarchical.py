@@ -20,7 +20,6 @@ from pathlib import Path
 from ..formfactors.hmatrix import (FormFactorHMatrix, HMatrixPairs, build_part, hmatrix_pairs, join_parts,
                                    split_into_parts)
 from ..formfactors.parallel import cached_engine
-from ..memory import release_freed_memory
 from ..precompute.assemble import PrecomputePlan
 from ..precompute.backends import Checkpoint, DaskBackend
 from ..precompute.hierarchical import run_hierarchical
@@ -129,6 +128,5 @@ def _build_on(cluster: Cluster, scene, plan: PrecomputePlan, task_threads, progr
     infos = [built[k][1] for k in range(len(parts))]
     del built
     hm = join_parts(pairs, blocks, infos, options, time.perf_counter() - t0)
-    release_freed_memory()          # the parts as they arrived, copied into the joined blocks
     hm.info.update({"parts": len(parts), "time_build_wall": time.perf_counter() - t0})
     return hm, cluster.n_workers

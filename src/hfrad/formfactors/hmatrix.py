@@ -422,6 +422,7 @@ class FormFactorHMatrix:
         self.removed = None
         for cached in ("_parts_by_threads", "_removed_squares", "_max_rank"):
             self.__dict__.pop(cached, None)
+        release_freed_memory()
 
     def take_near(self, centroids: np.ndarray, radius: float, *, lowrank: bool | str = "auto"):
         """Move the entries whose patches' centroids are at most ``radius`` apart out of the H-matrix
@@ -928,9 +929,7 @@ def build_hmatrix(scene, engine: FormFactorEngine, options: HMatrixOptions | Non
     blocks, infos = [b for b, _ in built], [i for _, i in built]
     del built
     infos[0]["time_tree"] = tree_seconds
-    hm = join_parts(pairs, blocks, infos, options, time.perf_counter() - t0)
-    release_freed_memory()      # the parts' freed arrays, kept by their threads' arenas
-    return hm
+    return join_parts(pairs, blocks, infos, options, time.perf_counter() - t0)
 
 
 #: Parts of an in-process build per thread (:func:`build_hmatrix`): parts differ in cost, and a thread
@@ -1052,6 +1051,7 @@ def join_parts(pairs: HMatrixPairs, blocks: list[BlockList], infos: list[dict], 
         for key, value in part.items():
             info[key] = info.get(key, 0) + value
     hm = FormFactorHMatrix(tree.perm, join_blocks(blocks), info)
+    release_freed_memory()      # the parts, copied into the joined blocks (freed on their threads' arenas)
     n = len(tree.perm)
     info.update({"n": n, "leaf_size": options.leaf_size, "eta": options.eta, "tolerance": options.tolerance,
                  "tree_nodes": int(len(tree.start)), "near_blocks": int(len(pairs.near_r)), "blocks": hm.blocks.count,

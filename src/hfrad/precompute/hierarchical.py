@@ -32,7 +32,7 @@ from ..formfactors.hmatrix import FormFactorHMatrix, HMatrixOptions, build_hmatr
 from ..lowrank.operator import operator_factorization
 from ..errors import InputError
 from ..memory import (HIERARCHICAL_RANK_ASSUMPTION, hierarchical_rank_guess, near_setup_bytes, operator_bytes,
-                      precompute_peak_bytes, release_freed_memory, require)
+                      precompute_peak_bytes, require)
 from .. import resources
 from ..progress import ProgressCallback
 from ..scene.scene import Scene
@@ -254,6 +254,7 @@ def _factorize_hmatrix(scene, plan, engine, hm, progress, status, t0, backend) -
         # the set-up factored but nothing was prefetched (eps 0.02: set-up 8.0 s, wall 57.2 s; now 2.9 s, 49.5 s)
         if prefetch_fits(n, round(r.size / max(1, n))):
             prefetch = NearPrefetch(near, n, scene.reflectance, plan.perm, dt)
+    finished = False
     try:
         target = plan.eps * math.sqrt(norm2) if plan.relative else plan.eps
         rho_dt = rho.astype(dt)[:, None]    # products in the factors' dtype (float32: twice as fast)
@@ -263,7 +264,6 @@ def _factorize_hmatrix(scene, plan, engine, hm, progress, status, t0, backend) -
                                          progress=progress, guard=basis_guard(n, plan, hm.nbytes))
         lowrank.norm, lowrank.eps, lowrank.relative = math.sqrt(norm2), plan.eps, plan.relative
         hm.release()        # not needed by the solver set-up, whose near-field LUs may take gigabytes
-        release_freed_memory()
         t_fac = time.perf_counter()
         if status is not None:
             status({"blocks": 0, "rank": lowrank.rank, "elapsed": t_fac - t0})
@@ -278,15 +278,11 @@ def _factorize_hmatrix(scene, plan, engine, hm, progress, status, t0, backend) -
         fac.lowrank.info["time_assemble"] = time.perf_counter() - t_fac
         if prefetch is not None:
             fac.lowrank.info["near_prefetched"] = prefetch.hits
+        finished = True
         return fac
-    except BaseException:
-        if prefetch is not None:
-            prefetch.close(wait=False)      # Ctrl-C or an error: not after the LU in flight
-            prefetch = None
-        raise
     finally:
         if prefetch is not None:
-            prefetch.close()
+            prefetch.close(wait=finished)   # Ctrl-C or an error: not after the LU in flight
 
 
 def engine_for(scene: Scene, plan: PrecomputePlan) -> FormFactorEngine:
