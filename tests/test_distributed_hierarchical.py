@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import warnings
 
 import numpy as np
@@ -12,9 +13,10 @@ from hfrad import Checkpoint, DaskBackend
 from hfrad.distributed import connect
 from hfrad.distributed import hierarchical as dask_hierarchical
 from hfrad.errors import AccuracyWarning
+from hfrad.formfactors.bfloat16 import value_dtype
 from hfrad.formfactors.engine import FormFactorEngine
-from hfrad.formfactors.hmatrix import (HMatrixOptions, build_hmatrix, build_part, hmatrix_pairs, join_parts,
-                                       split_into_parts)
+from hfrad.formfactors.hmatrix import (HMatrixOptions, build_hmatrix, build_part, hmatrix_pairs, join_blocks,
+                                       join_parts, split_into_parts)
 
 EPS = 0.05
 #: The build's counters that a split into parts must not change.
@@ -33,18 +35,25 @@ def _factorize(scene, **kw):
         return hfrad.factorize(scene, EPS, far_field="hierarchical", near_field=120, **kw)
 
 
-def test_parts_join_to_the_in_process_hmatrix(scene):
+@pytest.mark.parametrize("values", ["float32", "bfloat16"])
+def test_parts_join_to_the_in_process_hmatrix(scene, values):
     """A block depends on its own node pair alone (hashed rays, its own cross approximation): any split of
-    the pairs into parts, each built apart, joins to the in-process H-matrix entry for entry."""
-    options = HMatrixOptions()
+    the pairs into parts, each built apart, joins to the in-process H-matrix entry for entry (its values
+    float32 or bfloat16 alike); parts holding different kinds of values are refused."""
+    options = HMatrixOptions(values=values)
     engine = FormFactorEngine(scene)
     try:
         whole = build_hmatrix(scene, engine, options)
         pairs = hmatrix_pairs(scene, options)
         built = [build_part(scene, engine, part, options) for part in split_into_parts(pairs, 5)]
+        other = build_part(scene, engine, split_into_parts(pairs, 5)[0],
+                           options.replace(values="bfloat16" if values == "float32" else "float32"))[0]
     finally:
         engine.close()
+    with pytest.raises(ValueError, match="different dtypes"):
+        join_blocks([other, copy.deepcopy(built[1][0])])
     joined = join_parts(pairs, [b for b, _ in built], [i for _, i in built], options, 0.0)
+    assert joined.blocks.U.dtype == whole.blocks.U.dtype == value_dtype(values)
     assert np.array_equal(joined.to_dense(), whole.to_dense())
     assert {k: joined.info[k] for k in COUNTERS} == {k: whole.info[k] for k in COUNTERS}
     # near pairs split by their lower node: a pair and its mirror in one part

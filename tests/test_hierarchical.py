@@ -218,6 +218,49 @@ def test_resumes_from_the_hmatrix_checkpoint(tmp_path, monkeypatch):
     assert ckpt.exists()                       # refused, never deleted
 
 
+def test_bfloat16_values_give_the_float32_answer_to_their_rounding(tmp_path):
+    """An H-matrix holding bfloat16 values (the default from BFLOAT16_FROM patches) gives the float32
+    one's radiosity to its rounding and its certificate's figure, and resumes from its checkpoint."""
+    from hfrad.formfactors.hmatrix import HMatrixOptions
+    from hfrad.precompute.options import HMATRIX_EPS_SHARE
+
+    scene = hfrad.load_scene("cornell", patches=300)
+    options = (lambda values: hfrad.PrecomputeOptions(hmatrix=HMatrixOptions(tolerance=HMATRIX_EPS_SHARE * EPS,
+                                                                             values=values)))
+    ckpt = tmp_path / "run.partial"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", AccuracyWarning)
+        f32 = hfrad.factorize(scene, EPS, far_field="hierarchical", options=options("float32"))
+        f16 = hfrad.factorize(scene, EPS, far_field="hierarchical", options=options("bfloat16"),
+                              checkpoint=hfrad.Checkpoint(ckpt, interval=0.0, keep=True))
+        again = hfrad.factorize(scene, EPS, far_field="hierarchical", options=options("bfloat16"), checkpoint=ckpt)
+    assert f16.lowrank.info["hierarchical"]["values"] == "bfloat16"
+    assert f32.lowrank.info["hierarchical"]["values"] == "float32"
+    E = scene.emission
+    B32, B16 = f32.solve(E), f16.solve(E)
+    np.testing.assert_array_equal(again.solve(E), B16)
+    apart = _relative(scene, B16, B32, E)
+    assert (apart < 2e-3).all(), apart                  # observed 0.066-0.080%
+    # the certificate (absolute, ||A^1/2 R (F - F_H) A^-1/2||_F from exact rows) sees the rounding: at 300
+    # patches every pair is near and exact, so float32 leaves only its own (observed 6.8e-8 and 3.9e-3)
+    c32, c16 = (f.lowrank.info["hierarchical"]["certificate"]["error_estimate"] for f in (f32, f16))
+    assert c32 < 1e-6 < 1e-3 < c16 < 1e-2, (c32, c16)
+
+
+def test_values_default_to_bfloat16_from_100k_patches():
+    from hfrad.formfactors.hmatrix import BFLOAT16_FROM
+    from hfrad.memory import precompute_peak_bytes
+    from hfrad.precompute.options import hmatrix_options
+
+    assert BFLOAT16_FROM == 100_000
+    assert hmatrix_options(None, EPS, True, BFLOAT16_FROM - 1).values == "float32"
+    assert hmatrix_options(None, EPS, True, BFLOAT16_FROM).values == "bfloat16"
+    assert hmatrix_options(None, 0.01, False, BFLOAT16_FROM).values == "bfloat16"
+    n = 160_000
+    four, two = (precompute_peak_bytes(n, 64, far_field="hierarchical", hmatrix_value_bytes=v) for v in (4, 2))
+    assert four - two == pytest.approx(2 * 12 * n ** 1.5, rel=1e-6)     # 12 sqrt(n) values a patch, 2 bytes less
+
+
 def test_memory_refused_with_the_number(monkeypatch):
     import hfrad.memory as memory
 

@@ -129,12 +129,12 @@ def hierarchical_rank_guess(n: int) -> int:
     return min(n, 256)
 
 
-def hmatrix_bytes(n: int, clustered: bool = False) -> int:
-    """An H-matrix of n patches, bytes: ``4 (c + 2) sqrt(n)`` a patch (c sqrt(n) float32 values and
-    :data:`HMATRIX_ROWS_PER_SQRT_N` sqrt(n) int32 row numbers), c :data:`HMATRIX_FLOATS_PER_SQRT_N`
-    (``clustered``: :data:`HMATRIX_FLOATS_PER_SQRT_N_CLUSTERED`)."""
+def hmatrix_bytes(n: int, clustered: bool = False, value_bytes: int = 4) -> int:
+    """An H-matrix of n patches, bytes: ``(v c + 4 x 2) sqrt(n)`` a patch (c sqrt(n) values of ``value_bytes``
+    v each, 4 for float32 and 2 for bfloat16, and :data:`HMATRIX_ROWS_PER_SQRT_N` sqrt(n) int32 row numbers),
+    c :data:`HMATRIX_FLOATS_PER_SQRT_N` (``clustered``: :data:`HMATRIX_FLOATS_PER_SQRT_N_CLUSTERED`)."""
     per_sqrt_n = HMATRIX_FLOATS_PER_SQRT_N_CLUSTERED if clustered else HMATRIX_FLOATS_PER_SQRT_N
-    return int(n * n ** 0.5 * 4 * (per_sqrt_n + HMATRIX_ROWS_PER_SQRT_N))
+    return int(n * n ** 0.5 * (value_bytes * per_sqrt_n + 4 * HMATRIX_ROWS_PER_SQRT_N))
 
 
 def operator_bytes(n: int, basis: int, itemsize: int = 4) -> int:
@@ -152,16 +152,17 @@ NEAR_TAKEN_BYTES = 64
 
 
 def hierarchical_bytes(n: int, rank_guess_: int | None = None, itemsize: int = 4, clustered: bool = False,
-                       near_entries: int = 0) -> int:
+                       near_entries: int = 0, value_bytes: int = 4) -> int:
     """Rough peak memory of ``factorize(far_field="hierarchical")`` up to its solver set-up, bytes: the
-    H-matrix (:func:`hmatrix_bytes`), the near field's ``near_entries`` a row taken out of it
-    (:data:`NEAR_TAKEN_BYTES` an entry) and the operator factorization beside them
+    H-matrix (:func:`hmatrix_bytes`, its values ``value_bytes`` each), the near field's ``near_entries`` a
+    row taken out of it (:data:`NEAR_TAKEN_BYTES` an entry) and the operator factorization beside them
     (:func:`operator_bytes`) with a basis of twice the rank (measured: 384 columns for rank 163, 448
     for 193), the rank :func:`hierarchical_rank_guess` unless given (see
     :data:`HIERARCHICAL_RANK_ASSUMPTION`).
     """
     k = hierarchical_rank_guess(n) if rank_guess_ is None else rank_guess_
-    return hmatrix_bytes(n, clustered) + NEAR_TAKEN_BYTES * n * near_entries + operator_bytes(n, 2 * k, itemsize)
+    return (hmatrix_bytes(n, clustered, value_bytes) + NEAR_TAKEN_BYTES * n * near_entries
+            + operator_bytes(n, 2 * k, itemsize))
 
 
 #: Entries a row of the near field's sparse LU (SuperLU, minimum degree on A^T + A) over ``c^1.5``, c the
@@ -233,17 +234,18 @@ def near_setup_bytes(n: int, entries: int, rank_guess_: int | None = None, items
 
 
 def precompute_peak_bytes(n: int, block_size: int, *, far_field: str = "exact", near_entries: int = 0,
-                          itemsize: int = 4, clustered: bool = False) -> int:
+                          itemsize: int = 4, clustered: bool = False, hmatrix_value_bytes: int = 4) -> int:
     """Rough peak memory of a precompute in this process, bytes: the larger of its pass over F
     (:func:`precompute_bytes`, or :func:`hierarchical_bytes` with ``far_field="hierarchical"``) and the
     solver's set-up (:func:`near_setup_bytes`, with ``near_entries`` c > 0 a row of N): the pass's
     blocks (or the H-matrix) are released before the set-up, and the near field's LUs are factored
-    beside the pass only where they fit (:mod:`hfrad.solve.prefetch`). ``clustered``: a clustered mesh
-    (:func:`hierarchical_bytes`). The hierarchical path assumes :func:`hierarchical_rank_guess` for both
+    beside the pass only where they fit (:mod:`hfrad.solve.prefetch`). ``clustered``: a clustered mesh,
+    ``hmatrix_value_bytes``: 4 or 2 (bfloat16) a value of the H-matrix (:func:`hierarchical_bytes`). The hierarchical path assumes :func:`hierarchical_rank_guess` for both
     and checks again as its basis grows (:func:`hfrad.precompute.hierarchical.basis_guard`); the column
     pass assumes :func:`rank_guess`."""
     if far_field == "hierarchical":
         k = hierarchical_rank_guess(n)
-        return max(hierarchical_bytes(n, k, itemsize=itemsize, clustered=clustered, near_entries=near_entries),
+        return max(hierarchical_bytes(n, k, itemsize=itemsize, clustered=clustered, near_entries=near_entries,
+                                      value_bytes=hmatrix_value_bytes),
                    near_setup_bytes(n, near_entries, k, itemsize=itemsize))
     return max(precompute_bytes(n, block_size, itemsize=itemsize), near_setup_bytes(n, near_entries, itemsize=itemsize))

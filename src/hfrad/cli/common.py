@@ -331,10 +331,13 @@ def precompute_estimate(n: int, block: int, dtype: str, far_field: str = "auto",
                         clustered: bool = False) -> int:
     """Bytes a precompute of n patches is estimated to need (:func:`hfrad.memory.precompute_peak_bytes`:
     the pass, or the near field's set-up with ``near_entries`` a row where that is larger)."""
+    from ..formfactors.bfloat16 import value_dtype
+    from ..formfactors.hmatrix import default_values
     from ..memory import precompute_peak_bytes
 
     return precompute_peak_bytes(n, block, far_field=far_field, near_entries=near_entries,
-                                 itemsize=check_dtype(dtype).itemsize, clustered=clustered)
+                                 itemsize=check_dtype(dtype).itemsize, clustered=clustered,
+                                 hmatrix_value_bytes=value_dtype(default_values(n)).itemsize)
 
 
 def check_memory_for_precompute(n: int, block: int, dtype: str, *, count: str = "", far_field: str = "auto",

@@ -65,9 +65,10 @@ def register(app: typer.Typer) -> None:
         same column blocks, the certification and sampled rows' exact values (about
         (2 sqrt(n) + 400) b float64 a block) and the cluster-pair visibility table (n^2 / 1024 bytes).
         With --far-field hierarchical, instead of the column blocks and tiles: the
-        H-matrix (about 12 sqrt(n) float32 and 2 sqrt(n) int32 a patch, 36 sqrt(n)
-        float32 on a clustered mesh; 10.8 sqrt(n) measured at 161,808 patches, 30.2
-        on the clustered Šibenik at 60,568), the operator factorization (4 n l s
+        H-matrix (about 12 sqrt(n) values and 2 sqrt(n) int32 a patch, 36 sqrt(n)
+        values on a clustered mesh; 10.8 sqrt(n) measured at 161,808 patches, 30.2
+        on the clustered Šibenik at 60,568; a value is a float32, or a 2-byte
+        bfloat16 from 100,000 patches), the operator factorization (4 n l s
         for a basis of l columns, about twice the rank, plus three float64 n x 64
         product buffers), the near field's entries beside it (64 bytes each) and
         the statistics (about 2.9 KB a patch): hfrad.memory.hierarchical_bytes,

@@ -28,6 +28,7 @@ import numpy as np
 from ..formfactors.certify import RowCertificate, row_errors
 from ..formfactors.engine import FormFactorEngine
 from ..formfactors.farfield import FarFieldCertificate, patch_boxes
+from ..formfactors.bfloat16 import value_dtype
 from ..formfactors.hmatrix import FormFactorHMatrix, HMatrixOptions, build_hmatrix, cluster_tree
 from ..lowrank.operator import operator_factorization
 from ..errors import InputError
@@ -156,8 +157,9 @@ def check_hierarchical_memory(plan: PrecomputePlan, clustered: bool = False) -> 
     """Refuse a plan whose estimate (:func:`hfrad.memory.precompute_peak_bytes`; ``clustered``: the scene's
     patches are clusters of triangles) exceeds 80% of the available memory."""
     n, dt = plan.n, np.dtype(plan.dtype)
+    value_bytes = value_dtype(plan.hmatrix_options.values).itemsize
     require(precompute_peak_bytes(n, plan.block_size, far_field="hierarchical", near_entries=plan.near_entries,
-                                  itemsize=dt.itemsize, clustered=clustered),
+                                  itemsize=dt.itemsize, clustered=clustered, hmatrix_value_bytes=value_bytes),
             f"precomputing {n:,} patches with far_field='hierarchical'"
             + (f" and {plan.near_entries} near-field entries a row" if plan.near_entries else ""),
             f"use fewer patches, a larger eps or fewer near-field entries (the estimate assumes a rank of "

@@ -19,6 +19,7 @@ import numpy as np
 
 from ..atomic import atomic_path
 from ..errors import FileFormatError, InputError
+from ..formfactors.bfloat16 import VALUE_DTYPES
 from ..formfactors.hmatrix import BlockList, FormFactorHMatrix
 from ..integrity import checked_dataset, seal
 from ..lowrank.streaming import check_checkpoint, open_checkpoint
@@ -82,6 +83,9 @@ def load_hmatrix_checkpoint(path: str | os.PathLike, key: str, perm: np.ndarray)
             info = json.loads(f.attrs["info"])
         except (OSError, KeyError, ValueError) as exc:     # a checksum that fails as the data are read
             raise FileFormatError(f"{path}: damaged checkpoint ({str(exc)[:200]}); {_DELETE}") from None
+    if blocks.U.dtype not in VALUE_DTYPES.values() or blocks.V.dtype != blocks.U.dtype:
+        raise FileFormatError(f"{path}: the blocks' values are {blocks.U.dtype} and {blocks.V.dtype}, not float32 or "
+                              f"bfloat16 (uint16) alike; {_DELETE}")
     if not np.array_equal(saved_perm, perm):
         raise InputError(f"{path}: checkpoint was made for another patch order; {_DELETE}")
     return FormFactorHMatrix(saved_perm, blocks, info)

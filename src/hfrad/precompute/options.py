@@ -22,7 +22,7 @@ from ..defaults import DEFAULT_BLOCK_SIZE
 from ..errors import InputError, SceneError
 from ..formfactors.budget import default_one_ray_tol
 from ..formfactors.farfield import FAR_FIELD_CHOICES, FarFieldOptions
-from ..formfactors.hmatrix import HMatrixOptions
+from ..formfactors.hmatrix import HMatrixOptions, default_values
 from ..lowrank.nearsplit import DEFAULT_NEAR_ENTRIES, near_radius
 from ..scene.scene import Scene
 from ..scene.zorder import patch_order
@@ -147,15 +147,18 @@ def far_field_mode(far_field, n: int, relative: bool, *, eps: float = 0.0, local
 HMATRIX_EPS_SHARE = 0.2
 
 
-def hmatrix_options(hmatrix, eps: float, relative: bool) -> HMatrixOptions:
+def hmatrix_options(hmatrix, eps: float, relative: bool, n: int) -> HMatrixOptions:
     """The H-matrix's options: the user's, else the defaults with the block tolerance
-    ``HMATRIX_EPS_SHARE * eps`` (a relative eps; an absolute one keeps the default 0.01)."""
+    ``HMATRIX_EPS_SHARE * eps`` (a relative eps; an absolute one keeps the default 0.01) and the
+    values held as :func:`~hfrad.formfactors.hmatrix.default_values` says for n patches."""
     if hmatrix is not None:
         if not isinstance(hmatrix, HMatrixOptions):
             raise InputError(f"options.hmatrix must be an hfrad.formfactors.hmatrix.HMatrixOptions; "
                              f"got {type(hmatrix).__name__}")
         return hmatrix
-    return HMatrixOptions(tolerance=HMATRIX_EPS_SHARE * eps) if relative else HMatrixOptions()
+    values = default_values(n)
+    return (HMatrixOptions(tolerance=HMATRIX_EPS_SHARE * eps, values=values) if relative
+            else HMatrixOptions(values=values))
 
 
 def _far_options(far) -> FarFieldOptions:
@@ -198,7 +201,9 @@ class PrecomputeOptions:
     hmatrix : HMatrixOptions, optional
         The H-matrix's knobs (leaf size, admissibility, each far block's tolerance;
         :class:`hfrad.formfactors.hmatrix.HMatrixOptions`), used with ``far_field="hierarchical"``;
-        default: its defaults with the tolerance ``HMATRIX_EPS_SHARE`` (0.2) times a relative eps.
+        default: its defaults with the tolerance ``HMATRIX_EPS_SHARE`` (0.2) times a relative eps,
+        and its values held as bfloat16 from ``BFLOAT16_FROM`` (100,000) patches
+        (:func:`hfrad.formfactors.hmatrix.default_values`).
     """
 
     block_size: int | None = None
@@ -271,7 +276,7 @@ def plan_precompute(scene: Scene, eps: float = 0.02, *, relative: bool = True, d
     if far_field == "auto" and not isinstance(order, str):
         far_field = "exact"        # a custom order: only the column pass keeps it
     far_field = far_field_mode(far_field, n, bool(relative), eps=eps, local=local, clustered=scene.is_clustered)
-    hm_options = hmatrix_options(options.hmatrix, eps, relative) if far_field == "hierarchical" else None
+    hm_options = hmatrix_options(options.hmatrix, eps, relative, n) if far_field == "hierarchical" else None
     if hm_options is not None:
         if not isinstance(order, str):
             raise InputError("far_field='hierarchical' orders the patches by its cluster tree; a custom "
