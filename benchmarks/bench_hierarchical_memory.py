@@ -76,7 +76,7 @@ def child(scene_name: str, patches: int, values: str, eps: float, out: Path, che
 
     scene = common.load_bench_scene(scene_name, patches)
     options = hfrad.PrecomputeOptions(hmatrix=HMatrixOptions(tolerance=HMATRIX_EPS_SHARE * eps, values=values))
-    plan = plan_precompute(scene, eps, far_field="hierarchical", options=options)
+    plan = plan_precompute(scene, eps, near_field="auto", far_field="hierarchical", options=options)  # factorize's
     estimate = precompute_peak_bytes(plan.n, plan.block_size, far_field="hierarchical",
                                      near_entries=plan.near_entries,
                                      hmatrix_value_bytes=value_dtype(values).itemsize)
@@ -93,6 +93,8 @@ def child(scene_name: str, patches: int, values: str, eps: float, out: Path, che
     row = {"n": scene.n_patches, "values": values, "memory_check": check, "wall_s": wall, "peak_rss_gib": peak / 2 ** 30,
            "estimate_gib": estimate / 2 ** 30, "hmatrix_gib": h["bytes"] / 2 ** 30, "storage_floats": h["storage_floats"],
            "rank": fac.rank, "basis": h["factorization"]["basis"], "near_nnz": info.get("near_nnz"),
+           "pairs_share": h["pairs_share"], "exact_share": h["exact_pairs"] / scene.n_patches ** 2,
+           "hierarchical": {k: v for k, v in h.items() if k != "factorization"},
            "certificate_relative": h["certificate"]["error_estimate"] / fac.lowrank.norm,
            "figure": [float(x) for x in np.ravel(err.bound)],
            "stages": {k: info[k] for k in ("time_formfactors", "time_statistics", "time_certificate",
@@ -141,7 +143,7 @@ def main() -> None:
                 rows[-1]["vs_float32"] = reflected_difference(answers["bfloat16"], answers["float32"],
                                                               np.asarray(scene.emission, float), scene.areas)
     common.print_table(f"{args.scene}, eps {args.eps}: peak memory by the H-matrix's values", rows,
-                       ["n", "values", "wall_s", "peak_rss_gib", "estimate_gib", "hmatrix_gib", "rank",
+                       ["n", "values", "wall_s", "peak_rss_gib", "estimate_gib", "hmatrix_gib", "rank", "pairs_share",
                         "certificate_relative", "figure", "vs_float32"])
     path = common.write_json(f"hierarchical-memory-values-{args.scene}-" + "-".join(
         str(n) for n in dict.fromkeys(r["n"] for r in rows)), {"machine": m, "eps": args.eps, "rows": rows})

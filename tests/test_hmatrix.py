@@ -144,6 +144,21 @@ def test_bfloat16_values_are_the_float32_ones_rounded(cornell):
     np.testing.assert_allclose(near16.to_dense() + N, D16, rtol=0, atol=1e-7 * np.abs(D16).max())
 
 
+def test_drain_joins_the_pieces_and_hands_back_what_they_held(monkeypatch):
+    """_drain empties the list into one array (the pieces' values in order) and calls the trim every
+    DRAIN_TRIM_BYTES copied: the freed batches are handed back as it goes, not held beside the result."""
+    import hfrad.formfactors.hmatrix as hmatrix
+
+    trims = []
+    monkeypatch.setattr(hmatrix, "release_freed_memory", lambda: trims.append(1))
+    monkeypatch.setattr(hmatrix, "DRAIN_TRIM_BYTES", 4 * 100)
+    pieces = [np.arange(k * 40, (k + 1) * 40, dtype=np.float32) for k in range(10)]   # 160 bytes each
+    expected = np.concatenate(pieces)
+    out = hmatrix._drain(pieces, np.float32)
+    assert pieces == [] and np.array_equal(out, expected)
+    assert len(trims) == 3                              # after the 3rd, 6th and 9th piece (480 bytes each time)
+
+
 def _hand_blocks():
     """Five blocks over 12 positions: a dense block with a zero row and zero outer columns, an all-zero
     dense block, a rank-0 block, a rank-2 block and a dense block without zeros."""

@@ -775,16 +775,29 @@ def _apply(X, Y, parts, rows, row_ptr, c0, b_, rank, u_off, v_off, U, V, transpo
 
 # -- Building it ----------------------------------------------------------------------------------
 
+#: Bytes :func:`_drain` copies between two hand-backs of the pieces it freed (:func:`release_freed_memory`).
+DRAIN_TRIM_BYTES = 256 << 20
+
+
 def _drain(pieces: list, dtype) -> np.ndarray:
     """``pieces`` (a list, emptied) joined into one array of ``dtype``, each piece dropped once copied:
-    the peak is the joined array and one piece, not twice the pieces (np.concatenate's)."""
+    the peak is the joined array and one piece, not twice the pieces (np.concatenate's).
+
+    The pieces are a build's batches, a few MB each, so glibc keeps them on its heaps once freed: the
+    memory they held is handed back every :data:`DRAIN_TRIM_BYTES` copied, or the process would hold
+    both the pieces and the joined array at the end."""
     out = np.empty(sum(len(x) for x in pieces), dtype)
-    at = 0
+    at = since_trim = 0
     pieces.reverse()            # pop from the end: the first piece first
     while pieces:
         x = pieces.pop()
         out[at:at + len(x)] = x
         at += len(x)
+        since_trim += x.nbytes
+        del x
+        if since_trim >= DRAIN_TRIM_BYTES:
+            release_freed_memory()
+            since_trim = 0
     return out
 
 
