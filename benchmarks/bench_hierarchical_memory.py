@@ -90,8 +90,9 @@ def child(scene_name: str, patches: int, values: str, eps: float, out: Path, che
     info = fac.lowrank.info
     h = info["hierarchical"]
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
-    row = {"n": scene.n_patches, "values": values, "memory_check": check, "wall_s": wall, "peak_rss_gib": peak / 2 ** 30,
-           "estimate_gib": estimate / 2 ** 30, "hmatrix_gib": h["bytes"] / 2 ** 30, "storage_floats": h["storage_floats"],
+    row = {"n": scene.n_patches, "values": values, "memory_check": check, "wall_s": wall,
+           "peak_rss_gib": peak / 2 ** 30, "estimate_gib": estimate / 2 ** 30, "hmatrix_gib": h["bytes"] / 2 ** 30,
+           "storage_floats": h["storage_floats"],
            "rank": fac.rank, "basis": h["factorization"]["basis"], "near_nnz": info.get("near_nnz"),
            "pairs_share": h["pairs_share"], "exact_share": h["exact_pairs"] / scene.n_patches ** 2,
            "hierarchical": {k: v for k, v in h.items() if k != "factorization"},

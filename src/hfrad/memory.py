@@ -145,10 +145,12 @@ def operator_bytes(n: int, basis: int, itemsize: int = 4) -> int:
 
 
 #: Bytes an entry of the near field takes while the operator factorization runs beside the H-matrix: its
-#: entries taken out of the blocks (row, column, value) and the near field's CSR. Measured 63 (296,350
-#: Cornell-box patches, 39.1 million entries: 2.3 GiB more from the end of the certificate to the start
-#: of the factorization).
-NEAR_TAKEN_BYTES = 64
+#: coordinates (row, column, value: 24) and, for an entry taken out of a low-rank block, the products'
+#: sparse correction and its squares (two float32 CSRs and a float64 one: 28 more). The upper figure, all
+#: entries from low-rank blocks; measured with tracemalloc at 39,482 Cornell-box patches (58% of 5.8M
+#: entries from low-rank blocks): 41.8 (65.8 while the precompute also kept the coordinates take_near
+#: returned, until 2026-12-08; 63 measured by RSS at 296,350 patches then).
+NEAR_TAKEN_BYTES = 52
 
 
 def hierarchical_bytes(n: int, rank_guess_: int | None = None, itemsize: int = 4, clustered: bool = False,
@@ -240,9 +242,9 @@ def precompute_peak_bytes(n: int, block_size: int, *, far_field: str = "exact", 
     solver's set-up (:func:`near_setup_bytes`, with ``near_entries`` c > 0 a row of N): the pass's
     blocks (or the H-matrix) are released before the set-up, and the near field's LUs are factored
     beside the pass only where they fit (:mod:`hfrad.solve.prefetch`). ``clustered``: a clustered mesh,
-    ``hmatrix_value_bytes``: 4 or 2 (bfloat16) a value of the H-matrix (:func:`hierarchical_bytes`). The hierarchical path assumes :func:`hierarchical_rank_guess` for both
-    and checks again as its basis grows (:func:`hfrad.precompute.hierarchical.basis_guard`); the column
-    pass assumes :func:`rank_guess`."""
+    ``hmatrix_value_bytes``: 4 or 2 (bfloat16) a value of the H-matrix (:func:`hierarchical_bytes`). The
+    hierarchical path assumes :func:`hierarchical_rank_guess` for both and checks again as its basis grows
+    (:func:`hfrad.precompute.hierarchical.basis_guard`); the column pass assumes :func:`rank_guess`."""
     if far_field == "hierarchical":
         k = hierarchical_rank_guess(n)
         return max(hierarchical_bytes(n, k, itemsize=itemsize, clustered=clustered, near_entries=near_entries,

@@ -70,7 +70,7 @@ def register(app: typer.Typer) -> None:
         on the clustered Šibenik at 60,568; a value is a float32, or a 2-byte
         bfloat16 from 100,000 patches), the operator factorization (4 n l s
         for a basis of l columns, about twice the rank, plus three float64 n x 64
-        product buffers), the near field's entries beside it (64 bytes each) and
+        product buffers), the near field's entries beside it (52 bytes each) and
         the statistics (about 2.9 KB a patch): hfrad.memory.hierarchical_bytes,
         with a rank of min(n, 256) before the run and checked again as the basis
         grows (the set-up above at that rank); the H-matrix is released before

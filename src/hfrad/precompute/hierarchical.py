@@ -247,6 +247,8 @@ def _factorize_hmatrix(scene, plan, engine, hm, progress, status, t0, backend) -
     if plan.near_entries:
         r, c, v = hm.take_near(scene.centroids[plan.perm], plan.near_radius)
         near = near_state([r], [c], [rho[r] * v])
+        entries = r.size
+        del r, c, v     # near holds its own copies: 24 bytes an entry less through the range finder
         # the solver's sparse LUs need only N: factored beside the range finder, on the core its
         # single-threaded steps leave idle (hfrad.solve.prefetch), where they fit beside the H-matrix
         # (Šibenik, 60,568 patches: 10.3 GB for one channel's factorization, 278 s; the run was killed
@@ -254,7 +256,7 @@ def _factorize_hmatrix(scene, plan, engine, hm, progress, status, t0, backend) -
         # decided on N's own entries a row, as the set-up decides between its LUs and sweeps
         # (near_setup_runner): the plan's 242 a row at 10,181 Šibenik patches are 145 in N, so
         # the set-up factored but nothing was prefetched (eps 0.02: set-up 8.0 s, wall 57.2 s; now 2.9 s, 49.5 s)
-        if prefetch_fits(n, round(r.size / max(1, n))):
+        if prefetch_fits(n, round(entries / max(1, n))):
             prefetch = NearPrefetch(near, n, scene.reflectance, plan.perm, dt)
     finished = False
     try:
