@@ -120,8 +120,9 @@ OPERATOR_BLOCK = 64
 #: The rank ``far_field="hierarchical"``'s check assumes before the run; the operator factorization checks
 #: again as its basis grows (:func:`operator_bytes`), so a larger rank is refused when it is reached.
 HIERARCHICAL_RANK_ASSUMPTION = ("min(n, 256) before the run (measured at eps 0.05: 149-193 on the Cornell box "
-                                "from 39,482 to 296,350 patches, 12-59 on the Šibenik cathedral; at eps 0.02: "
-                                "1,882 on the Cornell box at 39,482 patches), checked again as the basis grows")
+                                "from 39,482 to 296,350 patches and 268 at 496,176, 12-59 on the Šibenik "
+                                "cathedral; at eps 0.02: 1,882 on the Cornell box at 39,482 patches), checked "
+                                "again as the basis grows")
 
 
 def hierarchical_rank_guess(n: int) -> int:
