@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 import common
+from bench_far_field import reflected_difference
 
 
 def _rss_bytes() -> int:
@@ -104,12 +105,6 @@ def child(scene_name: str, patches: int, values: str, eps: float, out: Path, che
            "rss_gib": [(round(t, 2), round(r / 2 ** 30, 3)) for t, r in sampler.samples[::4]]}
     np.save(f"{out}.npy", B)
     Path(f"{out}.json").write_text(json.dumps(common._jsonable(row)))
-
-
-def reflected_difference(B, B_ref, E, areas) -> list[float]:
-    """Per channel ``||B - B_ref||_A / ||B_ref - E||_A``."""
-    w = np.asarray(areas)[:, None]
-    return [float(x) for x in np.sqrt((w * (B - B_ref) ** 2).sum(axis=0) / (w * (B_ref - E) ** 2).sum(axis=0))]
 
 
 def main() -> None:
