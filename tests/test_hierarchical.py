@@ -9,6 +9,7 @@ the exact path's factorization (the same radiosity within both stated figures).
 from __future__ import annotations
 
 import copy
+import re
 import warnings
 
 import numpy as np
@@ -166,6 +167,7 @@ def test_front_door_and_cli(tmp_path):
     result = run("precompute", "cornell", "--patches", "300", "--eps", EPS, "--far-field", "hierarchical", "-o", out)
     assert result.exit_code == 0, result.output
     assert "far field hierarchical" in result.output and hfrad.load(out).params["far_field"] == "hierarchical"
+    assert re.search(r"values a patch \(float32, [0-9.]+ [KMG]B in all\)", " ".join(result.output.split()))
     # the command resumes from the H-matrix an interrupted run saved (OUTPUT.partial), and says so
     partial = tmp_path / "again.hfr.partial"
     with warnings.catch_warnings():

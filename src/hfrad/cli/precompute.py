@@ -298,11 +298,13 @@ def _report(fac, output: Path, clock) -> None:
 def _hierarchical_line(h: dict) -> str:
     """What ``far_field="hierarchical"`` did (``info["hierarchical"]``), in words."""
     from ..formfactors.farfield import CERTIFICATE_FAILURE
+    from ..memory import human
 
     c = h["certificate"]
     return (f"far field hierarchical: {h['pairs_share']:.2%} of the n^2 form factors evaluated "
             f"({h['exact_pairs']:,} with rays, {h['kernel_pairs']:,} kernel only), {h['blocks']:,} blocks "
-            f"(mean far rank {h['mean_rank']:.1f}), {h['storage_floats'] / max(h['n'], 1):,.0f} floats a patch; "
+            f"(mean far rank {h['mean_rank']:.1f}), {h['storage_floats'] / max(h['n'], 1):,.0f} values a patch"
+            + (f" ({h.get('values', 'float32')}, {human(h['bytes'])} in all)" if "bytes" in h else "") + "; "
             f"{h['factorization']['products']:,} products; its error ||G - G_H||_F about {c['error_estimate']:.3g}, "
             f"upper figure {c['error_upper']:.3g} (the error above it with probability ~{CERTIFICATE_FAILURE:.1%}; "
             f"{c['rows']:,} exact rows drawn by importance: docs/method.md section 4c)")
