@@ -70,17 +70,13 @@ def child(scene_name: str, patches: int, values: str, eps: float, out: Path, che
     if not check:
         hierarchical.check_hierarchical_memory = lambda *a, **k: None
         hierarchical.basis_guard = lambda *a, **k: (lambda columns, more: None)
-    from hfrad.formfactors.bfloat16 import value_dtype
     from hfrad.formfactors.hmatrix import HMatrixOptions
-    from hfrad.memory import precompute_peak_bytes
     from hfrad.precompute.options import HMATRIX_EPS_SHARE, plan_precompute
 
     scene = common.load_bench_scene(scene_name, patches)
     options = hfrad.PrecomputeOptions(hmatrix=HMatrixOptions(tolerance=HMATRIX_EPS_SHARE * eps, values=values))
     plan = plan_precompute(scene, eps, near_field="auto", far_field="hierarchical", options=options)  # factorize's
-    estimate = precompute_peak_bytes(plan.n, plan.block_size, far_field="hierarchical",
-                                     near_entries=plan.near_entries,
-                                     hmatrix_value_bytes=value_dtype(values).itemsize)
+    estimate = hierarchical.hierarchical_peak_bytes(plan, scene.is_clustered)   # the check's own figure
     sampler = _Sampler()
     t0 = time.perf_counter()
     fac = hfrad.factorize(scene, eps, far_field="hierarchical", options=options, status=sampler.mark)

@@ -25,10 +25,10 @@ from typing import Callable
 
 import numpy as np
 
+from ..formfactors.bfloat16 import value_dtype
 from ..formfactors.certify import RowCertificate, row_errors
 from ..formfactors.engine import FormFactorEngine
 from ..formfactors.farfield import FarFieldCertificate, patch_boxes
-from ..formfactors.bfloat16 import value_dtype
 from ..formfactors.hmatrix import FormFactorHMatrix, HMatrixOptions, build_hmatrix, cluster_tree
 from ..lowrank.operator import operator_factorization
 from ..errors import InputError
@@ -45,6 +45,7 @@ from .backends import Checkpoint
 from .hmatrix_checkpoint import load_hmatrix_checkpoint, save_hmatrix_checkpoint
 
 __all__ = ["factorize_hierarchical", "factorize_hmatrix", "engine_for", "tree_order", "check_hierarchical_memory",
+           "hierarchical_peak_bytes",
            "resumed_hmatrix", "save_if_worth", "run_hierarchical", "CERTIFICATE_ROWS", "CERTIFICATE_SEED"]
 
 #: Exact rows drawn (with replacement, by importance) to certify ``||G - G_H||``.
@@ -153,13 +154,18 @@ def run_hierarchical(scene: Scene, plan: PrecomputePlan, build: Callable[[FormFa
     return fac
 
 
+def hierarchical_peak_bytes(plan: PrecomputePlan, clustered: bool = False) -> int:
+    """The plan's estimated peak, bytes (:func:`hfrad.memory.precompute_peak_bytes` with its near field,
+    dtype and H-matrix values; ``clustered``: the scene's patches are clusters of triangles)."""
+    return precompute_peak_bytes(plan.n, plan.block_size, far_field="hierarchical", near_entries=plan.near_entries,
+                                 itemsize=np.dtype(plan.dtype).itemsize, clustered=clustered,
+                                 hmatrix_value_bytes=value_dtype(plan.hmatrix_options.values).itemsize)
+
+
 def check_hierarchical_memory(plan: PrecomputePlan, clustered: bool = False) -> None:
-    """Refuse a plan whose estimate (:func:`hfrad.memory.precompute_peak_bytes`; ``clustered``: the scene's
-    patches are clusters of triangles) exceeds 80% of the available memory."""
-    n, dt = plan.n, np.dtype(plan.dtype)
-    value_bytes = value_dtype(plan.hmatrix_options.values).itemsize
-    require(precompute_peak_bytes(n, plan.block_size, far_field="hierarchical", near_entries=plan.near_entries,
-                                  itemsize=dt.itemsize, clustered=clustered, hmatrix_value_bytes=value_bytes),
+    """Refuse a plan whose estimate (:func:`hierarchical_peak_bytes`) exceeds 80% of the available memory."""
+    n = plan.n
+    require(hierarchical_peak_bytes(plan, clustered),
             f"precomputing {n:,} patches with far_field='hierarchical'"
             + (f" and {plan.near_entries} near-field entries a row" if plan.near_entries else ""),
             f"use fewer patches, a larger eps or fewer near-field entries (the estimate assumes a rank of "
